@@ -1,0 +1,71 @@
+"""The ``hood-decomp`` command line.
+
+Each verb lives in its own module ``hood_decomp.cli.<verb>`` exposing ``HELP`` (one line), ``add_arguments(parser)``
+and ``run(args) -> int``. Modules are imported lazily so ``--help`` stays fast and a verb only pays for what it uses.
+Bad input (any :class:`~hood_decomp.errors.HoodDecompError`) ends in one line on stderr and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from hood_decomp import __version__
+from hood_decomp.errors import HoodDecompError
+
+# verb -> module name; the order is the order of --help.
+VERBS: dict[str, str] = {
+    "model": "model",
+    "simulate": "simulate",
+    "ensemble": "ensemble",
+    "bases": "bases",
+    "estimate": "estimate",
+    "decompose": "decompose",
+    "close-loop": "close_loop",
+    "scan": "scan",
+    "replay": "replay",
+    "launch": "launch",
+    "demo": "demo",
+}
+
+
+def _build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="hood-decomp",
+        description="Decompose scanned deviations of a sheet-metal assembly into boundary effects "
+        "(Claus & Hamann). Lengths in millimetres.",
+    )
+    parser.add_argument("--version", action="version", version=f"hood-decomp {__version__}")
+    sub = parser.add_subparsers(dest="verb", metavar="VERB")
+    sub.required = True
+    wanted = next((a for a in argv if not a.startswith("-")), None)
+    for verb, module_name in VERBS.items():
+        if wanted is not None and wanted != verb:
+            # Only the chosen verb's module is imported; the others get a bare entry for the verb list.
+            sub.add_parser(verb)
+            continue
+        module = importlib.import_module(f"hood_decomp.cli.{module_name}")
+        verb_parser = sub.add_parser(verb, help=module.HELP, description=module.HELP)
+        module.add_arguments(verb_parser)
+        verb_parser.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = _build_parser(argv)
+    args = parser.parse_args(argv)
+    try:
+        return int(args._run(args))
+    except HoodDecompError as error:
+        print(f"hood-decomp {args.verb}: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"hood-decomp {args.verb}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,51 @@
+"""The one errors module of hood_decomp.
+
+Every error raised at a public boundary derives from :class:`HoodDecompError`, so the command line and the nodes can
+turn it into a one-line message (CLI) or a diagnostic (nodes) without catching programming errors by accident.
+Messages name what was expected and what was found.
+"""
+
+
+class HoodDecompError(Exception):
+    """Base class: bad input or a state the system refuses to compute from."""
+
+
+class ModelError(HoodDecompError):
+    """A part model (model.yaml and mesh) is invalid: unknown boundary, empty patch, min > max, missing thickness,
+    degenerate element, under-constrained part."""
+
+
+class MeshError(HoodDecompError):
+    """A mesh file cannot be read or is inconsistent."""
+
+
+class SolverError(HoodDecompError):
+    """A finite-element solve failed (singular stiffness, complementarity not converged, external solver failure)."""
+
+
+class EnsembleError(HoodDecompError):
+    """An ensemble store is missing, incomplete or of an unknown schema version."""
+
+
+class BasisError(HoodDecompError):
+    """A basis cannot be built or loaded (too few members, unsupported component count, wrong schema)."""
+
+
+class FieldError(HoodDecompError):
+    """A displacement field is unusable: wrong length, wrong model_id, all NaN, inf values, coverage too low."""
+
+
+class ModelIdMismatch(FieldError):
+    """A field and a basis (or model) come from different models."""
+
+
+class ScanError(HoodDecompError):
+    """A scan is unusable: empty, all NaN, wrong unit scale, no overlap with the part, too little coverage."""
+
+
+class PointCloudError(HoodDecompError):
+    """A sensor_msgs/PointCloud2 cannot be decoded: no x/y/z, inconsistent sizes, unsupported datatype."""
+
+
+class BagError(HoodDecompError):
+    """A bag or its sidecar file is missing or inconsistent."""

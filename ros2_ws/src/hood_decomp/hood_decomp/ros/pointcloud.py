@@ -1,0 +1,145 @@
+"""sensor_msgs/PointCloud2 <-> numpy, with at most one copy of the point buffer.
+
+Reading accepts any layout a real scanner sends: float32 or float64 x/y/z at any offsets, extra fields and padding
+(``point_step`` larger than the xyz triple), row padding (``row_step > width * point_step``), organized clouds
+(``height > 1``), NaN points and big-endian data. The buffer is viewed in place with a strided numpy dtype and read
+once, converting to native float64 (and scaling, e.g. metres to millimetres) in that same pass.
+
+Both functions are duck-typed on the message: they work with rclpy's ``sensor_msgs.msg.PointCloud2`` (``data`` is an
+``array.array('B')``) and with messages decoded by ``rosbags`` (``data`` is a numpy uint8 array).
+"""
+
+from __future__ import annotations
+
+import array
+import sys
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from hood_decomp.errors import PointCloudError
+
+# sensor_msgs/PointField datatype constants -> numpy base type.
+POINTFIELD_DTYPES: dict[int, str] = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+POINTFIELD_NAMES: dict[int, str] = {
+    1: "INT8", 2: "UINT8", 3: "INT16", 4: "UINT16", 5: "INT32", 6: "UINT32", 7: "FLOAT32", 8: "FLOAT64",
+}
+FLOAT32 = 7
+XYZ = ("x", "y", "z")
+
+
+def _xyz_dtype(cloud: Any) -> np.dtype:
+    """A strided dtype that reads only x, y and z out of one point of ``cloud``."""
+    byte_order = ">" if cloud.is_bigendian else "<"
+    fields = {field.name: field for field in cloud.fields}
+    missing = [name for name in XYZ if name not in fields]
+    if missing:
+        present = ", ".join(sorted(fields)) or "none"
+        raise PointCloudError(f"PointCloud2 has no field(s) {', '.join(missing)}; fields present: {present}")
+    formats = []
+    for name in XYZ:
+        field = fields[name]
+        if field.datatype not in (7, 8):
+            kind = POINTFIELD_NAMES.get(field.datatype, f"unknown datatype {field.datatype}")
+            raise PointCloudError(f"PointCloud2 field '{name}' has datatype {kind}; expected FLOAT32 or FLOAT64")
+        if field.count != 1:
+            raise PointCloudError(f"PointCloud2 field '{name}' has count {field.count}; expected 1")
+        base = np.dtype(byte_order + POINTFIELD_DTYPES[field.datatype])
+        if field.offset < 0 or field.offset + base.itemsize > cloud.point_step:
+            raise PointCloudError(
+                f"PointCloud2 field '{name}' at offset {field.offset} ({base.itemsize} bytes) does not fit in "
+                f"point_step {cloud.point_step}"
+            )
+        formats.append(base)
+    return np.dtype({
+        "names": list(XYZ),
+        "formats": formats,
+        "offsets": [fields[name].offset for name in XYZ],
+        "itemsize": cloud.point_step,
+    })
+
+
+def cloud_to_xyz(cloud: Any, *, scale: float = 1.0, drop_nan: bool = True) -> np.ndarray:
+    """Read the points of a PointCloud2.
+
+    cloud: a sensor_msgs/PointCloud2 (rclpy or rosbags message).
+    scale: factor applied while copying, e.g. 1000.0 for metres (the message) to millimetres (the core).
+    drop_nan: drop points with a non-finite coordinate (the scanner's "no return"); keep them with False, which keeps
+        an organized cloud's row-major pixel order.
+    Returns: (N, 3) float64, N = height * width (minus dropped points), in the cloud's frame, times ``scale``.
+    Raises PointCloudError naming the problem: missing x/y/z, unsupported datatype, a field outside point_step,
+    row_step < width * point_step, or len(data) != row_step * height.
+    """
+    height, width = int(cloud.height), int(cloud.width)
+    point_step, row_step = int(cloud.point_step), int(cloud.row_step)
+    data = cloud.data
+    n_bytes = len(data)
+    if n_bytes != row_step * height:
+        raise PointCloudError(
+            f"PointCloud2 data has {n_bytes} bytes; expected row_step * height = {row_step} * {height} = "
+            f"{row_step * height}"
+        )
+    dtype = _xyz_dtype(cloud)
+    if row_step < width * point_step:
+        raise PointCloudError(
+            f"PointCloud2 row_step {row_step} is smaller than width * point_step = {width} * {point_step}"
+        )
+    n_points = height * width
+    out = np.empty((n_points, 3), dtype=np.float64)
+    if n_points == 0:
+        return out
+    # Zero-copy view: (height, row_step) bytes -> drop row padding -> (height, width) points of the strided dtype.
+    raw = np.frombuffer(data, dtype=np.uint8).reshape(height, row_step)[:, : width * point_step]
+    points = raw.view(dtype)
+    for axis, name in enumerate(XYZ):
+        # The one copy: strided (possibly big-endian, float32) -> native float64, scaled in the same pass.
+        np.multiply(points[name], scale, out=out.reshape(height, width, 3)[:, :, axis])
+    if drop_nan:
+        finite = np.isfinite(out).all(axis=1)
+        if not finite.all():
+            out = out[finite]
+    return out
+
+
+def xyz_to_cloud(
+    points: np.ndarray,
+    header: Any,
+    *,
+    channels: Mapping[str, np.ndarray] | None = None,
+    scale: float = 1.0,
+) -> Any:
+    """Build an unorganized float32 PointCloud2 with fields x, y, z and one float32 field per channel.
+
+    points: (N, 3) array; written as ``points * scale`` (e.g. 0.001 for millimetres to metres).
+    channels: name -> (N,) array of extra per-point values (e.g. a displacement in metres, a contribution 0..1),
+        written unscaled.
+    The buffer is allocated once as the message's own ``array.array('B')`` and filled in place through a numpy view.
+    """
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise PointCloudError(f"points must have shape (N, 3); got {points.shape}")
+    channels = dict(channels or {})
+    for name, values in channels.items():
+        if np.shape(values) != (points.shape[0],):
+            raise PointCloudError(f"channel '{name}' must have shape ({points.shape[0]},); got {np.shape(values)}")
+        if name in XYZ:
+            raise PointCloudError(f"channel name '{name}' clashes with a coordinate field")
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    names = [*XYZ, *channels]
+    n_points, point_step = points.shape[0], 4 * len(names)
+    buffer = array.array("B", bytes(n_points * point_step))
+    view = np.frombuffer(buffer, dtype=np.float32).reshape(n_points, len(names))
+    np.multiply(points, scale, out=view[:, :3], casting="unsafe")
+    for column, values in enumerate(channels.values(), start=3):
+        view[:, column] = values
+    cloud = PointCloud2()
+    cloud.header = header
+    cloud.height, cloud.width = 1, n_points
+    cloud.fields = [PointField(name=name, offset=4 * i, datatype=FLOAT32, count=1) for i, name in enumerate(names)]
+    cloud.is_bigendian = sys.byteorder == "big"
+    cloud.point_step, cloud.row_step = point_step, point_step * n_points
+    cloud.is_dense = bool(np.isfinite(view).all())
+    cloud.data = buffer
+    return cloud

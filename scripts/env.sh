@@ -1,0 +1,16 @@
+# Source this file (bash) to use hood_decomp from the project's venv and colcon workspace:
+#   source scripts/env.sh
+# In an existing ROS 2 cell, source your ROS installation first and then ros2_ws/install/setup.bash instead.
+_hd_root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+# shellcheck disable=SC1091
+source "$_hd_root/.venv/bin/activate"
+# install/setup.bash sets PYTHONPATH, AMENT_PREFIX_PATH and LD_LIBRARY_PATH (custom message type support needs it).
+# It was generated with 'set -u'-unsafe code, so relax nounset while sourcing it.
+_hd_nounset=$(set +o | grep nounset); set +u
+source "$_hd_root/ros2_ws/install/setup.bash"
+eval "$_hd_nounset"
+export PATH="$_hd_root/ros2_ws/install/hood_decomp/lib/hood_decomp:$PATH"
+# Discovery stays on this machine unless the cell says otherwise.
+export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
+export RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
+unset _hd_root _hd_nounset
