@@ -79,13 +79,13 @@ build_stamp="$( (echo "$req_stamp"; find "$WS/src" \( -name package.xml -o -name
 if [ ! -f "$WS/install/setup.bash" ] || [ "$(cat "$WS/install/.stamp-build" 2>/dev/null)" != "$build_stamp" ]; then
   say "colcon build (hood_decomp_msgs, hood_decomp)"
   (
-    cd "$WS"
+    cd "$WS" && mkdir -p log
     # shellcheck disable=SC1091
     source "$VENV/bin/activate"
     source "$VENV/local_setup.sh"
     colcon build --symlink-install --event-handlers console_cohesion- status- \
-      --cmake-args -DPython3_EXECUTABLE="$VENV/bin/python" -DBUILD_TESTING=OFF >"$WS/colcon-build.log" 2>&1 ||
-      { tail -40 "$WS/colcon-build.log" >&2; say "error: colcon build failed (log: $WS/colcon-build.log)"; exit 1; }
+      --cmake-args -DPython3_EXECUTABLE="$VENV/bin/python" -DBUILD_TESTING=OFF >"$WS/log/colcon-build.log" 2>&1 ||
+      { tail -40 "$WS/log/colcon-build.log" >&2; say "error: colcon build failed (log: $WS/colcon-build.log)"; exit 1; }
   )
   echo "$build_stamp" > "$WS/install/.stamp-build"
 fi
