@@ -85,7 +85,7 @@ if [ ! -f "$WS/install/setup.bash" ] || [ "$(cat "$WS/install/.stamp-build" 2>/d
     source "$VENV/local_setup.sh"
     colcon build --symlink-install --event-handlers console_cohesion- status- \
       --cmake-args -DPython3_EXECUTABLE="$VENV/bin/python" -DBUILD_TESTING=OFF >"$WS/log/colcon-build.log" 2>&1 ||
-      { tail -40 "$WS/log/colcon-build.log" >&2; say "error: colcon build failed (log: $WS/colcon-build.log)"; exit 1; }
+      { tail -40 "$WS/log/colcon-build.log" >&2; say "error: colcon build failed (log: $WS/log/colcon-build.log)"; exit 1; }
   )
   echo "$build_stamp" > "$WS/install/.stamp-build"
 fi
