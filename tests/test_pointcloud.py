@@ -14,11 +14,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 pytest.importorskip("sensor_msgs.msg", reason="needs the ROS 2 environment (scripts/with-env)")
-from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
-from std_msgs.msg import Header  # noqa: E402
-
-from hood_decomp.errors import PointCloudError  # noqa: E402
-from hood_decomp.ros.pointcloud import cloud_to_xyz, xyz_to_cloud  # noqa: E402
+from hood_decomp.errors import PointCloudError
+from hood_decomp.ros.pointcloud import cloud_to_xyz, xyz_to_cloud
+from sensor_msgs.msg import PointCloud2, PointField
+from std_msgs.msg import Header
 
 STRUCT = {7: "f", 8: "d", 2: "B", 4: "H", 6: "I"}
 SIZE = {7: 4, 8: 8, 2: 1, 4: 2, 6: 4}
@@ -118,7 +117,7 @@ def _good_cloud() -> PointCloud2:
 def test_missing_xyz_is_named():
     cloud = _good_cloud()
     cloud.fields = [f for f in cloud.fields if f.name != "z"]
-    with pytest.raises(PointCloudError, match="no field.*z.*present: extra0, x, y"):
+    with pytest.raises(PointCloudError, match=r"no field.*z.*present: extra0, x, y"):
         cloud_to_xyz(cloud)
 
 
@@ -147,7 +146,7 @@ def test_unsupported_datatype_is_named(datatype, name):
 def test_field_outside_point_step_is_named():
     cloud = _good_cloud()
     cloud.fields[2].offset = 14
-    with pytest.raises(PointCloudError, match="'z' at offset 14 .* point_step 16"):
+    with pytest.raises(PointCloudError, match=r"'z' at offset 14 .* point_step 16"):
         cloud_to_xyz(cloud)
 
 
