@@ -9,6 +9,11 @@ import numpy as np
 import pytest
 
 pytest.importorskip("hood_decomp_msgs.msg", reason="needs the colcon-built workspace (scripts/with-env)")
+from hood_decomp_msgs import msg as hd_msg
+from rclpy.serialization import deserialize_message, serialize_message
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from std_msgs.msg import Header
+
 from hood_decomp.core.types import (
     BoundaryCorrection,
     Decomposition,
@@ -17,10 +22,6 @@ from hood_decomp.core.types import (
     ParameterEstimate,
 )
 from hood_decomp.ros import messages
-from hood_decomp_msgs import msg as hd_msg
-from rclpy.serialization import deserialize_message, serialize_message
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-from std_msgs.msg import Header
 
 MSG_DIR = pathlib.Path(__file__).parents[1] / "ros2_ws/src/hood_decomp_msgs/msg"
 NAMES = ["DisplacementField", "BoundaryState", "BoundaryCorrection", "EffectField", "EffectFields"]

@@ -14,10 +14,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 pytest.importorskip("sensor_msgs.msg", reason="needs the ROS 2 environment (scripts/with-env)")
-from hood_decomp.errors import PointCloudError
-from hood_decomp.ros.pointcloud import cloud_to_xyz, xyz_to_cloud
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
+
+from hood_decomp.errors import PointCloudError
+from hood_decomp.ros.pointcloud import cloud_to_xyz, xyz_to_cloud
 
 STRUCT = {7: "f", 8: "d", 2: "B", 4: "H", 6: "I"}
 SIZE = {7: 4, 8: 8, 2: 1, 4: 2, 6: 4}

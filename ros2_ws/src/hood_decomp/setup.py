@@ -23,6 +23,9 @@ setup(
     entry_points={
         "console_scripts": [
             "hood-decomp = hood_decomp.cli:main",
+            "scan_node = hood_decomp.ros.scan_node:main",
+            "estimator_node = hood_decomp.ros.estimator_node:main",
+            "decomposition_node = hood_decomp.ros.decomposition_node:main",
         ],
     },
 )

@@ -1,17 +1,25 @@
-"""`hood-decomp launch`: start the three nodes as separate processes."""
+"""`hood-decomp launch`: start the scan, estimator and decomposition nodes as separate processes."""
 
 from __future__ import annotations
 
 import argparse
+import pathlib
+import sys
 
-from hood_decomp.cli._pending import add_passthrough, not_built
+from hood_decomp.ros.launcher import NODE_EXECUTABLES, run_until_interrupted, start_nodes
 
-HELP = "start the three nodes as separate processes (not built yet)"
+HELP = "start the three nodes as separate processes (Ctrl-C stops them)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_passthrough(parser)
+    parser.add_argument("--bases", required=True, type=pathlib.Path, help="bases file (hood-decomp bases --out)")
+    parser.add_argument("--params", type=pathlib.Path, help="ROS parameter YAML file (see config/hood_decomp.yaml)")
+    parser.add_argument("--nodes", nargs="+", choices=NODE_EXECUTABLES, default=list(NODE_EXECUTABLES),
+                        help="which nodes to start (default: all three)")
 
 
 def run(args: argparse.Namespace) -> int:
-    return not_built("launch", 6)
+    processes = start_nodes(args.bases.resolve(), params_file=args.params, nodes=args.nodes)
+    print(f"hood-decomp launch: started {', '.join(args.nodes)} (pids "
+          f"{', '.join(str(p.pid) for p in processes)}); Ctrl-C stops them", file=sys.stderr)
+    return run_until_interrupted(processes)

@@ -1,17 +1,42 @@
-"""`hood-decomp replay`: replay a recorded bag through the three nodes."""
+"""`hood-decomp replay BAG [--record OUT_BAG]`: run the three nodes on a recorded bag."""
 
 from __future__ import annotations
 
 import argparse
+import json
+import pathlib
+import sys
 
-from hood_decomp.cli._pending import add_passthrough, not_built
-
-HELP = "replay a recorded bag through the three nodes (not built yet)"
+HELP = "publish a bag's scans into the nodes (started here with --bases) and record what they publish"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_passthrough(parser)
+    parser.add_argument("bag", type=pathlib.Path, help="rosbag2 directory with sensor_msgs/PointCloud2 on scan/points")
+    parser.add_argument("--record", type=pathlib.Path, help="new bag directory for everything the nodes publish")
+    parser.add_argument("--bases", type=pathlib.Path,
+                        help="start the three nodes with this bases file (else they must be running already)")
+    parser.add_argument("--params", type=pathlib.Path, help="ROS parameter YAML for the nodes started here")
+    parser.add_argument("--timeout", type=float, default=60.0, help="longest wait for one scan's answer, s")
+    parser.add_argument("--clock", action="store_true", help="publish each scan's bag time on /clock")
+    parser.add_argument("--json", type=pathlib.Path, help="write the replay summary as JSON")
 
 
 def run(args: argparse.Namespace) -> int:
-    return not_built("replay", 6)
+    from hood_decomp.ros.launcher import start_nodes, stop_nodes
+    from hood_decomp.ros.replay import replay_bag
+
+    processes = start_nodes(args.bases.resolve(), params_file=args.params) if args.bases else []
+    try:
+        result = replay_bag(args.bag, record=args.record, timeout_s=args.timeout, publish_clock=args.clock,
+                            progress=lambda line: print(f"hood-decomp replay: {line}", file=sys.stderr))
+    finally:
+        stop_nodes(processes)
+    summary = {"scans": result.scans, "answered": result.answered, "refused": result.refused,
+               "unanswered": result.unanswered, "recorded": result.recorded, "seconds": round(result.seconds, 2),
+               "record": str(args.record) if args.record else None}
+    if args.json:
+        args.json.write_text(json.dumps(summary, indent=2) + "\n")
+    print(f"hood-decomp replay: {result.scans} scans, {result.answered} answered, {len(result.refused)} refused, "
+          f"{len(result.unanswered)} unanswered, {result.recorded} messages recorded"
+          + (f" in {args.record}" if args.record else ""), file=sys.stderr)
+    return 1 if result.unanswered else 0

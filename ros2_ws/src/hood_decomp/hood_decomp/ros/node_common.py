@@ -1,0 +1,121 @@
+"""What the three hood_decomp nodes share: parameter declaration, QoS, diagnostics, a guarded callback.
+
+Nodes stay wiring only: declare parameters, convert, call the core, convert, publish, report. Any failure of one
+message (bad input, a core error, a bug) is reported on /diagnostics with the stamp of the offending message and the
+node keeps serving the next one.
+"""
+
+from __future__ import annotations
+
+import traceback
+from collections.abc import Callable
+from typing import Any
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions
+
+from hood_decomp.errors import HoodDecompError
+
+OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+
+
+def declare(node: Node, name: str, default: Any, description: str,
+            low: float | None = None, high: float | None = None) -> Any:
+    """Declare a parameter with its description (and range, for numbers) and return its value."""
+    descriptor = ParameterDescriptor(description=description)
+    if low is not None and high is not None:
+        if isinstance(default, int) and not isinstance(default, bool):
+            descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high), step=1)]
+        else:
+            descriptor.floating_point_range = [FloatingPointRange(from_value=float(low), to_value=float(high))]
+    return node.declare_parameter(name, default, descriptor).value
+
+
+def topic_qos(depth: int) -> QoSProfile:
+    """Reliable, keep-last(depth): large clouds arrive whole (one lost fragment drops a best-effort cloud with stock
+    Fast DDS) and a burst of ``depth`` messages waits instead of being dropped. Per-topic overrides follow REP 2003
+    through rclpy's ``qos_overrides.<topic>.<publisher|subscription>.<policy>`` parameters."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+
+
+OVERRIDABLE = QoSOverridingOptions.with_default_policies()
+
+
+class Diagnostics:
+    """Publishes one DiagnosticStatus per processed message on /diagnostics (name ``hood_decomp/<node>``)."""
+
+    def __init__(self, node: Node) -> None:
+        self._node = node
+        self._publisher = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.processed = 0
+        self.failed = 0
+
+    def report(self, level: bytes, message: str, stamp: Any = None, **values: object) -> None:
+        status = DiagnosticStatus(level=level, name=f"hood_decomp/{self._node.get_name()}", message=message,
+                                  hardware_id="hood_decomp")
+        if stamp is not None:
+            values = {"stamp": f"{stamp.sec}.{stamp.nanosec:09d}", **values}
+        values = {**values, "processed": self.processed, "failed": self.failed}
+        status.values = [KeyValue(key=str(key), value=str(value)) for key, value in values.items()]
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = self._node.get_clock().now().to_msg()
+        self._publisher.publish(array)
+
+
+def guarded(node: Node, diagnostics: Diagnostics, what: str,
+            handler: Callable[[Any], dict[str, object] | None]) -> Callable[[Any], None]:
+    """Wrap a subscription callback: success -> OK diagnostic with the handler's key-values; a HoodDecompError ->
+    ERROR diagnostic naming the problem; anything else -> ERROR with the exception type (and the traceback in the
+    log). The node never dies from one message."""
+
+    def callback(message: Any) -> None:
+        stamp = getattr(getattr(message, "header", None), "stamp", None)
+        try:
+            values = handler(message) or {}
+        except HoodDecompError as error:
+            diagnostics.failed += 1
+            node.get_logger().error(f"{what}: {error}")
+            diagnostics.report(ERROR, f"{what} refused: {error}", stamp, error=type(error).__name__)
+            return
+        except Exception as error:  # a bug must not stop the node; it is reported, not hidden
+            diagnostics.failed += 1
+            node.get_logger().error(f"{what}: unexpected {type(error).__name__}: {error}\n{traceback.format_exc()}")
+            diagnostics.report(ERROR, f"{what} failed: {type(error).__name__}: {error}", stamp,
+                               error=type(error).__name__)
+            return
+        diagnostics.processed += 1
+        diagnostics.report(OK, f"{what} ok", stamp, **values)
+
+    return callback
+
+
+def load_bases_or_reason(path: str) -> tuple[Any, str]:
+    """(bases, "") or (None, the reason): a node with a bad bases path keeps running and says why on every message."""
+    from hood_decomp.io.bases import load_bases
+
+    if not path:
+        return None, "no bases file configured (parameter 'bases')"
+    try:
+        return load_bases(path), ""
+    except HoodDecompError as error:
+        return None, f"bases not loaded: {error}"
+
+
+def spin(node_factory: Callable[[], Node], args: list[str] | None = None) -> int:
+    """Console-script body: init, build the node, spin until Ctrl-C or shutdown, clean up."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = node_factory()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

@@ -1,0 +1,144 @@
+"""Replay a bag's scans into the live nodes and record what they publish.
+
+Scans are published in bag order as the raw CDR bytes they were recorded with, one at a time: the next scan goes out
+only when the previous one is answered (its boundary state and effect fields arrived, or a node reported an error with
+its stamp on /diagnostics), so the nodes are never fed faster than they can take. Every message the nodes publish is
+recorded, as it arrives, into an MCAP bag.
+"""
+
+from __future__ import annotations
+
+import pathlib
+import time
+from collections.abc import Callable, Sequence
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState, DisplacementField, EffectFields
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.serialization import deserialize_message
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import PointCloud2
+
+from hood_decomp.errors import BagError
+from hood_decomp.io.bags import BagWriter, Record, read_bag
+from hood_decomp.ros.node_common import topic_qos
+
+SCAN_TOPIC = "scan/points"
+OUTPUTS: dict[str, type] = {
+    "hood_decomp/displacement": DisplacementField,
+    "hood_decomp/displacement_cloud": PointCloud2,
+    "hood_decomp/boundary_state": BoundaryState,
+    "hood_decomp/boundary_correction": BoundaryCorrection,
+    "hood_decomp/effects": EffectFields,
+    "hood_decomp/effects_cloud": PointCloud2,
+    "/diagnostics": DiagnosticArray,
+}
+ANSWERS = ("hood_decomp/boundary_state", "hood_decomp/effects")  # a good scan is answered by both
+
+
+def _msgtype(cls: type) -> str:
+    module = cls.__module__.split(".")[0]
+    return f"{module}/msg/{cls.__name__}"
+
+
+def _stamp_key(stamp: object) -> str:
+    return f"{stamp.sec}.{stamp.nanosec:09d}"
+
+
+@dataclass
+class ReplayResult:
+    """scans: scans published; answered: scans with every expected answer; refused: scans a node reported an error
+    for (stamp -> messages); unanswered: stamps that got neither within the timeout; recorded: messages recorded."""
+
+    scans: int = 0
+    answered: int = 0
+    refused: dict[str, list[str]] = field(default_factory=dict)
+    unanswered: list[str] = field(default_factory=list)
+    recorded: int = 0
+    seconds: float = 0.0
+
+
+def replay_bag(bag: str | pathlib.Path, *, record: str | pathlib.Path | None = None, timeout_s: float = 60.0,
+               startup_timeout_s: float = 60.0, settle_s: float = 3.0, publish_clock: bool = False,
+               answers: Sequence[str] = ANSWERS,
+               progress: Callable[[str], None] | None = None) -> ReplayResult:
+    """Publish the scans of ``bag`` into running nodes; record their output into ``record`` (a new bag directory).
+
+    timeout_s: longest wait for the answer to one scan; startup_timeout_s: longest wait for the nodes to appear;
+    settle_s: after the last scan, keep recording until nothing arrived for this long (late diagnostics, unpaired
+    effect fields). publish_clock: publish each scan's bag time on /clock first (for nodes with use_sim_time).
+    """
+    scans = [r for r in read_bag(bag, topics=[SCAN_TOPIC])]
+    if not scans:
+        raise BagError(f"bag {bag} holds no messages on {SCAN_TOPIC}")
+    result = ReplayResult()
+    answered: dict[str, set[str]] = {}
+    last_arrival = [time.monotonic()]
+    start = time.monotonic()
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    with ExitStack() as stack:
+        stack.callback(rclpy.try_shutdown, context=context)
+        writer = stack.enter_context(BagWriter(record)) if record is not None else None
+        node = rclpy.create_node("hood_decomp_replay", context=context)
+        stack.callback(node.destroy_node)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        qos = topic_qos(10)
+
+        def on_output(topic: str, cls: type) -> Callable[[bytes], None]:
+            def callback(raw: bytes) -> None:
+                last_arrival[0] = time.monotonic()
+                if writer is not None:
+                    writer.write(Record(topic, _msgtype(cls), node.get_clock().now().nanoseconds, bytes(raw)))
+                    result.recorded += 1
+                if topic in answers:
+                    key = _stamp_key(deserialize_message(raw, cls).header.stamp)
+                    answered.setdefault(key, set()).add(topic)
+                elif topic == "/diagnostics":
+                    for status in deserialize_message(raw, cls).status:
+                        stamp = next((kv.value for kv in status.values if kv.key == "stamp"), None)
+                        if status.level == DiagnosticStatus.ERROR and stamp is not None:
+                            result.refused.setdefault(stamp, []).append(f"{status.name}: {status.message}")
+            return callback
+
+        for topic, cls in OUTPUTS.items():
+            node.create_subscription(cls, topic, on_output(topic, cls), qos, raw=True)
+        scan_pub = node.create_publisher(PointCloud2, SCAN_TOPIC, qos)
+        clock_pub = node.create_publisher(Clock, "/clock", 10) if publish_clock else None
+
+        def wait(condition: Callable[[], bool], seconds: float) -> bool:
+            deadline = time.monotonic() + seconds
+            while not condition():
+                if time.monotonic() > deadline:
+                    return False
+                executor.spin_once(timeout_sec=0.05)
+            return True
+
+        if not wait(lambda: scan_pub.get_subscription_count() > 0
+                    and all(node.count_publishers(t) > 0 for t in answers), startup_timeout_s):
+            raise BagError(f"no nodes answered within {startup_timeout_s:.0f} s: is something subscribed to "
+                           f"{SCAN_TOPIC} and publishing {', '.join(answers)}? (hood-decomp launch --bases B)")
+        for index, scan in enumerate(scans, start=1):
+            key = _stamp_key(deserialize_message(scan.data, PointCloud2).header.stamp)
+            if clock_pub is not None:
+                clock_msg = Clock()
+                clock_msg.clock.sec, clock_msg.clock.nanosec = divmod(scan.timestamp_ns, 1_000_000_000)
+                clock_pub.publish(clock_msg)
+            scan_pub.publish(scan.data)
+            result.scans += 1
+            done = wait(lambda k=key: answered.get(k, set()) >= set(answers) or k in result.refused, timeout_s)
+            if not done:
+                result.unanswered.append(key)
+            elif key not in result.refused:
+                result.answered += 1
+            if progress is not None:
+                state = "refused" if key in result.refused else "answered" if done else "NO ANSWER"
+                progress(f"scan {index}/{len(scans)} (stamp {key}): {state}")
+        last_arrival[0] = time.monotonic()
+        wait(lambda: time.monotonic() - last_arrival[0] > settle_s, settle_s + timeout_s)
+    result.seconds = time.monotonic() - start
+    return result
