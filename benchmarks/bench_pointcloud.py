@@ -16,9 +16,10 @@ import struct
 import time
 
 import numpy as np
-from hood_decomp.ros.pointcloud import cloud_to_xyz, xyz_to_cloud
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
+
+from hood_decomp.ros.pointcloud import cloud_to_xyz, xyz_to_cloud
 
 OUT = pathlib.Path(__file__).parent / "out"
 
