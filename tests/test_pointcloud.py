@@ -18,7 +18,7 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
 from hood_decomp.errors import PointCloudError
-from hood_decomp.ros.pointcloud import cloud_to_xyz, xyz_to_cloud
+from hood_decomp.ros.pointcloud import cloud_channel, cloud_to_xyz, xyz_to_cloud
 
 STRUCT = {7: "f", 8: "d", 2: "B", 4: "H", 6: "I"}
 SIZE = {7: 4, 8: 8, 2: 1, 4: 2, 6: 4}
@@ -83,6 +83,8 @@ def test_reads_every_layout_exactly(layout):
     np.testing.assert_array_equal(kept, points)  # float32 values survive float64 exactly; NaN == NaN here
     dropped = cloud_to_xyz(cloud)
     np.testing.assert_array_equal(dropped, points[np.isfinite(points).all(axis=1)])
+    for i in range(len(layout["extra"])):  # any numeric extra field reads back in point order
+        np.testing.assert_array_equal(cloud_channel(cloud, f"extra{i}"), np.full(points.shape[0], 7.0))
 
 
 @settings(max_examples=50, deadline=None)

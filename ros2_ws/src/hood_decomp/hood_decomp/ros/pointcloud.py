@@ -26,23 +26,25 @@ POINTFIELD_NAMES: dict[int, str] = {
     1: "INT8", 2: "UINT8", 3: "INT16", 4: "UINT16", 5: "INT32", 6: "UINT32", 7: "FLOAT32", 8: "FLOAT64",
 }
 FLOAT32 = 7
+FLOATS = (7, 8)
 XYZ = ("x", "y", "z")
 
 
-def _xyz_dtype(cloud: Any) -> np.dtype:
-    """A strided dtype that reads only x, y and z out of one point of ``cloud``."""
+def _fields_dtype(cloud: Any, names: tuple[str, ...], kinds: tuple[int, ...]) -> np.dtype:
+    """A strided dtype that reads only the fields ``names`` out of one point of ``cloud``."""
     byte_order = ">" if cloud.is_bigendian else "<"
     fields = {field.name: field for field in cloud.fields}
-    missing = [name for name in XYZ if name not in fields]
+    missing = [name for name in names if name not in fields]
     if missing:
         present = ", ".join(sorted(fields)) or "none"
         raise PointCloudError(f"PointCloud2 has no field(s) {', '.join(missing)}; fields present: {present}")
     formats = []
-    for name in XYZ:
+    for name in names:
         field = fields[name]
-        if field.datatype not in (7, 8):
+        if field.datatype not in kinds:
             kind = POINTFIELD_NAMES.get(field.datatype, f"unknown datatype {field.datatype}")
-            raise PointCloudError(f"PointCloud2 field '{name}' has datatype {kind}; expected FLOAT32 or FLOAT64")
+            expected = " or ".join(POINTFIELD_NAMES[k] for k in kinds)
+            raise PointCloudError(f"PointCloud2 field '{name}' has datatype {kind}; expected {expected}")
         if field.count != 1:
             raise PointCloudError(f"PointCloud2 field '{name}' has count {field.count}; expected 1")
         base = np.dtype(byte_order + POINTFIELD_DTYPES[field.datatype])
@@ -53,11 +55,31 @@ def _xyz_dtype(cloud: Any) -> np.dtype:
             )
         formats.append(base)
     return np.dtype({
-        "names": list(XYZ),
+        "names": list(names),
         "formats": formats,
-        "offsets": [fields[name].offset for name in XYZ],
+        "offsets": [fields[name].offset for name in names],
         "itemsize": cloud.point_step,
     })
+
+
+def _points_view(cloud: Any, names: tuple[str, ...], kinds: tuple[int, ...]) -> np.ndarray:
+    """Zero-copy (height, width) view of the fields ``names``, after checking the sizes of the cloud."""
+    height, width = int(cloud.height), int(cloud.width)
+    point_step, row_step = int(cloud.point_step), int(cloud.row_step)
+    n_bytes = len(cloud.data)
+    if n_bytes != row_step * height:
+        raise PointCloudError(
+            f"PointCloud2 data has {n_bytes} bytes; expected row_step * height = {row_step} * {height} = "
+            f"{row_step * height}"
+        )
+    dtype = _fields_dtype(cloud, names, kinds)
+    if row_step < width * point_step:
+        raise PointCloudError(
+            f"PointCloud2 row_step {row_step} is smaller than width * point_step = {width} * {point_step}"
+        )
+    # (height, row_step) bytes -> drop row padding -> (height, width) points of the strided dtype.
+    raw = np.frombuffer(cloud.data, dtype=np.uint8).reshape(height, row_step)[:, : width * point_step]
+    return raw.view(dtype)
 
 
 def cloud_to_xyz(cloud: Any, *, scale: float = 1.0, drop_nan: bool = True) -> np.ndarray:
@@ -71,35 +93,23 @@ def cloud_to_xyz(cloud: Any, *, scale: float = 1.0, drop_nan: bool = True) -> np
     Raises PointCloudError naming the problem: missing x/y/z, unsupported datatype, a field outside point_step,
     row_step < width * point_step, or len(data) != row_step * height.
     """
-    height, width = int(cloud.height), int(cloud.width)
-    point_step, row_step = int(cloud.point_step), int(cloud.row_step)
-    data = cloud.data
-    n_bytes = len(data)
-    if n_bytes != row_step * height:
-        raise PointCloudError(
-            f"PointCloud2 data has {n_bytes} bytes; expected row_step * height = {row_step} * {height} = "
-            f"{row_step * height}"
-        )
-    dtype = _xyz_dtype(cloud)
-    if row_step < width * point_step:
-        raise PointCloudError(
-            f"PointCloud2 row_step {row_step} is smaller than width * point_step = {width} * {point_step}"
-        )
-    n_points = height * width
-    out = np.empty((n_points, 3), dtype=np.float64)
-    if n_points == 0:
-        return out
-    # Zero-copy view: (height, row_step) bytes -> drop row padding -> (height, width) points of the strided dtype.
-    raw = np.frombuffer(data, dtype=np.uint8).reshape(height, row_step)[:, : width * point_step]
-    points = raw.view(dtype)
+    points = _points_view(cloud, XYZ, FLOATS)
+    out = np.empty((points.size, 3), dtype=np.float64)
     for axis, name in enumerate(XYZ):
         # The one copy: strided (possibly big-endian, float32) -> native float64, scaled in the same pass.
-        np.multiply(points[name], scale, out=out.reshape(height, width, 3)[:, :, axis])
+        np.multiply(points[name], scale, out=out.reshape(*points.shape, 3)[:, :, axis])
     if drop_nan:
         finite = np.isfinite(out).all(axis=1)
         if not finite.all():
             out = out[finite]
     return out
+
+
+def cloud_channel(cloud: Any, name: str) -> np.ndarray:
+    """One numeric per-point field (any datatype) as (height * width,) float64, in the cloud's point order
+    (``cloud_to_xyz(..., drop_nan=False)`` order). Raises PointCloudError like :func:`cloud_to_xyz`."""
+    view = _points_view(cloud, (name,), tuple(POINTFIELD_DTYPES))
+    return view[name].astype(np.float64).ravel()
 
 
 def xyz_to_cloud(
