@@ -1,0 +1,102 @@
+"""Model mesh files: .vtu via meshio, and the shell mesh of an ABAQUS/CalculiX .inp deck.
+
+A .vtu model mesh has points (n, 3) mm, quad cells and cell data ``part`` (int, index into the model.yaml part list).
+Field files (skin displacement fields) are :mod:`hood_decomp.io.fields`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import meshio
+import numpy as np
+
+from hood_decomp.errors import MeshError
+
+
+def write_mesh(path: str | Path, nodes: np.ndarray, cells: np.ndarray, cell_part: np.ndarray) -> None:
+    """Write a quad shell mesh: nodes (n, 3) mm, cells (E, 4), cell_part (E,) int."""
+    mesh = meshio.Mesh(
+        points=np.asarray(nodes, dtype=float),
+        cells=[("quad", np.asarray(cells, dtype=np.int64))],
+        cell_data={"part": [np.asarray(cell_part, dtype=np.int32)]},
+    )
+    mesh.write(str(path), binary=True)
+
+
+def read_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read a quad shell mesh: nodes (n, 3) mm, cells (E, 4) int64, cell_part (E,) int64. Raises MeshError."""
+    path = Path(path)
+    if not path.is_file():
+        raise MeshError(f"mesh file {path} does not exist")
+    try:
+        mesh = meshio.read(str(path))
+    except Exception as error:  # meshio raises many kinds; the user needs the file name and the reason
+        raise MeshError(f"cannot read mesh {path}: {error}") from error
+    blocks = [block for block in mesh.cells if block.type == "quad"]
+    others = sorted({block.type for block in mesh.cells} - {"quad"})
+    if not blocks or others:
+        raise MeshError(f"mesh {path}: expected quad cells only, found {[b.type for b in mesh.cells]}")
+    if "part" not in mesh.cell_data:
+        raise MeshError(f"mesh {path}: cell data 'part' (part index per cell) is missing")
+    cells = np.concatenate([block.data for block in blocks]).astype(np.int64)
+    part = np.concatenate(
+        [data for data, block in zip(mesh.cell_data["part"], mesh.cells, strict=True) if block.type == "quad"]
+    ).astype(np.int64).ravel()
+    nodes = np.asarray(mesh.points, dtype=float)
+    if nodes.shape[1] == 2:
+        nodes = np.column_stack([nodes, np.zeros(len(nodes))])
+    return nodes, cells, part
+
+
+def read_inp_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Read the shell mesh of an ABAQUS/CalculiX deck: ``*NODE`` lines and 4-node shell ``*ELEMENT`` blocks
+    (S4, S4R, S4R5, M3D4) with ``ELSET=`` naming the part.
+
+    Returns nodes (n, 3) mm in node-id order, cells (E, 4) 0-based in element-id order, and the ELSET name per cell.
+    Other keywords are ignored. Raises MeshError.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MeshError(f"mesh file {path} does not exist")
+    node_ids, coords, elements = [], [], []
+    block, elset = None, ""
+    for number, raw in enumerate(path.read_text().splitlines(), start=1):
+        line = raw.strip()
+        if not line or line.startswith("**"):
+            continue
+        if line.startswith("*"):
+            options = {k.strip().upper(): v.strip() for k, _, v in (o.partition("=") for o in line.split(",")[1:])}
+            keyword = line.split(",")[0].strip().upper()
+            block = None
+            if keyword == "*NODE":
+                block = "node"
+            elif keyword == "*ELEMENT":
+                kind = options.get("TYPE", "").upper()
+                if kind not in ("S4", "S4R", "S4R5", "M3D4"):
+                    raise MeshError(f"{path}:{number}: element type {kind!r} not supported (expected 4-node shells)")
+                block, elset = "element", options.get("ELSET", "")
+                if not elset:
+                    raise MeshError(f"{path}:{number}: *ELEMENT needs ELSET= naming the part")
+            continue
+        values = [v for v in line.split(",") if v.strip()]
+        try:
+            if block == "node":
+                node_ids.append(int(values[0]))
+                coords.append([float(v) for v in values[1:4]] + [0.0] * (4 - len(values)))
+            elif block == "element":
+                elements.append((int(values[0]), [int(v) for v in values[1:5]], elset))
+        except (ValueError, IndexError) as error:
+            raise MeshError(f"{path}:{number}: cannot read {line!r}: {error}") from error
+    if not node_ids or not elements:
+        raise MeshError(f"{path}: expected *NODE and *ELEMENT blocks, found {len(node_ids)} nodes, "
+                        f"{len(elements)} elements")
+    order = np.argsort(node_ids)
+    ids = np.asarray(node_ids)[order]
+    nodes = np.asarray(coords, dtype=float)[order]
+    elements.sort(key=lambda item: item[0])
+    connectivity = np.asarray([e[1] for e in elements])
+    cells = np.searchsorted(ids, connectivity)
+    if np.any(cells >= len(ids)) or np.any(ids[np.minimum(cells, len(ids) - 1)] != connectivity):
+        raise MeshError(f"{path}: elements reference undefined nodes")
+    return nodes, cells.astype(np.int64), [e[2] for e in elements]
