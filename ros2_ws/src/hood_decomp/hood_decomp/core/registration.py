@@ -1,0 +1,288 @@
+"""Registration of a scan to the nominal part that does not swallow the deformation being measured.
+
+A best fit of the whole scan onto the nominal skin would remove every rigid-body-like part of the displacement field
+(a hinge moved in X turns the hood about the fixed hinge almost rigidly). The paper avoids alignment altogether by
+never moving part and scanner (section 4.3.1, markers on the fixture only check that nothing moved). Here:
+
+1. Coarse: the fixture markers measured by the scanner are matched to their nominal positions (Kabsch, least
+   squares); without markers, the cell's nominal scanner pose; without either, the identity (points already in the
+   part frame).
+2. Fine (optional): a point-to-surface Gauss-Newton alignment that uses only scan points on *datum* nodes, skin
+   regions next to the fixed boundaries (the right hinge is fixed; the part is held at hinges and locks) where the
+   displacement is zero by construction. It moves the part only along rigid-motion directions the datum determines
+   well enough: the generalised eigenproblem of a motion metric against the datum's information matrix gives, per
+   direction, the motion over the skin its noise would cause; directions above ``tolerance_mm`` stay at the coarse
+   solution. The metric is |t|^2 + L^2 |omega|^2 for a twist about the datum centroid, L the RMS distance of the skin
+   nodes from it: full 3D motion, not only its normal part (a crowned skin slides along itself under rotations about
+   its centre of curvature, which barely change the normal field and are observed by nothing), and no cross terms,
+   so that among motions that shift the datum equally the pure translation is preferred to a tilt about a far axis.
+   A small patch near one hinge determines its normal shift, but its tilts (short lever, long extrapolation) and
+   in-plane shifts (seen only through curvature) would spray noise over the far field, so they are left alone.
+
+All lengths in mm, angles reported in degrees, transforms as (4, 4) homogeneous matrices mapping scanner-frame points
+to the part frame: x_part = R x_scan + t.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from scipy.linalg import eigh
+
+from hood_decomp.errors import ScanError
+
+
+class NominalSurface(Protocol):
+    """What the fine alignment needs from the prepared nominal skin (a fitted ScanFieldEstimator provides it)."""
+
+    points_: np.ndarray
+    frames_: np.ndarray  # (N, 3, 3) rows t1, t2, n
+    max_distance_mm: float
+
+    def point_distances(self, points_mm: np.ndarray): ...  # -> PointDistances (distance, node, tangent)
+
+    def distance_gradient(self, located) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class RegistrationResult:
+    """The scanner-to-part transform and how well it is determined.
+
+    transform: (4, 4) x_part = R x_scan + t, mm.
+    method: "markers", "pose" or "identity" for the coarse step, with "+datum" when the fine alignment ran.
+    n_markers, marker_rms_mm: markers used and their RMS residual after the coarse fit (NaN without markers).
+    n_datum_points, datum_rms_mm: scan points on datum nodes in the fine alignment and their RMS distance to the
+        nominal skin after it (0 and NaN when no fine alignment ran).
+    fine_translation_mm (3,), fine_rotation_deg (3,): the correction the fine alignment applied on top of the coarse
+        transform (about the datum centroid).
+    std_translation_mm (3,), std_rotation_deg (3,): standard deviations of a free datum fit (huge in directions the
+        datum does not observe; NaN when no fine alignment ran).
+    n_aligned: number of rigid-motion directions the fine alignment determined and corrected (0..6).
+    alignment_std_mm: RMS over the skin of the displacement error the corrected directions may carry (noise).
+    overlap: fraction of finite scan points (on a subsample) within ``max_distance_mm`` of the nominal skin.
+    iterations, converged: of the fine alignment.
+    """
+
+    transform: np.ndarray
+    method: str
+    n_markers: int
+    marker_rms_mm: float
+    n_datum_points: int
+    datum_rms_mm: float
+    fine_translation_mm: np.ndarray
+    fine_rotation_deg: np.ndarray
+    std_translation_mm: np.ndarray
+    std_rotation_deg: np.ndarray
+    overlap: float
+    iterations: int
+    converged: bool
+    n_aligned: int
+    alignment_std_mm: float
+
+
+def _homogeneous(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    transform = np.eye(4)
+    transform[:3, :3] = rotation
+    transform[:3, 3] = translation
+    return transform
+
+
+def rotation_from_vector(omega: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) of the rotation vector omega (3,), rad (Rodrigues)."""
+    angle = float(np.linalg.norm(omega))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = omega / angle
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
+
+
+def datum_mask_near(skin_points_mm: np.ndarray, centers_mm: np.ndarray, radius_mm: float) -> np.ndarray:
+    """(N,) bool: skin nodes (N, 3) within ``radius_mm`` (3D) of any of the datum centres (K, 3), e.g. the patch
+    centres of the model's fixed boundaries. Raises ScanError when no node is selected."""
+    points = np.asarray(skin_points_mm, dtype=np.float64)
+    centers = np.atleast_2d(np.asarray(centers_mm, dtype=np.float64))
+    distance = np.min(np.linalg.norm(points[:, None, :] - centers[None, :, :], axis=2), axis=1)
+    mask = distance <= radius_mm
+    if not mask.any():
+        raise ScanError(
+            f"no skin node within {radius_mm} mm of the datum centres {centers.tolist()} "
+            f"(nearest {distance.min():.1f} mm)"
+        )
+    return mask
+
+
+def rigid_from_markers(measured_mm: np.ndarray, nominal_mm: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares rigid transform (4, 4) taking measured markers (K, 3) onto nominal ones (K, 3) (Kabsch).
+
+    Returns the transform and the RMS marker residual, mm. Raises ScanError for fewer than 3 markers, mismatched
+    shapes or (nearly) collinear markers.
+    """
+    measured = np.asarray(measured_mm, dtype=np.float64)
+    nominal = np.asarray(nominal_mm, dtype=np.float64)
+    if measured.shape != nominal.shape or measured.ndim != 2 or measured.shape[1] != 3:
+        raise ScanError(f"markers must be two matching (K, 3) arrays; got {measured.shape} and {nominal.shape}")
+    if measured.shape[0] < 3:
+        raise ScanError(f"registration needs at least 3 fixture markers; got {measured.shape[0]}")
+    mc, nc = measured.mean(axis=0), nominal.mean(axis=0)
+    spread = np.linalg.svd(nominal - nc, compute_uv=False)
+    if spread[1] < 1e-3 * spread[0]:
+        raise ScanError("fixture markers are collinear: the rotation about their line is undetermined")
+    u, _, vt = np.linalg.svd((measured - mc).T @ (nominal - nc))
+    flip = np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))])
+    rotation = vt.T @ flip @ u.T
+    translation = nc - rotation @ mc
+    residual = measured @ rotation.T + translation - nominal
+    return _homogeneous(rotation, translation), float(np.sqrt(np.mean(np.sum(residual**2, axis=1))))
+
+
+def register_scan(
+    points_mm: np.ndarray,
+    nominal: NominalSurface,
+    *,
+    scanner_pose: np.ndarray | None = None,
+    markers_mm: np.ndarray | None = None,
+    markers_nominal_mm: np.ndarray | None = None,
+    datum_mask: np.ndarray | None = None,
+    tolerance_mm: float = 0.005,
+    max_marker_rms_mm: float = 0.5,
+    max_iterations: int = 10,
+) -> RegistrationResult:
+    """Register finite scan points (M, 3), mm, scanner frame, to the nominal skin; see the module docstring.
+
+    tolerance_mm: the fine alignment corrects a rigid-motion direction only if the datum determines it to this RMS
+        displacement over the skin.
+    Raises ScanError when the markers do not fit each other (RMS above ``max_marker_rms_mm``: wrong matching or a
+    moved marker) or a datum mask does not match the skin.
+    """
+    points = np.asarray(points_mm, dtype=np.float64)
+    n_markers, marker_rms = 0, float("nan")
+    if markers_mm is not None and markers_nominal_mm is not None:
+        coarse, marker_rms = rigid_from_markers(markers_mm, markers_nominal_mm)
+        n_markers = int(np.asarray(markers_mm).shape[0])
+        if marker_rms > max_marker_rms_mm:
+            raise ScanError(
+                f"fixture markers do not fit: RMS residual {marker_rms:.3f} mm after the best rigid fit "
+                f"(expected below {max_marker_rms_mm} mm); a marker is mismatched or has moved"
+            )
+        method = "markers"
+    elif scanner_pose is not None:
+        coarse = np.asarray(scanner_pose, dtype=np.float64)
+        if coarse.shape != (4, 4):
+            raise ScanError(f"scanner_pose must be a (4, 4) transform; got {coarse.shape}")
+        method = "pose"
+    else:
+        coarse, method = np.eye(4), "identity"
+
+    nan3 = np.full(3, np.nan)
+    fine = _FineResult(np.eye(4), 0, float("nan"), np.zeros(3), np.zeros(3), nan3, nan3, 0, True, 0, 0.0)
+    if datum_mask is not None:
+        datum = np.asarray(datum_mask, dtype=bool)
+        if datum.shape != (nominal.points_.shape[0],):
+            raise ScanError(
+                f"datum_mask must have one entry per skin node ({nominal.points_.shape[0]}); got {datum.shape}"
+            )
+        if datum.any():
+            moved = np.einsum("md,ed->me", points, coarse[:3, :3]) + coarse[:3, 3]
+            fine = _fine_alignment(moved, nominal, datum, tolerance_mm, max_iterations)
+            method += "+datum"
+    transform = fine.transform @ coarse
+
+    # Overlap on an even subsample (a raster scan's points come in order), so it costs nothing next to the field.
+    sample = np.einsum("md,ed->me", points[:: max(1, points.shape[0] // 20000)], transform[:3, :3]) + transform[:3, 3]
+    overlap = float(np.mean(nominal.point_distances(sample).node >= 0)) if sample.shape[0] else 0.0
+    return RegistrationResult(
+        transform=transform,
+        method=method,
+        n_markers=n_markers,
+        marker_rms_mm=marker_rms,
+        n_datum_points=fine.n_points,
+        datum_rms_mm=fine.rms,
+        fine_translation_mm=fine.translation,
+        fine_rotation_deg=np.degrees(fine.rotation),
+        std_translation_mm=fine.std_translation,
+        std_rotation_deg=np.degrees(fine.std_rotation),
+        overlap=overlap,
+        iterations=fine.iterations,
+        converged=fine.converged,
+        n_aligned=fine.n_aligned,
+        alignment_std_mm=fine.field_std,
+    )
+
+
+@dataclass(frozen=True)
+class _FineResult:
+    transform: np.ndarray
+    n_points: int
+    rms: float
+    translation: np.ndarray
+    rotation: np.ndarray
+    std_translation: np.ndarray
+    std_rotation: np.ndarray
+    iterations: int
+    converged: bool
+    n_aligned: int
+    field_std: float
+
+
+def _fine_alignment(
+    points: np.ndarray, nominal: NominalSurface, datum: np.ndarray, tolerance: float, max_iterations: int
+) -> _FineResult:
+    """Gauss-Newton on the datum points, min sum d(R (p - c) + c + t)^2, restricted to the well-determined subspace.
+
+    The twist xi = (omega rad, t mm) about the datum centroid c; motion metric F = diag(L^2, L^2, L^2, 1, 1, 1). With
+    the datum information H = J^T J / s^2 (s the robust residual scale), eigh(F, H) gives directions v (v^T H v = 1)
+    whose posterior motion variance is the eigenvalue; only directions with variance below tolerance^2 are updated.
+    """
+    # Candidates: points near the datum nodes' bounding box (cheap), then exact datum membership per iteration.
+    datum_points = nominal.points_[datum]
+    margin = nominal.max_distance_mm + 5.0
+    lo, hi = datum_points.min(axis=0) - margin, datum_points.max(axis=0) + margin
+    candidates = points[np.all((points >= lo) & (points <= hi), axis=1)]
+    center = datum_points.mean(axis=0)
+    lever2 = float(np.mean(np.sum((nominal.points_ - center) ** 2, axis=1)))
+    motion_metric = np.diag([lever2, lever2, lever2, 1.0, 1.0, 1.0])
+    xi = np.zeros(6)
+    nan3 = np.full(3, np.nan)
+    information = np.zeros((6, 6))
+    keep = np.zeros(6, bool)
+    variance = np.full(6, np.inf)
+    rms, n_used, converged, iteration = float("nan"), 0, False, 0
+    for iteration in range(1, max_iterations + 1):
+        rotation = rotation_from_vector(xi[:3])
+        current = np.einsum("md,ed->me", candidates - center, rotation) + center + xi[3:]
+        located = nominal.point_distances(current)
+        use = located.node >= 0
+        use[use] = datum[located.node[use]]
+        d = located.distance[use]
+        if d.size < 6:
+            return _FineResult(np.eye(4), int(d.size), float("nan"), np.zeros(3), np.zeros(3), nan3, nan3,
+                               iteration, False, 0, 0.0)  # fmt: skip
+        # Robust: gross outliers near the datum (clamps, mixed pixels) must not steer the part.
+        med = float(np.median(d))
+        sigma = max(1.4826 * float(np.median(np.abs(d - med))), 1e-3)
+        inlier = np.abs(d - med) <= 4.0 * sigma
+        d = d[inlier]
+        kept = type(located)(located.distance[use][inlier], located.node[use][inlier], located.tangent[use][inlier])
+        gradient = nominal.distance_gradient(kept)
+        jacobian = np.column_stack([np.cross(current[use][inlier] - center, gradient), gradient])
+        information = jacobian.T @ jacobian / sigma**2
+        regularised = information + 1e-12 * np.trace(information) * np.eye(6)
+        variance, directions = eigh(motion_metric, regularised)
+        keep = variance <= tolerance**2
+        basis = directions[:, keep]
+        step = -basis @ (basis.T @ (jacobian.T @ d / sigma**2))
+        xi = xi + step
+        rms, n_used = float(np.sqrt(np.mean(d**2))), int(d.size)
+        if np.linalg.norm(step[3:]) < 1e-5 and np.linalg.norm(step[:3]) < 1e-8:
+            converged = True
+            break
+    rotation = rotation_from_vector(xi[:3])
+    transform = _homogeneous(rotation, center + xi[3:] - rotation @ center)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        std = np.sqrt(np.diag(np.linalg.pinv(information)))
+    field_std = float(np.sqrt(np.sum(variance[keep])))
+    return _FineResult(transform, n_used, rms, xi[3:].copy(), xi[:3].copy(), std[3:], std[:3], iteration, converged,
+                       int(keep.sum()), field_std)  # fmt: skip
