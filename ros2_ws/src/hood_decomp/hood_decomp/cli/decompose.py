@@ -1,17 +1,37 @@
-"""`hood-decomp decompose`: decompose a field or scan into per-effect contributions."""
+"""`hood-decomp decompose`: contributions of the hierarchical effects to a field (paper steps 1-7, eqs. 6-8)."""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
-from hood_decomp.cli._pending import add_passthrough, not_built
+from hood_decomp.cli.estimate import add_input_arguments, emit, load_input
 
-HELP = "decompose a field or scan into per-effect contributions (not built yet)"
+HELP = "decompose a field or scan into effects with contribution plots"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_passthrough(parser)
+    add_input_arguments(parser)
+    parser.add_argument("--plots", type=Path, default=None, help="directory for the PNG contribution plots")
+    parser.add_argument("--method", choices=("contact", "pca"), default="contact",
+                        help="estimator of step 2 that selects the effect subset (default contact)")
+    parser.add_argument("--min-share", type=float, default=0.02,
+                        help="coarsening: drop effects contributing less than this fraction (default 0.02)")
 
 
 def run(args: argparse.Namespace) -> int:
-    return not_built("decompose", 4)
+    from hood_decomp.io.bases import decompose_field, estimate_field
+
+    bases, field = load_input(args)
+    estimate = estimate_field(bases, field, args.method, args.min_coverage)
+    result = decompose_field(bases, field, estimate, min_share=args.min_share, min_coverage=args.min_coverage)
+    payload = {
+        "effects": [{"name": e.name, "parameters": list(e.parameters), "share": e.share} for e in result.effects],
+        "reconstruction_rms_mm": result.reconstruction_rms,
+    }
+    if args.plots is not None:
+        from hood_decomp.plots import plot_contributions
+
+        payload["plots"] = [str(p) for p in plot_contributions(bases.skin, result, args.plots)]
+    emit(payload, args.json)
+    return 0
