@@ -1,17 +1,152 @@
-"""`hood-decomp close-loop`: find, add and report an effect the model lacks."""
+"""`hood-decomp close-loop`: find, add and report an effect the model lacks (DESIGN.md step 7).
+
+Writes DIR/close_loop.json (residual before/after, effect found, magnitude, parameter errors where --truth gives the
+truth), DIR/residual_before_<i>.png, DIR/residual_after_<i>.png, DIR/before_after.png and, when an effect was
+added, the rebuilt bases DIR/bases_closed_loop.h5 (usable with `estimate` and `decompose`).
+"""
 
 from __future__ import annotations
 
 import argparse
+import importlib
+import json
+import sys
+from pathlib import Path
 
-from hood_decomp.cli._pending import add_passthrough, not_built
+from hood_decomp.errors import FieldError, ModelIdMismatch, ScanError
 
-HELP = "find, add and report an effect the model lacks (not built yet)"
+HELP = "find, add and report an effect the model lacks (residual -> candidate effects -> new parameter -> bases)"
+
+
+class _Input(argparse.Action):
+    """Collect --field and --scan in the order given, as (kind, path)."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        inputs = list(getattr(namespace, "inputs", None) or [])
+        inputs.append((self.dest, Path(values)))
+        namespace.inputs = inputs
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_passthrough(parser)
+    parser.add_argument("--model", required=True, type=Path, help="model directory or its model.yaml (its "
+                        "optional 'candidates:' list adds user candidate effects)")
+    parser.add_argument("--bases", required=True, type=Path, help="bases file written by `hood-decomp bases`")
+    parser.add_argument("--field", action=_Input, metavar="FIELD.vtu", help="field file (repeatable)")
+    parser.add_argument("--scan", action=_Input, metavar="SCAN.ply", help="scan point cloud (repeatable)")
+    parser.add_argument("--out", required=True, type=Path, help="output directory")
+    parser.add_argument("--truth", type=Path, default=None, help="JSON: label -> true value (mm; N for a force "
+                        "effect) for all fields, or a list of such objects, one per field")
+    parser.add_argument("--ensemble", type=Path, default=None, help="ensemble store of the bases: its training "
+                        "members are reused (default: solved again from the bases' reduced model)")
+    parser.add_argument("--alpha", type=float, default=0.01, help="significance level of the tests (default 0.01)")
+    parser.add_argument("--noise-mm", type=float, default=None, help="scan noise (mm, one sigma) of fields that do "
+                        "not state their own (default: hood_decomp.core.residual.DEFAULT_NOISE_MM)")
+    parser.add_argument("--max-effects", type=int, default=1, help="effects added at most (default 1)")
+    parser.add_argument("--method", choices=("contact", "pca"), default="contact",
+                        help="estimator of the before/after estimates (tracing is always contact-aware)")
+    parser.add_argument("--min-coverage", type=float, default=0.2, help="smallest seen fraction of the skin")
+    parser.set_defaults(inputs=None)
+
+
+def _read_inputs(inputs: list[tuple[str, Path]], skin, min_coverage: float) -> list:
+    fields = []
+    for kind, path in inputs:
+        if kind == "field":
+            from hood_decomp.io.fields import read_field
+
+            fields.append(read_field(path, skin)[0])
+            continue
+        try:
+            scan_verb = importlib.import_module("hood_decomp.cli.scan")
+            from_file = scan_verb.field_from_scan_file
+        except (ImportError, AttributeError) as error:
+            raise ScanError(f"--scan needs the scan-to-field code (hood_decomp.cli.scan.field_from_scan_file and "
+                            f"hood_decomp.core.scan_field.field_from_scan), not available: {error}") from error
+        fields.append(from_file(skin, path, min_coverage=min_coverage))
+    return fields
+
+
+def _read_truth(path: Path | None, n_fields: int) -> list[dict[str, float]] | None:
+    if path is None:
+        return None
+    try:
+        document = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise FieldError(f"--truth {path}: not a readable JSON file: {error}") from error
+    entries = document if isinstance(document, list) else [document] * n_fields
+    if len(entries) != n_fields or not all(isinstance(e, dict) for e in entries):
+        raise FieldError(f"--truth {path}: expected an object label -> value or a list of {n_fields} such objects")
+    try:
+        return [{str(k): float(v) for k, v in e.items()} for e in entries]
+    except (TypeError, ValueError) as error:
+        raise FieldError(f"--truth {path}: values must be numbers: {error}") from error
+
+
+def _table(payload: dict) -> str:
+    lines = [f"status: {payload['status']}: {payload['message']}"]
+    for trace in payload["traces"]:
+        lines.append("  candidate             explained  adj. p      magnitude")
+        for row in trace["ranking"]:
+            magnitude = ", ".join("nan" if v is None else f"{v:+.4g}" for v in row["magnitude"])
+            explained = row["explained"] if row["explained"] is not None else float("nan")
+            lines.append(f"  {row['name']:<20} {100 * explained:8.1f} %  {row['p_adjusted']:<10.3g}  "
+                         f"{magnitude} {row['unit']}")
+        lines.append(f"  -> {trace['reason']}")
+    after = payload["residual_rms_after_mm"] or [None] * len(payload["residual_rms_before_mm"])
+    for i, (rms, rms_after) in enumerate(zip(payload["residual_rms_before_mm"], after, strict=True)):
+        lines.append(f"  field {i}: residual RMS {rms:.4g} mm -> " + ("(nothing added)" if rms_after is None
+                                                                      else f"{rms_after:.4g} mm"))
+    return "\n".join(lines)
 
 
 def run(args: argparse.Namespace) -> int:
-    return not_built("close-loop", 7)
+    import yaml
+
+    from hood_decomp.close_loop_plots import plot_before_after, plot_residual_maps
+    from hood_decomp.core.candidates import candidate_fields, candidates_from_document, enumerate_candidates
+    from hood_decomp.core.close_loop import close_loop, report
+    from hood_decomp.core.fe import build_solver
+    from hood_decomp.core.residual import DEFAULT_NOISE_MM
+    from hood_decomp.io.bases import load_bases, save_bases
+    from hood_decomp.io.model_files import load_model, model_path
+
+    if not args.inputs:
+        raise FieldError("give at least one --field FIELD.vtu or --scan SCAN.ply")
+
+    def progress(message: str) -> None:
+        print(f"close-loop: {message}", file=sys.stderr)
+
+    model = load_model(args.model)
+    bases = load_bases(args.bases)
+    if model.model_id != bases.model_id:
+        raise ModelIdMismatch(f"model {args.model} has model_id {model.model_id!r}, bases {args.bases} "
+                              f"{bases.model_id!r}: build the bases from this model")
+    user = candidates_from_document(yaml.safe_load(model_path(args.model).read_text()).get("candidates"))
+    fields = _read_inputs(args.inputs, bases.skin, args.min_coverage)
+    truth = _read_truth(args.truth, len(fields))
+    ensemble = None
+    if args.ensemble is not None:
+        from hood_decomp.io.ensemble_store import load_ensemble
+
+        ensemble = load_ensemble(args.ensemble, group="training")
+    solver = build_solver(model, progress=progress)
+    candidates = candidate_fields(solver, enumerate_candidates(model, user), progress=progress)
+    result = close_loop(bases, fields, candidates, ensemble=ensemble, alpha=args.alpha,
+                        default_noise_mm=DEFAULT_NOISE_MM if args.noise_mm is None else args.noise_mm,
+                        max_effects=args.max_effects, method=args.method, min_coverage=args.min_coverage,
+                        progress=progress)
+    args.out.mkdir(parents=True, exist_ok=True)
+    payload = report(result, truth)
+    payload["inputs"] = [str(path) for _, path in args.inputs]
+    payload["candidates"] = list(candidates.names)
+    payload["candidates_without_effect"] = list(candidates.dropped)
+    figures = plot_residual_maps(bases.skin, result, args.out)
+    figures.append(plot_before_after(result, args.out / "before_after.png", truth))
+    payload["figures"] = [str(p.name) for p in figures]
+    if result.bases_after is not None:
+        save_bases(args.out / "bases_closed_loop.h5", result.bases_after)
+        payload["bases_after"] = "bases_closed_loop.h5"
+    (args.out / "close_loop.json").write_text(json.dumps(payload, indent=2, allow_nan=False) + "\n")
+    print(_table(payload))
+    print(f"wrote {args.out / 'close_loop.json'}", file=sys.stderr)
+    return 0

@@ -1,0 +1,197 @@
+"""Residual analysis: is a measured field within the model, and where does it leave it? (DESIGN.md step 7.)
+
+The residual r = measured - reconstruction (N,) mm of an estimate is judged against the scan noise sigma (mm):
+
+- **Within the model** (chi-square test). If the model explains the field, r is scan noise, independent and Gaussian
+  with standard deviation s = sqrt(sigma^2 + model^2) per seen node (``model`` is the estimator's own error floor,
+  0 for the exact contact-aware estimator), so sum(r^2) / s^2 follows a chi-square law with n_seen - n_params degrees
+  of freedom. The field is within the model when the upper-tail probability of the observed sum is at least
+  ``alpha`` (default 1 %). The noise is the field's ``noise_rms`` when known, else :data:`DEFAULT_NOISE_MM`.
+- **Regions** where the residual exceeds what the noise explains. A model defect is smooth, noise is not: the residual
+  is averaged over each node's one-ring on the skin triangles (the node and its edge neighbours), which keeps a smooth
+  defect and divides the noise variance by the ring size. A node exceeds when this average is more than z standard
+  deviations of its noise away from 0, with z the two-sided Bonferroni quantile at ``alpha`` over the seen nodes, so
+  that pure noise gives any exceeding node with probability below ``alpha`` whatever the correlation. Connected
+  exceeding nodes (along triangle edges) form a region, reported with its |r|-weighted centroid, its peak (signed,
+  from the raw residual), its area and RMS; regions are ordered by their residual energy sum(r^2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+from scipy.stats import chi2, norm
+
+from hood_decomp.core.types import SkinSurface
+from hood_decomp.errors import FieldError
+
+#: scan noise (mm, one standard deviation per node) assumed when a field does not state its own (NaN noise_rms):
+#: a smoothed structured-light field; the paper's repeatability scans stay within +-0.1 mm (Fig. 14), i.e. ~0.02 mm rms
+DEFAULT_NOISE_MM = 0.02
+#: significance level of the chi-square test and of the region detection
+DEFAULT_ALPHA = 0.01
+
+
+@dataclass(frozen=True)
+class ResidualRegion:
+    """A connected skin region where the residual exceeds the noise.
+
+    nodes: (n,) int64 skin node indices. centroid: (3,) mm, |r|-weighted mean position. peak_node: index of the
+    largest |r|; peak_point: (3,) mm its position; peak_mm: its signed residual. area_mm2: tributary area of the
+    nodes. rms_mm: residual RMS over the nodes. energy_mm2: sum of r^2 over the nodes.
+    """
+
+    nodes: np.ndarray
+    centroid: np.ndarray
+    peak_node: int
+    peak_point: np.ndarray
+    peak_mm: float
+    area_mm2: float
+    rms_mm: float
+    energy_mm2: float
+
+
+@dataclass(frozen=True)
+class ResidualAnalysis:
+    """Statistics of one residual field and the within-model decision (see the module docstring).
+
+    residual: (N,) mm, NaN where unseen. rms_mm, max_mm (max |r|), mean_mm over seen nodes; n_seen; n_params (fitted
+    unknowns, for the degrees of freedom). noise_mm: sigma used; noise_source: "stated" (the field's or the caller's)
+    or "default" (:data:`DEFAULT_NOISE_MM`). model_mm: estimator error floor. chi2: sum(r^2) / s^2; dof; p_value:
+    upper-tail probability; alpha; within_model: p_value >= alpha. threshold_sigmas: z of the region detection.
+    regions: exceeding regions, largest residual energy first.
+    """
+
+    residual: np.ndarray
+    rms_mm: float
+    max_mm: float
+    mean_mm: float
+    n_seen: int
+    n_params: int
+    noise_mm: float
+    noise_source: str
+    model_mm: float
+    chi2: float
+    dof: int
+    p_value: float
+    alpha: float
+    within_model: bool
+    threshold_sigmas: float
+    regions: tuple[ResidualRegion, ...]
+
+
+def chi2_within(sum_scaled: float, dof: int, alpha: float) -> tuple[float, bool]:
+    """Upper-tail p-value of a chi-square statistic ``sum_scaled`` with ``dof`` degrees of freedom, and p >= alpha."""
+    p_value = float(chi2.sf(sum_scaled, max(dof, 1)))
+    return p_value, p_value >= alpha
+
+
+def noise_level(noise_mm: float | None, default_mm: float = DEFAULT_NOISE_MM) -> tuple[float, str]:
+    """The noise to test against (mm) and where it came from: a finite positive ``noise_mm`` or the default."""
+    if noise_mm is not None and np.isfinite(noise_mm) and noise_mm > 0:
+        return float(noise_mm), "stated"
+    if not default_mm > 0:
+        raise FieldError(f"the default scan noise must be > 0 mm, got {default_mm}")
+    return float(default_mm), "default"
+
+
+def skin_adjacency(skin: SkinSurface) -> sp.csr_matrix:
+    """Node adjacency (N, N) along the skin triangles' edges, symmetric, no diagonal."""
+    tri = np.asarray(skin.triangles, dtype=np.int64)
+    rows = np.concatenate([tri[:, 0], tri[:, 1], tri[:, 2], tri[:, 1], tri[:, 2], tri[:, 0]])
+    cols = np.concatenate([tri[:, 1], tri[:, 2], tri[:, 0], tri[:, 0], tri[:, 1], tri[:, 2]])
+    n = skin.n_nodes
+    adjacency = sp.coo_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n)).tocsr()
+    adjacency.data[:] = 1.0
+    return adjacency
+
+
+def _nodal_areas(skin: SkinSurface) -> np.ndarray:
+    """Tributary area per skin node (N,) mm^2: a third of each adjacent triangle (triangles split quads, so 1/2)."""
+    p = skin.points[skin.triangles]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    out = np.zeros(skin.n_nodes)
+    np.add.at(out, skin.triangles.ravel(), np.repeat(area / 3.0, 3))
+    return out
+
+
+def _ring_average(adjacency: sp.csr_matrix, residual: np.ndarray, seen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One-ring mean of the residual over seen nodes, and the factor sqrt(1 / ring size) of its noise std."""
+    ring = adjacency + sp.identity(adjacency.shape[0], format="csr")
+    values = np.where(seen, residual, 0.0)
+    count = ring @ seen.astype(float)
+    mean = np.where(seen, (ring @ values) / np.maximum(count, 1.0), np.nan)
+    return mean, 1.0 / np.sqrt(np.maximum(count, 1.0))
+
+
+def find_regions(skin: SkinSurface, residual: np.ndarray, sigma: float, z: float) -> tuple[ResidualRegion, ...]:
+    """Connected regions where the one-ring mean residual exceeds z noise standard deviations (module docstring)."""
+    seen = np.isfinite(residual)
+    adjacency = skin_adjacency(skin)
+    mean, factor = _ring_average(adjacency, residual, seen)
+    exceeding = seen & (np.abs(np.nan_to_num(mean)) > z * sigma * factor)
+    if not exceeding.any():
+        return ()
+    index = np.flatnonzero(exceeding)
+    sub = adjacency[index][:, index]
+    n_regions, labels = connected_components(sub, directed=False)
+    areas = _nodal_areas(skin)
+    regions = []
+    for label in range(n_regions):
+        nodes = index[labels == label]
+        r = residual[nodes]
+        weight = np.abs(r)
+        peak = nodes[int(np.argmax(weight))]
+        centroid = (weight @ skin.points[nodes]) / weight.sum() if weight.sum() > 0 else skin.points[nodes].mean(0)
+        regions.append(ResidualRegion(
+            nodes=nodes, centroid=centroid, peak_node=int(peak), peak_point=skin.points[peak].copy(),
+            peak_mm=float(residual[peak]), area_mm2=float(areas[nodes].sum()), rms_mm=float(np.sqrt(np.mean(r**2))),
+            energy_mm2=float(r @ r),
+        ))
+    return tuple(sorted(regions, key=lambda region: -region.energy_mm2))
+
+
+def analyse_residual(
+    skin: SkinSurface,
+    residual: np.ndarray,
+    n_params: int,
+    noise_mm: float | None = None,
+    model_mm: float = 0.0,
+    alpha: float = DEFAULT_ALPHA,
+    default_noise_mm: float = DEFAULT_NOISE_MM,
+) -> ResidualAnalysis:
+    """Statistics, chi-square within-model test and exceeding regions of one residual field.
+
+    skin: the visible skin (N nodes). residual: (N,) mm, measured - reconstruction, NaN where unseen.
+    n_params: number of unknowns the estimate fitted (degrees of freedom = seen nodes - n_params).
+    noise_mm: scan noise, one standard deviation per node (the field's ``noise_rms``); None/NaN: ``default_noise_mm``.
+    model_mm: the estimator's own error floor, added in quadrature. alpha: significance level.
+    Raises FieldError for a residual of the wrong length, inf values, no seen node or alpha outside (0, 1).
+    """
+    residual = np.asarray(residual, dtype=float)
+    if residual.shape != (skin.n_nodes,):
+        raise FieldError(f"residual has shape {residual.shape}, expected ({skin.n_nodes},) (one per skin node)")
+    if np.any(np.isinf(residual)):
+        raise FieldError("residual holds inf values; unseen nodes must be NaN")
+    if not 0.0 < alpha < 1.0:
+        raise FieldError(f"alpha must lie in (0, 1), got {alpha}")
+    seen = np.isfinite(residual)
+    n_seen = int(seen.sum())
+    if n_seen == 0:
+        raise FieldError("residual has no finite value (all NaN)")
+    sigma, source = noise_level(noise_mm, default_noise_mm)
+    total = float(np.hypot(sigma, model_mm))
+    r = residual[seen]
+    dof = max(n_seen - int(n_params), 1)
+    statistic = float(r @ r) / total**2
+    p_value, within = chi2_within(statistic, dof, alpha)
+    z = float(norm.isf(alpha / (2.0 * n_seen)))
+    return ResidualAnalysis(
+        residual=residual, rms_mm=float(np.sqrt(np.mean(r**2))), max_mm=float(np.max(np.abs(r))),
+        mean_mm=float(np.mean(r)), n_seen=n_seen, n_params=int(n_params), noise_mm=sigma, noise_source=source,
+        model_mm=float(model_mm), chi2=statistic, dof=dof, p_value=p_value, alpha=float(alpha), within_model=within,
+        threshold_sigmas=z, regions=find_regions(skin, residual, total, z),
+    )
