@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from hood_decomp.cli import main
-from hood_decomp.errors import BasisError, FieldError, ModelIdMismatch
-from hood_decomp.io.bases import build_bases, decompose_field, estimate_field, load_bases, save_bases
+from hood_decomp.core.bases import build_bases, decompose_field, estimate_field
+from hood_decomp.errors import BasisError, FieldError, ModelIdMismatchError
+from hood_decomp.io.bases import load_bases, save_bases
 from hood_decomp.io.fields import read_field, write_field
 from tests.synthetic import field_of, full_factorial, make_ensemble, make_reduced_model, make_skin, random_states
 
@@ -68,9 +69,9 @@ def test_wrong_files_and_fields_are_refused(saved, tmp_path):
     with pytest.raises(BasisError, match="not a hood_decomp bases file"):
         load_bases(other)
     foreign = replace(field_of(skin, model.w0), model_id="ffffffffffffffff")
-    with pytest.raises(ModelIdMismatch):
+    with pytest.raises(ModelIdMismatchError):
         estimate_field(bases, foreign)
-    with pytest.raises(ModelIdMismatch):
+    with pytest.raises(ModelIdMismatchError):
         decompose_field(bases, foreign)
     with pytest.raises(BasisError, match="unknown estimation method"):
         estimate_field(bases, field_of(skin, model.w0), "magic")

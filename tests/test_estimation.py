@@ -7,7 +7,7 @@ import pytest
 
 from hood_decomp.core.estimation import estimate_pca
 from hood_decomp.core.pca import PCABasis
-from hood_decomp.errors import FieldError, ModelIdMismatch
+from hood_decomp.errors import FieldError, ModelIdMismatchError
 from tests.synthetic import field_of, full_factorial, make_ensemble, make_reduced_model, make_skin, random_states
 
 NOISE_MM = 0.02
@@ -27,7 +27,7 @@ def test_bad_fields_raise_clear_errors(setup):
     good = model.w0.copy()
     with pytest.raises(FieldError, match=r"expected \(600,\)"):
         estimate_pca(basis, field_of(skin, good[:-1]))
-    with pytest.raises(ModelIdMismatch, match="does not match"):
+    with pytest.raises(ModelIdMismatchError, match="does not match"):
         estimate_pca(basis, replace(field_of(skin, good), model_id="0123456789abcdef"))
     with pytest.raises(FieldError, match="all NaN"):
         estimate_pca(basis, field_of(skin, np.full_like(good, np.nan)))

@@ -195,7 +195,7 @@ def test_default_noisy_std_covers_the_error(default_validation):
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="buffers: the paper's linear state map cannot follow unilateral contact "
-                   "(about 0.1 mm at default resolution); see benchmarks/RESULTS_method.md")
+                   "(about 0.1 mm at default resolution); see benchmarks/RESULTS.md")
 def test_default_pca_estimator_paper_target_all_parameters(default_validation):
     _, result = default_validation
     assert np.abs(result["pca"]).max() <= 0.004
@@ -203,7 +203,7 @@ def test_default_pca_estimator_paper_target_all_parameters(default_validation):
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="0.02 mm noise: soft pad springs make a buffer's commanded position (and "
-                   "HINGE_X) less observable than 0.004 mm; see benchmarks/RESULTS_method.md")
+                   "HINGE_X) less observable than 0.004 mm; see benchmarks/RESULTS.md")
 def test_default_noisy_contact_estimator_target(default_validation):
     _, result = default_validation
     assert np.abs(result["contact_noisy"]).max() <= 0.004

@@ -35,7 +35,7 @@ class FieldError(HoodDecompError):
     """A displacement field is unusable: wrong length, wrong model_id, all NaN, inf values, coverage too low."""
 
 
-class ModelIdMismatch(FieldError):
+class ModelIdMismatchError(FieldError):
     """A field and a basis (or model) come from different models."""
 
 

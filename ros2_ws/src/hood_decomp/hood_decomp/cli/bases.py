@@ -52,7 +52,8 @@ def load_training_set(path: Path, model_dir: Path | None, say):
 
 
 def run(args: argparse.Namespace) -> int:
-    from hood_decomp.io.bases import build_bases, save_bases
+    from hood_decomp.core.bases import build_bases
+    from hood_decomp.io.bases import save_bases
 
     def say(text: str) -> None:
         print(text, file=sys.stderr)

@@ -13,7 +13,7 @@ import json
 import sys
 from pathlib import Path
 
-from hood_decomp.errors import FieldError, ModelIdMismatch, ScanError
+from hood_decomp.errors import FieldError, ModelIdMismatchError, ScanError
 
 HELP = "find, add and report an effect the model lacks (residual -> candidate effects -> new parameter -> bases)"
 
@@ -119,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
     model = load_model(args.model)
     bases = load_bases(args.bases)
     if model.model_id != bases.model_id:
-        raise ModelIdMismatch(f"model {args.model} has model_id {model.model_id!r}, bases {args.bases} "
+        raise ModelIdMismatchError(f"model {args.model} has model_id {model.model_id!r}, bases {args.bases} "
                               f"{bases.model_id!r}: build the bases from this model")
     user = candidates_from_document(yaml.safe_load(model_path(args.model).read_text()).get("candidates"))
     fields = _read_inputs(args.inputs, bases.skin, args.min_coverage)

@@ -20,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hood_decomp.io.bases import decompose_field, estimate_field
+    from hood_decomp.core.bases import decompose_field, estimate_field
 
     bases, field = load_input(args)
     estimate = estimate_field(bases, field, args.method, args.min_coverage)

@@ -78,7 +78,7 @@ def estimate_payload(estimate, n_bilateral: int) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hood_decomp.io.bases import estimate_field
+    from hood_decomp.core.bases import estimate_field
 
     bases, field = load_input(args)
     estimate = estimate_field(bases, field, args.method, args.min_coverage)

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2, f
 
+from hood_decomp.core.bases import Bases, build_bases, estimate_field
 from hood_decomp.core.candidates import CandidateFields, augment_reduced
 from hood_decomp.core.contact_estimation import ContactEstimator
 from hood_decomp.core.ensemble import factorial_plan, simulate_ensemble, solve_members
@@ -50,8 +51,7 @@ from hood_decomp.core.residual import (
     noise_level,
 )
 from hood_decomp.core.types import DisplacementField, Ensemble, ParameterEstimate, ReducedModel
-from hood_decomp.errors import BasisError, EnsembleError, FieldError, ModelError, ModelIdMismatch
-from hood_decomp.io.bases import Bases, build_bases, estimate_field
+from hood_decomp.errors import BasisError, EnsembleError, FieldError, ModelError, ModelIdMismatchError
 
 Progress = Callable[[str], None]
 #: an effect "explains" the residual when it removes at least this fraction of the residual energy beyond noise
@@ -305,7 +305,8 @@ def extend_ensemble(ensemble: Ensemble, reduced: ReducedModel, lower: np.ndarray
     if np.any(np.asarray(ensemble.rank) < 0):
         raise EnsembleError("only a full-factorial (training) ensemble can be extended; got random members")
     if ensemble.model_id != reduced.model_id:
-        raise ModelIdMismatch(f"ensemble model_id {ensemble.model_id!r} differs from the model's {reduced.model_id!r}")
+        raise ModelIdMismatchError(
+            f"ensemble model_id {ensemble.model_id!r} differs from the model's {reduced.model_id!r}")
     lower, upper = np.asarray(lower, float), np.asarray(upper, float)
     old_columns = [names.index(n) for n in old]
     if not (np.allclose(lower[old_columns], ensemble.lower) and np.allclose(upper[old_columns], ensemble.upper)):
@@ -377,7 +378,7 @@ def close_loop(
     if not fields:
         raise FieldError("close_loop needs at least one field")
     if candidates.normal.shape[0] != bases.skin.n_nodes:
-        raise ModelIdMismatch(f"candidate responses have {candidates.normal.shape[0]} skin nodes, the bases "
+        raise ModelIdMismatchError(f"candidate responses have {candidates.normal.shape[0]} skin nodes, the bases "
                               f"{bases.skin.n_nodes}: they come from another model")
     if max_effects < 1:
         raise ModelError(f"max_effects must be >= 1, got {max_effects}")

@@ -11,7 +11,7 @@ import numpy as np
 
 from hood_decomp.core.pca import PCABasis
 from hood_decomp.core.types import DisplacementField, ParameterEstimate
-from hood_decomp.errors import FieldError, ModelIdMismatch
+from hood_decomp.errors import FieldError, ModelIdMismatchError
 
 # A field must show at least this fraction of the skin nodes; below it the fit extrapolates from a patch.
 DEFAULT_MIN_COVERAGE = 0.2
@@ -28,11 +28,11 @@ def check_field(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Validate a field against a basis; return ``(values (N,) mm, valid (N,) bool)``.
 
-    Raises ModelIdMismatch for another model's field, FieldError for a wrong length, inf values, no finite value or a
-    coverage below ``min_coverage``.
+    Raises ModelIdMismatchError for another model's field, FieldError for a wrong length, inf values, no finite value
+    or a coverage below ``min_coverage``.
     """
     if field.model_id != model_id:
-        raise ModelIdMismatch(f"field model_id {field.model_id!r} does not match the bases' model_id {model_id!r}")
+        raise ModelIdMismatchError(f"field model_id {field.model_id!r} does not match the bases' model_id {model_id!r}")
     values = np.asarray(field.normal_displacement, dtype=float)
     if values.ndim != 1 or values.shape[0] != n_nodes:
         raise FieldError(f"field has shape {values.shape}, expected ({n_nodes},) (one value per visible skin node)")
