@@ -47,6 +47,11 @@ CONTACT_SIGMAS = 3.0
 # carries no load the field can show: it is reported lifted, at the part's position (well determined, unlike b).
 LIFTED_COMPRESSION_MM = 1e-7
 LIFTED_SIGMAS = 2.0
+# On a measured field (finite noise_rms) a pad carrying less than this total force (N) is reported lifted too: a
+# scan-derived field has a spatially correlated smoothing error that the white-noise std above does not see, and on
+# the default hood it makes a lifted pad look touching with 1-2 N (a seated pad carries 100-250 N). The commanded
+# position of such a pad is not observable; its part position is.
+MEASURED_MIN_PAD_FORCE_N = 5.0
 
 
 @dataclass(frozen=True)
@@ -68,8 +73,10 @@ class ContactEstimator:
     Fitted: model_, lower_, upper_, fields_ (B + S, N) = [R G]^T, gram_ (B + S, B + S), touching_pads_ (starts).
     """
 
-    def __init__(self, min_coverage: float = DEFAULT_MIN_COVERAGE):
+    def __init__(self, min_coverage: float = DEFAULT_MIN_COVERAGE,
+                 measured_min_pad_force_n: float = MEASURED_MIN_PAD_FORCE_N):
         self.min_coverage = min_coverage
+        self.measured_min_pad_force_n = measured_min_pad_force_n
 
     def fit(self, model: ReducedModel, lower: np.ndarray, upper: np.ndarray) -> ContactEstimator:
         n_params = len(model.names)
@@ -204,7 +211,9 @@ class ContactEstimator:
         reconstruction = model.w0 + u @ self.fields_
         residual, rms, worst = residual_stats(values, reconstruction, valid)
         sigma2 = float(np.nansum(residual**2)) / max(n_valid - theta.size, 1)
-        out_values, out_std, lifted = self._report(best, theta, sigma2 * best.normal_inverse)
+        measured = bool(np.isfinite(field.noise_rms) and field.noise_rms > 0)
+        out_values, out_std, lifted = self._report(best, theta, sigma2 * best.normal_inverse,
+                                                   self.measured_min_pad_force_n if measured else 0.0)
         return ParameterEstimate(
             model_id=model.model_id,
             names=tuple(model.names),
@@ -262,9 +271,10 @@ class ContactEstimator:
         return min(candidates, key=lambda c: (c.rss + 2.0 * sigma2 * c.theta.size, c.theta.size))
 
     def _report(
-        self, cand: _Candidate, theta: np.ndarray, cov: np.ndarray
+        self, cand: _Candidate, theta: np.ndarray, cov: np.ndarray, min_force_n: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Values, std (B + U,) mm and lifted flags from a solved candidate."""
+        """Values, std (B + U,) mm and lifted flags from a solved candidate; a touching pad with a total force below
+        ``min_force_n`` (N) is reported lifted."""
         model = self.model_
         n_b = model.n_bilateral
         n_pads = self.touching_pads_.shape[1]
@@ -288,6 +298,9 @@ class ContactEstimator:
                 col = n_b + touching.index(pad)
                 values[n_b + pad] = theta[col]
                 std[n_b + pad] = np.sqrt(max(cov[col, col], 0.0))
+                # Too light a touch to tell from lifted on a measured field: the commanded position is at most the
+                # one at which the pad just carries this force, so that bound is the value, flagged lifted.
+                lifted[n_b + pad] = float(f[springs].sum()) < min_force_n
                 continue
             lifted[n_b + pad] = True
             if springs.size == 0:

@@ -257,7 +257,8 @@ class ScanFieldEstimator:
         pairs = pairs[pairs["i"] != pairs["j"]]
         i, j, dist = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64), pairs["v"]
         rel = self.points_[j] - self.points_[i]
-        mean = np.column_stack([np.bincount(i, weights=rel[:, k], minlength=n) for k in range(3)])
+        # float: with no pair inside r (a radius below the node spacing) bincount returns integers
+        mean = np.column_stack([np.bincount(i, weights=rel[:, k], minlength=n) for k in range(3)]).astype(float)
         mean /= np.maximum(np.bincount(i, minlength=n), 1)[:, None]
         normal = self.frames_[:, 2]
         tangential = mean - np.einsum("nd,nd->n", mean, normal)[:, None] * normal
