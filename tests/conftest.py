@@ -17,8 +17,8 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 
 
 @dataclasses.dataclass(frozen=True)
-class CoarseHood:
-    """The built-in hood at coarse resolution with its full-factorial ensemble and saved bases (built once)."""
+class HoodCase:
+    """The built-in hood at one resolution with its full-factorial ensemble and saved bases (built once a session)."""
 
     model: Any
     skin: Any
@@ -29,21 +29,33 @@ class CoarseHood:
     bases_path: pathlib.Path
 
 
-@pytest.fixture(scope="session")
-def coarse_hood(tmp_path_factory: pytest.TempPathFactory) -> CoarseHood:
+def _hood_case(resolution: str, directory: pathlib.Path) -> HoodCase:
+    from hood_decomp.core.bases import build_bases
     from hood_decomp.core.ensemble import factorial_plan, simulate_ensemble
     from hood_decomp.core.fe import build_solver, reduce_model
     from hood_decomp.core.hood_preset import build_hood
     from hood_decomp.core.model import skin_surface
-    from hood_decomp.io.bases import build_bases, save_bases
+    from hood_decomp.io.bases import save_bases
 
-    model = build_hood("coarse")
+    model = build_hood(resolution)
     skin = skin_surface(model)
     solver = build_solver(model)
     reduced = reduce_model(solver)
     commanded, rank = factorial_plan(model.lower, model.upper)
     ensemble = simulate_ensemble(reduced, commanded, rank, model.lower, model.upper)
     bases = build_bases(ensemble, skin, reduced)
-    path = tmp_path_factory.mktemp("coarse_hood") / "bases.h5"
+    path = directory / "bases.h5"
     save_bases(path, bases)
-    return CoarseHood(model, skin, solver, reduced, ensemble, bases, path)
+    return HoodCase(model, skin, solver, reduced, ensemble, bases, path)
+
+
+@pytest.fixture(scope="session")
+def coarse_hood(tmp_path_factory: pytest.TempPathFactory) -> HoodCase:
+    """Coarse hood (2,244 skin nodes): FE, method and node tests on fields."""
+    return _hood_case("coarse", tmp_path_factory.mktemp("coarse_hood"))
+
+
+@pytest.fixture(scope="session")
+def default_hood(tmp_path_factory: pytest.TempPathFactory) -> HoodCase:
+    """Default hood (30,107 skin nodes): what scans need (the coarse grid is too coarse for a scan-derived field)."""
+    return _hood_case("default", tmp_path_factory.mktemp("default_hood"))

@@ -104,7 +104,7 @@ class DecompositionNode(Node):
             self.process(_Pair(field.header, field, None))
 
     def decompose(self, pair: _Pair) -> dict[str, object]:
-        from hood_decomp.io.bases import decompose_field
+        from hood_decomp.core.bases import decompose_field
 
         if self.bases is None:
             raise HoodDecompError(self.bases_error)

@@ -50,7 +50,7 @@ class EstimatorNode(Node):
                                  qos_overriding_options=OVERRIDABLE)
 
     def on_field(self, msg: DisplacementField) -> dict[str, object]:
-        from hood_decomp.io.bases import estimate_field
+        from hood_decomp.core.bases import estimate_field
 
         if self.bases is None:
             raise HoodDecompError(self.bases_error)

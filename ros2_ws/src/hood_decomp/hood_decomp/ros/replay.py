@@ -14,17 +14,15 @@ from collections.abc import Callable, Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState, DisplacementField, EffectFields
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import PointCloud2
 
 from hood_decomp.errors import BagError
 from hood_decomp.io.bags import BagWriter, Record, read_bag
-from hood_decomp.ros.node_common import topic_qos
+from hood_decomp.ros.participant import Participant
 
 SCAN_TOPIC = "scan/points"
 OUTPUTS: dict[str, type] = {
@@ -78,22 +76,15 @@ def replay_bag(bag: str | pathlib.Path, *, record: str | pathlib.Path | None = N
     answered: dict[str, set[str]] = {}
     last_arrival = [time.monotonic()]
     start = time.monotonic()
-    context = rclpy.Context()
-    rclpy.init(context=context)
     with ExitStack() as stack:
-        stack.callback(rclpy.try_shutdown, context=context)
+        peer = stack.enter_context(Participant("hood_decomp_replay", depth=10))
         writer = stack.enter_context(BagWriter(record)) if record is not None else None
-        node = rclpy.create_node("hood_decomp_replay", context=context)
-        stack.callback(node.destroy_node)
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
-        qos = topic_qos(10)
 
         def on_output(topic: str, cls: type) -> Callable[[bytes], None]:
             def callback(raw: bytes) -> None:
                 last_arrival[0] = time.monotonic()
                 if writer is not None:
-                    writer.write(Record(topic, _msgtype(cls), node.get_clock().now().nanoseconds, bytes(raw)))
+                    writer.write(Record(topic, _msgtype(cls), peer.node.get_clock().now().nanoseconds, bytes(raw)))
                     result.recorded += 1
                 if topic in answers:
                     key = _stamp_key(deserialize_message(raw, cls).header.stamp)
@@ -106,20 +97,10 @@ def replay_bag(bag: str | pathlib.Path, *, record: str | pathlib.Path | None = N
             return callback
 
         for topic, cls in OUTPUTS.items():
-            node.create_subscription(cls, topic, on_output(topic, cls), qos, raw=True)
-        scan_pub = node.create_publisher(PointCloud2, SCAN_TOPIC, qos)
-        clock_pub = node.create_publisher(Clock, "/clock", 10) if publish_clock else None
-
-        def wait(condition: Callable[[], bool], seconds: float) -> bool:
-            deadline = time.monotonic() + seconds
-            while not condition():
-                if time.monotonic() > deadline:
-                    return False
-                executor.spin_once(timeout_sec=0.05)
-            return True
-
-        if not wait(lambda: scan_pub.get_subscription_count() > 0
-                    and all(node.count_publishers(t) > 0 for t in answers), startup_timeout_s):
+            peer.subscribe(topic, cls, on_output(topic, cls), raw=True)
+        scan_pub = peer.publisher(SCAN_TOPIC, PointCloud2)
+        clock_pub = peer.publisher("/clock", Clock) if publish_clock else None
+        if not peer.connected([SCAN_TOPIC], list(answers), startup_timeout_s):
             raise BagError(f"no nodes answered within {startup_timeout_s:.0f} s: is something subscribed to "
                            f"{SCAN_TOPIC} and publishing {', '.join(answers)}? (hood-decomp launch --bases B)")
         for index, scan in enumerate(scans, start=1):
@@ -130,7 +111,7 @@ def replay_bag(bag: str | pathlib.Path, *, record: str | pathlib.Path | None = N
                 clock_pub.publish(clock_msg)
             scan_pub.publish(scan.data)
             result.scans += 1
-            done = wait(lambda k=key: answered.get(k, set()) >= set(answers) or k in result.refused, timeout_s)
+            done = peer.wait(lambda k=key: answered.get(k, set()) >= set(answers) or k in result.refused, timeout_s)
             if not done:
                 result.unanswered.append(key)
             elif key not in result.refused:
@@ -139,6 +120,6 @@ def replay_bag(bag: str | pathlib.Path, *, record: str | pathlib.Path | None = N
                 state = "refused" if key in result.refused else "answered" if done else "NO ANSWER"
                 progress(f"scan {index}/{len(scans)} (stamp {key}): {state}")
         last_arrival[0] = time.monotonic()
-        wait(lambda: time.monotonic() - last_arrival[0] > settle_s, settle_s + timeout_s)
+        peer.wait(lambda: time.monotonic() - last_arrival[0] > settle_s, settle_s + timeout_s)
     result.seconds = time.monotonic() - start
     return result

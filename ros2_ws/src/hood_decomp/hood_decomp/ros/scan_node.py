@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 from hood_decomp_msgs.msg import DisplacementField
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
 
 from hood_decomp.errors import HoodDecompError, ScanError
@@ -25,7 +27,7 @@ from hood_decomp.ros.node_common import (
     spin,
     topic_qos,
 )
-from hood_decomp.ros.pointcloud import cloud_to_xyz, xyz_to_cloud
+from hood_decomp.ros.pointcloud import cloud_channel, cloud_to_xyz, xyz_to_cloud
 
 
 class ScanNode(Node):
@@ -35,12 +37,18 @@ class ScanNode(Node):
         self.part_frame = declare(self, "part_frame", "hood", "frame_id of the published fields (the part frame)")
         pose = declare(self, "scanner_pose", [float(v) for v in np.eye(4).ravel()],
                        "scanner-to-part transform, 16 numbers row-major, translation in metres (cell calibration)")
+        markers = self.declare_parameter("marker_positions", Parameter.Type.DOUBLE_ARRAY, ParameterDescriptor(
+            description="nominal reference-marker centres in the part frame: id, x, y, z (metres) per marker; the "
+            "cloud reports measured centres as points whose marker_field is the id (-1 for surface points)")).value
+        self.marker_field = declare(self, "marker_field", "marker_id", "per-point field holding marker ids")
         self.max_points = declare(self, "max_points", 5_000_000, "largest cloud accepted (points)", 1, 100_000_000)
         self.min_coverage = declare(self, "min_coverage", 0.2, "smallest seen fraction of the skin", 0.0, 1.0)
         depth = declare(self, "queue_depth", 10, "messages held per topic while the node is busy", 1, 1000)
         self.diagnostics = Diagnostics(self)
         self.scanner_pose = np.asarray(pose, dtype=float).reshape(4, 4)
         self.scanner_pose[:3, 3] *= messages.MM_PER_M
+        table = np.asarray(markers if markers is not None else [], dtype=float).reshape(-1, 4)
+        self.markers_nominal = {int(row[0]): row[1:] * messages.MM_PER_M for row in table}
         self.bases, self.bases_error = load_bases_or_reason(self.bases_path)
         self.estimator = None
         if self.bases is not None:
@@ -66,8 +74,9 @@ class ScanNode(Node):
         if n_points > self.max_points:
             raise ScanError(f"cloud has {n_points:,} points; this node accepts at most {self.max_points:,} "
                             "(parameter max_points)")
-        points_mm = cloud_to_xyz(msg, scale=messages.MM_PER_M)
+        points_mm, markers_mm, markers_nominal_mm = self.split_markers(msg)
         field, registration = field_from_scan(self.bases.skin, points_mm, scanner_pose=self.scanner_pose,
+                                              markers_mm=markers_mm, markers_nominal_mm=markers_nominal_mm,
                                               min_coverage=self.min_coverage, estimator=self.estimator)
         header = msg.header
         header.frame_id = self.part_frame
@@ -75,9 +84,25 @@ class ScanNode(Node):
         self.cloud_pub.publish(xyz_to_cloud(self.bases.skin.points, header, scale=messages.M_PER_MM,
                                             channels={"normal_displacement":
                                                       field.normal_displacement * messages.M_PER_MM}))
-        return {"points": points_mm.shape[0], "coverage": f"{field.coverage:.3f}",
+        return {"points": points_mm.shape[0], "markers": 0 if markers_mm is None else len(markers_mm),
+                "coverage": f"{field.coverage:.3f}",
                 "noise_rms_mm": f"{field.noise_rms:.4f}", "registration": registration.method,
                 "overlap": f"{registration.overlap:.3f}"}
+
+    def split_markers(self, msg: PointCloud2) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """Surface points (M, 3) mm (NaN rows kept: the core names an all-NaN scan), and the measured marker centres
+        with their nominal positions (K, 3) mm that this node knows (None when the cloud reports none or no marker
+        positions are configured)."""
+        points = cloud_to_xyz(msg, scale=messages.MM_PER_M, drop_nan=False)
+        if not self.markers_nominal or self.marker_field not in {f.name for f in msg.fields}:
+            return points, None, None
+        ids = cloud_channel(msg, self.marker_field)
+        known = np.isin(ids, np.fromiter(self.markers_nominal, dtype=float)) & np.isfinite(points).all(axis=1)
+        surface = points[ids < 0]
+        if not known.any():
+            return surface, None, None
+        nominal = np.array([self.markers_nominal[int(i)] for i in ids[known]])
+        return surface, points[known], nominal
 
 
 def main(args: list[str] | None = None) -> int:

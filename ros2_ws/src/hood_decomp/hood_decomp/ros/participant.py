@@ -1,0 +1,64 @@
+"""A ROS 2 participant for driving the nodes from outside: replay, tests, benchmarks.
+
+It has its own rclpy context (so it never shares global state with anything else in the process), one node and a
+single-threaded executor that runs only while :meth:`Participant.wait` waits.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+
+from hood_decomp.ros.node_common import topic_qos
+
+
+class Participant:
+    def __init__(self, name: str, depth: int = 50) -> None:
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.depth = depth
+        self.publishers: dict[str, Any] = {}
+
+    def publisher(self, topic: str, cls: type) -> Any:
+        self.publishers[topic] = self.node.create_publisher(cls, topic, topic_qos(self.depth))
+        return self.publishers[topic]
+
+    def subscribe(self, topic: str, cls: type, callback: Callable[[Any], None], raw: bool = False) -> None:
+        self.node.create_subscription(cls, topic, callback, topic_qos(self.depth), raw=raw)
+
+    def collect(self, topic: str, cls: type) -> list[Any]:
+        """Subscribe and return the list the messages are appended to, in arrival order."""
+        received: list[Any] = []
+        self.subscribe(topic, cls, received.append)
+        return received
+
+    def wait(self, condition: Callable[[], bool], seconds: float) -> bool:
+        """Process callbacks until ``condition()`` holds (True) or ``seconds`` pass (False)."""
+        deadline = time.monotonic() + seconds
+        while not condition():
+            if time.monotonic() > deadline:
+                return False
+            self.executor.spin_once(timeout_sec=0.05)
+        return True
+
+    def connected(self, publishing: list[str], subscribed: list[str], seconds: float) -> bool:
+        """Wait until our publishers on ``publishing`` have a subscriber and ``subscribed`` topics a publisher."""
+        return self.wait(lambda: all(self.publishers[t].get_subscription_count() > 0 for t in publishing)
+                         and all(self.node.count_publishers(t) > 0 for t in subscribed), seconds)
+
+    def close(self) -> None:
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+    def __enter__(self) -> Participant:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,128 @@
+"""Scans as a cell's scanner would send them (sensor_msgs/PointCloud2 in metres, scanner frame) and scenario bags.
+
+A cloud carries x, y, z (float32) and ``marker_id`` (float32): -1 for surface points, the marker's id for the reference
+marker centres the scanner software reports, appended at the end. The sidecar of each bag states the truth of every
+scan (see :func:`write_scenario_bag`).
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from rclpy.serialization import serialize_message
+from std_msgs.msg import Header
+
+from hood_decomp.core.scanner import SyntheticScan
+from hood_decomp.io.bags import Record, write_bag, write_sidecar
+from hood_decomp.ros.messages import M_PER_MM
+from hood_decomp.ros.pointcloud import xyz_to_cloud
+from hood_decomp.scenarios import ScenarioScan
+
+SCAN_TOPIC = "scan/points"
+SCANNER_FRAME = "scanner"
+MARKER_FIELD = "marker_id"
+
+# Malformed clouds a bag may mix in, and what is wrong with each (the node must name it on /diagnostics).
+MALFORMED = {
+    "no_xyz": "a cloud without x/y/z fields",
+    "size_mismatch": "data length != row_step * height",
+    "int16_x": "x of unsupported datatype INT16",
+    "empty": "a cloud with no points",
+    "all_nan": "every point NaN",
+    "metres_as_mm": "coordinates a thousand times too small (a cloud in mm sent as if in m)",
+}
+
+
+def scan_cloud(scan: SyntheticScan, stamp_ns: int) -> Any:
+    """The scan's points and marker centres as one PointCloud2 in metres, scanner frame."""
+    points = np.vstack([scan.points, scan.markers])
+    ids = np.concatenate([np.full(len(scan.points), -1.0), scan.marker_ids.astype(float)])
+    return xyz_to_cloud(points, _header(stamp_ns), channels={MARKER_FIELD: ids}, scale=M_PER_MM)
+
+
+def malformed_cloud(kind: str, scan: SyntheticScan, stamp_ns: int, n_points: int = 5000) -> Any:
+    """A cloud of (at most) ``n_points`` of the scan that is wrong in the way ``kind`` (a key of MALFORMED) says."""
+    points = scan.points[:: max(1, len(scan.points) // n_points)]
+    if kind == "empty":
+        return xyz_to_cloud(np.zeros((0, 3)), _header(stamp_ns))
+    if kind == "all_nan":
+        return xyz_to_cloud(np.full((n_points, 3), np.nan), _header(stamp_ns))
+    if kind == "metres_as_mm":
+        return xyz_to_cloud(points, _header(stamp_ns), scale=M_PER_MM * M_PER_MM)
+    cloud = xyz_to_cloud(points, _header(stamp_ns), scale=M_PER_MM)
+    if kind == "no_xyz":
+        for field in cloud.fields:
+            field.name = {"x": "a", "y": "b", "z": "c"}.get(field.name, field.name)
+    elif kind == "size_mismatch":
+        cloud.data = cloud.data[: len(cloud.data) - 7]
+    elif kind == "int16_x":
+        cloud.fields[0].datatype = 3
+    else:
+        raise ValueError(f"unknown malformed kind {kind!r}; expected one of {sorted(MALFORMED)}")
+    return cloud
+
+
+def _header(stamp_ns: int) -> Header:
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return Header(frame_id=SCANNER_FRAME, stamp=Time(sec=sec, nanosec=nanosec))
+
+
+def write_scenario_bag(path: str | pathlib.Path, items: Sequence[ScenarioScan | tuple[str, ScenarioScan]],
+                       *, model_id: str, resolution: str, description: str, start_ns: int = 1_000_000_000_000,
+                       period_ns: int = 1_000_000_000) -> pathlib.Path:
+    """Write a bag of scans (one per second of bag time) and its sidecar ``<path>.json``.
+
+    items: a ScenarioScan (a good scan), or (malformed kind, ScenarioScan) for a broken cloud built from that scan.
+    The sidecar lists, per scan in order: stamp, kind ("good" or the malformed kind and what is wrong), the settings,
+    the truth of the declared parameters (mm), lifted buffers, undeclared effects, scan noise; plus the nominal
+    scanner pose and marker positions (the cell calibration the scan node needs) and the model it belongs to.
+    """
+    records, entries = [], []
+    for index, item in enumerate(items):
+        stamp = start_ns + index * period_ns
+        kind, scenario = item if isinstance(item, tuple) else ("good", item)
+        cloud = scan_cloud(scenario.scan, stamp) if kind == "good" else malformed_cloud(kind, scenario.scan, stamp)
+        records.append(Record(SCAN_TOPIC, "sensor_msgs/msg/PointCloud2", stamp, bytes(serialize_message(cloud))))
+        sec, nanosec = divmod(stamp, 1_000_000_000)
+        entries.append({
+            "stamp": f"{sec}.{nanosec:09d}", "kind": kind, "problem": MALFORMED.get(kind), "name": scenario.name,
+            "settings_mm": scenario.settings, "truth_mm": scenario.truth_mm, "lifted": scenario.lifted,
+            "undeclared_mm": scenario.undeclared_mm, "noise_mm": scenario.config.noise_mm,
+            "points": int(cloud.width * cloud.height),
+        })
+    write_bag(path, records)
+    scans = [(item[1] if isinstance(item, tuple) else item).scan for item in items]
+    markers = {str(int(i)): p.tolist() for scan in scans for i, p in zip(scan.marker_ids, scan.markers_nominal,
+                                                                          strict=True)}
+    return write_sidecar(path, {
+        "description": description, "model": {"preset": "hood", "resolution": resolution, "model_id": model_id},
+        "topic": SCAN_TOPIC, "frame_id": SCANNER_FRAME, "marker_field": MARKER_FIELD,
+        "scanner_pose_mm": scans[0].scanner_pose.tolist(),
+        "marker_positions_mm": dict(sorted(markers.items(), key=lambda kv: int(kv[0]))),
+        "scans": entries,
+    })
+
+
+def write_node_params(path: str | pathlib.Path, sidecar: dict[str, Any],
+                      decomposition_pair_timeout_s: float = 2.0) -> pathlib.Path:
+    """A ROS parameter file (--params-file) with the cell calibration a bag's sidecar states, in ROS units (metres):
+    the scan node's nominal scanner pose and reference-marker positions."""
+    pose = np.array(sidecar["scanner_pose_mm"], dtype=float)
+    pose[:3, 3] *= M_PER_MM
+    markers = [value for marker_id, position in sidecar["marker_positions_mm"].items()
+               for value in (float(marker_id), *(np.asarray(position, dtype=float) * M_PER_MM))]
+    path = pathlib.Path(path)
+    path.write_text(
+        "hood_decomp_scan:\n  ros__parameters:\n"
+        f"    scanner_pose: {json.dumps(pose.ravel().tolist())}\n"
+        f"    marker_positions: {json.dumps(markers)}\n"
+        f"    marker_field: {MARKER_FIELD}\n"
+        "hood_decomp_decomposition:\n  ros__parameters:\n"
+        f"    pair_timeout_s: {float(decomposition_pair_timeout_s)}\n"
+    )
+    return path
