@@ -1,0 +1,5 @@
+import sys
+
+from hood_decomp.cli import main
+
+sys.exit(main())
