@@ -298,9 +298,13 @@ class ContactEstimator:
                 col = n_b + touching.index(pad)
                 values[n_b + pad] = theta[col]
                 std[n_b + pad] = np.sqrt(max(cov[col, col], 0.0))
-                # Too light a touch to tell from lifted on a measured field: the commanded position is at most the
-                # one at which the pad just carries this force, so that bound is the value, flagged lifted.
-                lifted[n_b + pad] = float(f[springs].sum()) < min_force_n
+                if float(f[springs].sum()) < min_force_n:
+                    # Too light a touch to tell from lifted on a measured field: the commanded position is at most
+                    # the one at which the pad just carries this force (the value, flagged lifted) and may be as low
+                    # as the part's position there (the std covers that range).
+                    lifted[n_b + pad] = True
+                    position = float(np.min(z[springs] - model.preload[springs]))
+                    std[n_b + pad] = max(std[n_b + pad], values[n_b + pad] - position)
                 continue
             lifted[n_b + pad] = True
             if springs.size == 0:
