@@ -32,8 +32,10 @@ def running(coarse_hood, tmp_path_factory):
         ("hood_decomp/boundary_state", BoundaryState), ("hood_decomp/boundary_correction", BoundaryCorrection),
         ("hood_decomp/effects", EffectFields), ("/diagnostics", DiagnosticArray))}
     peer.publisher("hood_decomp/displacement", DisplacementField)
+    # Both nodes subscribe to the field, and the decomposition node to the estimator's state (plus us).
     connected = peer.connected(["hood_decomp/displacement"], ["hood_decomp/boundary_state", "hood_decomp/effects"],
-                               60.0)
+                               60.0, subscribers=2) and peer.wait(
+        lambda: peer.node.count_subscribers("hood_decomp/boundary_state") >= 2, 30.0)
     yield peer, received, processes, connected, logs
     peer.close()
     stop_nodes(processes)
@@ -43,9 +45,9 @@ def stamp_of(status) -> str | None:
     return next((kv.value for kv in status.values if kv.key == "stamp"), None)
 
 
-def errors(received) -> dict[str, str]:
-    """stamp -> message of every ERROR diagnostic that names a message stamp."""
-    return {stamp_of(s): s.message for array in received["/diagnostics"] for s in array.status
+def errors(arrays) -> dict[str, str]:
+    """stamp -> message of every ERROR diagnostic (in DiagnosticArrays) that names a message stamp."""
+    return {stamp_of(s): s.message for array in arrays for s in array.status
             if s.level == DiagnosticStatus.ERROR and stamp_of(s) is not None}
 
 
@@ -71,9 +73,10 @@ def test_good_and_bad_fields(coarse_hood, running):
         peer.publishers["hood_decomp/displacement"].publish(msg)
     states = received["hood_decomp/boundary_state"]
     effects = received["hood_decomp/effects"]
+    diagnostics = received["/diagnostics"]
     assert peer.wait(lambda: len(states) >= 2 and len(effects) >= 2
-                     and {"2.000000000", "3.000000000", "4.000000000"} <= set(errors(received)), 60.0), \
-        (len(states), len(effects), errors(received))
+                     and {"2.000000000", "3.000000000", "4.000000000"} <= set(errors(diagnostics)), 60.0), \
+        (len(states), len(effects), errors(diagnostics))
     assert [s.header.stamp.sec for s in states] == [1, 5]
     assert sorted(e.header.stamp.sec for e in effects) == [1, 5]
     state = states[0]
@@ -81,7 +84,7 @@ def test_good_and_bad_fields(coarse_hood, running):
     estimated_mm = np.array(state.values)[index] * 1000.0
     in_contact = ~np.array(state.lifted)[index]
     np.testing.assert_allclose(estimated_mm[in_contact], member.effective[0][in_contact], atol=1e-3)
-    refused = errors(received)
+    refused = errors(diagnostics)
     assert "model_id" in refused["2.000000000"] and "0123456789abcdef" in refused["2.000000000"]
     assert "NaN" in refused["3.000000000"] and f"shape ({good.size - 5},)" in refused["4.000000000"]
     assert all(p.poll() is None for p in processes), "a node died"
@@ -89,3 +92,35 @@ def test_good_and_bad_fields(coarse_hood, running):
     assert [c.header.stamp.sec for c in corrections] == [1, 5]
     np.testing.assert_allclose(np.array(corrections[0].corrections)[index][in_contact],
                                -member.effective[0][in_contact] / 1000.0, atol=1e-6)
+
+
+def test_scan_node_refuses_oversized_and_empty_clouds(coarse_hood, tmp_path):
+    """The size limit is checked before any copy (the cell's 20-million-point cloud case, scaled down here by the
+    max_points parameter); an empty cloud is named; the node keeps serving."""
+    from sensor_msgs.msg import PointCloud2
+
+    from hood_decomp.ros.pointcloud import xyz_to_cloud
+
+    processes = start_nodes(coarse_hood.bases_path, nodes=("scan_node",), extra_params=["max_points:=20000"],
+                            log_dir=tmp_path)
+    peer = Participant("test_scan_node")
+    try:
+        diagnostics = peer.collect("/diagnostics", DiagnosticArray)
+        fields = peer.collect("hood_decomp/displacement", DisplacementField)
+        publisher = peer.publisher("scan/points", PointCloud2)
+        assert peer.connected(["scan/points"], ["hood_decomp/displacement"], 60.0)
+        rng = np.random.default_rng(0)
+        points_m = (coarse_hood.skin.points[rng.integers(0, coarse_hood.skin.n_nodes, 40_000)]
+                    + rng.normal(0.0, 0.01, (40_000, 3))) / 1000.0
+        for sec, cloud_points in ((1, points_m), (2, np.zeros((0, 3))), (3, points_m[:15_000])):
+            publisher.publish(xyz_to_cloud(cloud_points, Header(frame_id="scanner", stamp=Time(sec=sec))))
+        assert peer.wait(lambda: {"1.000000000", "2.000000000"} <= set(errors(diagnostics)) and len(fields) >= 1,
+                         60.0)
+        refused = errors(diagnostics)
+        assert "40,000 points" in refused["1.000000000"] and "at most 20,000" in refused["1.000000000"]
+        assert "empty" in refused["2.000000000"]
+        assert [f.header.stamp.sec for f in fields] == [3] and fields[0].header.frame_id == "hood"
+        assert processes[0].poll() is None
+    finally:
+        peer.close()
+        stop_nodes(processes)

@@ -48,9 +48,10 @@ class Participant:
             self.executor.spin_once(timeout_sec=0.05)
         return True
 
-    def connected(self, publishing: list[str], subscribed: list[str], seconds: float) -> bool:
-        """Wait until our publishers on ``publishing`` have a subscriber and ``subscribed`` topics a publisher."""
-        return self.wait(lambda: all(self.publishers[t].get_subscription_count() > 0 for t in publishing)
+    def connected(self, publishing: list[str], subscribed: list[str], seconds: float, subscribers: int = 1) -> bool:
+        """Wait until our publishers on ``publishing`` have matched ``subscribers`` subscriptions each and the
+        ``subscribed`` topics have a publisher (messages sent before a subscription matched are not delivered)."""
+        return self.wait(lambda: all(self.publishers[t].get_subscription_count() >= subscribers for t in publishing)
                          and all(self.node.count_publishers(t) > 0 for t in subscribed), seconds)
 
     def close(self) -> None:

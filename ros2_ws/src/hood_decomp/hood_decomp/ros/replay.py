@@ -103,6 +103,9 @@ def replay_bag(bag: str | pathlib.Path, *, record: str | pathlib.Path | None = N
         if not peer.connected([SCAN_TOPIC], list(answers), startup_timeout_s):
             raise BagError(f"no nodes answered within {startup_timeout_s:.0f} s: is something subscribed to "
                            f"{SCAN_TOPIC} and publishing {', '.join(answers)}? (hood-decomp launch --bases B)")
+        # The nodes must also have found each other: the field goes to the estimator and the decomposition node
+        # (and to our recorder); a field sent before they matched would be lost between them.
+        peer.wait(lambda: peer.node.count_subscribers("hood_decomp/displacement") >= 3, 10.0)
         for index, scan in enumerate(scans, start=1):
             key = _stamp_key(deserialize_message(scan.data, PointCloud2).header.stamp)
             if clock_pub is not None:
