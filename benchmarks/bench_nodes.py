@@ -1,0 +1,157 @@
+"""Benchmark: end-to-end latency of the three nodes (real processes, Fast DDS on loopback) and a sustained run.
+
+Latency: from a 1,000,000-point scan published on scan/points to its boundary state received, and to its effect
+fields received (targets at paper resolution: under 1 s and under 1.5 s). Sustained: one scan per second for
+--soak-seconds, counting lost scans and sampling the nodes' resident memory (target: none lost, no growth).
+
+    scripts/with-env python benchmarks/bench_nodes.py --resolution default [--soak-seconds 300]
+
+Bases are built once per resolution and cached in benchmarks/out/cache_<resolution>/. Prints a table and writes
+benchmarks/out/bench_nodes_<resolution>.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import platform
+import statistics
+import sys
+import time
+
+import numpy as np
+import psutil
+from builtin_interfaces.msg import Time
+from hood_decomp_msgs.msg import BoundaryState, EffectFields
+from rclpy.serialization import serialize_message
+from sensor_msgs.msg import PointCloud2
+
+from hood_decomp.core.scanner import ScannerConfig
+from hood_decomp.ros.launcher import start_nodes, stop_nodes
+from hood_decomp.ros.participant import Participant
+from hood_decomp.ros.scan_bag import scan_cloud, write_node_params
+from hood_decomp.scenarios import make_scenario_scan
+
+OUT = pathlib.Path(__file__).parent / "out"
+
+
+def log(line: str) -> None:
+    print(f"[bench_nodes {time.strftime('%H:%M:%S')}] {line}", file=sys.stderr, flush=True)
+
+
+def prepared(resolution: str):
+    """(skin, solver, reduced, bases path), building and caching the ensemble and bases when missing."""
+    from hood_decomp.core.bases import build_bases
+    from hood_decomp.core.fe import build_solver, reduce_model
+    from hood_decomp.core.hood_preset import build_hood
+    from hood_decomp.core.model import skin_surface
+    from hood_decomp.io.bases import save_bases
+    from hood_decomp.io.ensemble_store import load_ensemble, write_ensemble
+
+    cache = OUT / f"cache_{resolution}"
+    cache.mkdir(parents=True, exist_ok=True)
+    model = build_hood(resolution)
+    skin = skin_surface(model)
+    solver = build_solver(model, progress=log)
+    reduced = reduce_model(solver)
+    bases_path = cache / "bases.h5"
+    if not bases_path.exists():
+        ensemble_path = cache / "ensemble.h5"
+        if not ensemble_path.exists():
+            write_ensemble(ensemble_path, reduced, skin, model.lower, model.upper, n_validation=0, progress=log)
+        save_bases(bases_path, build_bases(load_ensemble(ensemble_path), skin, reduced, progress=log))
+    return skin, solver, reduced, bases_path
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--resolution", default="default", choices=("coarse", "default", "paper"))
+    parser.add_argument("--points", type=int, default=1_000_000)
+    parser.add_argument("--scans", type=int, default=10, help="scans for the latency figures")
+    parser.add_argument("--soak-seconds", type=float, default=0.0, help="length of the one-scan-per-second run")
+    args = parser.parse_args()
+    skin, solver, reduced, bases_path = prepared(args.resolution)
+    rng = np.random.default_rng(0)
+    scans = [make_scenario_scan(f"s{i}", solver, reduced, skin,
+                                dict(zip(reduced.names, rng.uniform(-0.8, 0.8, len(reduced.names)), strict=True)),
+                                ScannerConfig(n_points=args.points, noise_mm=0.02), seed=i) for i in range(3)]
+    clouds = [scan_cloud(s.scan, 0) for s in scans]
+    params = write_node_params(OUT / f"params_{args.resolution}.yaml", {
+        "scanner_pose_mm": scans[0].scan.scanner_pose.tolist(),
+        "marker_positions_mm": {str(int(i)): p.tolist() for s in scans for i, p in
+                                zip(s.scan.marker_ids, s.scan.markers_nominal, strict=True)}})
+    processes = start_nodes(bases_path.resolve(), params_file=params, log_dir=OUT)
+    peer = Participant("bench_nodes", depth=100)
+    peer.publisher("scan/points", PointCloud2)
+    arrival: dict[tuple[str, int], float] = {}
+
+    def stamp_of(msg) -> int:
+        return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+    for topic in ("hood_decomp/boundary_state", "hood_decomp/effects"):
+        peer.subscribe(topic, BoundaryState if topic.endswith("state") else EffectFields,
+                       lambda msg, t=topic: arrival.setdefault((t, stamp_of(msg)), time.perf_counter()))
+    try:
+        if not peer.connected(["scan/points"], ["hood_decomp/boundary_state", "hood_decomp/effects"], 300):
+            raise RuntimeError("the nodes did not come up within 300 s; logs in benchmarks/out/")
+        sent: dict[int, float] = {}
+
+        def publish(index: int, stamp: int) -> None:
+            cloud = clouds[index % len(clouds)]
+            cloud.header.stamp = Time(sec=stamp // 1_000_000_000, nanosec=stamp % 1_000_000_000)
+            sent[stamp] = time.perf_counter()
+            peer.publishers["scan/points"].publish(cloud)
+
+        def answered(stamp: int) -> bool:
+            return ("hood_decomp/effects", stamp) in arrival and ("hood_decomp/boundary_state", stamp) in arrival
+
+        latencies = {"boundary_state": [], "effects": []}
+        for i in range(args.scans):  # one at a time: latency, not queueing
+            stamp = 1_000_000_000 * (i + 1)
+            publish(i, stamp)
+            if not peer.wait(lambda s=stamp: answered(s), 120):
+                raise RuntimeError(f"scan {i} not answered in 120 s")
+            latencies["boundary_state"].append(arrival[("hood_decomp/boundary_state", stamp)] - sent[stamp])
+            latencies["effects"].append(arrival[("hood_decomp/effects", stamp)] - sent[stamp])
+            log(f"scan {i}: state {latencies['boundary_state'][-1]:.3f} s, effects {latencies['effects'][-1]:.3f} s")
+        soak = {}
+        if args.soak_seconds:
+            rss = []
+            start = time.perf_counter()
+            count = 0
+            while time.perf_counter() - start < args.soak_seconds:
+                stamp = 10_000_000_000_000 + 1_000_000_000 * count
+                publish(count, stamp)
+                count += 1
+                peer.wait(lambda: False, max(0.0, start + count - time.perf_counter()))
+                rss.append([psutil.Process(p.pid).memory_info().rss / 2**20 for p in processes])
+            peer.wait(lambda: all(answered(s) for s in sent if s >= 10_000_000_000_000), 60)
+            lost = sum(1 for s in sent if s >= 10_000_000_000_000 and not answered(s))
+            rss = np.array(rss)
+            tenth = max(1, len(rss) // 10)
+            soak = {"seconds": args.soak_seconds, "scans": count, "lost": lost,
+                    "rss_mb_first_tenth": rss[:tenth].mean(axis=0).round(1).tolist(),
+                    "rss_mb_last_tenth": rss[-tenth:].mean(axis=0).round(1).tolist()}
+    finally:
+        peer.close()
+        stop_nodes(processes)
+    summary = {key: {"median_s": statistics.median(v), "max_s": max(v)} for key, v in latencies.items()}
+    print(f"Node latency, {args.resolution} resolution ({len(skin.points):,} skin nodes), {args.points:,}-point "
+          f"scans, {platform.machine()}, {psutil.cpu_count()} cores")
+    print(f"{'from scan published to':32s} {'median s':>10s} {'max s':>10s}")
+    for key, value in summary.items():
+        print(f"{key + ' received':32s} {value['median_s']:10.3f} {value['max_s']:10.3f}")
+    if soak:
+        print(f"sustained 1 Hz for {soak['seconds']:.0f} s: {soak['scans']} scans, {soak['lost']} lost; node RSS MB "
+              f"first tenth {soak['rss_mb_first_tenth']} -> last tenth {soak['rss_mb_last_tenth']}")
+    OUT.mkdir(exist_ok=True)
+    (OUT / f"bench_nodes_{args.resolution}.json").write_text(json.dumps({
+        "benchmark": "nodes", "resolution": args.resolution, "skin_nodes": len(skin.points), "points": args.points,
+        "latency": summary, "soak": soak, "cloud_bytes": len(serialize_message(clouds[0])),
+        "date": time.strftime("%Y-%m-%d"), "machine": f"{platform.node()} {platform.machine()}"}, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
