@@ -67,24 +67,19 @@ def run_demo(config: DemoConfig, progress: Callable[[str], None] = _print) -> pa
     out.mkdir(parents=True, exist_ok=True)
     timer = Timer(progress)
     state = steps.DemoState(config=config, out=out, timer=timer)
-    with timer.step("hood model"):
-        steps.build_model(state)
-    with timer.step("solver: assembly and one factorisation"):
-        steps.build_solver_and_reduce(state)
-    with timer.step("ensemble: 729 training + validation members"):
-        steps.build_ensemble(state)
-    with timer.step("bases: PCA and hierarchical"):
-        steps.build_bases_step(state)
-    with timer.step("validation of the estimators on the validation set"):
-        steps.validate(state)
-    with timer.step("synthetic scans and scenario bag"):
-        steps.make_scans(state)
-    with timer.step("replay through the three ROS nodes"):
-        steps.replay(state)
-    with timer.step("per-scan results and contribution plots"):
-        steps.analyse_scans(state)
-    with timer.step("close the loop on the scan with an undeclared effect"):
-        steps.close_loop(state)
+    for title, step in (
+        ("hood model", steps.build_model),
+        ("solver: assembly and one factorisation", steps.build_solver_and_reduce),
+        ("ensemble: 729 training + validation members", steps.build_ensemble),
+        ("bases: PCA and hierarchical", steps.build_bases_step),
+        ("validation of the estimators on the validation set", steps.validate),
+        ("synthetic scans and scenario bag", steps.make_scans),
+        ("replay through the three ROS nodes", steps.replay),
+        ("per-scan results and contribution plots", steps.analyse_scans),
+        ("close the loop on the scan with an undeclared effect", steps.close_loop),
+    ):
+        with timer.step(title):
+            step(state)
     with timer.step("report"):
         path = steps.write_report(state)
     (out / "timings.json").write_text(json.dumps({k: round(v, 3) for k, v in timer.seconds.items()}, indent=2))
