@@ -23,6 +23,7 @@ import time
 import numpy as np
 import psutil
 from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from hood_decomp_msgs.msg import BoundaryState, EffectFields
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import PointCloud2
@@ -84,6 +85,7 @@ def main() -> int:
     processes = start_nodes(bases_path.resolve(), params_file=params, log_dir=OUT)
     peer = Participant("bench_nodes", depth=100)
     peer.publisher("scan/points", PointCloud2)
+    diagnostics = peer.collect("/diagnostics", DiagnosticArray)
     arrival: dict[tuple[str, int], float] = {}
 
     def stamp_of(msg) -> int:
@@ -106,12 +108,18 @@ def main() -> int:
         def answered(stamp: int) -> bool:
             return ("hood_decomp/effects", stamp) in arrival and ("hood_decomp/boundary_state", stamp) in arrival
 
+        def refused(stamp: int) -> list[str]:
+            key = f"{stamp // 1_000_000_000}.{stamp % 1_000_000_000:09d}"
+            return [f"{s.name}: {s.message}" for array in diagnostics for s in array.status
+                    if s.level == DiagnosticStatus.ERROR and any(v.key == "stamp" and v.value == key
+                                                                 for v in s.values)]
+
         latencies = {"boundary_state": [], "effects": []}
         for i in range(args.scans):  # one at a time: latency, not queueing
             stamp = 1_000_000_000 * (i + 1)
             publish(i, stamp)
-            if not peer.wait(lambda s=stamp: answered(s), 120):
-                raise RuntimeError(f"scan {i} not answered in 120 s")
+            if not peer.wait(lambda s=stamp: answered(s) or refused(s), 120) or refused(stamp):
+                raise RuntimeError(f"scan {i} not answered in 120 s: {refused(stamp)}")
             latencies["boundary_state"].append(arrival[("hood_decomp/boundary_state", stamp)] - sent[stamp])
             latencies["effects"].append(arrival[("hood_decomp/effects", stamp)] - sent[stamp])
             log(f"scan {i}: state {latencies['boundary_state'][-1]:.3f} s, effects {latencies['effects'][-1]:.3f} s")

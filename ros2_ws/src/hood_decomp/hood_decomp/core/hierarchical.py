@@ -25,8 +25,10 @@ from hood_decomp.errors import BasisError
 
 LOADS = "LOADS"
 # A field whose part orthogonal to the current span is below this fraction of its norm adds no direction: it is
-# kept in its effect (eq. 6 needs the pair) but not fitted, so the least-squares problem stays well posed.
-DEPENDENT_RTOL = 1e-6
+# kept in its effect (eq. 6 needs the pair) but not fitted, so the least-squares problem stays well posed. Ensemble
+# stores hold float32 (relative rounding 6e-8 per value): at the paper's 188k nodes the inverse partner of a nearly
+# linear parameter differed from its negated field by 5e-7 and made the normal matrix singular on partial fields.
+DEPENDENT_RTOL = 1e-5
 
 
 class HierarchicalBasis:

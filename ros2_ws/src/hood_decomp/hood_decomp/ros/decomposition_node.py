@@ -14,21 +14,10 @@ from collections import OrderedDict
 from typing import Any, NamedTuple
 
 from hood_decomp_msgs.msg import BoundaryState, DisplacementField, EffectFields
-from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
-from hood_decomp.errors import HoodDecompError
 from hood_decomp.ros import messages
-from hood_decomp.ros.node_common import (
-    ERROR,
-    OVERRIDABLE,
-    Diagnostics,
-    declare,
-    guarded,
-    load_bases_or_reason,
-    spin,
-    topic_qos,
-)
+from hood_decomp.ros.node_common import HoodNode, declare, spin
 from hood_decomp.ros.pointcloud import xyz_to_cloud
 
 MAX_UNPAIRED_STATES = 100  # states are small; one whose field never comes is dropped after this many newer ones
@@ -49,32 +38,21 @@ def channel_name(effect_name: str) -> str:
     return re.sub(r"\W+", "_", effect_name.replace(" & ", "__"))
 
 
-class DecompositionNode(Node):
+class DecompositionNode(HoodNode):
     def __init__(self) -> None:
         super().__init__("hood_decomp_decomposition")
-        self.bases_path = declare(self, "bases", "", "path of the bases file (hood-decomp bases --out)")
         self.use_state = declare(self, "use_boundary_state", True, "choose the hierarchical subset from the "
                                  "estimator's boundary state of the same stamp (paper step 3)")
         self.pair_timeout = declare(self, "pair_timeout_s", 2.0, "wait this long (s) for the boundary state of a "
                                     "field, then decompose from every effect", 0.0, 60.0)
         self.min_coverage = declare(self, "min_coverage", 0.2, "smallest seen fraction of the skin", 0.0, 1.0)
-        depth = declare(self, "queue_depth", 10, "messages held per topic while the node is busy", 1, 1000)
-        self.diagnostics = Diagnostics(self)
-        self.bases, self.bases_error = load_bases_or_reason(self.bases_path)
-        if self.bases_error:
-            self.diagnostics.report(ERROR, self.bases_error)
         self.fields: OrderedDict[tuple[int, int], tuple[DisplacementField, float]] = OrderedDict()
         self.states: OrderedDict[tuple[int, int], BoundaryState] = OrderedDict()
-        self.process = guarded(self, self.diagnostics, "decomposition", self.decompose)
-        qos = topic_qos(depth)
-        self.effects_pub = self.create_publisher(EffectFields, "hood_decomp/effects", qos,
-                                                 qos_overriding_options=OVERRIDABLE)
-        self.cloud_pub = self.create_publisher(PointCloud2, "hood_decomp/effects_cloud", qos,
-                                               qos_overriding_options=OVERRIDABLE)
-        self.create_subscription(DisplacementField, "hood_decomp/displacement", self.on_field, qos,
-                                 qos_overriding_options=OVERRIDABLE)
-        self.create_subscription(BoundaryState, "hood_decomp/boundary_state", self.on_state, qos,
-                                 qos_overriding_options=OVERRIDABLE)
+        self.process = self.guarded("decomposition", self.decompose)
+        self.effects_pub = self.publisher(EffectFields, "hood_decomp/effects")
+        self.cloud_pub = self.publisher(PointCloud2, "hood_decomp/effects_cloud")
+        self.subscription(DisplacementField, "hood_decomp/displacement", self.on_field)
+        self.subscription(BoundaryState, "hood_decomp/boundary_state", self.on_state)
         self.create_timer(0.1, self.flush_unpaired)
 
     def on_field(self, msg: DisplacementField) -> None:
@@ -106,14 +84,13 @@ class DecompositionNode(Node):
     def decompose(self, pair: _Pair) -> dict[str, object]:
         from hood_decomp.core.bases import decompose_field
 
-        if self.bases is None:
-            raise HoodDecompError(self.bases_error)
+        bases = self.require_bases()
         estimate = messages.msg_to_estimate(pair.state) if pair.state is not None else None
-        decomposition = decompose_field(self.bases, messages.msg_to_field(pair.field), estimate,
+        decomposition = decompose_field(bases, messages.msg_to_field(pair.field), estimate,
                                         min_coverage=self.min_coverage)
         self.effects_pub.publish(messages.decomposition_to_msg(decomposition, pair.header))
         channels = {channel_name(effect.name): effect.contribution for effect in decomposition.effects}
-        self.cloud_pub.publish(xyz_to_cloud(self.bases.skin.points, pair.header, channels=channels,
+        self.cloud_pub.publish(xyz_to_cloud(bases.skin.points, pair.header, channels=channels,
                                             scale=messages.M_PER_MM))
         return {"effects": ", ".join(effect.name for effect in decomposition.effects),
                 "paired_with_boundary_state": pair.state is not None,

@@ -7,27 +7,15 @@ correction for the fixture adjustment robot with ``safe_to_apply`` and its reaso
 from __future__ import annotations
 
 from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState, DisplacementField
-from rclpy.node import Node
 
 from hood_decomp.core.correction import CorrectionPolicy, plan_correction
-from hood_decomp.errors import HoodDecompError
 from hood_decomp.ros import messages
-from hood_decomp.ros.node_common import (
-    ERROR,
-    OVERRIDABLE,
-    Diagnostics,
-    declare,
-    guarded,
-    load_bases_or_reason,
-    spin,
-    topic_qos,
-)
+from hood_decomp.ros.node_common import HoodNode, declare, spin
 
 
-class EstimatorNode(Node):
+class EstimatorNode(HoodNode):
     def __init__(self) -> None:
         super().__init__("hood_decomp_estimator")
-        self.bases_path = declare(self, "bases", "", "path of the bases file (hood-decomp bases --out)")
         self.method = declare(self, "method", "contact", "estimator: 'contact' (contact-aware, default) or 'pca' "
                               "(the paper's eqs. 4-5)")
         self.policy = CorrectionPolicy(
@@ -36,25 +24,14 @@ class EstimatorNode(Node):
             range_tolerance_mm=declare(self, "range_tolerance_mm", 0.02,
                                        "tolerance (mm) on the declared parameter ranges", 0.0, 10.0),
         )
-        depth = declare(self, "queue_depth", 10, "messages held per topic while the node is busy", 1, 1000)
-        self.diagnostics = Diagnostics(self)
-        self.bases, self.bases_error = load_bases_or_reason(self.bases_path)
-        if self.bases_error:
-            self.diagnostics.report(ERROR, self.bases_error)
-        self.state_pub = self.create_publisher(BoundaryState, "hood_decomp/boundary_state", topic_qos(depth),
-                                               qos_overriding_options=OVERRIDABLE)
-        self.correction_pub = self.create_publisher(BoundaryCorrection, "hood_decomp/boundary_correction",
-                                                    topic_qos(depth), qos_overriding_options=OVERRIDABLE)
-        self.create_subscription(DisplacementField, "hood_decomp/displacement",
-                                 guarded(self, self.diagnostics, "estimation", self.on_field), topic_qos(depth),
-                                 qos_overriding_options=OVERRIDABLE)
+        self.state_pub = self.publisher(BoundaryState, "hood_decomp/boundary_state")
+        self.correction_pub = self.publisher(BoundaryCorrection, "hood_decomp/boundary_correction")
+        self.subscription(DisplacementField, "hood_decomp/displacement", self.guarded("estimation", self.on_field))
 
     def on_field(self, msg: DisplacementField) -> dict[str, object]:
         from hood_decomp.core.bases import estimate_field
 
-        if self.bases is None:
-            raise HoodDecompError(self.bases_error)
-        estimate = estimate_field(self.bases, messages.msg_to_field(msg), method=self.method,
+        estimate = estimate_field(self.require_bases(), messages.msg_to_field(msg), method=self.method,
                                   min_coverage=self.policy.min_coverage)
         correction = plan_correction(estimate, self.policy)
         self.state_pub.publish(messages.estimate_to_msg(estimate, msg.header))

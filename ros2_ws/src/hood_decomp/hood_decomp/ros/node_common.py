@@ -105,6 +105,36 @@ def load_bases_or_reason(path: str) -> tuple[Any, str]:
         return None, f"bases not loaded: {error}"
 
 
+class HoodNode(Node):
+    """What every hood_decomp node has: the ``bases`` and ``queue_depth`` parameters, the bases loaded (or the reason
+    they are not, reported at start and on every message), diagnostics, and publishers/subscriptions with the
+    project's QoS, overridable per topic."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self.bases_path = declare(self, "bases", "", "path of the bases file (hood-decomp bases --out)")
+        self.depth = declare(self, "queue_depth", 10, "messages held per topic while the node is busy", 1, 1000)
+        self.diagnostics = Diagnostics(self)
+        self.bases, self.bases_error = load_bases_or_reason(self.bases_path)
+        if self.bases_error:
+            self.diagnostics.report(ERROR, self.bases_error)
+
+    def require_bases(self) -> Any:
+        if self.bases is None:
+            raise HoodDecompError(self.bases_error)
+        return self.bases
+
+    def publisher(self, cls: type, topic: str) -> Any:
+        return self.create_publisher(cls, topic, topic_qos(self.depth), qos_overriding_options=OVERRIDABLE)
+
+    def subscription(self, cls: type, topic: str, callback: Callable[[Any], None]) -> Any:
+        return self.create_subscription(cls, topic, callback, topic_qos(self.depth),
+                                        qos_overriding_options=OVERRIDABLE)
+
+    def guarded(self, what: str, handler: Callable[[Any], dict[str, object] | None]) -> Callable[[Any], None]:
+        return guarded(self, self.diagnostics, what, handler)
+
+
 def spin(node_factory: Callable[[], Node], args: list[str] | None = None) -> int:
     """Console-script body: init, build the node, spin until Ctrl-C or shutdown, clean up."""
     rclpy.init(args=args)

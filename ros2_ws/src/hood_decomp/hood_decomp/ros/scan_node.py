@@ -11,29 +11,18 @@ from __future__ import annotations
 import numpy as np
 from hood_decomp_msgs.msg import DisplacementField
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
 
-from hood_decomp.errors import HoodDecompError, ScanError
+from hood_decomp.errors import ScanError
 from hood_decomp.ros import messages
-from hood_decomp.ros.node_common import (
-    ERROR,
-    OVERRIDABLE,
-    Diagnostics,
-    declare,
-    guarded,
-    load_bases_or_reason,
-    spin,
-    topic_qos,
-)
+from hood_decomp.ros.node_common import HoodNode, declare, spin
 from hood_decomp.ros.pointcloud import cloud_channel, cloud_to_xyz, xyz_to_cloud
 
 
-class ScanNode(Node):
+class ScanNode(HoodNode):
     def __init__(self) -> None:
         super().__init__("hood_decomp_scan")
-        self.bases_path = declare(self, "bases", "", "path of the bases file (holds the skin and model_id)")
         self.part_frame = declare(self, "part_frame", "hood", "frame_id of the published fields (the part frame)")
         pose = declare(self, "scanner_pose", [float(v) for v in np.eye(4).ravel()],
                        "scanner-to-part transform, 16 numbers row-major, translation in metres (cell calibration)")
@@ -43,45 +32,35 @@ class ScanNode(Node):
         self.marker_field = declare(self, "marker_field", "marker_id", "per-point field holding marker ids")
         self.max_points = declare(self, "max_points", 5_000_000, "largest cloud accepted (points)", 1, 100_000_000)
         self.min_coverage = declare(self, "min_coverage", 0.2, "smallest seen fraction of the skin", 0.0, 1.0)
-        depth = declare(self, "queue_depth", 10, "messages held per topic while the node is busy", 1, 1000)
-        self.diagnostics = Diagnostics(self)
         self.scanner_pose = np.asarray(pose, dtype=float).reshape(4, 4)
         self.scanner_pose[:3, 3] *= messages.MM_PER_M
         table = np.asarray(markers if markers is not None else [], dtype=float).reshape(-1, 4)
         self.markers_nominal = {int(row[0]): row[1:] * messages.MM_PER_M for row in table}
-        self.bases, self.bases_error = load_bases_or_reason(self.bases_path)
         self.estimator = None
         if self.bases is not None:
             from hood_decomp.core.scan_field import prepared_estimator
 
-            self.estimator = prepared_estimator(self.bases.skin)
-        else:
-            self.diagnostics.report(ERROR, self.bases_error)
-        qos = topic_qos(depth)
-        self.field_pub = self.create_publisher(DisplacementField, "hood_decomp/displacement", qos,
-                                               qos_overriding_options=OVERRIDABLE)
-        self.cloud_pub = self.create_publisher(PointCloud2, "hood_decomp/displacement_cloud", qos,
-                                               qos_overriding_options=OVERRIDABLE)
-        self.create_subscription(PointCloud2, "scan/points", guarded(self, self.diagnostics, "scan", self.on_cloud),
-                                 qos, qos_overriding_options=OVERRIDABLE)
+            self.estimator = prepared_estimator(self.bases.skin)  # one-time preparation of the skin
+        self.field_pub = self.publisher(DisplacementField, "hood_decomp/displacement")
+        self.cloud_pub = self.publisher(PointCloud2, "hood_decomp/displacement_cloud")
+        self.subscription(PointCloud2, "scan/points", self.guarded("scan", self.on_cloud))
 
     def on_cloud(self, msg: PointCloud2) -> dict[str, object]:
         from hood_decomp.core.scan_field import field_from_scan
 
-        if self.bases is None:
-            raise HoodDecompError(self.bases_error)
+        bases = self.require_bases()
         n_points = int(msg.width) * int(msg.height)
         if n_points > self.max_points:
             raise ScanError(f"cloud has {n_points:,} points; this node accepts at most {self.max_points:,} "
                             "(parameter max_points)")
         points_mm, markers_mm, markers_nominal_mm = self.split_markers(msg)
-        field, registration = field_from_scan(self.bases.skin, points_mm, scanner_pose=self.scanner_pose,
+        field, registration = field_from_scan(bases.skin, points_mm, scanner_pose=self.scanner_pose,
                                               markers_mm=markers_mm, markers_nominal_mm=markers_nominal_mm,
                                               min_coverage=self.min_coverage, estimator=self.estimator)
         header = msg.header
         header.frame_id = self.part_frame
         self.field_pub.publish(messages.field_to_msg(field, header))
-        self.cloud_pub.publish(xyz_to_cloud(self.bases.skin.points, header, scale=messages.M_PER_MM,
+        self.cloud_pub.publish(xyz_to_cloud(bases.skin.points, header, scale=messages.M_PER_MM,
                                             channels={"normal_displacement":
                                                       field.normal_displacement * messages.M_PER_MM}))
         return {"points": points_mm.shape[0], "markers": 0 if markers_mm is None else len(markers_mm),
