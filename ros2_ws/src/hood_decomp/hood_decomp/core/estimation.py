@@ -64,12 +64,16 @@ def valid_normal_matrix(fields: np.ndarray, gram: np.ndarray, valid: np.ndarray)
 def solve_normal(normal: np.ndarray, rhs: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
     """Solve the normal equations; return ``(coefficients, inverse normal matrix)``.
 
-    Raises FieldError when the valid nodes do not determine the coefficients (singular normal matrix).
+    Raises FieldError when the valid nodes do not determine the coefficients (singular normal matrix). The test is
+    made on the matrix scaled to unit diagonal, so basis fields of very different size (a 500 mm^2 field beside a
+    3 mm^2 one) are judged by the angles between them, not by their norms.
     """
-    eigval, eigvec = np.linalg.eigh(normal)
+    scale = np.sqrt(np.clip(np.diag(normal), 0.0, None))
+    scale[scale == 0.0] = 1.0
+    eigval, eigvec = np.linalg.eigh(normal / np.outer(scale, scale))
     if eigval.size and eigval[0] <= 1e-12 * max(eigval[-1], 1e-300):
         raise FieldError(f"the seen nodes do not determine the {what} (normal matrix is singular)")
-    inverse = (eigvec / eigval) @ eigvec.T
+    inverse = ((eigvec / eigval) @ eigvec.T) / np.outer(scale, scale)
     return inverse @ rhs, inverse
 
 
