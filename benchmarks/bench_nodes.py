@@ -13,6 +13,7 @@ benchmarks/out/bench_nodes_<resolution>.json.
 from __future__ import annotations
 
 import argparse
+import array
 import json
 import pathlib
 import platform
@@ -71,6 +72,8 @@ def main() -> int:
     parser.add_argument("--points", type=int, default=1_000_000)
     parser.add_argument("--scans", type=int, default=10, help="scans for the latency figures")
     parser.add_argument("--soak-seconds", type=float, default=0.0, help="length of the one-scan-per-second run")
+    parser.add_argument("--oversize-points", type=int, default=0,
+                        help="also send one cloud of this many points (e.g. 20000000) and check it is refused")
     args = parser.parse_args()
     skin, solver, reduced, bases_path = prepared(args.resolution)
     rng = np.random.default_rng(0)
@@ -140,7 +143,25 @@ def main() -> int:
             tenth = max(1, len(rss) // 10)
             soak = {"seconds": args.soak_seconds, "scans": count, "lost": lost,
                     "rss_mb_first_tenth": rss[:tenth].mean(axis=0).round(1).tolist(),
-                    "rss_mb_last_tenth": rss[-tenth:].mean(axis=0).round(1).tolist()}
+                    "rss_mb_last_tenth": rss[-tenth:].mean(axis=0).round(1).tolist(),
+                    "rss_mb_every_tenth": [rss[i:i + tenth].mean(axis=0).round(1).tolist()
+                                           for i in range(0, len(rss), tenth)]}
+        oversize = {}
+        if args.oversize_points:  # a cloud above the scan node's max_points: refused by name, the next one served
+            big = scan_cloud(scans[0].scan, 0)
+            big.width = args.oversize_points
+            big.row_step = big.point_step * big.width
+            big.data = array.array("B", bytes(big.row_step))
+            stamp = 20_000_000_000_000
+            big.header.stamp = Time(sec=stamp // 1_000_000_000)
+            sent_at = time.perf_counter()
+            peer.publishers["scan/points"].publish(big)
+            peer.wait(lambda: bool(refused(stamp)), 120)
+            seconds = time.perf_counter() - sent_at
+            publish(0, stamp + 1_000_000_000)
+            served = peer.wait(lambda: answered(stamp + 1_000_000_000), 120)
+            oversize = {"points": args.oversize_points, "bytes": big.row_step, "refused": refused(stamp),
+                        "seconds_to_diagnostic": round(seconds, 2), "next_scan_answered": served}
     finally:
         peer.close()
         stop_nodes(processes)
@@ -152,11 +173,15 @@ def main() -> int:
         print(f"{key + ' received':32s} {value['median_s']:10.3f} {value['max_s']:10.3f}")
     if soak:
         print(f"sustained 1 Hz for {soak['seconds']:.0f} s: {soak['scans']} scans, {soak['lost']} lost; node RSS MB "
-              f"first tenth {soak['rss_mb_first_tenth']} -> last tenth {soak['rss_mb_last_tenth']}")
+              f"(scan, estimator, decomposition) per tenth of the run: {soak['rss_mb_every_tenth']}")
+    if oversize:
+        print(f"oversize cloud of {oversize['points']:,} points ({oversize['bytes'] / 2**20:.0f} MB): "
+              f"{oversize['refused'] or 'NOT refused'} after {oversize['seconds_to_diagnostic']} s; next scan "
+              f"{'answered' if oversize['next_scan_answered'] else 'NOT answered'}")
     OUT.mkdir(exist_ok=True)
     (OUT / f"bench_nodes_{args.resolution}.json").write_text(json.dumps({
         "benchmark": "nodes", "resolution": args.resolution, "skin_nodes": len(skin.points), "points": args.points,
-        "latency": summary, "soak": soak, "cloud_bytes": len(serialize_message(clouds[0])),
+        "latency": summary, "soak": soak, "oversize": oversize, "cloud_bytes": len(serialize_message(clouds[0])),
         "date": time.strftime("%Y-%m-%d"), "machine": f"{platform.node()} {platform.machine()}"}, indent=2) + "\n")
     return 0
 
