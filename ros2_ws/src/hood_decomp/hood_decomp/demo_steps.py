@@ -148,8 +148,8 @@ def make_scans(state: DemoState) -> None:
     from hood_decomp.scenarios import make_scenario_scan
 
     data = state.data
-    scans = []
-    for seed, spec in enumerate(demo_scans(data["reduced"].names, state.config.scan_points), start=1):
+    scans, specs = [], demo_scans(data["reduced"].names, state.config.scan_points)
+    for seed, spec in enumerate(specs, start=1):
         state.timer.progress(f"scan '{spec.name}': {spec.what}")
         scans.append(make_scenario_scan(spec.name, data["solver"], data["reduced"], data["skin"], spec.settings,
                                         spec.config, seed))
@@ -161,7 +161,7 @@ def make_scans(state: DemoState) -> None:
     bag.parent.mkdir(parents=True, exist_ok=True)
     write_scenario_bag(bag, scans, model_id=data["model"].model_id, resolution=state.config.resolution,
                        description="hood-decomp demo scans")
-    data.update(scans=scans, scan_specs={s.name: s for s in demo_scans(data["reduced"].names, 0)}, bag=bag)
+    data.update(scans=scans, scan_specs={s.name: s for s in specs}, bag=bag)
 
 
 def replay(state: DemoState) -> None:

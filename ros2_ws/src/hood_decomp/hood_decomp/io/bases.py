@@ -18,6 +18,7 @@ from hood_decomp.core.hierarchical import HIERARCHICAL_FITTED_ARRAYS, Hierarchic
 from hood_decomp.core.pca import PCA_FITTED_ARRAYS, PCABasis
 from hood_decomp.core.types import ReducedModel, SkinSurface
 from hood_decomp.errors import BasisError
+from hood_decomp.io.hdf5 import open_hdf5
 
 FORMAT = "hood_decomp.bases"
 SCHEMA_VERSION = 1
@@ -88,13 +89,7 @@ def _read_arrays(group: h5py.Group, obj: object, names: tuple[str, ...]) -> None
 def load_bases(path: str | Path) -> Bases:
     """Read a bases file written by :func:`save_bases`; raises BasisError for a missing or foreign file."""
     path = Path(path)
-    if not path.is_file():
-        raise BasisError(f"bases file {path} does not exist")
-    try:
-        h5 = h5py.File(path, "r")
-    except OSError as error:
-        raise BasisError(f"{path} is not an HDF5 bases file: {error}") from error
-    with h5:
+    with open_hdf5(path, "bases file", BasisError) as h5:
         if h5.attrs.get("format") != FORMAT:
             raise BasisError(f"{path} is not a hood_decomp bases file (format {h5.attrs.get('format')!r})")
         version = int(h5.attrs.get("schema_version", -1))

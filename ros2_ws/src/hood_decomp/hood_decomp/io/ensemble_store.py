@@ -36,6 +36,7 @@ from hood_decomp.core.ensemble import contact_counts, factorial_plan, iter_membe
 from hood_decomp.core.types import DisplacementField, Ensemble, ReducedModel, SkinSurface
 from hood_decomp.errors import EnsembleError
 from hood_decomp.io.fields import write_field
+from hood_decomp.io.hdf5 import open_hdf5
 
 SCHEMA = "hood_decomp.ensemble"
 SCHEMA_VERSION = 1
@@ -146,13 +147,7 @@ def write_ensemble(path: str | Path, reduced: ReducedModel, skin: SkinSurface, l
 
 
 def _open(path: str | Path) -> h5py.File:
-    path = Path(path)
-    if not path.is_file():
-        raise EnsembleError(f"ensemble store {path} does not exist")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as error:
-        raise EnsembleError(f"{path} is not an HDF5 ensemble store: {error}") from error
+    f = open_hdf5(path, "ensemble store", EnsembleError)
     schema, version = f.attrs.get("schema"), f.attrs.get("schema_version")
     if schema != SCHEMA or version is None or int(version) != SCHEMA_VERSION:
         f.close()
