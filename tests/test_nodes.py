@@ -73,8 +73,9 @@ def test_good_and_bad_fields(coarse_hood, running):
         peer.publishers["hood_decomp/displacement"].publish(msg)
     states = received["hood_decomp/boundary_state"]
     effects = received["hood_decomp/effects"]
+    corrections = received["hood_decomp/boundary_correction"]
     diagnostics = received["/diagnostics"]
-    assert peer.wait(lambda: len(states) >= 2 and len(effects) >= 2
+    assert peer.wait(lambda: len(states) >= 2 and len(effects) >= 2 and len(corrections) >= 2
                      and {"2.000000000", "3.000000000", "4.000000000"} <= set(errors(diagnostics)), 60.0), \
         (len(states), len(effects), errors(diagnostics))
     assert [s.header.stamp.sec for s in states] == [1, 5]
@@ -88,7 +89,6 @@ def test_good_and_bad_fields(coarse_hood, running):
     assert "model_id" in refused["2.000000000"] and "0123456789abcdef" in refused["2.000000000"]
     assert "NaN" in refused["3.000000000"] and f"shape ({good.size - 5},)" in refused["4.000000000"]
     assert all(p.poll() is None for p in processes), "a node died"
-    corrections = received["hood_decomp/boundary_correction"]
     assert [c.header.stamp.sec for c in corrections] == [1, 5]
     np.testing.assert_allclose(np.array(corrections[0].corrections)[index][in_contact],
                                -member.effective[0][in_contact] / 1000.0, atol=1e-6)
@@ -124,3 +124,4 @@ def test_scan_node_refuses_oversized_and_empty_clouds(coarse_hood, tmp_path):
     finally:
         peer.close()
         stop_nodes(processes)
+

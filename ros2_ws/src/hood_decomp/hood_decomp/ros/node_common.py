@@ -2,7 +2,9 @@
 
 Nodes stay wiring only: declare parameters, convert, call the core, convert, publish, report. Any failure of one
 message (bad input, a core error, a bug) is reported on /diagnostics with the stamp of the offending message and the
-node keeps serving the next one.
+node keeps serving the next one. Messages that never reach the node (the keep-last queue overflowed while it was busy,
+or they were published before it subscribed) are counted from gaps in the publishers' sequence numbers and reported
+too: nothing disappears unannounced.
 """
 
 from __future__ import annotations
@@ -53,13 +55,14 @@ class Diagnostics:
         self._publisher = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.processed = 0
         self.failed = 0
+        self.dropped = 0
 
     def report(self, level: bytes, message: str, stamp: Any = None, **values: object) -> None:
         status = DiagnosticStatus(level=level, name=f"hood_decomp/{self._node.get_name()}", message=message,
                                   hardware_id="hood_decomp")
         if stamp is not None:
             values = {"stamp": f"{stamp.sec}.{stamp.nanosec:09d}", **values}
-        values = {**values, "processed": self.processed, "failed": self.failed}
+        values = {**values, "processed": self.processed, "failed": self.failed, "dropped": self.dropped}
         status.values = [KeyValue(key=str(key), value=str(value)) for key, value in values.items()]
         array = DiagnosticArray(status=[status])
         array.header.stamp = self._node.get_clock().now().to_msg()
@@ -128,7 +131,29 @@ class HoodNode(Node):
         return self.create_publisher(cls, topic, topic_qos(self.depth), qos_overriding_options=OVERRIDABLE)
 
     def subscription(self, cls: type, topic: str, callback: Callable[[Any], None]) -> Any:
-        return self.create_subscription(cls, topic, callback, topic_qos(self.depth),
+        """Subscribe with the project's QoS. Publishers number their messages from 1, so a gap in a publisher's
+        sequence numbers means messages this node never took: the keep-last queue (``queue_depth``) or the
+        publisher's own overflowed while the node was busy, or (before the first message seen from a publisher)
+        they were published before this node subscribed. A WARN diagnostic says how many, with the stamp of the
+        message after the gap."""
+        last: dict[bytes, int] = {}
+
+        def counted(message: Any, info: dict[str, Any]) -> None:
+            sequence = info.get("publication_sequence_number")
+            if sequence:  # 0 / None: the middleware does not number its messages
+                publisher = bytes(info["publisher_gid"]["data"])
+                first = publisher not in last
+                gap = sequence - last.get(publisher, 0) - 1
+                last[publisher] = max(sequence, last.get(publisher, 0))
+                if gap > 0:
+                    self.diagnostics.dropped += gap
+                    why = ("published before this node subscribed, or dropped while it was busy" if first
+                           else f"dropped while the node was busy: queue_depth {self.depth} overflowed")
+                    self.diagnostics.report(WARN, f"{topic}: {gap} message(s) not received ({why})",
+                                            getattr(getattr(message, "header", None), "stamp", None), dropped_now=gap)
+            callback(message)
+
+        return self.create_subscription(cls, topic, counted, topic_qos(self.depth),
                                         qos_overriding_options=OVERRIDABLE)
 
     def guarded(self, what: str, handler: Callable[[Any], dict[str, object] | None]) -> Callable[[Any], None]:
