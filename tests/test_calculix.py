@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import os
 import shutil
 import subprocess
@@ -9,7 +10,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from hood_decomp.core.calculix import load_cases, reduce_model_calculix, run_cases
+from hood_decomp.core.calculix import load_cases, reduce_model_calculix, run_cases, write_deck
 from hood_decomp.core.fe import build_solver
 from hood_decomp.core.hood_preset import build_hood
 from hood_decomp.errors import SolverError
@@ -27,10 +28,56 @@ def _ensure_ccx() -> None:
         pytest.skip("apt-get install calculix-ccx did not provide ccx")
 
 
-# The coarse test hood (44 x 51 skin grid, ~28 mm elements) is too coarse for ccx's expanded S4 (C3D8I) elements:
-# there the two solvers differ by 6-13 % of the peak (ccx is the farther from the converged answer). The cross-check
-# therefore uses the same hood at a 96 x 112 grid (~13 mm elements, 16,477 nodes), where it agrees within 3 %.
-CHECK_GRID = (96, 112)
+# max |embedded - ccx| / max |embedded| on the skin for HINGE_X, HINGE_Y, LOCK_L, LOCK_R with S8R (C3D20R) decks:
+# 3.8, 3.2, 1.1, 1.1 % on the coarse 44 x 51 grid (~28 mm elements; with S4/C3D8I it was 12.6, 6.0, 7.0, 7.0 %), where
+# both solvers are still 1.5-4 % (ccx HINGE_X: 7 %) from the fine-grid answer; 2.0, 1.6, 0.6, 0.6 % at 64 x 74 and
+# 1.5, 0.9, 0.5, 0.5 % at 96 x 112. The cross-check therefore uses the same hood at 64 x 74 (~19 mm, 7,088 nodes).
+CHECK_GRID = (64, 74)
+
+
+def test_deck_holds_the_mid_side_nodes_of_held_edges(tmp_path) -> None:
+    """S8R deck: the model's nodes keep 1..n, and a mid-side node is held in a translation exactly when both ends of
+    its edge are, at their mean (the moved hinge patch moves as a whole)."""
+    model = build_hood("coarse")
+    cases, constrained = load_cases(model)
+    case = next(c for c in cases if c.name == "unit_HINGE_X")
+    lines = write_deck(model, case, constrained, tmp_path / "deck.inp").read_text().splitlines()
+    n = len(model.nodes)
+    held, connectivity = {}, {}
+    for i, keyword in enumerate(lines):
+        if not keyword.startswith(("*BOUNDARY", "*ELEMENT")):
+            continue
+        rows = list(itertools.takewhile(lambda line: not line.startswith("*"), lines[i + 1:]))
+        if keyword == "*BOUNDARY":
+            held = {(int(a), int(b)): float(v) for a, b, _, v in (row.split(",") for row in rows)}
+        elif keyword.startswith("*ELEMENT"):
+            assert "TYPE=S8R" in keyword
+            connectivity.update({ids[0]: ids[1:] for ids in ([int(v) for v in row.split(",")] for row in rows)})
+    assert len(connectivity) == len(model.cells)
+    for number, cell in enumerate(model.cells, start=1):
+        ids = connectivity[number]
+        assert ids[:4] == list(cell + 1) and min(ids[4:]) > n
+        for side in range(4):
+            first, second, middle = ids[side], ids[(side + 1) % 4], ids[4 + side]
+            for axis in (1, 2, 3):
+                if (first, axis) in held and (second, axis) in held:
+                    assert held[(middle, axis)] == pytest.approx((held[(first, axis)] + held[(second, axis)]) / 2)
+                else:
+                    assert (middle, axis) not in held
+    assert any(value == 1.0 for (node, _), value in held.items() if node > n)
+
+
+def test_deck_numbers_fit_the_20_characters_ccx_reads(tmp_path) -> None:
+    """ccx reads only 20 characters of a number: at 64 x 74 a mid-side node's 1.9539925233402755e-14 stopped it
+    ("*ERROR reading *NODE"). Every *NODE field fits, and the model's nodes read back to within 1e-12 mm."""
+    model = build_hood("coarse", grid=(64, 74))
+    cases, constrained = load_cases(model, pad_lattice=1)
+    lines = write_deck(model, cases[0], constrained, tmp_path / "deck.inp").read_text().splitlines()
+    start = lines.index("*NODE, NSET=NALL") + 1
+    end = lines.index(next(line for line in lines if line.startswith("*ELEMENT")))
+    rows = [line.split(",")[1:] for line in lines[start:end] if not line.startswith("*")]
+    assert max(len(field) for row in rows for field in row) <= 20
+    assert np.allclose(np.array(rows[:len(model.nodes)], dtype=float), model.nodes, rtol=0, atol=1e-12)
 
 
 @pytest.fixture(scope="module")

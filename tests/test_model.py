@@ -106,7 +106,8 @@ def test_under_constrained_part_names_the_free_motions(coarse_dir: Path, tmp_pat
 
 
 def test_calculix_deck_is_a_mesh_file_too(coarse_dir: Path, tmp_path: Path) -> None:
-    """The .inp deck written for CalculiX, named as the mesh in model.yaml, gives back the very same model."""
+    """The .inp deck written for CalculiX (S8R, mid-side nodes after the model's), named as the mesh in model.yaml,
+    gives back the very same model: the corners are the cells and the mid-side nodes are not mesh nodes."""
     original = load_model(coarse_dir)
     cases, constrained = load_cases(original)
     path = _edited(coarse_dir, tmp_path, lambda d: d.update(mesh="deck.inp"))

@@ -13,6 +13,9 @@ import numpy as np
 
 from hood_decomp.errors import MeshError
 
+#: shell element types of an .inp deck and their node counts; the first 4 nodes are the corners
+INP_SHELLS = {"S4": 4, "S4R": 4, "S4R5": 4, "M3D4": 4, "S8": 8, "S8R": 8, "M3D8": 8, "M3D8R": 8}
+
 
 def write_mesh(path: str | Path, nodes: np.ndarray, cells: np.ndarray, cell_part: np.ndarray) -> None:
     """Write a quad shell mesh: nodes (n, 3) mm, cells (E, 4), cell_part (E,) int."""
@@ -50,17 +53,19 @@ def read_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def read_inp_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Read the shell mesh of an ABAQUS/CalculiX deck: ``*NODE`` lines and 4-node shell ``*ELEMENT`` blocks
-    (S4, S4R, S4R5, M3D4) with ``ELSET=`` naming the part.
+    """Read the shell mesh of an ABAQUS/CalculiX deck: ``*NODE`` lines and 4- or 8-node shell ``*ELEMENT`` blocks
+    (:data:`INP_SHELLS`) with ``ELSET=`` naming the part.
 
-    Returns nodes (n, 3) mm in node-id order, cells (E, 4) 0-based in element-id order, and the ELSET name per cell.
-    Other keywords are ignored. Raises MeshError.
+    The cells are the elements' corners (first 4 nodes); nodes used only as mid-side nodes of 8-node shells (as in
+    the decks :func:`hood_decomp.core.calculix.write_deck` writes) are not mesh nodes. Returns nodes (n, 3) mm in
+    node-id order, cells (E, 4) 0-based in element-id order, and the ELSET name per cell. Other keywords are ignored.
+    Raises MeshError.
     """
     path = Path(path)
     if not path.is_file():
         raise MeshError(f"mesh file {path} does not exist")
-    node_ids, coords, elements = [], [], []
-    block, elset = None, ""
+    node_ids, coords, elements, midside = [], [], [], set()
+    block, elset, size = None, "", 0
     for number, raw in enumerate(path.read_text().splitlines(), start=1):
         line = raw.strip()
         if not line or line.startswith("**"):
@@ -73,9 +78,10 @@ def read_inp_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
                 block = "node"
             elif keyword == "*ELEMENT":
                 kind = options.get("TYPE", "").upper()
-                if kind not in ("S4", "S4R", "S4R5", "M3D4"):
-                    raise MeshError(f"{path}:{number}: element type {kind!r} not supported (expected 4-node shells)")
-                block, elset = "element", options.get("ELSET", "")
+                if kind not in INP_SHELLS:
+                    raise MeshError(f"{path}:{number}: element type {kind!r} not supported (expected one of "
+                                    f"{sorted(INP_SHELLS)})")
+                block, elset, size = "element", options.get("ELSET", ""), INP_SHELLS[kind]
                 if not elset:
                     raise MeshError(f"{path}:{number}: *ELEMENT needs ELSET= naming the part")
             continue
@@ -85,17 +91,22 @@ def read_inp_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
                 node_ids.append(int(values[0]))
                 coords.append([float(v) for v in values[1:4]] + [0.0] * (4 - len(values)))
             elif block == "element":
+                if len(values) < 1 + size:
+                    raise MeshError(f"{path}:{number}: expected an element id and {size} nodes, got {line!r}")
                 elements.append((int(values[0]), [int(v) for v in values[1:5]], elset))
+                midside.update(int(v) for v in values[5:1 + size])
         except (ValueError, IndexError) as error:
             raise MeshError(f"{path}:{number}: cannot read {line!r}: {error}") from error
     if not node_ids or not elements:
         raise MeshError(f"{path}: expected *NODE and *ELEMENT blocks, found {len(node_ids)} nodes, "
                         f"{len(elements)} elements")
-    order = np.argsort(node_ids)
-    ids = np.asarray(node_ids)[order]
-    nodes = np.asarray(coords, dtype=float)[order]
     elements.sort(key=lambda item: item[0])
     connectivity = np.asarray([e[1] for e in elements])
+    only_midside = np.setdiff1d(np.fromiter(midside, dtype=np.int64, count=len(midside)), connectivity)
+    order = np.argsort(node_ids)
+    order = order[~np.isin(np.asarray(node_ids)[order], only_midside)]
+    ids = np.asarray(node_ids)[order]
+    nodes = np.asarray(coords, dtype=float)[order]
     cells = np.searchsorted(ids, connectivity)
     if np.any(cells >= len(ids)) or np.any(ids[np.minimum(cells, len(ids) - 1)] != connectivity):
         raise MeshError(f"{path}: elements reference undefined nodes")

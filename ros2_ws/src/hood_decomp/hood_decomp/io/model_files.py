@@ -6,7 +6,7 @@ model.yaml (format hood_decomp.model, version 1)::
     version: 1
     name: hood-default
     mesh: mesh.vtu                 # relative to model.yaml; quad cells with cell data 'part' (index into parts),
-                                   # or an ABAQUS/CalculiX deck (.inp): S4 *ELEMENT blocks whose ELSET is a part name
+                                   # or an ABAQUS/CalculiX deck (.inp): S4/S8R *ELEMENT blocks, ELSET = a part name
     skin_part: outer_skin          # the visible outer skin
     material: {E: 210000.0, nu: 0.3, density: 7.85e-9}    # MPa, -, t/mm^3
     gravity: [0.0, 0.0, -9810.0]   # mm/s^2
