@@ -51,7 +51,7 @@ def _hood_case(resolution: str, directory: pathlib.Path) -> HoodCase:
 
 @pytest.fixture(scope="session")
 def coarse_hood(tmp_path_factory: pytest.TempPathFactory) -> HoodCase:
-    """Coarse hood (2,244 skin nodes): FE, method and node tests on fields."""
+    """Coarse hood (4,736 skin nodes): FE, method and node tests on fields."""
     return _hood_case("coarse", tmp_path_factory.mktemp("coarse_hood"))
 
 

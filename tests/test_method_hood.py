@@ -50,8 +50,8 @@ def run_validation(skin, reduced, training, validation, model, noise_seed=0):
     contact = ContactEstimator().fit(reduced, model.lower, model.upper)
     rng = np.random.default_rng(noise_seed)
     n_b = reduced.n_bilateral
-    out = {"pca": [], "contact": [], "contact_noisy": [], "noisy_std": [], "noisy_flag_ok": [], "lifted_wrong": 0,
-           "commanded_above": 0.0, "seconds": []}
+    out = {"pca": [], "contact": [], "contact_noisy": [], "noisy_std": [], "noisy_flag_ok": [], "observable": [],
+           "lifted_wrong": 0, "commanded_above": 0.0, "seconds": []}
     for values, effective, commanded, fraction in zip(validation.normal_displacement, validation.effective,
                                                       validation.commanded, validation.contact_fraction, strict=True):
         out["pca"].append(estimate_pca(pca, field(skin, values)).values - effective)
@@ -60,6 +60,7 @@ def run_validation(skin, reduced, training, validation, model, noise_seed=0):
         out["seconds"].append(time.perf_counter() - start)
         out["contact"].append(estimate.values - effective)
         lifted = fraction == 0
+        out["observable"].append(np.concatenate([np.ones(n_b, bool), ~lifted]))  # hinges, locks, pads in contact
         out["lifted_wrong"] += int(np.any(estimate.lifted[n_b:] != lifted))
         above = commanded[n_b:][lifted] - estimate.values[n_b:][lifted]
         out["commanded_above"] = max(out["commanded_above"], float(above.max(initial=-np.inf)))
@@ -68,7 +69,7 @@ def run_validation(skin, reduced, training, validation, model, noise_seed=0):
         out["contact_noisy"].append(estimate.values - effective)
         out["noisy_std"].append(estimate.std)
         out["noisy_flag_ok"].append(np.concatenate([np.ones(n_b, bool), estimate.lifted[n_b:] == lifted]))
-    for key in ("pca", "contact", "contact_noisy", "noisy_std", "noisy_flag_ok"):
+    for key in ("pca", "contact", "contact_noisy", "noisy_std", "noisy_flag_ok", "observable"):
         out[key] = np.array(out[key])
     return pca, out
 
@@ -157,6 +158,8 @@ def default_validation():
                "pca_notes": list(pca.notes_)}
     for key in ("pca", "contact", "contact_noisy"):
         summary[f"{key}_max_abs_mm"] = dict(zip(names, np.abs(result[key]).max(axis=0).tolist(), strict=True))
+        observable = np.where(result["observable"], np.abs(result[key]), 0.0).max(axis=0)
+        summary[f"{key}_max_abs_observable_mm"] = dict(zip(names, observable.tolist(), strict=True))
     for epsilon in (0.1, 0.01):
         start = time.perf_counter()
         basis = HierarchicalBasis(epsilon=epsilon).fit(training)
@@ -194,16 +197,16 @@ def test_default_noisy_std_covers_the_error(default_validation):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="buffers: the paper's linear state map cannot follow unilateral contact "
-                   "(about 0.1 mm at default resolution); see benchmarks/RESULTS.md")
+@pytest.mark.xfail(strict=True, reason="buffers in contact: the field is piecewise affine in the states (lifted / "
+                   "partial / full pad contact), the paper's state map is one linear map: ~0.08 mm; see RESULTS.md")
 def test_default_pca_estimator_paper_target_all_parameters(default_validation):
     _, result = default_validation
-    assert np.abs(result["pca"]).max() <= 0.004
+    assert np.abs(result["pca"])[result["observable"]].max() <= 0.004
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="0.02 mm noise: soft pad springs make a buffer's commanded position (and "
-                   "HINGE_X) less observable than 0.004 mm; see benchmarks/RESULTS.md")
+@pytest.mark.xfail(strict=True, reason="0.02 mm noise: HINGE_X's stated std (the Cramer-Rao bound of this field) is "
+                   "0.0034 mm, so the max over 1400 members is ~3.4 std = 0.012 mm; see RESULTS.md")
 def test_default_noisy_contact_estimator_target(default_validation):
     _, result = default_validation
-    assert np.abs(result["contact_noisy"]).max() <= 0.004
+    assert np.abs(result["contact_noisy"])[result["observable"]].max() <= 0.004
