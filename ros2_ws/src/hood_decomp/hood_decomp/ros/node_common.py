@@ -69,6 +69,11 @@ class Diagnostics:
         self._publisher.publish(array)
 
 
+def message_stamp(message: Any) -> Any:
+    """The message's header stamp, or None for a message without a header."""
+    return getattr(getattr(message, "header", None), "stamp", None)
+
+
 def guarded(node: Node, diagnostics: Diagnostics, what: str,
             handler: Callable[[Any], dict[str, object] | None]) -> Callable[[Any], None]:
     """Wrap a subscription callback: success -> OK diagnostic with the handler's key-values; a HoodDecompError ->
@@ -76,7 +81,7 @@ def guarded(node: Node, diagnostics: Diagnostics, what: str,
     log). The node never dies from one message."""
 
     def callback(message: Any) -> None:
-        stamp = getattr(getattr(message, "header", None), "stamp", None)
+        stamp = message_stamp(message)
         try:
             values = handler(message) or {}
         except HoodDecompError as error:
@@ -142,15 +147,15 @@ class HoodNode(Node):
             sequence = info.get("publication_sequence_number")
             if sequence:  # 0 / None: the middleware does not number its messages
                 publisher = bytes(info["publisher_gid"]["data"])
-                first = publisher not in last
-                gap = sequence - last.get(publisher, 0) - 1
-                last[publisher] = max(sequence, last.get(publisher, 0))
+                previous = last.get(publisher)
+                gap = sequence - (previous or 0) - 1
+                last[publisher] = max(sequence, previous or 0)
                 if gap > 0:
                     self.diagnostics.dropped += gap
-                    why = ("published before this node subscribed, or dropped while it was busy" if first
+                    why = ("published before this node subscribed, or dropped while it was busy" if previous is None
                            else f"dropped while the node was busy: queue_depth {self.depth} overflowed")
                     self.diagnostics.report(WARN, f"{topic}: {gap} message(s) not received ({why})",
-                                            getattr(getattr(message, "header", None), "stamp", None), dropped_now=gap)
+                                            message_stamp(message), dropped_now=gap)
             callback(message)
 
         return self.create_subscription(cls, topic, counted, topic_qos(self.depth),
