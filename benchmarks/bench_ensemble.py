@@ -23,10 +23,10 @@ from pathlib import Path
 
 
 def worker(resolution: str, validation: int, with_ccx: bool) -> dict[str, object]:
-    from hood_decomp.core.ensemble import contact_counts
-    from hood_decomp.core.fe import build_solver, reduce_model
-    from hood_decomp.core.hood_preset import build_hood
-    from hood_decomp.core.model import skin_surface
+    from hood_decomp.core.fe.ensemble import contact_counts
+    from hood_decomp.core.fe.hood_preset import build_hood
+    from hood_decomp.core.fe.model import skin_surface
+    from hood_decomp.core.fe.solver import build_solver, reduce_model
     from hood_decomp.io.ensemble_store import load_ensemble, write_ensemble
 
     row: dict[str, object] = {"resolution": resolution}
@@ -62,7 +62,7 @@ def worker(resolution: str, validation: int, with_ccx: bool) -> dict[str, object
     row["total_s"] = time.perf_counter() - start
     row["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
     if with_ccx:
-        from hood_decomp.core.calculix import ccx_executable, load_cases, run_job, write_deck
+        from hood_decomp.core.fe.calculix import ccx_executable, load_cases, run_job, write_deck
 
         if ccx_executable() is not None:
             cases, constrained = load_cases(model, pad_lattice=1)

@@ -28,11 +28,11 @@ import scipy.linalg
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from hood_decomp.core.contact_estimation import ContactEstimator  # noqa: E402
-from hood_decomp.core.decomposition import decompose  # noqa: E402
-from hood_decomp.core.estimation import estimate_pca  # noqa: E402
-from hood_decomp.core.hierarchical import HierarchicalBasis  # noqa: E402
-from hood_decomp.core.pca import PCABasis  # noqa: E402
+from hood_decomp.core.method.contact_estimation import ContactEstimator  # noqa: E402
+from hood_decomp.core.method.decomposition import decompose  # noqa: E402
+from hood_decomp.core.method.estimation import estimate_pca  # noqa: E402
+from hood_decomp.core.method.hierarchical import HierarchicalBasis  # noqa: E402
+from hood_decomp.core.method.pca import PCABasis  # noqa: E402
 from hood_decomp.core.types import DisplacementField, Ensemble  # noqa: E402
 from tests.synthetic import (  # noqa: E402
     full_factorial,

@@ -29,11 +29,11 @@ from hood_decomp_msgs.msg import BoundaryState, EffectFields
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import PointCloud2
 
-from hood_decomp.core.scanner import ScannerConfig
 from hood_decomp.ros.launcher import start_nodes, stop_nodes
 from hood_decomp.ros.participant import Participant
 from hood_decomp.ros.scan_bag import scan_cloud, write_node_params
-from hood_decomp.scenarios import make_scenario_scan
+from hood_decomp.synthetic.scanner import ScannerConfig
+from hood_decomp.synthetic.scenarios import make_scenario_scan
 
 OUT = pathlib.Path(__file__).parent / "out"
 
@@ -44,10 +44,10 @@ def log(line: str) -> None:
 
 def prepared(resolution: str):
     """(skin, solver, reduced, bases path), building and caching the ensemble and bases when missing."""
-    from hood_decomp.core.bases import build_bases
-    from hood_decomp.core.fe import build_solver, reduce_model
-    from hood_decomp.core.hood_preset import build_hood
-    from hood_decomp.core.model import skin_surface
+    from hood_decomp.core.fe.hood_preset import build_hood
+    from hood_decomp.core.fe.model import skin_surface
+    from hood_decomp.core.fe.solver import build_solver, reduce_model
+    from hood_decomp.core.method.bases import build_bases
     from hood_decomp.io.bases import save_bases
     from hood_decomp.io.ensemble_store import load_ensemble, write_ensemble
 

@@ -30,9 +30,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from hood_decomp.core.scan_field import ScanFieldEstimator, field_from_scan  # noqa: E402
-from hood_decomp.core.scanner import ScannerConfig, synthesize_scan  # noqa: E402
+from hood_decomp.core.scan.scan_field import ScanFieldEstimator, field_from_scan  # noqa: E402
 from hood_decomp.io.ply import write_ply, write_skin_mesh  # noqa: E402
+from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan  # noqa: E402
 from tests.skins import (  # noqa: E402
     CLOUDCOMPARE,
     along_normals,
@@ -134,10 +134,10 @@ def main() -> int:
 def hood_case(resolution: str, n_points: int) -> dict:
     """The built-in hood: LOCK_L = 1, HINGE_X = -0.5, BUFFER_R = 0.5 mm solved by the embedded FE solver (truth: its
     skin normal displacement u.n, with in-plane motion from the hinge), scanned, turned back into a field."""
-    from hood_decomp.core.ensemble import simulate_setting
-    from hood_decomp.core.fe import build_solver
-    from hood_decomp.core.hood_preset import build_hood
-    from hood_decomp.core.model import skin_surface
+    from hood_decomp.core.fe.ensemble import simulate_setting
+    from hood_decomp.core.fe.hood_preset import build_hood
+    from hood_decomp.core.fe.model import skin_surface
+    from hood_decomp.core.fe.solver import build_solver
 
     model = build_hood(resolution)
     skin = skin_surface(model)

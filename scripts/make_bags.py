@@ -18,12 +18,12 @@ import pathlib
 import shutil
 import sys
 
-from hood_decomp.core.fe import build_solver, reduce_model
-from hood_decomp.core.hood_preset import build_hood
-from hood_decomp.core.model import skin_surface
-from hood_decomp.core.scanner import ScannerConfig
+from hood_decomp.core.fe.hood_preset import build_hood
+from hood_decomp.core.fe.model import skin_surface
+from hood_decomp.core.fe.solver import build_solver, reduce_model
 from hood_decomp.ros.scan_bag import MALFORMED, write_scenario_bag
-from hood_decomp.scenarios import make_scenario_scan
+from hood_decomp.synthetic.scanner import ScannerConfig
+from hood_decomp.synthetic.scenarios import make_scenario_scan
 
 RESOLUTION = "default"
 

@@ -30,11 +30,11 @@ class HoodCase:
 
 
 def _hood_case(resolution: str, directory: pathlib.Path) -> HoodCase:
-    from hood_decomp.core.bases import build_bases
-    from hood_decomp.core.ensemble import factorial_plan, simulate_ensemble
-    from hood_decomp.core.fe import build_solver, reduce_model
-    from hood_decomp.core.hood_preset import build_hood
-    from hood_decomp.core.model import skin_surface
+    from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble
+    from hood_decomp.core.fe.hood_preset import build_hood
+    from hood_decomp.core.fe.model import skin_surface
+    from hood_decomp.core.fe.solver import build_solver, reduce_model
+    from hood_decomp.core.method.bases import build_bases
     from hood_decomp.io.bases import save_bases
 
     model = build_hood(resolution)

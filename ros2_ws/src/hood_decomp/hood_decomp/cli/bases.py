@@ -41,7 +41,7 @@ def load_training_set(path: Path, model_dir: Path | None, say):
     if model_dir is None:
         say("bases: no --model and no reduced model in the store: only the paper's 'pca' estimator will be available")
         return ensemble, skin, None
-    from hood_decomp.core.fe import build_solver, reduce_model
+    from hood_decomp.core.fe.solver import build_solver, reduce_model
     from hood_decomp.io.model_files import load_model
 
     model = load_model(model_dir)
@@ -52,7 +52,7 @@ def load_training_set(path: Path, model_dir: Path | None, say):
 
 
 def run(args: argparse.Namespace) -> int:
-    from hood_decomp.core.bases import build_bases
+    from hood_decomp.core.method.bases import build_bases
     from hood_decomp.io.bases import save_bases
 
     def say(text: str) -> None:
@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     bases = build_bases(ensemble, skin, reduced, components, args.explained_variance, args.epsilon, progress=say)
     save_bases(args.out, bases)
     if args.plots is not None:
-        from hood_decomp.plots import plot_explained_variance
+        from hood_decomp.plots.method import plot_explained_variance
 
         plot_explained_variance(bases.pca.explained_variance_ratio_, args.plots / "explained_variance.png")
     print(f"wrote {args.out}: {bases.pca.n_components_} PCA components, "

@@ -40,7 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "members are reused (default: solved again from the bases' reduced model)")
     parser.add_argument("--alpha", type=float, default=0.01, help="significance level of the tests (default 0.01)")
     parser.add_argument("--noise-mm", type=float, default=None, help="scan noise (mm, one sigma) of fields that do "
-                        "not state their own (default: hood_decomp.core.residual.DEFAULT_NOISE_MM)")
+                        "not state their own (default: hood_decomp.core.method.residual.DEFAULT_NOISE_MM)")
     parser.add_argument("--max-effects", type=int, default=1, help="effects added at most (default 1)")
     parser.add_argument("--method", choices=("contact", "pca"), default="contact",
                         help="estimator of the before/after estimates (tracing is always contact-aware)")
@@ -61,7 +61,7 @@ def _read_inputs(inputs: list[tuple[str, Path]], skin, min_coverage: float) -> l
             from_file = scan_verb.field_from_scan_file
         except (ImportError, AttributeError) as error:
             raise ScanError(f"--scan needs the scan-to-field code (hood_decomp.cli.scan.field_from_scan_file and "
-                            f"hood_decomp.core.scan_field.field_from_scan), not available: {error}") from error
+                            f"hood_decomp.core.scan.scan_field.field_from_scan), not available: {error}") from error
         fields.append(from_file(skin, path, min_coverage=min_coverage))
     return fields
 
@@ -102,13 +102,13 @@ def _table(payload: dict) -> str:
 def run(args: argparse.Namespace) -> int:
     import yaml
 
-    from hood_decomp.close_loop_plots import plot_before_after, plot_residual_maps
-    from hood_decomp.core.candidates import candidate_fields, candidates_from_document, enumerate_candidates
-    from hood_decomp.core.close_loop import close_loop, report
-    from hood_decomp.core.fe import build_solver
-    from hood_decomp.core.residual import DEFAULT_NOISE_MM
+    from hood_decomp.core.fe.solver import build_solver
+    from hood_decomp.core.loop.candidates import candidate_fields, candidates_from_document, enumerate_candidates
+    from hood_decomp.core.loop.close_loop import close_loop, report
+    from hood_decomp.core.method.residual import DEFAULT_NOISE_MM
     from hood_decomp.io.bases import load_bases, save_bases
     from hood_decomp.io.model_files import load_model, model_path
+    from hood_decomp.plots.close_loop import plot_before_after, plot_residual_maps
 
     if not args.inputs:
         raise FieldError("give at least one --field FIELD.vtu or --scan SCAN.ply")

@@ -20,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hood_decomp.core.bases import decompose_field, estimate_field
+    from hood_decomp.core.method.bases import decompose_field, estimate_field
 
     bases, field = load_input(args)
     estimate = estimate_field(bases, field, args.method, args.min_coverage)
@@ -30,7 +30,7 @@ def run(args: argparse.Namespace) -> int:
         "reconstruction_rms_mm": result.reconstruction_rms,
     }
     if args.plots is not None:
-        from hood_decomp.plots import plot_contributions
+        from hood_decomp.plots.method import plot_contributions
 
         payload["plots"] = [str(p) for p in plot_contributions(bases.skin, result, args.plots)]
     emit(payload, args.json)

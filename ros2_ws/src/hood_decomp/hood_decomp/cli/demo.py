@@ -18,7 +18,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hood_decomp.demo import DemoConfig, run_demo
+    from hood_decomp.demo.run import DemoConfig, run_demo
 
     path = run_demo(DemoConfig(out=args.out, resolution=args.resolution, n_validation=args.validation,
                                scan_points=args.scan_points))

@@ -25,7 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hood_decomp.core.model import skin_surface
+    from hood_decomp.core.fe.model import skin_surface
     from hood_decomp.errors import EnsembleError
     from hood_decomp.io.ensemble_store import write_ensemble
     from hood_decomp.io.model_files import load_model
@@ -41,12 +41,12 @@ def run(args: argparse.Namespace) -> int:
         raise EnsembleError("--model is required to compute an ensemble")
     model = load_model(args.model)
     if args.solver == "embedded":
-        from hood_decomp.core.fe import build_solver, reduce_model
+        from hood_decomp.core.fe.solver import build_solver, reduce_model
 
         solver = build_solver(model, progress=progress)
         reduced, backend = reduce_model(solver, progress=progress), solver.backend
     else:
-        from hood_decomp.core.calculix import reduce_model_calculix
+        from hood_decomp.core.fe.calculix import reduce_model_calculix
 
         reduced = reduce_model_calculix(model, scheduler=args.scheduler, progress=progress)
         backend = "ccx"

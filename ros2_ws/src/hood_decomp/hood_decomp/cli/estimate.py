@@ -43,7 +43,7 @@ def load_input(args: argparse.Namespace):
         from_file = importlib.import_module("hood_decomp.cli.scan").field_from_scan_file
     except (ImportError, AttributeError) as error:
         raise ScanError(f"--scan needs the scan-to-field code (hood_decomp.cli.scan.field_from_scan_file and "
-                        f"hood_decomp.core.scan_field), not available: {error}") from error
+                        f"hood_decomp.core.scan.scan_field), not available: {error}") from error
     return bases, from_file(bases.skin, args.scan, min_coverage=args.min_coverage)
 
 
@@ -78,7 +78,7 @@ def estimate_payload(estimate, n_bilateral: int) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hood_decomp.core.bases import estimate_field
+    from hood_decomp.core.method.bases import estimate_field
 
     bases, field = load_input(args)
     estimate = estimate_field(bases, field, args.method, args.min_coverage)

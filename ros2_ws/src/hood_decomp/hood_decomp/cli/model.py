@@ -17,7 +17,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hood_decomp.core.hood_preset import build_hood
+    from hood_decomp.core.fe.hood_preset import build_hood
     from hood_decomp.io.model_files import save_model
 
     model = build_hood(args.resolution)

@@ -1,6 +1,6 @@
 """`hood-decomp scan`: synthesise a structured-light scan of a displaced part.
 
-One forward FE solve of the boundary setting, then the synthetic scanner (core/scanner.py) looks at the displaced
+One forward FE solve of the boundary setting, then the synthetic scanner (synthetic/scanner.py) looks at the displaced
 visible skin in its fixture: about a million points in the scanner frame with range noise, dropouts, occlusion,
 outliers and the fixture markers, written as SCAN.ply (io/ply.py) with a sidecar SCAN.json stating the truth (setting,
 noise, scanner and part transforms). Also home of :func:`field_from_scan_file`, the scan-file entry the other verbs
@@ -48,12 +48,12 @@ def _misplacement(text: str) -> tuple[float, float, float, float, float, float]:
 
 def run(args: argparse.Namespace) -> int:
     from hood_decomp.cli.simulate import parse_settings
-    from hood_decomp.core.ensemble import simulate_setting
-    from hood_decomp.core.fe import build_solver
-    from hood_decomp.core.model import skin_surface
-    from hood_decomp.core.scanner import ScannerConfig, synthesize_scan
+    from hood_decomp.core.fe.ensemble import simulate_setting
+    from hood_decomp.core.fe.model import skin_surface
+    from hood_decomp.core.fe.solver import build_solver
     from hood_decomp.io.model_files import load_model
     from hood_decomp.io.ply import write_scan
+    from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
 
     if args.noise_mm < 0 or args.points < 1000:
         raise ScanError(f"--noise-mm must be >= 0 and --points >= 1000; got {args.noise_mm} and {args.points}")
@@ -101,8 +101,8 @@ def field_from_scan_file(
     """The displacement field of a scan file: read (io/ply.py), register (markers, else the stored scanner pose,
     else the identity; plus datum regions around ``datum_centers_mm`` (K, 3) when given) and evaluate per node.
     Progress goes to stderr; ScanError names any problem."""
-    from hood_decomp.core.registration import datum_mask_near
-    from hood_decomp.core.scan_field import field_from_scan
+    from hood_decomp.core.scan.registration import datum_mask_near
+    from hood_decomp.core.scan.scan_field import field_from_scan
     from hood_decomp.io.ply import read_scan
 
     scan = read_scan(path)

@@ -35,9 +35,9 @@ def parse_settings(text: str) -> dict[str, float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hood_decomp.core.ensemble import simulate_setting
-    from hood_decomp.core.fe import build_solver
-    from hood_decomp.core.model import skin_surface
+    from hood_decomp.core.fe.ensemble import simulate_setting
+    from hood_decomp.core.fe.model import skin_surface
+    from hood_decomp.core.fe.solver import build_solver
     from hood_decomp.core.types import DisplacementField
     from hood_decomp.io.fields import write_field
     from hood_decomp.io.model_files import load_model

@@ -1,6 +1,6 @@
 """Saved bases: the PCA basis, the hierarchical basis, the skin and the reduced model in one HDF5 file (no pickle).
 
-Schema: docs/bases_schema.md. A loaded :class:`hood_decomp.core.bases.Bases` is all estimation and decomposition
+Schema: docs/bases_schema.md. A loaded :class:`hood_decomp.core.method.bases.Bases` is all estimation and decomposition
 need; every field is checked against ``Bases.model_id``.
 """
 
@@ -13,9 +13,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from hood_decomp.core.bases import Bases
-from hood_decomp.core.hierarchical import HIERARCHICAL_FITTED_ARRAYS, HierarchicalBasis
-from hood_decomp.core.pca import PCA_FITTED_ARRAYS, PCABasis
+from hood_decomp.core.method.bases import Bases
+from hood_decomp.core.method.hierarchical import HIERARCHICAL_FITTED_ARRAYS, HierarchicalBasis
+from hood_decomp.core.method.pca import PCA_FITTED_ARRAYS, PCABasis
 from hood_decomp.core.types import ReducedModel, SkinSurface
 from hood_decomp.errors import BasisError
 from hood_decomp.io.hdf5 import open_hdf5

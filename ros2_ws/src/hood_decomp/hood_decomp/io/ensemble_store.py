@@ -32,7 +32,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from hood_decomp.core.ensemble import contact_counts, factorial_plan, iter_members, validation_plan
+from hood_decomp.core.fe.ensemble import contact_counts, factorial_plan, iter_members, validation_plan
 from hood_decomp.core.types import DisplacementField, Ensemble, ReducedModel, SkinSurface
 from hood_decomp.errors import EnsembleError
 from hood_decomp.io.fields import write_field

@@ -57,7 +57,7 @@ def read_inp_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     (:data:`INP_SHELLS`) with ``ELSET=`` naming the part.
 
     The cells are the elements' corners (first 4 nodes); nodes used only as mid-side nodes of 8-node shells (as in
-    the decks :func:`hood_decomp.core.calculix.write_deck` writes) are not mesh nodes. Returns nodes (n, 3) mm in
+    the decks :func:`hood_decomp.core.fe.calculix.write_deck` writes) are not mesh nodes. Returns nodes (n, 3) mm in
     node-id order, cells (E, 4) 0-based in element-id order, and the ELSET name per cell. Other keywords are ignored.
     Raises MeshError.
     """

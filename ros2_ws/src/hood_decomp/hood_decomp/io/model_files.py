@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from hood_decomp.core.model import Boundary, Material, Parameter, Part, PartModel, Patch, validate_model
+from hood_decomp.core.fe.model import Boundary, Material, Parameter, Part, PartModel, Patch, validate_model
 from hood_decomp.errors import MeshError, ModelError
 from hood_decomp.io.mesh import read_inp_mesh, read_mesh, write_mesh
 

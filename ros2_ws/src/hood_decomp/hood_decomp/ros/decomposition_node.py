@@ -82,7 +82,7 @@ class DecompositionNode(HoodNode):
             self.process(_Pair(field.header, field, None))
 
     def decompose(self, pair: _Pair) -> dict[str, object]:
-        from hood_decomp.core.bases import decompose_field
+        from hood_decomp.core.method.bases import decompose_field
 
         bases = self.require_bases()
         estimate = messages.msg_to_estimate(pair.state) if pair.state is not None else None

@@ -1,14 +1,14 @@
 """Estimator node: hood_decomp/displacement -> hood_decomp/boundary_state + hood_decomp/boundary_correction.
 
 Least squares on the bases (the contact-aware estimator by default, the paper's PCA estimator on request), then the
-correction for the fixture adjustment robot with ``safe_to_apply`` and its reasons (hood_decomp.core.correction).
+correction for the fixture adjustment robot with ``safe_to_apply`` and its reasons (hood_decomp.core.method.correction).
 """
 
 from __future__ import annotations
 
 from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState, DisplacementField
 
-from hood_decomp.core.correction import CorrectionPolicy, plan_correction
+from hood_decomp.core.method.correction import CorrectionPolicy, plan_correction
 from hood_decomp.ros import messages
 from hood_decomp.ros.node_common import HoodNode, declare, spin
 
@@ -29,7 +29,7 @@ class EstimatorNode(HoodNode):
         self.subscription(DisplacementField, "hood_decomp/displacement", self.guarded("estimation", self.on_field))
 
     def on_field(self, msg: DisplacementField) -> dict[str, object]:
-        from hood_decomp.core.bases import estimate_field
+        from hood_decomp.core.method.bases import estimate_field
 
         estimate = estimate_field(self.require_bases(), messages.msg_to_field(msg), method=self.method,
                                   min_coverage=self.policy.min_coverage)

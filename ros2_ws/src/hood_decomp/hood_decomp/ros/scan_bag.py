@@ -17,11 +17,11 @@ from builtin_interfaces.msg import Time
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Header
 
-from hood_decomp.core.scanner import SyntheticScan
 from hood_decomp.io.bags import Record, write_bag, write_sidecar
 from hood_decomp.ros.messages import M_PER_MM
 from hood_decomp.ros.pointcloud import xyz_to_cloud
-from hood_decomp.scenarios import ScenarioScan
+from hood_decomp.synthetic.scanner import SyntheticScan
+from hood_decomp.synthetic.scenarios import ScenarioScan
 
 SCAN_TOPIC = "scan/points"
 SCANNER_FRAME = "scanner"

@@ -2,7 +2,7 @@
 hood_decomp/displacement_cloud (the skin with a normal-displacement channel, metres, for RViz).
 
 The cloud is read with one buffer copy (hood_decomp.ros.pointcloud), registered to the nominal part and turned into
-one signed normal displacement per visible skin node (hood_decomp.core.scan_field). Clouds larger than
+one signed normal displacement per visible skin node (hood_decomp.core.scan.scan_field). Clouds larger than
 ``max_points`` are refused before any copy.
 """
 
@@ -38,7 +38,7 @@ class ScanNode(HoodNode):
         self.markers_nominal = {int(row[0]): row[1:] * messages.MM_PER_M for row in table}
         self.estimator = None
         if self.bases is not None:
-            from hood_decomp.core.scan_field import prepared_estimator
+            from hood_decomp.core.scan.scan_field import prepared_estimator
 
             self.estimator = prepared_estimator(self.bases.skin)  # one-time preparation of the skin
         self.field_pub = self.publisher(DisplacementField, "hood_decomp/displacement")
@@ -46,7 +46,7 @@ class ScanNode(HoodNode):
         self.subscription(PointCloud2, "scan/points", self.guarded("scan", self.on_cloud))
 
     def on_cloud(self, msg: PointCloud2) -> dict[str, object]:
-        from hood_decomp.core.scan_field import field_from_scan
+        from hood_decomp.core.scan.scan_field import field_from_scan
 
         bases = self.require_bases()
         n_points = int(msg.width) * int(msg.height)

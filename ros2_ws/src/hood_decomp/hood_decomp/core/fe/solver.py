@@ -1,0 +1,393 @@
+"""The embedded linear shell solver: assembly, one factorisation, responses, and the reduced model.
+
+The part is linear except for the unilateral pads, so the stiffness K (6 DOF per node) is assembled once from
+:mod:`hood_decomp.core.fe.shell`, the constrained translations (fixed and prescribed boundaries) are eliminated, K_ff is
+factorised once (CHOLMOD when ``sksparse`` is importable, else SuperLU), and every response the method needs is a
+pair of triangular solves with that factor:
+
+- the load response (gravity + force boundaries, all prescribed values 0),
+- the response to a unit (1 mm) motion of any boundary DOF (elimination for constrained DOFs; for a direction the
+  boundary does not constrain, the patch force that moves the patch rigidly by 1 mm),
+- the response to a unit (1 N) pad spring force.
+
+:func:`reduce_model` condenses these to a :class:`~hood_decomp.core.types.ReducedModel` (skin normal and 3D responses
+plus pad compliances); each ensemble member is then a small complementarity problem (:mod:`.contact`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from hood_decomp.core.fe.model import AXES, PartModel, patch_nodes, patch_weights, skin_surface, validate_model
+from hood_decomp.core.fe.shell import quad_triangles, triangle_stiffness
+from hood_decomp.core.types import ReducedModel
+from hood_decomp.errors import ModelError, SolverError
+
+Progress = Callable[[str], None]
+#: triangles per vectorised assembly chunk (bounds the (T, 18, 18) temporary to ~100 MB)
+CHUNK = 40000
+#: pad springs per side of the square lattice that groups a pad's nodes into springs
+PAD_LATTICE = 6
+
+
+def _say(progress: Progress | None, message: str) -> None:
+    if progress is not None:
+        progress(message)
+
+
+def assemble_stiffness(model: PartModel, progress: Progress | None = None) -> sp.csr_matrix:
+    """Global stiffness (6n, 6n) CSR, N/mm (translations) and N mm/rad (rotations), DOF 6*node + (ux..rz)."""
+    tris, source = quad_triangles(model.cells)
+    thickness = np.array([p.thickness for p in model.parts])[model.cell_part[source]]
+    n_dof = 6 * len(model.nodes)
+    K = sp.csr_matrix((n_dof, n_dof))
+    local = np.arange(6)
+    for start in range(0, len(tris), CHUNK):
+        t = tris[start : start + CHUNK]
+        # both diagonal splits of each quad are present: each triangle counts half
+        Ke = 0.5 * triangle_stiffness(model.nodes[t], thickness[start : start + CHUNK], model.material.E,
+                                      model.material.nu)
+        dofs = (6 * t[:, :, None] + local).reshape(len(t), 18)
+        rows = np.broadcast_to(dofs[:, :, None], Ke.shape).ravel()
+        cols = np.broadcast_to(dofs[:, None, :], Ke.shape).ravel()
+        K = K + sp.coo_matrix((Ke.ravel(), (rows, cols)), shape=(n_dof, n_dof)).tocsr()
+        _say(progress, f"assembly {min(start + CHUNK, len(tris))}/{len(tris)} triangles")
+    return K
+
+
+def load_vector(model: PartModel) -> np.ndarray:
+    """Gravity (lumped nodal masses) plus force boundaries, (6n,) N."""
+    p = model.nodes[model.cells]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1]), axis=1)
+    thickness = np.array([part.thickness for part in model.parts])[model.cell_part]
+    mass = np.zeros(len(model.nodes))
+    np.add.at(mass, model.cells.ravel(), np.repeat(area * thickness * model.material.density / 4.0, 4))
+    F = np.zeros((len(model.nodes), 6))
+    F[:, :3] = mass[:, None] * np.asarray(model.gravity, dtype=float)
+    for boundary in model.boundaries:
+        if boundary.kind == "force":
+            nodes = patch_nodes(model, boundary)
+            F[nodes, :3] += boundary.force * patch_weights(model, nodes)[:, None] * np.asarray(boundary.axis)
+    return F.ravel()
+
+
+def rigid_body_check(model: PartModel, constrained: np.ndarray) -> None:
+    """Raise ModelError naming the free rigid-body motion when the constrained translations do not fix the part.
+
+    constrained: (C,) global DOF indices held by fixed/prescribed boundaries (unilateral pads do not count: they can
+    lift off).
+    """
+    nodes = model.nodes
+    center = nodes.mean(axis=0)
+    node, axis = np.divmod(constrained, 6)
+    if np.any(axis > 2):
+        raise ModelError("only translations can be constrained")
+    # rigid mode (t, w): u = t + w x (x - c); row of the constrained DOF along axis
+    rel = nodes[node] - center
+    modes = np.zeros((len(constrained), 6))
+    modes[np.arange(len(constrained)), axis] = 1.0
+    unit = np.eye(3)[axis]
+    scale = max(np.ptp(nodes, axis=0).max(), 1.0)
+    modes[:, 3:] = np.cross(rel, unit) / scale  # e_axis . (w x r) = w . (r x e_axis); scaled to mm like translations
+    s_full = np.zeros(6)
+    if len(constrained):
+        _, s, vt = np.linalg.svd(modes, full_matrices=True)
+        s_full[: len(s)] = s
+    else:
+        vt = np.eye(6)
+    free = vt[s_full < 1e-8 * max(s_full.max(), 1.0)]
+    if len(free) == 0:
+        return
+    # rotate the free basis so that pure translations come out as such: SVD of its rotation part
+    u_rot, s_rot, _ = np.linalg.svd(free[:, 3:], full_matrices=True)
+    s_rot = np.concatenate([s_rot, np.zeros(len(free) - len(s_rot))])
+    free = u_rot.T @ free
+    motions = [_describe_motion(vector[:3], vector[3:] / scale, center, rotation=s > 1e-6)
+               for vector, s in zip(free, s_rot, strict=True)]
+    raise ModelError(
+        f"under-constrained part: the fixed and prescribed boundaries leave {len(free)} free rigid-body motion(s): "
+        f"{'; '.join(motions)}; add or extend a fixed/prescribed boundary"
+    )
+
+
+def _describe_motion(t: np.ndarray, w: np.ndarray, center: np.ndarray, rotation: bool) -> str:
+    """Readable rigid motion u = t + w x (x - center): a translation or a rotation about an axis line."""
+    names = "XYZ"
+    if not rotation:
+        d = t / np.linalg.norm(t)
+        return f"translation along {names[int(np.argmax(np.abs(d)))]} ({d[0]:.2f}, {d[1]:.2f}, {d[2]:.2f})"
+    d = w / np.linalg.norm(w)
+    point = center + np.cross(w, t) / np.dot(w, w)
+    return (f"rotation about {names[int(np.argmax(np.abs(d)))]} (axis ({d[0]:.2f}, {d[1]:.2f}, {d[2]:.2f}) through "
+            f"({point[0]:.0f}, {point[1]:.0f}, {point[2]:.0f}) mm)")
+
+
+@dataclass(frozen=True)
+class PadSprings:
+    """Pad springs of all unilateral parameters.
+
+    loads: (6n, S) sparse, column s spreads a unit (1 N) spring force over its nodes along the pad axis; its transpose
+    maps a displacement to the spring's mean axial displacement z_s (mm). k: (S,) N/mm. preload: (S,) mm.
+    pad_of: (S,) index into the unilateral parameters.
+    """
+
+    loads: sp.csc_matrix
+    k: np.ndarray
+    preload: np.ndarray
+    pad_of: np.ndarray
+
+
+def pad_springs(model: PartModel, lattice: int = PAD_LATTICE) -> PadSprings:
+    """Group each pad's patch into springs on a ``lattice`` x ``lattice`` grid across the pad axis (1: one spring).
+
+    Each spring acts on the area-weighted mean axial displacement of its nodes and spreads its force with the same
+    weights, so the spring set is the same at every mesh resolution once the mesh is finer than the lattice.
+    """
+    rows, cols, vals, k, preload, pad_of = [], [], [], [], [], []
+    for u, parameter in enumerate(model.unilateral):
+        boundary = model.boundary(parameter.boundary)
+        nodes = patch_nodes(model, boundary)
+        weights = patch_weights(model, nodes)
+        axis = np.asarray(boundary.axis, dtype=float)
+        e1 = np.cross(axis, [1.0, 0, 0] if abs(axis[0]) < 0.9 else [0, 1.0, 0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(axis, e1)
+        rel = model.nodes[nodes] - model.nodes[nodes].mean(axis=0)
+        extent = max(np.abs(rel @ e1).max(), np.abs(rel @ e2).max(), 1e-9)
+        cell = np.floor((np.stack([rel @ e1, rel @ e2], axis=1) / extent + 1.0) * lattice / 2.0001).astype(int)
+        _, group = np.unique(cell[:, 0] * (lattice + 1) + cell[:, 1], return_inverse=True)
+        for g in range(group.max() + 1):
+            members = nodes[group == g]
+            w = weights[group == g]
+            column = len(k)
+            for a in range(3):
+                rows.append(6 * members + a)
+                cols.append(np.full(len(members), column))
+                vals.append(w / w.sum() * axis[a])
+            k.append(boundary.stiffness * w.sum())
+            preload.append(boundary.preload)
+            pad_of.append(u)
+    n_dof = 6 * len(model.nodes)
+    loads = sp.csc_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n_dof, len(k))
+    ) if k else sp.csc_matrix((n_dof, 0))
+    return PadSprings(loads=loads, k=np.array(k), preload=np.array(preload), pad_of=np.array(pad_of, dtype=np.int64))
+
+
+class ShellSolver:
+    """The factorised embedded solver of one part model. Build it with :func:`build_solver`.
+
+    Attributes: model, K (6n, 6n) CSR, constrained (C,) DOF indices (ascending), free (6n - C,), backend
+    ("cholmod" or "splu"), load (6n,) N, pads (PadSprings), timings (dict of seconds).
+    """
+
+    def __init__(self, model: PartModel, K: sp.csr_matrix, constrained: np.ndarray, factor, backend: str,
+                 timings: dict[str, float], pad_lattice: int = PAD_LATTICE) -> None:
+        self.model = model
+        self.K = K
+        self.constrained = constrained
+        n_dof = K.shape[0]
+        mask = np.ones(n_dof, dtype=bool)
+        mask[constrained] = False
+        self.free = np.flatnonzero(mask)
+        self._factor = factor
+        self.backend = backend
+        self.load = load_vector(model)
+        self.pads = pad_springs(model, pad_lattice)
+        self.timings = timings
+        self._K_fc = K[self.free][:, constrained].tocsc()
+        self._position = np.full(n_dof, -1, dtype=np.int64)
+        self._position[constrained] = np.arange(len(constrained))
+
+    @property
+    def n_dof(self) -> int:
+        return int(self.K.shape[0])
+
+    def solve(self, forces: np.ndarray, prescribed: np.ndarray | None = None) -> np.ndarray:
+        """Displacements (6n, k) for nodal forces (6n, k) N and constrained-DOF values (C, k) mm (None: zero)."""
+        forces = np.asarray(forces, dtype=float)
+        squeeze = forces.ndim == 1
+        forces = forces.reshape(self.n_dof, -1)
+        rhs = forces[self.free]
+        u = np.zeros_like(forces)
+        if prescribed is not None:
+            prescribed = np.asarray(prescribed, dtype=float).reshape(len(self.constrained), -1)
+            rhs = rhs - self._K_fc @ prescribed
+            u[self.constrained] = prescribed
+        u[self.free] = self._solve_free(rhs)
+        return u[:, 0] if squeeze else u
+
+    def _solve_free(self, rhs: np.ndarray) -> np.ndarray:
+        out = self._factor(np.ascontiguousarray(rhs))
+        if not np.all(np.isfinite(out)):
+            raise SolverError("the factorised stiffness gave non-finite displacements (singular structure)")
+        return out
+
+    def boundary_dofs(self, boundary: str, direction: str) -> np.ndarray:
+        """Global DOF indices (translation ``direction`` of every patch node) of a boundary."""
+        if direction not in AXES:
+            raise ModelError(f"direction must be x, y or z, got {direction!r}")
+        nodes = patch_nodes(self.model, self.model.boundary(boundary))
+        return 6 * nodes + AXES[direction]
+
+    def boundary_response(self, boundary: str, direction: str) -> np.ndarray:
+        """Displacement (6n,) mm for a unit (1 mm) motion of a boundary patch along ``direction``, no loads.
+
+        For a constrained direction (fixed or prescribed boundary) the patch DOFs are moved by elimination. For a
+        direction the boundary does not constrain (e.g. a lock's X), the patch is moved rigidly by 1 mm by the patch
+        forces that do so (one solve per patch node, Schur complement on the patch), with everything else unchanged.
+        """
+        dofs = self.boundary_dofs(boundary, direction)
+        position = self._position[dofs]
+        if np.all(position >= 0):
+            prescribed = np.zeros(len(self.constrained))
+            prescribed[position] = 1.0
+            return self.solve(np.zeros(self.n_dof), prescribed)
+        if np.any(position >= 0):
+            raise ModelError(f"boundary {boundary!r} direction {direction!r} is only partly constrained")
+        unit_loads = sp.csc_matrix((np.ones(len(dofs)), (dofs, np.arange(len(dofs)))), shape=(self.n_dof, len(dofs)))
+        U = self.solve(unit_loads.toarray())
+        lam = np.linalg.solve(U[dofs], np.ones(len(dofs)))
+        return U @ lam
+
+    def force_response(self, boundary: str, direction: str) -> np.ndarray:
+        """Displacement (6n,) mm for a unit total force (1 N) spread area-weighted over a boundary patch."""
+        nodes = patch_nodes(self.model, self.model.boundary(boundary))
+        F = np.zeros((len(self.model.nodes), 6))
+        F[nodes, AXES[direction]] = patch_weights(self.model, nodes)
+        return self.solve(F.ravel())
+
+    def load_response(self) -> np.ndarray:
+        """Displacement (6n,) mm under gravity and the force boundaries, all prescribed values 0, no pad force."""
+        return self.solve(self.load)
+
+    def pad_responses(self, block: int = 16) -> np.ndarray:
+        """Nodal translations (n, 3, S) mm for a unit (1 N) force of each pad spring (solved ``block`` at a time)."""
+        S = self.pads.loads.shape[1]
+        out = np.zeros((len(self.model.nodes), 3, S))
+        for start in range(0, S, block):
+            u = self.solve(self.pads.loads[:, start : start + block].toarray())
+            out[:, :, start : start + block] = u.reshape(len(self.model.nodes), 6, -1)[:, :3]
+        return out
+
+
+def constrained_dofs(model: PartModel) -> np.ndarray:
+    """Global DOF indices held by fixed and prescribed boundaries, plus all DOFs of nodes no cell uses."""
+    held = []
+    for boundary in model.boundaries:
+        if boundary.kind in ("fixed", "prescribed"):
+            nodes = patch_nodes(model, boundary)
+            held.extend(6 * nodes + AXES[d] for d in boundary.dofs)
+    unused = np.setdiff1d(np.arange(len(model.nodes)), np.unique(model.cells))
+    held.append((6 * unused[:, None] + np.arange(6)).ravel())
+    return np.unique(np.concatenate(held)) if held else np.zeros(0, dtype=np.int64)
+
+
+def _factorise(K_ff: sp.spmatrix) -> tuple[Callable[[np.ndarray], np.ndarray], str]:
+    try:
+        from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
+    except ImportError:
+        cholesky = None
+    if cholesky is not None:
+        try:
+            factor = cholesky(K_ff.tocsc())
+        except CholmodNotPositiveDefiniteError as error:
+            raise SolverError(f"stiffness is not positive definite (a mechanism or free part): {error}") from error
+        return factor, "cholmod"
+    from scipy.sparse.linalg import splu
+
+    try:
+        lu = splu(K_ff.tocsc(), permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+    except RuntimeError as error:
+        raise SolverError(f"stiffness is singular (a mechanism or free part): {error}") from error
+    return lu.solve, "splu"
+
+
+def build_solver(model: PartModel, progress: Progress | None = None, validate: bool = True,
+                 pad_lattice: int = PAD_LATTICE) -> ShellSolver:
+    """Validate the model, assemble K, eliminate constrained DOFs and factorise K_ff once.
+
+    pad_lattice: springs per side of each pad's spring lattice (1 makes every pad a single point spring).
+    """
+    timings = {}
+    start = time.perf_counter()
+    if validate:
+        validate_model(model)
+    constrained = constrained_dofs(model)
+    rigid_body_check(model, constrained[constrained % 6 < 3])
+    K = assemble_stiffness(model, progress)
+    timings["assembly_s"] = time.perf_counter() - start
+    mask = np.ones(K.shape[0], dtype=bool)
+    mask[constrained] = False
+    start = time.perf_counter()
+    _say(progress, f"factorising {mask.sum()} free DOF")
+    factor, backend = _factorise(K[mask][:, mask])
+    timings["factorisation_s"] = time.perf_counter() - start
+    _say(progress, f"factorised with {backend} in {timings['factorisation_s']:.1f} s")
+    return ShellSolver(model, K, constrained, factor, backend, timings, pad_lattice)
+
+
+def condense(model: PartModel, pads: PadSprings, columns: np.ndarray, pad_columns: np.ndarray,
+             names: tuple[str, ...], n_bilateral: int) -> ReducedModel:
+    """Build the ReducedModel from nodal translations (solver independent: embedded or CalculiX).
+
+    columns: (n, 3, 1 + B) mm, the load response then one unit response per bilateral input; pad_columns: (n, 3, S)
+    mm, one unit pad spring force response per spring; names: (B + U,) labels; n_bilateral: B.
+    """
+    skin = model.skin_nodes
+    normals = skin_surface(model).normals
+    n = len(model.nodes)
+    rows = np.arange(6 * n)
+    translation = sp.csr_matrix((np.ones(3 * n), (np.arange(3 * n), rows[rows % 6 < 3])), shape=(3 * n, 6 * n))
+    loads = (translation @ pads.loads).tocsc()  # (3n, S): spring weights x axis on the translations
+    z = np.asarray(loads.T @ columns.reshape(3 * n, -1))
+    H = np.asarray(loads.T @ pad_columns.reshape(3 * n, -1))
+    w3, g3 = columns[skin], pad_columns[skin]
+    w = np.einsum("nak,na->nk", w3, normals)
+    g = np.einsum("nas,na->ns", g3, normals)
+    return ReducedModel(
+        model_id=model.model_id,
+        names=tuple(names),
+        n_bilateral=n_bilateral,
+        w0=w[:, 0].copy(),
+        R=w[:, 1:].copy(),
+        G=g,
+        z0=z[:, 0].copy(),
+        Sa=z[:, 1:].copy(),
+        H=0.5 * (H + H.T),
+        k=pads.k.copy(),
+        preload=pads.preload.copy(),
+        pad_of=pads.pad_of.copy(),
+        w0_3d=w3[:, :, 0].copy(),
+        R_3d=w3[:, :, 1:].copy(),
+        G_3d=g3.copy(),
+    )
+
+
+def reduce_model(solver: ShellSolver, extra: Sequence[tuple[str, str]] = (),
+                 progress: Progress | None = None) -> ReducedModel:
+    """Condense the solver to a ReducedModel (see types.ReducedModel for the equations).
+
+    extra: additional bilateral inputs (boundary, direction), e.g. ("hinge_R", "z"), appended after the declared
+    bilateral parameters and named "boundary.direction"; each is a unit boundary motion (:meth:`boundary_response`).
+    """
+    model = solver.model
+    columns = [solver.load_response()]
+    for parameter in model.bilateral:
+        columns.append(solver.boundary_response(parameter.boundary, parameter.direction))
+    for boundary, direction in extra:
+        columns.append(solver.boundary_response(boundary, direction))
+    _say(progress, f"{len(columns)} load/boundary responses solved")
+    n = len(model.nodes)
+    U = np.stack(columns, axis=1).reshape(n, 6, -1)[:, :3]
+    P = solver.pad_responses()
+    _say(progress, f"{P.shape[2]} pad spring responses solved")
+    names = tuple(p.label for p in model.bilateral) + tuple(f"{b}.{d}" for b, d in extra) + tuple(
+        p.label for p in model.unilateral
+    )
+    return condense(model, solver.pads, U, P, names, len(model.bilateral) + len(extra))

@@ -1,0 +1,533 @@
+"""Closing the loop (DESIGN.md step 7): locate the residual, trace it to an effect the model lacks, add that effect
+as a parameter, rebuild the bases and report the error before and after.
+
+1. **Residual** of every field against the current bases (:mod:`hood_decomp.core.method.residual`): chi-square
+   within-model test and the regions where it exceeds the noise.
+2. **Trace**: every candidate effect (:mod:`hood_decomp.core.loop.candidates`) is appended to the reduced model as one
+   more bilateral input and every field is estimated again with the contact-aware estimator, so the pads' contact
+   state is solved anew with the candidate in place (a lifted buffer stays without effect, a seated one keeps its
+   reaction). With residual sums of squares RSS0 (current model, p_i unknowns in field i) and RSS_c (with candidate
+   c), each field weighted by its noise 1 / sigma_i^2 and q fields, the residual reduction is tested by
+
+       F_c = (sum_i w_i (RSS0_i - RSS_c,i) / q) / (sum_i w_i RSS_c,i / d),   d = sum_i (n_i - p_i - 1),
+
+   an F(q, d) statistic under "c does nothing"; its p-value is Bonferroni-adjusted over the C candidates.
+   The best candidate (smallest weighted RSS) is **conclusive** when it is significant (adjusted p < alpha), decisive
+   against the runner-up (the runner-up's extra weighted RSS, in units of the best fit's residual variance, exceeds
+   the chi-square(q) quantile at alpha: a likelihood ratio between the two one-effect models) and it explains the
+   residual (the fields are within the model with it, or it removes at least :data:`EXPLAINED_MIN` of the residual
+   energy beyond noise, sum_i (RSS0_i / sigma_i^2 - dof_i)). Otherwise nothing is added: "ambiguous" or
+   "unexplained", with the residual regions showing where the model fails.
+3. **Augment**: the winning effect becomes a parameter with the symmetric range +-h,
+   h = :data:`RANGE_MARGIN` x max_i (|estimate_i| + 3 std_i) rounded up to two significant digits; the reduced model
+   gets its column (:func:`~hood_decomp.core.loop.candidates.augment_reduced`, the same column
+   ``reduce_model(solver, extra=...)`` builds for a motion); the full-factorial ensemble is extended by the new
+   parameter's min and max layers only, the old members being its 0 layer (:func:`extend_ensemble`); both bases are
+   rebuilt (:func:`hood_decomp.io.bases.build_bases`) and every field is estimated again.
+Up to ``max_effects`` effects are added greedily (trace again on the augmented reduced model) before the one rebuild.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2, f
+
+from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solve_members
+from hood_decomp.core.loop.candidates import CandidateFields, augment_reduced
+from hood_decomp.core.method.bases import Bases, build_bases, estimate_field
+from hood_decomp.core.method.contact_estimation import ContactEstimator
+from hood_decomp.core.method.estimation import DEFAULT_MIN_COVERAGE
+from hood_decomp.core.method.residual import (
+    DEFAULT_ALPHA,
+    DEFAULT_NOISE_MM,
+    ResidualAnalysis,
+    analyse_residual,
+    chi2_within,
+    noise_level,
+)
+from hood_decomp.core.types import DisplacementField, Ensemble, ParameterEstimate, ReducedModel
+from hood_decomp.errors import BasisError, EnsembleError, FieldError, ModelError, ModelIdMismatchError
+
+Progress = Callable[[str], None]
+#: an effect "explains" the residual when it removes at least this fraction of the residual energy beyond noise
+EXPLAINED_MIN = 0.8
+#: the new parameter's range covers this factor times (|estimate| + 3 std)
+RANGE_MARGIN = 1.5
+STATUSES = ("within_model", "found", "ambiguous", "unexplained")
+
+
+def _say(progress: Progress | None, message: str) -> None:
+    if progress is not None:
+        progress(message)
+
+
+@dataclass(frozen=True)
+class CandidateScore:
+    """How well one candidate explains the residual of all fields (F of them) together with the current model.
+
+    rss_mm2: (F,) residual sum of squares with the candidate, mm^2. weighted_rss: sum_i RSS_i / sigma_i^2.
+    explained: fraction of the residual energy beyond noise the candidate removes (can be < 0 or > 1 by noise).
+    f_statistic, p_value (raw), p_adjusted (Bonferroni over the candidates). values, std: (F,) the candidate's
+    estimated magnitude per field in its unit (mm or N).
+    """
+
+    name: str
+    kind: str
+    unit: str
+    description: str
+    rss_mm2: np.ndarray
+    weighted_rss: float
+    explained: float
+    f_statistic: float
+    p_value: float
+    p_adjusted: float
+    values: np.ndarray
+    std: np.ndarray
+
+
+@dataclass(frozen=True)
+class Trace:
+    """Ranking of the candidates for one step (best first) and the decision on the best.
+
+    rss_before_mm2: (F,) RSS of the current model; excess: residual energy beyond noise, sum_i (RSS0_i/sigma_i^2 -
+    dof_i). decisiveness: the runner-up's extra weighted RSS over the best fit's residual variance (inf with one
+    candidate); decisive_threshold: chi-square(F) quantile at alpha. within_after: the fields are within the model
+    with the best candidate. best_estimates: (F,) estimates with the best candidate appended.
+    """
+
+    scores: tuple[CandidateScore, ...]
+    rss_before_mm2: np.ndarray
+    excess: float
+    significant: bool
+    decisiveness: float
+    decisive_threshold: float
+    decisive: bool
+    within_after: bool
+    explains: bool
+    conclusive: bool
+    reason: str
+    best_estimates: tuple[ParameterEstimate, ...]
+
+    @property
+    def best(self) -> CandidateScore:
+        return self.scores[0]
+
+
+@dataclass(frozen=True)
+class AddedEffect:
+    """An effect added as a parameter: name, kind, unit, boundary, description; values, std (F,) its estimates after
+    the rebuild (unit mm or N); lower, upper: its declared range."""
+
+    name: str
+    kind: str
+    unit: str
+    boundary: str
+    description: str
+    values: np.ndarray
+    std: np.ndarray
+    lower: float
+    upper: float
+
+
+@dataclass(frozen=True)
+class CloseLoopResult:
+    """Outcome of :func:`close_loop` on F fields.
+
+    status: "within_model" (nothing to add), "found" (effects added; ``within_model_after`` says whether that closes
+    the gap), "ambiguous" (a candidate explains it but not decisively better than another) or "unexplained" (no
+    candidate explains it). message: one readable sentence. before/after: (F,) estimates; analyses_*: their residual
+    analyses (after: empty when nothing was added). within_model_*: combined chi-square decision over the fields.
+    traces: one per greedy step. bases_after: the rebuilt bases (None when nothing was added). timings: seconds.
+    """
+
+    status: str
+    message: str
+    before: tuple[ParameterEstimate, ...]
+    analyses_before: tuple[ResidualAnalysis, ...]
+    within_model_before: bool
+    p_value_before: float
+    traces: tuple[Trace, ...]
+    added: tuple[AddedEffect, ...]
+    bases_after: Bases | None
+    after: tuple[ParameterEstimate, ...]
+    analyses_after: tuple[ResidualAnalysis, ...]
+    within_model_after: bool | None
+    p_value_after: float | None
+    timings: dict[str, float]
+
+
+# --- residual of a set of fields ---------------------------------------------------------------------------------
+def _n_unknowns(estimate: ParameterEstimate) -> int:
+    """Fitted unknowns of a contact-aware estimate: the bilateral states and the touching pads' positions."""
+    return int(np.count_nonzero(~np.asarray(estimate.lifted, bool)))
+
+
+def _analyse(bases: Bases, estimates: Sequence[ParameterEstimate], noise: Sequence[float], alpha: float
+             ) -> tuple[tuple[ResidualAnalysis, ...], float, bool]:
+    """Residual analyses of the estimates and the combined chi-square decision over all fields."""
+    analyses = []
+    for estimate, sigma in zip(estimates, noise, strict=True):
+        if estimate.method == "pca":
+            n_params, model_mm = bases.pca.n_components_, bases.pca.training_residual_rms_
+        else:
+            n_params, model_mm = _n_unknowns(estimate), 0.0
+        analyses.append(analyse_residual(bases.skin, estimate.residual, n_params, sigma, model_mm, alpha))
+    p_value, within = chi2_within(sum(a.chi2 for a in analyses), sum(a.dof for a in analyses), alpha)
+    return tuple(analyses), p_value, within
+
+
+# --- tracing -----------------------------------------------------------------------------------------------------
+def _estimator(reduced: ReducedModel, lower: np.ndarray, upper: np.ndarray, n_added: int, min_coverage: float
+               ) -> ContactEstimator:
+    """A contact estimator for ``reduced`` whose last ``n_added`` bilateral inputs have no declared range yet."""
+    b = reduced.n_bilateral - n_added
+    lower = np.insert(np.asarray(lower, float), b, np.full(n_added, -np.inf))
+    upper = np.insert(np.asarray(upper, float), b, np.full(n_added, np.inf))
+    return ContactEstimator(min_coverage).fit(reduced, lower, upper)
+
+
+def trace_effect(
+    reduced: ReducedModel,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    fields: Sequence[DisplacementField],
+    candidates: CandidateFields,
+    current: Sequence[ParameterEstimate],
+    noise: Sequence[float],
+    alpha: float = DEFAULT_ALPHA,
+    min_coverage: float = DEFAULT_MIN_COVERAGE,
+    progress: Progress | None = None,
+) -> Trace:
+    """Rank the candidates by the residual they explain with the current model (module docstring, step 2).
+
+    reduced, lower, upper: the current reduced model and its declared ranges (B + U,). fields: F fields.
+    current: their contact-aware estimates with ``reduced``. noise: (F,) noise sigma per field, mm.
+    Candidates already in ``reduced`` are skipped. Raises ModelError when no candidate is left.
+    """
+    if not len(fields) == len(current) == len(noise) >= 1:
+        raise FieldError(f"need one estimate and one noise level per field, got {len(fields)} fields, "
+                         f"{len(current)} estimates and {len(noise)} noise levels")
+    names = [c.name for c in candidates.candidates if c.name not in reduced.names]
+    if not names:
+        raise ModelError("every candidate is already a parameter of the model: nothing left to trace")
+    weights = 1.0 / np.asarray(noise, float) ** 2
+    rss0 = np.array([np.nansum(e.residual**2) for e in current])
+    n_seen = np.array([np.count_nonzero(np.isfinite(e.residual)) for e in current])
+    dof0 = n_seen - np.array([_n_unknowns(e) for e in current])
+    dof1 = float(np.sum(dof0 - 1))
+    q = len(fields)
+    excess = float(weights @ rss0 - dof0.sum())
+    rows = []
+    for index, name in enumerate(names):
+        augmented = augment_reduced(reduced, candidates, [name])
+        estimator = _estimator(augmented, lower, upper, 1, min_coverage)
+        estimates = tuple(estimator.estimate(field) for field in fields)
+        rss = np.array([np.nansum(e.residual**2) for e in estimates])
+        rows.append((name, rss, estimates))
+        _say(progress, f"trace {index + 1}/{len(names)} {name}: weighted RSS {weights @ rss:.1f}")
+    rows.sort(key=lambda row: float(weights @ row[1]))
+    column = reduced.n_bilateral
+    scores = []
+    for name, rss, estimates in rows:
+        candidate = candidates.candidates[candidates.index(name)]
+        reduction = max(float(weights @ (rss0 - rss)), 0.0)
+        variance = max(float(weights @ rss) / max(dof1, 1.0), 1e-300)
+        statistic = reduction / q / variance
+        p_value = float(f.sf(statistic, q, max(dof1, 1.0)))
+        scores.append(CandidateScore(
+            name=name, kind=candidate.kind, unit=candidate.unit, description=candidate.description, rss_mm2=rss,
+            weighted_rss=float(weights @ rss), explained=reduction / excess if excess > 0 else 0.0,
+            f_statistic=statistic, p_value=p_value, p_adjusted=min(1.0, p_value * len(names)),
+            values=np.array([e.values[column] for e in estimates]), std=np.array([e.std[column] for e in estimates]),
+        ))
+    best_estimates = rows[0][2]
+    best = scores[0]
+    significant = best.p_adjusted < alpha
+    variance = max(best.weighted_rss / max(dof1, 1.0), 1e-300)
+    decisiveness = (scores[1].weighted_rss - best.weighted_rss) / variance if len(scores) > 1 else np.inf
+    threshold = float(chi2.isf(alpha, q))
+    decisive = decisiveness > threshold
+    _, within_after = chi2_within(best.weighted_rss, int(dof1), alpha)
+    explains = within_after or best.explained >= EXPLAINED_MIN
+    if not significant:
+        reason = f"no candidate reduces the residual significantly (best {best.name}: adjusted p {best.p_adjusted:.3g})"
+    elif not explains:
+        reason = (f"no candidate explains the residual: the best, {best.name}, removes {100 * best.explained:.0f} % "
+                  f"of the residual beyond noise (needs {100 * EXPLAINED_MIN:.0f} % or a within-model fit)")
+    elif not decisive:
+        reason = (f"{best.name} explains the residual but {scores[1].name} does almost as well "
+                  f"(likelihood ratio {decisiveness:.1f} <= {threshold:.1f}): ambiguous")
+    else:
+        reason = (f"{best.name} explains {100 * best.explained:.0f} % of the residual beyond noise "
+                  f"(adjusted p {best.p_adjusted:.2g}; likelihood ratio to {scores[1].name if len(scores) > 1 else '-'}"
+                  f" {decisiveness:.3g})")
+    return Trace(
+        scores=tuple(scores), rss_before_mm2=rss0, excess=excess, significant=significant,
+        decisiveness=float(decisiveness), decisive_threshold=threshold, decisive=decisive, within_after=within_after,
+        explains=explains, conclusive=significant and explains and decisive, reason=reason,
+        best_estimates=tuple(best_estimates),
+    )
+
+
+# --- augmenting --------------------------------------------------------------------------------------------------
+def effect_range(values: np.ndarray, std: np.ndarray) -> float:
+    """Half width h of the symmetric range of a new parameter: RANGE_MARGIN x max(|v| + 3 std), rounded up to two
+    significant digits (so that nearby estimates give the same range)."""
+    half = RANGE_MARGIN * float(np.max(np.abs(values) + 3.0 * np.nan_to_num(std)))
+    if not half > 0 or not np.isfinite(half):
+        raise ModelError(f"cannot size a range from estimates {values} with std {std}")
+    scale = 10.0 ** (np.floor(np.log10(half)) - 1)
+    return float(np.ceil(half / scale - 1e-9) * scale)
+
+
+def extend_ensemble(ensemble: Ensemble, reduced: ReducedModel, lower: np.ndarray, upper: np.ndarray,
+                    progress: Progress | None = None) -> Ensemble:
+    """The full-factorial ensemble of ``reduced`` from the one of a model without its new inputs.
+
+    ensemble: a full-factorial Ensemble (ranks >= 0) whose names are a subset of ``reduced.names`` with the same
+    unilateral parameters. lower, upper: (P_new,) ranges in ``reduced.names`` order; the old parameters keep theirs.
+    The old members are the layer where every new parameter is 0 (reused as they are); only the min/max layers of the
+    new parameters are solved (2 x M members for one new parameter). Members are ordered by rank (Table 1).
+    """
+    names = tuple(reduced.names)
+    old = tuple(ensemble.names)
+    missing = [n for n in old if n not in names]
+    if missing:
+        raise EnsembleError(f"ensemble parameters {missing} are not inputs of the extended model {names}")
+    if old[ensemble.n_bilateral:] != names[reduced.n_bilateral:]:
+        raise EnsembleError(f"unilateral parameters differ: ensemble {old[ensemble.n_bilateral:]}, "
+                            f"model {names[reduced.n_bilateral:]}")
+    if np.any(np.asarray(ensemble.rank) < 0):
+        raise EnsembleError("only a full-factorial (training) ensemble can be extended; got random members")
+    if ensemble.model_id != reduced.model_id:
+        raise ModelIdMismatchError(
+            f"ensemble model_id {ensemble.model_id!r} differs from the model's {reduced.model_id!r}")
+    lower, upper = np.asarray(lower, float), np.asarray(upper, float)
+    old_columns = [names.index(n) for n in old]
+    if not (np.allclose(lower[old_columns], ensemble.lower) and np.allclose(upper[old_columns], ensemble.upper)):
+        raise EnsembleError("the old parameters' ranges must stay as in the ensemble")
+    new_columns = [i for i, n in enumerate(names) if n not in old]
+    m = ensemble.n_members
+
+    def widen(array: np.ndarray) -> np.ndarray:
+        out = np.zeros((m, len(names)))
+        out[:, old_columns] = array
+        return out
+
+    blocks = [(widen(ensemble.commanded), widen(ensemble.effective), ensemble.contact_fraction, ensemble.reactions,
+               np.asarray(ensemble.rank), ensemble.normal_displacement, ensemble.displacement)]
+    levels = [(0.0, lower[c], upper[c]) for c in new_columns]
+    for combination in itertools.product(*levels):
+        if not any(combination):
+            continue
+        commanded = widen(ensemble.commanded)
+        commanded[:, new_columns] = combination
+        solved = solve_members(reduced, commanded)
+        rank = np.asarray(ensemble.rank) + int(np.count_nonzero(combination))
+        blocks.append((commanded, solved.effective, solved.contact_fraction, solved.reactions, rank,
+                       solved.normal_displacement, solved.displacement))
+        layer = {names[c]: float(v) for c, v in zip(new_columns, combination, strict=True)}
+        _say(progress, f"extended ensemble: layer {layer} solved ({m} members)")
+    parts = [np.concatenate(items) for items in zip(*blocks, strict=True)]
+    order = np.argsort(parts[4], kind="stable")
+    commanded, effective, fraction, reactions, rank, normal, vectors = (p[order] for p in parts)
+    return Ensemble(
+        model_id=reduced.model_id, names=names, n_bilateral=reduced.n_bilateral, lower=lower, upper=upper,
+        commanded=commanded, effective=effective, contact_fraction=fraction, reactions=reactions, rank=rank,
+        normal_displacement=normal, displacement=vectors,
+    )
+
+
+def training_ensemble(bases: Bases) -> Ensemble:
+    """The full-factorial ensemble of a bases file's reduced model (its members solved again: exact, seconds)."""
+    reduced = bases.reduced_model
+    commanded, rank = factorial_plan(bases.pca.lower_, bases.pca.upper_)
+    return simulate_ensemble(reduced, commanded, rank, bases.pca.lower_, bases.pca.upper_)
+
+
+# --- the loop ----------------------------------------------------------------------------------------------------
+def close_loop(
+    bases: Bases,
+    fields: Sequence[DisplacementField],
+    candidates: CandidateFields,
+    ensemble: Ensemble | None = None,
+    alpha: float = DEFAULT_ALPHA,
+    default_noise_mm: float = DEFAULT_NOISE_MM,
+    max_effects: int = 1,
+    method: str = "contact",
+    min_coverage: float = DEFAULT_MIN_COVERAGE,
+    progress: Progress | None = None,
+) -> CloseLoopResult:
+    """Find, add and report the effect the model lacks for F fields of one model (module docstring).
+
+    bases: the current bases (with their reduced model). fields: F >= 1 displacement fields (N,) mm.
+    candidates: candidate responses of the same model (:func:`hood_decomp.core.loop.candidates.candidate_fields`).
+    ensemble: the full-factorial training ensemble of ``bases`` (its members are reused); None: solved again from
+    the reduced model. default_noise_mm: noise of a field with unknown ``noise_rms``. max_effects: effects added at
+    most. method: estimator of the before/after estimates ("contact" or "pca"); tracing is always contact-aware.
+    """
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    if bases.reduced_model is None:
+        raise BasisError("closing the loop needs bases with a reduced model (tracing is contact-aware)")
+    if not fields:
+        raise FieldError("close_loop needs at least one field")
+    if candidates.normal.shape[0] != bases.skin.n_nodes:
+        raise ModelIdMismatchError(f"candidate responses have {candidates.normal.shape[0]} skin nodes, the bases "
+                              f"{bases.skin.n_nodes}: they come from another model")
+    if max_effects < 1:
+        raise ModelError(f"max_effects must be >= 1, got {max_effects}")
+    noise = [noise_level(fd.noise_rms, default_noise_mm)[0] for fd in fields]
+    before = tuple(estimate_field(bases, fd, method, min_coverage) for fd in fields)
+    analyses_before, p_before, within_before = _analyse(bases, before, noise, alpha)
+    timings["before_s"] = time.perf_counter() - start
+    _say(progress, f"before: residual RMS {[round(a.rms_mm, 4) for a in analyses_before]} mm, "
+                   f"within model: {within_before} (p {p_before:.3g})")
+
+    start = time.perf_counter()
+    reduced, lower, upper = bases.reduced_model, bases.pca.lower_, bases.pca.upper_
+    current = before if method == "contact" else tuple(
+        _estimator(reduced, lower, upper, 0, min_coverage).estimate(fd) for fd in fields)
+    added_names: list[str] = []
+    traces: list[Trace] = []
+    trace_lower, trace_upper = lower, upper
+    for _ in range(max_effects):
+        trace = trace_effect(reduced, trace_lower, trace_upper, fields, candidates, current, noise, alpha,
+                             min_coverage, progress)
+        traces.append(trace)
+        if within_before or not trace.conclusive:
+            break
+        added_names.append(trace.best.name)
+        # an added effect has no range until the rebuild: unbounded while tracing the next one
+        trace_lower = np.insert(trace_lower, reduced.n_bilateral, -np.inf)
+        trace_upper = np.insert(trace_upper, reduced.n_bilateral, np.inf)
+        reduced = augment_reduced(bases.reduced_model, candidates, added_names)
+        current = trace.best_estimates
+        if trace.within_after or len(candidates.candidates) == len(added_names):
+            break
+    timings["trace_s"] = time.perf_counter() - start
+
+    if within_before or not added_names:
+        first = traces[0]
+        status = "within_model" if within_before else ("ambiguous" if first.explains and first.significant
+                                                       else "unexplained")
+        message = ("the residual is what the scan noise explains: nothing added" if within_before
+                   else f"nothing added: {first.reason}")
+        return CloseLoopResult(status, message, before, analyses_before, within_before, p_before, tuple(traces), (),
+                               None, (), (), None, None, timings)
+
+    start = time.perf_counter()
+    n_new = len(added_names)
+    provisional = _estimator(reduced, lower, upper, n_new, min_coverage)
+    estimates = [provisional.estimate(fd) for fd in fields]
+    b = bases.reduced_model.n_bilateral
+    halves = [effect_range(np.array([e.values[b + j] for e in estimates]), np.array([e.std[b + j] for e in estimates]))
+              for j in range(n_new)]
+    new_lower = np.insert(np.asarray(lower, float), b, [-h for h in halves])
+    new_upper = np.insert(np.asarray(upper, float), b, halves)
+    old = ensemble if ensemble is not None else training_ensemble(bases)
+    extended = extend_ensemble(old, reduced, new_lower, new_upper, progress)
+    timings["ensemble_s"] = time.perf_counter() - start
+    start = time.perf_counter()
+    bases_after = build_bases(extended, bases.skin, reduced, n_components=bases.pca.n_components,
+                              explained_variance=bases.pca.explained_variance, epsilon=bases.hierarchical.epsilon_,
+                              progress=progress)
+    timings["bases_s"] = time.perf_counter() - start
+    start = time.perf_counter()
+    after = tuple(estimate_field(bases_after, fd, method, min_coverage) for fd in fields)
+    analyses_after, p_after, within_after = _analyse(bases_after, after, noise, alpha)
+    timings["after_s"] = time.perf_counter() - start
+    added = []
+    for j, name in enumerate(added_names):
+        candidate = candidates.candidates[candidates.index(name)]
+        column = b + j
+        added.append(AddedEffect(
+            name=name, kind=candidate.kind, unit=candidate.unit, boundary=candidate.boundary,
+            description=candidate.description, values=np.array([e.values[column] for e in after]),
+            std=np.array([e.std[column] for e in after]), lower=-halves[j], upper=halves[j],
+        ))
+    summary = ", ".join(f"{a.name} ({', '.join(f'{v:+.4g}' for v in a.values)} {a.unit})" for a in added)
+    message = (f"added {summary}; residual RMS {max(a.rms_mm for a in analyses_before):.4g} -> "
+               f"{max(a.rms_mm for a in analyses_after):.4g} mm; within the model after: {within_after}")
+    return CloseLoopResult("found", message, before, analyses_before, within_before, p_before, tuple(traces),
+                           tuple(added), bases_after, after, analyses_after, within_after, p_after, timings)
+
+
+# --- report ------------------------------------------------------------------------------------------------------
+def _number(value: float) -> float | None:
+    """JSON has no NaN or inf: those become null."""
+    value = float(value)
+    return value if np.isfinite(value) else None
+
+
+def _estimate_entry(estimate: ParameterEstimate, truth: Mapping[str, float]) -> dict:
+    params = {}
+    for name, value, std, lifted in zip(estimate.names, estimate.values, estimate.std, estimate.lifted, strict=True):
+        entry = {"value": _number(value), "std": _number(std), "lifted": bool(lifted)}
+        if name in truth:
+            entry["truth"] = float(truth[name])
+            # a lifted pad's value is the part's position there, not its commanded position: no error to state
+            entry["error"] = None if lifted else _number(value - truth[name])
+        params[name] = entry
+    return params
+
+
+def _analysis_entry(analysis: ResidualAnalysis, max_regions: int = 5) -> dict:
+    return {
+        "residual_rms_mm": analysis.rms_mm, "residual_max_mm": analysis.max_mm, "residual_mean_mm": analysis.mean_mm,
+        "noise_mm": analysis.noise_mm, "noise_source": analysis.noise_source, "chi2": analysis.chi2,
+        "dof": analysis.dof, "p_value": analysis.p_value, "within_model": analysis.within_model,
+        "regions": [{"centroid_mm": r.centroid.tolist(), "peak_mm": r.peak_mm, "peak_point_mm": r.peak_point.tolist(),
+                     "area_mm2": r.area_mm2, "rms_mm": r.rms_mm, "n_nodes": int(r.nodes.size)}
+                    for r in analysis.regions[:max_regions]],
+    }
+
+
+def report(result: CloseLoopResult, truth: Sequence[Mapping[str, float]] | None = None, top: int = 5) -> dict:
+    """The JSON report (DESIGN.md close-loop): residual before/after, effect found, magnitude, parameter errors.
+
+    truth: per field, label -> true value (mm, or N for a force effect); parameters without truth get no error.
+    """
+    truth = list(truth) if truth is not None else [{} for _ in result.before]
+    if len(truth) != len(result.before):
+        raise FieldError(f"truth has {len(truth)} entries, expected one per field ({len(result.before)})")
+    fields = []
+    for i, estimate in enumerate(result.before):
+        entry = {"before": {"parameters": _estimate_entry(estimate, truth[i]),
+                            **_analysis_entry(result.analyses_before[i])}}
+        if result.after:
+            entry["after"] = {"parameters": _estimate_entry(result.after[i], truth[i]),
+                              **_analysis_entry(result.analyses_after[i])}
+        fields.append(entry)
+    traces = [{
+        "ranking": [{"name": s.name, "kind": s.kind, "unit": s.unit, "description": s.description,
+                     "explained": _number(s.explained), "f_statistic": _number(s.f_statistic),
+                     "p_adjusted": _number(s.p_adjusted), "magnitude": [_number(v) for v in s.values],
+                     "std": [_number(v) for v in s.std]} for s in trace.scores[:top]],
+        "significant": trace.significant, "decisive": trace.decisive, "explains": trace.explains,
+        "conclusive": trace.conclusive, "likelihood_ratio_to_runner_up": _number(trace.decisiveness),
+        "reason": trace.reason,
+    } for trace in result.traces]
+    return {
+        "status": result.status,
+        "message": result.message,
+        "within_model_before": result.within_model_before,
+        "p_value_before": result.p_value_before,
+        "within_model_after": result.within_model_after,
+        "p_value_after": result.p_value_after,
+        "residual_rms_before_mm": [a.rms_mm for a in result.analyses_before],
+        "residual_max_before_mm": [a.max_mm for a in result.analyses_before],
+        "residual_rms_after_mm": [a.rms_mm for a in result.analyses_after],
+        "residual_max_after_mm": [a.max_mm for a in result.analyses_after],
+        "effects_found": [{"name": a.name, "kind": a.kind, "unit": a.unit, "boundary": a.boundary,
+                           "description": a.description, "magnitude": [_number(v) for v in a.values],
+                           "std": [_number(v) for v in a.std], "range": [a.lower, a.upper]} for a in result.added],
+        "traces": traces,
+        "fields": fields,
+        "timings_s": result.timings,
+    }

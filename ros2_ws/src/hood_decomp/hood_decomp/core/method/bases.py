@@ -1,0 +1,89 @@
+"""The bases of one model (section 3.1.2) and what is done with them: build, estimate, decompose.
+
+A :class:`Bases` bundles the PCA basis, the hierarchical basis, the visible skin and (optionally) the reduced FE
+model; it is all estimation and decomposition need. Saving and loading is in :mod:`hood_decomp.io.bases`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from hood_decomp.core.method.contact_estimation import ContactEstimator
+from hood_decomp.core.method.decomposition import decompose
+from hood_decomp.core.method.estimation import DEFAULT_MIN_COVERAGE, estimate_pca
+from hood_decomp.core.method.hierarchical import HierarchicalBasis
+from hood_decomp.core.method.pca import PCABasis
+from hood_decomp.core.types import (
+    Decomposition,
+    DisplacementField,
+    Ensemble,
+    ParameterEstimate,
+    ReducedModel,
+    SkinSurface,
+)
+from hood_decomp.errors import BasisError, ModelIdMismatchError
+
+METHODS = ("contact", "pca")
+
+
+@dataclass(frozen=True)
+class Bases:
+    """Everything a bases file holds. reduced_model is None when the bases were built without one (then only the
+    paper's "pca" estimator is available)."""
+
+    model_id: str
+    skin: SkinSurface
+    pca: PCABasis
+    hierarchical: HierarchicalBasis
+    reduced_model: ReducedModel | None
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.pca.names_
+
+
+def build_bases(
+    ensemble: Ensemble,
+    skin: SkinSurface,
+    reduced_model: ReducedModel | None = None,
+    n_components: int | None = 10,
+    explained_variance: float | None = None,
+    epsilon: float = 0.1,
+    progress: Callable[[str], None] | None = None,
+) -> Bases:
+    """Build both bases from a full-factorial ensemble (section 3.1.2) and bundle them with the skin and model."""
+    for what, other in (("skin", skin.model_id), ("reduced model", getattr(reduced_model, "model_id", None))):
+        if other is not None and other != ensemble.model_id:
+            raise ModelIdMismatchError(f"{what} model_id {other!r} differs from the ensemble's {ensemble.model_id!r}")
+    if skin.n_nodes != ensemble.normal_displacement.shape[1]:
+        raise BasisError(f"skin has {skin.n_nodes} nodes, ensemble fields have {ensemble.normal_displacement.shape[1]}")
+    pca = PCABasis(n_components=n_components, explained_variance=explained_variance).fit(ensemble)
+    if progress is not None:
+        progress(f"PCA: {pca.n_components_} components, cumulative explained variance "
+                 f"{pca.cumulative_explained_variance_[pca.n_components_ - 1]:.8f}")
+        for note in pca.notes_:
+            progress(f"PCA: {note}")
+    hierarchical = HierarchicalBasis(epsilon=epsilon, progress=progress).fit(ensemble)
+    return Bases(ensemble.model_id, skin, pca, hierarchical, reduced_model)
+
+
+def estimate_field(
+    bases: Bases, field: DisplacementField, method: str = "contact", min_coverage: float = DEFAULT_MIN_COVERAGE
+) -> ParameterEstimate:
+    """Estimate a field's parameter states: "contact" (default, needs the reduced model) or "pca" (the paper's)."""
+    if method not in METHODS:
+        raise BasisError(f"unknown estimation method {method!r}, expected one of {METHODS}")
+    if method == "pca":
+        return estimate_pca(bases.pca, field, min_coverage)
+    if bases.reduced_model is None:
+        raise BasisError("the bases file holds no reduced model: the contact-aware estimator needs one (use 'pca')")
+    estimator = ContactEstimator(min_coverage).fit(bases.reduced_model, bases.pca.lower_, bases.pca.upper_)
+    return estimator.estimate(field)
+
+
+def decompose_field(
+    bases: Bases, field: DisplacementField, estimate: ParameterEstimate | None = None, **options: float
+) -> Decomposition:
+    """Steps 3-6 on the hierarchical basis; ``options`` go to :func:`~.decomposition.decompose`."""
+    return decompose(bases.hierarchical, field, estimate, **options)

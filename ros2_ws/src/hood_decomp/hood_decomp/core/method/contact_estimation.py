@@ -1,0 +1,317 @@
+"""Contact-aware parameter estimation with the reduced FE model (beyond the paper).
+
+For a fixed contact state (which pad springs touch), the skin field of :class:`ReducedModel` is affine in the
+unknowns theta = (bilateral states a, commanded positions b of the pads in contact):
+
+    active springs C:  f_C = M_C^-1 (E b + preload_C - z0_C - Sa_C a),  M_C = diag(1 / k_C) + H_CC,  f_other = 0
+    w = w0 + R a + G f
+
+so each candidate contact state is one small least-squares problem. The solution kept satisfies the contact
+conditions (no tension f >= 0, no penetration b + preload - z <= 0 on the free springs of a touching pad) and fits
+best. Candidates come from an active-set iteration started from every in-contact/lifted combination of the pads.
+A lifted pad leaves no trace in the field: its value is the part's position there, min_k (z_k - preload_k), which
+the commanded position does not exceed.
+
+Everything per candidate works in the (B + S)-dimensional space of u = (a, f): the normal matrix of [R G] over the
+seen nodes is formed once per field, so a candidate costs O((B + S)^3), not O(N).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+
+from hood_decomp.core.method.estimation import (
+    DEFAULT_MIN_COVERAGE,
+    check_field,
+    is_within_model,
+    residual_stats,
+    valid_normal_matrix,
+)
+from hood_decomp.core.types import DisplacementField, ParameterEstimate, ReducedModel
+from hood_decomp.errors import FieldError, ModelError
+
+# Start from every pad combination up to this many pads (2^U starts); beyond it, all-touching and all-lifted only.
+MAX_ENUMERATED_PADS = 5
+# The local search after the active-set iterations tries flipping this many springs closest to changing state.
+MAX_FLIPS = 8
+# Contact conditions are checked with this slack, relative to the force / gap scale of the candidate ...
+CONTACT_RTOL = 1e-9
+# ... plus this many standard deviations of the force / gap under the field's stated noise (none when unknown): with
+# scan noise the best fit may sit on the boundary between two contact states, where each state's unconstrained
+# solution violates its conditions insignificantly.
+CONTACT_SIGMAS = 3.0
+# A touching pad whose total spring compression (sum f / k) is below this (mm), or below LIFTED_SIGMAS of its std,
+# carries no load the field can show: it is reported lifted, at the part's position (well determined, unlike b).
+LIFTED_COMPRESSION_MM = 1e-7
+LIFTED_SIGMAS = 2.0
+# On a measured field (finite noise_rms) a pad carrying less than this total force (N) is reported lifted too: a
+# scan-derived field has a spatially correlated smoothing error that the white-noise std above does not see, and on
+# the default hood it makes a lifted pad look touching with 1-2 N (a seated pad carries 100-250 N). The commanded
+# position of such a pad is not observable; its part position is.
+MEASURED_MIN_PAD_FORCE_N = 5.0
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    active: np.ndarray  # (S,) bool
+    theta: np.ndarray  # (B + n_touching,)
+    lift: np.ndarray  # (m, n_theta): u = lift @ theta + offset
+    offset: np.ndarray  # (m,)
+    normal_inverse: np.ndarray  # (n_theta, n_theta)
+    rss: float
+    feasible: bool
+
+
+class ContactEstimator:
+    """Estimate parameter states with the contact conditions of the unilateral boundaries.
+
+    Parameters: min_coverage (fraction of skin nodes that must be seen).
+    ``fit(model, lower, upper)``: model is the :class:`ReducedModel`; lower, upper (B + U,) mm declared ranges.
+    Fitted: model_, lower_, upper_, fields_ (B + S, N) = [R G]^T, gram_ (B + S, B + S), touching_pads_ (starts).
+    """
+
+    def __init__(self, min_coverage: float = DEFAULT_MIN_COVERAGE,
+                 measured_min_pad_force_n: float = MEASURED_MIN_PAD_FORCE_N):
+        self.min_coverage = min_coverage
+        self.measured_min_pad_force_n = measured_min_pad_force_n
+
+    def fit(self, model: ReducedModel, lower: np.ndarray, upper: np.ndarray) -> ContactEstimator:
+        n_params = len(model.names)
+        n_pads = n_params - model.n_bilateral
+        if np.shape(lower) != (n_params,) or np.shape(upper) != (n_params,):
+            raise ModelError(f"lower/upper must have shape ({n_params},), got {np.shape(lower)} and {np.shape(upper)}")
+        if model.pad_of.size and (model.pad_of.min() < 0 or model.pad_of.max() >= n_pads):
+            raise ModelError(f"pad_of must index the {n_pads} unilateral parameters, got {model.pad_of}")
+        self.model_ = model
+        self.lower_ = np.asarray(lower, dtype=float)
+        self.upper_ = np.asarray(upper, dtype=float)
+        self.fields_ = np.vstack([model.R.T, model.G.T])
+        self.gram_ = self.fields_ @ self.fields_.T
+        if n_pads <= MAX_ENUMERATED_PADS:
+            starts = list(itertools.product((True, False), repeat=n_pads))
+        else:
+            starts = [(True,) * n_pads, (False,) * n_pads]
+        self.touching_pads_ = np.array(starts, dtype=bool).reshape(len(starts), n_pads)
+        return self
+
+    def _solve(self, active: np.ndarray, normal: np.ndarray, rhs: np.ndarray, total: float) -> _Candidate:
+        """Least squares for one contact state; normal = [R G]^T[R G], rhs = [R G]^T y over seen nodes."""
+        model = self.model_
+        n_b = model.n_bilateral
+        n_s = active.size
+        pads = np.unique(model.pad_of[active])
+        idx = np.flatnonzero(active)
+        n_theta = n_b + pads.size
+        lift = np.zeros((n_b + n_s, n_theta))
+        offset = np.zeros(n_b + n_s)
+        lift[:n_b, :n_b] = np.eye(n_b)
+        if idx.size:
+            compliance = np.diag(1.0 / model.k[idx]) + model.H[np.ix_(idx, idx)]
+            inv = np.linalg.inv(compliance)
+            select = (model.pad_of[idx][:, None] == pads[None, :]).astype(float)
+            lift[n_b + idx, :n_b] = -inv @ model.Sa[idx]
+            lift[n_b + idx, n_b:] = inv @ select
+            offset[n_b + idx] = inv @ (model.preload[idx] - model.z0[idx])
+        reduced = lift.T @ normal @ lift
+        eigval, eigvec = np.linalg.eigh(reduced)
+        if eigval[0] <= 1e-12 * max(eigval[-1], 1e-300):
+            return _Candidate(active, np.zeros(n_theta), lift, offset, np.zeros((n_theta, n_theta)), np.inf, False)
+        normal_inverse = (eigvec / eigval) @ eigvec.T
+        theta = normal_inverse @ (lift.T @ (rhs - normal @ offset))
+        u = lift @ theta + offset
+        rss = max(float(u @ normal @ u - 2.0 * u @ rhs + total), 0.0)
+        return _Candidate(active, theta, lift, offset, normal_inverse, rss, True)
+
+    def _violations(self, cand: _Candidate, noise2: float) -> tuple[np.ndarray, np.ndarray]:
+        """(tension (S,) bool on active springs, penetration (S,) bool on free springs of touching pads)."""
+        model = self.model_
+        n_b = model.n_bilateral
+        u = cand.lift @ cand.theta + cand.offset
+        a, f = u[:n_b], u[n_b:]
+        z = model.z0 + model.Sa @ a + model.H @ f
+        pads = np.unique(model.pad_of[cand.active])
+        b = np.full(self.touching_pads_.shape[1], np.nan)
+        b[pads] = cand.theta[n_b:]
+        pen = b[model.pad_of] + model.preload - z
+        # Standard deviations of f and of the gap from the covariance noise^2 * normal_inverse.
+        cov = noise2 * cand.normal_inverse
+        df = cand.lift[n_b:]
+        dz = model.Sa @ cand.lift[:n_b] + model.H @ df
+        dpen = -dz
+        if pads.size:
+            dpen[:, n_b:] += (model.pad_of[:, None] == pads[None, :]).astype(float)
+        f_std = np.sqrt(np.clip(np.einsum("st,tu,su->s", df, cov, df), 0.0, None))
+        pen_std = np.sqrt(np.clip(np.einsum("st,tu,su->s", dpen, cov, dpen), 0.0, None))
+        f_tol = CONTACT_RTOL * (1.0 + np.abs(f).max(initial=0.0)) + CONTACT_SIGMAS * f_std
+        pen_tol = CONTACT_RTOL * (1.0 + np.abs(z).max(initial=0.0)) + CONTACT_SIGMAS * pen_std
+        tension = cand.active & (f < -f_tol)
+        touching = np.isin(model.pad_of, pads)
+        penetration = ~cand.active & touching & (pen > pen_tol)
+        return tension, penetration
+
+    def _evaluate(self, active: np.ndarray, problem: tuple, cache: dict) -> tuple[_Candidate, np.ndarray, np.ndarray]:
+        """Solve one contact state and check its conditions, once per field (the searches revisit states often).
+        problem = (normal, rhs, total, noise2)."""
+        key = active.tobytes()
+        if key not in cache:
+            normal, rhs, total, noise2 = problem
+            cand = self._solve(active, normal, rhs, total)
+            none = np.zeros(active.size, dtype=bool)
+            cache[key] = (cand, *self._violations(cand, noise2)) if cand.feasible else (cand, none, none)
+        return cache[key]
+
+    def _active_set(self, start: np.ndarray, problem: tuple, cache: dict) -> _Candidate | None:
+        """Active-set iteration from ``start`` (S,) bool: drop springs in tension, add penetrating ones."""
+        active = start.copy()
+        seen: set[bytes] = set()
+        for _ in range(4 * active.size + 8):
+            key = active.tobytes()
+            if key in seen:
+                return None
+            seen.add(key)
+            cand, tension, penetration = self._evaluate(active, problem, cache)
+            if not cand.feasible:
+                return None
+            if not tension.any() and not penetration.any():
+                return cand
+            active = (active & ~tension) | penetration
+        return None
+
+    def estimate(self, field: DisplacementField) -> ParameterEstimate:
+        """Estimate (a, b) of one field (N,) mm, NaN where unseen; see the module docstring."""
+        model = self.model_
+        n_nodes = model.w0.shape[0]
+        values, valid = check_field(field, model.model_id, n_nodes, self.min_coverage)
+        y = np.where(valid, values - model.w0, 0.0)
+        normal = valid_normal_matrix(self.fields_, self.gram_, valid)
+        rhs = self.fields_ @ y
+        total = float(y @ y)
+        n_valid = int(valid.sum())
+        noise2 = float(field.noise_rms) ** 2 if np.isfinite(field.noise_rms) else 0.0
+        problem, cache = (normal, rhs, total, noise2), {}
+        candidates: dict[bytes, _Candidate] = {}
+        for touching in self.touching_pads_:
+            start = touching[model.pad_of]
+            cand = self._active_set(start, problem, cache)
+            if cand is not None:
+                candidates.setdefault(cand.active.tobytes(), cand)
+        if not candidates:
+            raise FieldError("no contact state satisfies the contact conditions for this field")
+        self._improve(candidates, problem, cache)
+        best = self._select(list(candidates.values()), n_valid)
+        # One step of iterative refinement on the real residual: the normal equations square the condition number.
+        u = best.lift @ best.theta + best.offset
+        reconstruction = model.w0 + u @ self.fields_
+        correction_rhs = best.lift.T @ (self.fields_ @ np.where(valid, values - reconstruction, 0.0))
+        theta = best.theta + best.normal_inverse @ correction_rhs
+        u = best.lift @ theta + best.offset
+        reconstruction = model.w0 + u @ self.fields_
+        residual, rms, worst = residual_stats(values, reconstruction, valid)
+        sigma2 = float(np.nansum(residual**2)) / max(n_valid - theta.size, 1)
+        measured = bool(np.isfinite(field.noise_rms) and field.noise_rms > 0)
+        out_values, out_std, lifted = self._report(best, theta, sigma2 * best.normal_inverse,
+                                                   self.measured_min_pad_force_n if measured else 0.0)
+        return ParameterEstimate(
+            model_id=model.model_id,
+            names=tuple(model.names),
+            values=out_values,
+            std=out_std,
+            lower=self.lower_.copy(),
+            upper=self.upper_.copy(),
+            lifted=lifted,
+            reconstruction=reconstruction,
+            residual=residual,
+            residual_rms=rms,
+            residual_max=worst,
+            coverage=n_valid / n_nodes,
+            within_model=is_within_model(rms, field.noise_rms, 0.0),
+            method="contact",
+        )
+
+    def _margins(self, cand: _Candidate) -> np.ndarray:
+        """(S,) mm, how far each spring is from changing state: compression f / k of an active spring, the gap of a
+        free spring of a touching pad, and for a lifted pad the height of a spring above the pad's lowest one."""
+        model = self.model_
+        n_b = model.n_bilateral
+        u = cand.lift @ cand.theta + cand.offset
+        f = u[n_b:]
+        height = model.z0 + model.Sa @ u[:n_b] + model.H @ f - model.preload
+        pads = np.unique(model.pad_of[cand.active])
+        b = np.full(self.touching_pads_.shape[1], np.nan)
+        b[pads] = cand.theta[n_b:]
+        lowest = np.array([height[model.pad_of == p].min(initial=np.inf) for p in range(b.size)])
+        reference = np.where(np.isnan(b), lowest, b)[model.pad_of]
+        return np.where(cand.active, f / model.k, np.abs(height - reference))
+
+    def _improve(self, candidates: dict[bytes, _Candidate], problem: tuple, cache: dict) -> None:
+        """Local search: restart the active-set iteration from one-spring flips of the best candidate (the
+        ``MAX_FLIPS`` springs closest to changing state) while that finds a better fit. With noise, a state whose
+        conditions hold within tolerance can stop the iteration early."""
+        for _ in range(2 * self.model_.k.size):
+            best = min(candidates.values(), key=lambda c: c.rss)
+            improved = False
+            for spring in np.argsort(self._margins(best))[:MAX_FLIPS]:
+                start = best.active.copy()
+                start[spring] = not start[spring]
+                cand = self._active_set(start, problem, cache)
+                if cand is not None and cand.active.tobytes() not in candidates:
+                    candidates[cand.active.tobytes()] = cand
+                    improved |= cand.rss < best.rss
+            if not improved:
+                return
+
+    @staticmethod
+    def _select(candidates: list[_Candidate], n_valid: int) -> _Candidate:
+        """Best fit, penalised by its number of unknowns (an extra touching pad must earn its keep against noise)."""
+        best_rss = min(c.rss for c in candidates)
+        sigma2 = best_rss / max(n_valid, 1)
+        return min(candidates, key=lambda c: (c.rss + 2.0 * sigma2 * c.theta.size, c.theta.size))
+
+    def _report(
+        self, cand: _Candidate, theta: np.ndarray, cov: np.ndarray, min_force_n: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Values, std (B + U,) mm and lifted flags from a solved candidate; a touching pad with a total force below
+        ``min_force_n`` (N) is reported lifted."""
+        model = self.model_
+        n_b = model.n_bilateral
+        n_pads = self.touching_pads_.shape[1]
+        values = np.empty(n_b + n_pads)
+        std = np.empty(n_b + n_pads)
+        values[:n_b] = theta[:n_b]
+        std[:n_b] = np.sqrt(np.clip(np.diag(cov)[:n_b], 0.0, None))
+        lifted = np.zeros(n_b + n_pads, dtype=bool)
+        u = cand.lift @ theta + cand.offset
+        f = u[n_b:]
+        z = model.z0 + model.Sa @ u[:n_b] + model.H @ f
+        # dz/dtheta, for the std of a lifted pad's position.
+        dz = model.Sa @ cand.lift[:n_b] + model.H @ cand.lift[n_b:]
+        touching = list(np.unique(model.pad_of[cand.active]))
+        for pad in range(n_pads):
+            springs = np.flatnonzero(model.pad_of == pad)
+            compression = float(np.sum(f[springs] / model.k[springs])) if springs.size else 0.0
+            grad = (cand.lift[n_b + springs] / model.k[springs, None]).sum(axis=0)
+            compression_std = np.sqrt(max(float(grad @ cov @ grad), 0.0))
+            if pad in touching and compression > max(LIFTED_COMPRESSION_MM, LIFTED_SIGMAS * compression_std):
+                col = n_b + touching.index(pad)
+                values[n_b + pad] = theta[col]
+                std[n_b + pad] = np.sqrt(max(cov[col, col], 0.0))
+                if float(f[springs].sum()) < min_force_n:
+                    # Too light a touch to tell from lifted on a measured field: the commanded position is at most
+                    # the one at which the pad just carries this force (the value, flagged lifted) and may be as low
+                    # as the part's position there (the std covers that range).
+                    lifted[n_b + pad] = True
+                    position = float(np.min(z[springs] - model.preload[springs]))
+                    std[n_b + pad] = max(std[n_b + pad], values[n_b + pad] - position)
+                continue
+            lifted[n_b + pad] = True
+            if springs.size == 0:
+                values[n_b + pad], std[n_b + pad] = np.nan, np.nan
+                continue
+            position = z[springs] - model.preload[springs]
+            k = springs[int(np.argmin(position))]
+            values[n_b + pad] = position.min()
+            std[n_b + pad] = np.sqrt(max(float(dz[k] @ cov @ dz[k]), 0.0))
+        return values, std, lifted

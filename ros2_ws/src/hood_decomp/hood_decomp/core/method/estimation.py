@@ -1,0 +1,138 @@
+"""Parameter estimation with the PCA basis (paper eqs. 4-5), and the field checks every estimator shares.
+
+The least-squares fit uses the valid (finite) nodes only: an unseen node is missing data, not a zero displacement.
+The normal matrix over the valid nodes is the full-field Gram matrix minus the unseen nodes' part, so a fit costs
+O(K N) for the right-hand side and O(K^2 N_unseen) for the correction instead of O(K^2 N).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hood_decomp.core.method.pca import PCABasis
+from hood_decomp.core.types import DisplacementField, ParameterEstimate
+from hood_decomp.errors import FieldError, ModelIdMismatchError
+
+# A field must show at least this fraction of the skin nodes; below it the fit extrapolates from a patch.
+DEFAULT_MIN_COVERAGE = 0.2
+# within_model is False when the residual RMS exceeds this factor times what noise and basis truncation explain.
+WITHIN_MODEL_FACTOR = 1.5
+# Absolute floor (mm) of the explained residual: round-off of a noise-free field must not count as a model defect.
+WITHIN_MODEL_FLOOR_MM = 1e-6
+# A unilateral boundary whose estimated reaction is below this fraction of its largest ensemble reaction is lifted.
+LIFTED_REACTION_FRACTION = 0.01
+
+
+def check_field(
+    field: DisplacementField, model_id: str, n_nodes: int, min_coverage: float = DEFAULT_MIN_COVERAGE
+) -> tuple[np.ndarray, np.ndarray]:
+    """Validate a field against a basis; return ``(values (N,) mm, valid (N,) bool)``.
+
+    Raises ModelIdMismatchError for another model's field, FieldError for a wrong length, inf values, no finite value
+    or a coverage below ``min_coverage``.
+    """
+    if field.model_id != model_id:
+        raise ModelIdMismatchError(f"field model_id {field.model_id!r} does not match the bases' model_id {model_id!r}")
+    values = np.asarray(field.normal_displacement, dtype=float)
+    if values.ndim != 1 or values.shape[0] != n_nodes:
+        raise FieldError(f"field has shape {values.shape}, expected ({n_nodes},) (one value per visible skin node)")
+    if np.any(np.isinf(values)):
+        raise FieldError(f"field holds {int(np.isinf(values).sum())} inf values; unseen nodes must be NaN")
+    valid = np.isfinite(values)
+    n_valid = int(valid.sum())
+    if n_valid == 0:
+        raise FieldError("field has no finite value (all NaN)")
+    coverage = n_valid / n_nodes
+    if coverage < min_coverage:
+        raise FieldError(f"field coverage {coverage:.3f} is below the minimum {min_coverage:.3f}")
+    return values, valid
+
+
+def valid_normal_matrix(fields: np.ndarray, gram: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Normal matrix over the valid nodes: fields (K, N), gram (K, K) = fields @ fields.T, valid (N,) -> (K, K)."""
+    unseen = ~valid
+    n_unseen = int(unseen.sum())
+    if n_unseen == 0:
+        return gram
+    if n_unseen < valid.size // 2:
+        part = fields[:, unseen]
+        return gram - part @ part.T
+    part = fields[:, valid]
+    return part @ part.T
+
+
+def solve_normal(normal: np.ndarray, rhs: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """Solve the normal equations; return ``(coefficients, inverse normal matrix)``.
+
+    Raises FieldError when the valid nodes do not determine the coefficients (singular normal matrix). The test is
+    made on the matrix scaled to unit diagonal, so basis fields of very different size (a 500 mm^2 field beside a
+    3 mm^2 one) are judged by the angles between them, not by their norms.
+    """
+    scale = np.sqrt(np.clip(np.diag(normal), 0.0, None))
+    scale[scale == 0.0] = 1.0
+    eigval, eigvec = np.linalg.eigh(normal / np.outer(scale, scale))
+    if eigval.size and eigval[0] <= 1e-12 * max(eigval[-1], 1e-300):
+        raise FieldError(f"the seen nodes do not determine the {what} (normal matrix is singular)")
+    inverse = ((eigvec / eigval) @ eigvec.T) / np.outer(scale, scale)
+    return inverse @ rhs, inverse
+
+
+def residual_stats(
+    values: np.ndarray, reconstruction: np.ndarray, valid: np.ndarray
+) -> tuple[np.ndarray, float, float]:
+    """Residual (N,) mm, NaN where unseen, with its RMS and max-abs over the seen nodes."""
+    residual = np.where(valid, values - reconstruction, np.nan)
+    seen = residual[valid]
+    return residual, float(np.sqrt(np.mean(seen**2))), float(np.max(np.abs(seen)))
+
+
+def is_within_model(residual_rms: float, noise_rms: float, model_rms: float) -> bool:
+    """True when the residual RMS is what scan noise plus the basis' own error explain (NaN noise counts as 0)."""
+    noise = 0.0 if not np.isfinite(noise_rms) else float(noise_rms)
+    explained = np.hypot(noise, model_rms)
+    return bool(residual_rms <= WITHIN_MODEL_FACTOR * explained + WITHIN_MODEL_FLOOR_MM)
+
+
+def estimate_pca(
+    basis: PCABasis, field: DisplacementField, min_coverage: float = DEFAULT_MIN_COVERAGE
+) -> ParameterEstimate:
+    """The paper's estimator: fit the field with the PCA basis (eq. 4) and combine the states alike (eq. 5).
+
+    field: N normal displacements (mm), NaN where unseen. Returns values = mean_state + c @ component_states (P,),
+    std from the residual variance and the normal matrix, reconstruction (N,) = mean_field + c @ components.
+    A unilateral boundary is reported lifted when its reaction, carried through the same combination, is about zero.
+    """
+    n_nodes = basis.components_.shape[1]
+    values, valid = check_field(field, basis.model_id_, n_nodes, min_coverage)
+    centred = np.where(valid, values - basis.mean_field_, 0.0)
+    normal = valid_normal_matrix(basis.components_, basis.gram_, valid)
+    coeff, inverse = solve_normal(normal, basis.components_ @ centred, "PCA pre-factors")
+    reconstruction = basis.mean_field_ + coeff @ basis.components_
+    residual, rms, worst = residual_stats(values, reconstruction, valid)
+
+    n_valid = int(valid.sum())
+    dof = max(n_valid - coeff.size, 1)
+    sigma2 = float(np.nansum(residual**2)) / dof
+    states = basis.component_states_
+    std = np.sqrt(np.clip(np.einsum("kp,kl,lp->p", states, sigma2 * inverse, states), 0.0, None))
+
+    n_bilateral = basis.n_bilateral_
+    reaction = basis.mean_reaction_ + coeff @ basis.component_reactions_
+    lifted = np.zeros(len(basis.names_), dtype=bool)
+    lifted[n_bilateral:] = reaction <= LIFTED_REACTION_FRACTION * basis.reaction_scale_
+    return ParameterEstimate(
+        model_id=basis.model_id_,
+        names=basis.names_,
+        values=basis.mean_state_ + coeff @ states,
+        std=std,
+        lower=basis.lower_.copy(),
+        upper=basis.upper_.copy(),
+        lifted=lifted,
+        reconstruction=reconstruction,
+        residual=residual,
+        residual_rms=rms,
+        residual_max=worst,
+        coverage=n_valid / n_nodes,
+        within_model=is_within_model(rms, field.noise_rms, basis.training_residual_rms_),
+        method="pca",
+    )

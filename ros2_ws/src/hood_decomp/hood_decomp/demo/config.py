@@ -1,0 +1,53 @@
+"""What the demo's modules share: its configuration, the step timer, the paper's Table 3 and one number helper."""
+
+from __future__ import annotations
+
+import pathlib
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# The paper's Table 3, seconds (ABAQUS on an i7-5820K; PCA with scikit-learn; scipy least squares).
+PAPER_TABLE3_S = {
+    "training ensemble (729 runs)": 729 * 187.0,
+    "validation ensemble (1400 runs)": 1400 * 187.0,
+    "PCA basis": 41.0,
+    "hierarchical basis": 3 * 3600 + 21 * 60.0,
+    "parameter estimation (one field)": 1.84,
+    "decomposition + contribution plots (one field)": 19.77,
+}
+
+
+@dataclass(frozen=True)
+class DemoConfig:
+    """out: report directory; resolution: hood mesh; n_validation: validation members; scan_points: per scan."""
+
+    out: pathlib.Path
+    resolution: str = "default"
+    n_validation: int = 1400
+    scan_points: int = 1_000_000
+
+
+@dataclass
+class Timer:
+    """Wall times of the demo's steps, shown as they finish."""
+
+    progress: Callable[[str], None]
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    @contextmanager
+    def step(self, name: str) -> Iterator[None]:
+        self.progress(f"{name} ...")
+        start = time.perf_counter()
+        yield
+        self.seconds[name] = time.perf_counter() - start
+        self.progress(f"{name}: done in {self.seconds[name]:.1f} s")
+
+
+def max_abs(values: np.ndarray) -> float:
+    finite = np.asarray(values, dtype=float)
+    finite = finite[np.isfinite(finite)]
+    return float(np.abs(finite).max()) if finite.size else float("nan")

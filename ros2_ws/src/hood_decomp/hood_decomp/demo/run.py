@@ -1,0 +1,48 @@
+"""The main job: the whole system on the built-in hood, ending in ``DIR/index.html``.
+
+Steps (each timed and shown on the terminal): hood model -> solver and ensemble (729 training + validation members)
+-> PCA and hierarchical bases, validated on the validation set -> synthetic scans with known truth (clean, noisy,
+occluded, one with an undeclared effect) written as a bag -> bag replayed through the three ROS nodes running as
+separate processes, their output recorded -> close the loop on the undeclared scan -> the report.
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import sys
+import time
+from collections.abc import Callable
+
+from hood_decomp.demo import steps
+from hood_decomp.demo.config import DemoConfig, Timer
+
+
+def _print(line: str) -> None:
+    print(f"[demo {time.strftime('%H:%M:%S')}] {line}", file=sys.stderr, flush=True)
+
+
+def run_demo(config: DemoConfig, progress: Callable[[str], None] = _print) -> pathlib.Path:
+    """Run every step; returns the path of the report."""
+    out = config.out
+    out.mkdir(parents=True, exist_ok=True)
+    timer = Timer(progress)
+    state = steps.DemoState(config=config, out=out, timer=timer)
+    for title, step in (
+        ("hood model", steps.build_model),
+        ("solver: assembly and one factorisation", steps.build_solver_and_reduce),
+        ("ensemble: 729 training + validation members", steps.build_ensemble),
+        ("bases: PCA and hierarchical", steps.build_bases_step),
+        ("validation of the estimators on the validation set", steps.validate),
+        ("synthetic scans and scenario bag", steps.make_scans),
+        ("replay through the three ROS nodes", steps.replay),
+        ("per-scan results and contribution plots", steps.analyse_scans),
+        ("close the loop on the scan with an undeclared effect", steps.close_loop),
+    ):
+        with timer.step(title):
+            step(state)
+    with timer.step("report"):
+        path = steps.write_report(state)
+    (out / "timings.json").write_text(json.dumps({k: round(v, 3) for k, v in timer.seconds.items()}, indent=2))
+    progress(f"report: {path.resolve()}")
+    return path

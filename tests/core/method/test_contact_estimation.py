@@ -1,0 +1,80 @@
+"""Contact-aware estimator on a hand-made ReducedModel whose truth comes from an exact (enumerated) LCP."""
+
+import time
+
+import numpy as np
+import pytest
+
+from hood_decomp.core.method.contact_estimation import ContactEstimator
+from hood_decomp.core.method.estimation import estimate_pca
+from hood_decomp.core.method.pca import PCABasis
+from hood_decomp.errors import ModelError
+from tests.toy_models import field_of, full_factorial, make_ensemble, make_reduced_model, make_skin, random_states
+
+N_BILATERAL = 4
+
+
+@pytest.fixture(scope="module")
+def setup():
+    skin = make_skin()
+    model = make_reduced_model(skin, seed=0, springs_per_pad=3)
+    validation = make_ensemble(model, random_states(model, 60, seed=21))
+    estimator = ContactEstimator().fit(model, np.full(6, -1.0), np.full(6, 1.0))
+    return skin, model, validation, estimator
+
+
+def test_noise_free_recovery_and_lifted_buffers(setup):
+    skin, _, validation, estimator = setup
+    lifted_seen = 0
+    for i in range(validation.n_members):
+        estimate = estimator.estimate(field_of(skin, validation.normal_displacement[i]))
+        truth_lifted = validation.contact_fraction[i] == 0
+        np.testing.assert_array_equal(estimate.lifted[N_BILATERAL:], truth_lifted)
+        # Bilateral and touching pads: the commanded state; lifted pads: the part's position (effective state).
+        np.testing.assert_allclose(estimate.values, validation.effective[i], atol=1e-9)
+        commanded = validation.commanded[i, N_BILATERAL:]
+        assert np.all(commanded[truth_lifted] <= estimate.values[N_BILATERAL:][truth_lifted] + 1e-9)
+        assert estimate.residual_rms < 1e-10 and estimate.within_model and estimate.method == "contact"
+        lifted_seen += int(truth_lifted.sum())
+    assert lifted_seen >= 10  # the validation set really exercises lifted buffers
+
+
+def test_noisy_partial_fields_stay_within_std(setup):
+    skin, _, validation, estimator = setup
+    rng = np.random.default_rng(4)
+    unseen = skin.points[:, 1] < 250.0
+    z_scores = []
+    for i in range(30):
+        values = validation.normal_displacement[i] + rng.normal(0.0, 0.02, skin.n_nodes)
+        values[unseen] = np.nan
+        estimate = estimator.estimate(field_of(skin, values, 0.02))
+        touching = ~estimate.lifted
+        z_scores.append(((estimate.values - validation.effective[i]) / estimate.std)[touching])
+        assert np.all(np.abs(estimate.values - validation.effective[i]) < 0.1)
+    assert np.abs(np.concatenate(z_scores)).max() < 5.0
+
+
+def test_contact_estimator_beats_the_paper_estimator_with_buffers(setup):
+    """With a pad contact nonlinearity the PCA basis is only approximate; the reduced model is exact."""
+    skin, model, validation, estimator = setup
+    states, rank = full_factorial(6)
+    basis = PCABasis(n_components=10).fit(make_ensemble(model, states, rank))
+    values = validation.normal_displacement[0]
+    pca_error = np.abs(estimate_pca(basis, field_of(skin, values)).values - validation.effective[0]).max()
+    contact_error = np.abs(estimator.estimate(field_of(skin, values)).values - validation.effective[0]).max()
+    assert contact_error < 1e-9 < pca_error
+
+
+def test_estimate_is_fast(setup):
+    skin, _, validation, estimator = setup
+    field = field_of(skin, validation.normal_displacement[1])
+    start = time.perf_counter()
+    for _ in range(10):
+        estimator.estimate(field)
+    assert (time.perf_counter() - start) / 10 < 0.05
+
+
+def test_bad_ranges_are_refused(setup):
+    _, model, _, _ = setup
+    with pytest.raises(ModelError, match=r"shape \(6,\)"):
+        ContactEstimator().fit(model, np.zeros(5), np.zeros(6))

@@ -1,0 +1,50 @@
+"""The correction sent to the fixture adjustment robot, and every reason it is held back."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hood_decomp.core.method.correction import CorrectionPolicy, plan_correction
+from hood_decomp.core.types import ParameterEstimate
+
+
+def estimate(**changes) -> ParameterEstimate:
+    base = dict(
+        model_id="m", names=("HINGE_X", "LOCK_L", "BUFFER_R"), values=np.array([0.3, -0.5, 0.2]),
+        std=np.array([0.001, 0.002, 0.003]), lower=-np.ones(3), upper=np.ones(3),
+        lifted=np.array([False, False, False]), reconstruction=np.zeros(4), residual=np.zeros(4),
+        residual_rms=0.01, residual_max=0.03, coverage=0.9, within_model=True, method="contact",
+    )
+    return ParameterEstimate(**{**base, **changes})
+
+
+def test_safe_correction_negates_the_estimate():
+    correction = plan_correction(estimate())
+    assert correction.safe_to_apply and correction.reason == ""
+    np.testing.assert_array_equal(correction.corrections, [-0.3, 0.5, -0.2])
+
+
+def test_lifted_buffer_is_not_corrected_and_says_why():
+    correction = plan_correction(estimate(lifted=np.array([False, False, True]), values=np.array([0.3, -0.5, 3.0]),
+                                          std=np.array([0.001, 0.002, 9.0])))
+    assert correction.safe_to_apply  # an unobservable buffer neither blocks nor moves
+    assert correction.corrections[2] == 0.0
+    assert "BUFFER_R lifted" in correction.reason
+
+
+def test_every_reason_is_named():
+    correction = plan_correction(
+        estimate(coverage=0.3, within_model=False, values=np.array([1.5, -0.5, np.nan]),
+                 std=np.array([0.001, 0.2, 0.003])),
+        CorrectionPolicy(min_coverage=0.6, max_std_mm=0.05),
+    )
+    assert not correction.safe_to_apply
+    for fragment in ("coverage 0.30 below minimum 0.60", "model lacks an effect", "HINGE_X = 1.500 mm outside",
+                     "BUFFER_R = nan mm outside", "LOCK_L uncertainty 0.200 mm above 0.05 mm"):
+        assert fragment in correction.reason
+
+
+def test_range_tolerance():
+    inside = plan_correction(estimate(values=np.array([1.01, 0.0, 0.0])), CorrectionPolicy(range_tolerance_mm=0.02))
+    outside = plan_correction(estimate(values=np.array([1.03, 0.0, 0.0])), CorrectionPolicy(range_tolerance_mm=0.02))
+    assert inside.safe_to_apply and not outside.safe_to_apply

@@ -1,0 +1,95 @@
+"""Residual analysis (core/residual.py): chi-square within-model test and regions beyond the noise, against known
+synthetic residuals (pure Gaussian noise of a known sigma, Gaussian bumps at known places)."""
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from hood_decomp.core.method.residual import DEFAULT_NOISE_MM, analyse_residual, skin_adjacency
+from hood_decomp.errors import FieldError
+from tests.toy_models import make_skin
+
+SKIN = make_skin(40, 30)  # 1500 x 1000 mm, 1200 nodes
+
+
+def bump(centre: tuple[float, float], amplitude: float, width: float = 80.0) -> np.ndarray:
+    d2 = np.sum((SKIN.points[:, :2] - np.asarray(centre)) ** 2, axis=1)
+    return amplitude * np.exp(-d2 / (2 * width**2))
+
+
+def test_noise_only_is_within_model_at_the_stated_rate():
+    sigma = 0.01
+    rejected, regions, p_values = 0, 0, []
+    for seed in range(100):
+        residual = np.random.default_rng(seed).normal(0.0, sigma, SKIN.n_nodes)
+        analysis = analyse_residual(SKIN, residual, n_params=0, noise_mm=sigma)
+        # the statistic is sum r^2 / sigma^2 with n degrees of freedom (independent formula)
+        assert analysis.chi2 == pytest.approx(np.sum(residual**2) / sigma**2)
+        assert analysis.p_value == pytest.approx(chi2.sf(np.sum(residual**2) / sigma**2, SKIN.n_nodes))
+        rejected += not analysis.within_model
+        regions += len(analysis.regions)
+        p_values.append(analysis.p_value)
+    # alpha = 1 %: 100 pure-noise fields give about one rejection and (family-wise) about one false region
+    assert rejected <= 4
+    assert regions <= 4
+    assert 0.35 < np.mean(p_values) < 0.65  # p-values of a true null are uniform
+
+
+def test_underestimated_noise_is_not_within_model():
+    residual = np.random.default_rng(3).normal(0.0, 0.02, SKIN.n_nodes)
+    assert not analyse_residual(SKIN, residual, 0, noise_mm=0.01).within_model
+    assert analyse_residual(SKIN, residual, 0, noise_mm=0.02).within_model
+
+
+def test_bumps_are_found_where_they_are():
+    sigma = 0.01
+    residual = bump((400.0, 300.0), 0.1) + bump((1100.0, 700.0), -0.06)
+    residual += np.random.default_rng(0).normal(0.0, sigma, SKIN.n_nodes)
+    analysis = analyse_residual(SKIN, residual, 0, noise_mm=sigma)
+    assert not analysis.within_model and analysis.p_value < 1e-10
+    assert len(analysis.regions) == 2
+    first, second = analysis.regions  # ordered by residual energy: the larger bump first
+    assert np.linalg.norm(first.centroid[:2] - [400.0, 300.0]) < 25.0
+    assert np.linalg.norm(second.centroid[:2] - [1100.0, 700.0]) < 25.0
+    assert first.peak_mm == pytest.approx(0.1, abs=4 * sigma)
+    assert second.peak_mm == pytest.approx(-0.06, abs=4 * sigma)
+    # the regions are connected patches of positive area, disjoint
+    assert first.area_mm2 > 0 and second.area_mm2 > 0
+    assert not set(first.nodes) & set(second.nodes)
+
+
+def test_smooth_defect_below_the_node_threshold_is_still_located():
+    # 2.5 sigma at the peak: single nodes do not exceed the Bonferroni threshold (~4 sigma), the one-ring mean does
+    sigma = 0.01
+    residual = bump((750.0, 500.0), 2.5 * sigma, width=150.0) + np.random.default_rng(1).normal(0, sigma, SKIN.n_nodes)
+    analysis = analyse_residual(SKIN, residual, 0, noise_mm=sigma)
+    assert not analysis.within_model
+    assert analysis.regions and np.linalg.norm(analysis.regions[0].centroid[:2] - [750.0, 500.0]) < 80.0
+
+
+def test_unseen_nodes_and_default_noise():
+    residual = bump((400.0, 300.0), 0.2)
+    residual[:100] = np.nan
+    analysis = analyse_residual(SKIN, residual, 5, noise_mm=float("nan"))
+    assert analysis.noise_source == "default" and analysis.noise_mm == DEFAULT_NOISE_MM
+    assert analysis.n_seen == SKIN.n_nodes - 100 and analysis.dof == SKIN.n_nodes - 105
+    assert analysis.max_mm == pytest.approx(np.nanmax(np.abs(residual)))
+    assert all(not set(range(100)) & set(r.nodes) for r in analysis.regions)
+
+
+def test_adjacency_is_the_triangle_edges():
+    adjacency = skin_adjacency(SKIN)
+    assert (adjacency != adjacency.T).nnz == 0
+    # an interior node of a grid split into triangles along one diagonal has 6 neighbours
+    assert int(adjacency[5 * 30 + 5].sum()) == 6
+
+
+@pytest.mark.parametrize(("residual", "alpha", "message"), [
+    (np.zeros(10), 0.01, "shape"),
+    (np.full(SKIN.n_nodes, np.inf), 0.01, "inf"),
+    (np.full(SKIN.n_nodes, np.nan), 0.01, "no finite"),
+    (np.zeros(SKIN.n_nodes), 1.5, "alpha"),
+])
+def test_bad_input_is_refused(residual, alpha, message):
+    with pytest.raises(FieldError, match=message):
+        analyse_residual(SKIN, residual, 0, noise_mm=0.01, alpha=alpha)

@@ -1,0 +1,121 @@
+"""Registration: markers recover the scanner pose, datum regions remove a part misplacement without swallowing the
+deformation, a whole-surface best fit would swallow it, bad registration input is refused."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hood_decomp.core.scan.registration import register_scan, rigid_from_markers, rotation_from_vector
+from hood_decomp.core.scan.scan_field import ScanFieldEstimator, field_from_scan
+from hood_decomp.errors import ScanError
+from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
+from tests.skins import along_normals, crowned_patch, datum_mask, smooth_field
+
+
+@pytest.fixture(scope="module")
+def skin():
+    return crowned_patch(57, 49)
+
+
+@pytest.fixture(scope="module")
+def truth(skin):
+    return smooth_field(skin, amplitude_mm=1.0)
+
+
+@pytest.fixture(scope="module")
+def estimator(skin):
+    return ScanFieldEstimator().fit(skin)
+
+
+def _scan(skin, truth, seed=0, **config):
+    cfg = ScannerConfig(n_points=100_000, noise_mm=0.05, **config)
+    return synthesize_scan(skin, along_normals(skin, truth), cfg, seed)
+
+
+def _rms(field, truth):
+    return float(np.sqrt(np.nanmean((field.normal_displacement - truth) ** 2)))
+
+
+def test_kabsch_recovers_a_known_transform():
+    rng = np.random.default_rng(0)
+    nominal = rng.uniform(-800, 800, (6, 3))
+    rotation = rotation_from_vector(np.array([0.3, -0.2, 0.9]))
+    translation = np.array([120.0, -40.0, 2500.0])
+    measured = (nominal - translation) @ rotation  # measured = R^T (nominal - t)
+    transform, rms = rigid_from_markers(measured, nominal)
+    np.testing.assert_allclose(transform[:3, :3], rotation, atol=1e-12)
+    np.testing.assert_allclose(transform[:3, 3], translation, atol=1e-9)
+    assert rms < 1e-9
+
+
+def test_kabsch_refuses_too_few_or_collinear_markers():
+    with pytest.raises(ScanError, match="at least 3"):
+        rigid_from_markers(np.zeros((2, 3)), np.zeros((2, 3)))
+    line = np.outer(np.arange(4.0), [1.0, 2.0, 3.0])
+    with pytest.raises(ScanError, match="collinear"):
+        rigid_from_markers(line, line)
+    with pytest.raises(ScanError, match="matching"):
+        rigid_from_markers(np.zeros((4, 3)), np.zeros((5, 3)))
+
+
+def test_markers_recover_the_scanner_pose(skin, truth, estimator):
+    scan = _scan(skin, truth, seed=1, pose_error_deg=1.0, pose_error_mm=20.0)
+    result = register_scan(scan.points, estimator, markers_mm=scan.markers, markers_nominal_mm=scan.markers_nominal)
+    assert result.method == "markers" and result.n_markers == len(scan.markers) >= 6
+    # Compare where it matters: the registered positions of the skin nodes.
+    probe = skin.points
+    back = (probe - scan.true_transform[:3, 3]) @ scan.true_transform[:3, :3]  # part -> scanner frame (truth)
+    mapped = back @ result.transform[:3, :3].T + result.transform[:3, 3]
+    assert np.max(np.linalg.norm(mapped - probe, axis=1)) < 0.02
+    assert result.marker_rms_mm < 0.02
+    assert result.overlap > 0.7
+
+
+def test_nominal_pose_alone_registers_an_exact_cell(skin, truth, estimator):
+    scan = _scan(skin, truth, seed=2, pose_error_deg=0.0, pose_error_mm=0.0)
+    field, result = field_from_scan(skin, scan.points, scanner_pose=scan.scanner_pose, estimator=estimator)
+    assert result.method == "pose"
+    assert _rms(field, truth) < 0.008
+
+
+def test_datum_alignment_removes_a_part_misplacement(skin, truth, estimator):
+    """The part seated 0.25 mm off along the surface normal at the fixed hinge: what the datum corner observes.
+
+    One patch cannot tell a shift along its normal from one with an in-plane part (it sees in-plane shifts only
+    through its slight curvature), so the misplacement here is along the datum's mean normal.
+    """
+    datum = datum_mask(skin)
+    normal = skin.normals[datum].mean(axis=0)
+    shift = 0.25 * normal / np.linalg.norm(normal)
+    scan = _scan(skin, truth, seed=3, misplacement=(0.0, 0.0, 0.0, *shift))
+    markers = {"markers_mm": scan.markers, "markers_nominal_mm": scan.markers_nominal, "estimator": estimator}
+    plain, _ = field_from_scan(skin, scan.points, **markers)
+    aligned, result = field_from_scan(skin, scan.points, datum_mask=datum, **markers)
+    print(f"plain {_rms(plain, truth):.4f} aligned {_rms(aligned, truth):.4f}")
+    assert result.method == "markers+datum" and result.converged
+    assert result.n_datum_points > 500
+    assert _rms(plain, truth) > 0.2  # the misplacement is there without the datum step ...
+    assert _rms(aligned, truth) < 0.01  # ... and gone with it
+    # What one corner determines: its normal shift; its tilts and in-plane shifts would spray noise over the far field.
+    assert 1 <= result.n_aligned <= 3
+    assert result.alignment_std_mm <= 0.005
+
+
+def test_datum_alignment_keeps_the_deformation_a_whole_surface_fit_swallows(skin, truth, estimator):
+    scan = _scan(skin, truth, seed=4)
+    common = {"markers_mm": scan.markers, "markers_nominal_mm": scan.markers_nominal, "estimator": estimator}
+    datum, _ = field_from_scan(skin, scan.points, datum_mask=datum_mask(skin), **common)
+    whole, _ = field_from_scan(skin, scan.points, datum_mask=np.ones(skin.n_nodes, bool), **common)
+    assert _rms(datum, truth) < 0.01
+    assert _rms(whole, truth) > 0.1
+
+
+def test_bad_registration_input_is_refused(skin, truth, estimator):
+    scan = _scan(skin, truth, seed=5)
+    with pytest.raises(ScanError, match="one entry per skin node"):
+        register_scan(scan.points, estimator, datum_mask=np.ones(10, bool))
+    with pytest.raises(ScanError, match="do not fit"):
+        register_scan(scan.points, estimator, markers_mm=scan.markers, markers_nominal_mm=scan.markers_nominal[::-1])
+    with pytest.raises(ScanError, match=r"\(4, 4\)"):
+        register_scan(scan.points, estimator, scanner_pose=np.eye(3))

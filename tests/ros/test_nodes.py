@@ -1,0 +1,127 @@
+"""The estimator and decomposition nodes as real processes on the real middleware (Fast DDS, loopback, a per-run
+domain): good fields answered with the right boundary state, bad ones answered on /diagnostics, and the nodes keep
+serving."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("hood_decomp_msgs.msg", reason="needs the colcon-built workspace (scripts/with-env)")
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState, DisplacementField, EffectFields
+from std_msgs.msg import Header
+
+from hood_decomp.core.fe.ensemble import solve_members
+from hood_decomp.core.types import DisplacementField as CoreField
+from hood_decomp.ros import messages
+from hood_decomp.ros.launcher import start_nodes, stop_nodes
+from hood_decomp.ros.participant import Participant
+
+pytestmark = pytest.mark.ros
+
+
+@pytest.fixture(scope="module")
+def running(coarse_hood, tmp_path_factory):
+    logs = tmp_path_factory.mktemp("node_logs")
+    processes = start_nodes(coarse_hood.bases_path, nodes=("estimator_node", "decomposition_node"),
+                            extra_params=["pair_timeout_s:=1.0"], log_dir=logs)
+    peer = Participant("test_nodes")
+    received = {topic: peer.collect(topic, cls) for topic, cls in (
+        ("hood_decomp/boundary_state", BoundaryState), ("hood_decomp/boundary_correction", BoundaryCorrection),
+        ("hood_decomp/effects", EffectFields), ("/diagnostics", DiagnosticArray))}
+    peer.publisher("hood_decomp/displacement", DisplacementField)
+    # Both nodes subscribe to the field, and the decomposition node to the estimator's state (plus us).
+    connected = peer.connected(["hood_decomp/displacement"], ["hood_decomp/boundary_state", "hood_decomp/effects"],
+                               60.0, subscribers=2) and peer.wait(
+        lambda: peer.node.count_subscribers("hood_decomp/boundary_state") >= 2, 30.0)
+    yield peer, received, processes, connected, logs
+    peer.close()
+    stop_nodes(processes)
+
+
+def stamp_of(status) -> str | None:
+    return next((kv.value for kv in status.values if kv.key == "stamp"), None)
+
+
+def errors(arrays) -> dict[str, str]:
+    """stamp -> message of every ERROR diagnostic (in DiagnosticArrays) that names a message stamp."""
+    return {stamp_of(s): s.message for array in arrays for s in array.status
+            if s.level == DiagnosticStatus.ERROR and stamp_of(s) is not None}
+
+
+def _field_msg(coarse_hood, values: np.ndarray, sec: int, model_id: str | None = None) -> DisplacementField:
+    field = CoreField(model_id or coarse_hood.bases.model_id, values, float(np.isfinite(values).mean()), 0.0)
+    return messages.field_to_msg(field, Header(frame_id="hood", stamp=Time(sec=sec, nanosec=0)))
+
+
+def test_good_and_bad_fields(coarse_hood, running):
+    peer, received, processes, connected, logs = running
+    assert connected, f"nodes did not come up; logs in {logs}"
+    truth = np.array([[0.4, -0.3, 0.5, -0.2, 0.3, 0.6]])  # inside the ranges, between the sample points
+    member = solve_members(coarse_hood.reduced, truth)
+    good = member.normal_displacement[0]
+    sends = [
+        _field_msg(coarse_hood, good, 1),
+        _field_msg(coarse_hood, good, 2, model_id="0123456789abcdef"),  # wrong model
+        _field_msg(coarse_hood, np.full_like(good, np.nan), 3),         # NaN everywhere
+        _field_msg(coarse_hood, good[:-5], 4),                          # wrong length
+        _field_msg(coarse_hood, good, 5),                               # still serving
+    ]
+    for msg in sends:
+        peer.publishers["hood_decomp/displacement"].publish(msg)
+    states = received["hood_decomp/boundary_state"]
+    effects = received["hood_decomp/effects"]
+    corrections = received["hood_decomp/boundary_correction"]
+    diagnostics = received["/diagnostics"]
+    assert peer.wait(lambda: len(states) >= 2 and len(effects) >= 2 and len(corrections) >= 2
+                     and {"2.000000000", "3.000000000", "4.000000000"} <= set(errors(diagnostics)), 60.0), \
+        (len(states), len(effects), errors(diagnostics))
+    assert [s.header.stamp.sec for s in states] == [1, 5]
+    assert sorted(e.header.stamp.sec for e in effects) == [1, 5]
+    state = states[0]
+    index = [list(state.names).index(n) for n in coarse_hood.reduced.names]
+    estimated_mm = np.array(state.values)[index] * 1000.0
+    in_contact = ~np.array(state.lifted)[index]
+    np.testing.assert_allclose(estimated_mm[in_contact], member.effective[0][in_contact], atol=1e-3)
+    refused = errors(diagnostics)
+    assert "model_id" in refused["2.000000000"] and "0123456789abcdef" in refused["2.000000000"]
+    assert "NaN" in refused["3.000000000"] and f"shape ({good.size - 5},)" in refused["4.000000000"]
+    assert all(p.poll() is None for p in processes), "a node died"
+    assert [c.header.stamp.sec for c in corrections] == [1, 5]
+    np.testing.assert_allclose(np.array(corrections[0].corrections)[index][in_contact],
+                               -member.effective[0][in_contact] / 1000.0, atol=1e-6)
+
+
+def test_scan_node_refuses_oversized_and_empty_clouds(coarse_hood, tmp_path):
+    """The size limit is checked before any copy (the cell's 20-million-point cloud case, scaled down here by the
+    max_points parameter); an empty cloud is named; the node keeps serving."""
+    from sensor_msgs.msg import PointCloud2
+
+    from hood_decomp.ros.pointcloud import xyz_to_cloud
+
+    processes = start_nodes(coarse_hood.bases_path, nodes=("scan_node",), extra_params=["max_points:=20000"],
+                            log_dir=tmp_path)
+    peer = Participant("test_scan_node")
+    try:
+        diagnostics = peer.collect("/diagnostics", DiagnosticArray)
+        fields = peer.collect("hood_decomp/displacement", DisplacementField)
+        publisher = peer.publisher("scan/points", PointCloud2)
+        assert peer.connected(["scan/points"], ["hood_decomp/displacement"], 60.0)
+        rng = np.random.default_rng(0)
+        points_m = (coarse_hood.skin.points[rng.integers(0, coarse_hood.skin.n_nodes, 40_000)]
+                    + rng.normal(0.0, 0.01, (40_000, 3))) / 1000.0
+        for sec, cloud_points in ((1, points_m), (2, np.zeros((0, 3))), (3, points_m[:15_000])):
+            publisher.publish(xyz_to_cloud(cloud_points, Header(frame_id="scanner", stamp=Time(sec=sec))))
+        assert peer.wait(lambda: {"1.000000000", "2.000000000"} <= set(errors(diagnostics)) and len(fields) >= 1,
+                         60.0)
+        refused = errors(diagnostics)
+        assert "40,000 points" in refused["1.000000000"] and "at most 20,000" in refused["1.000000000"]
+        assert "empty" in refused["2.000000000"]
+        assert [f.header.stamp.sec for f in fields] == [3] and fields[0].header.frame_id == "hood"
+        assert processes[0].poll() is None
+    finally:
+        peer.close()
+        stop_nodes(processes)
+

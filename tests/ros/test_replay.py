@@ -1,0 +1,103 @@
+"""Every bag of bags/ replayed through the three real nodes (separate processes, Fast DDS on loopback), the recorded
+output decoded with rosbags and checked against the bag's sidecar truth."""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+import pytest
+
+pytest.importorskip("hood_decomp_msgs.msg", reason="needs the colcon-built workspace (scripts/with-env)")
+from hood_decomp.io.bags import read_bag, read_sidecar, typestore
+from hood_decomp.ros.launcher import start_nodes, stop_nodes
+from hood_decomp.ros.replay import replay_bag
+from hood_decomp.ros.scan_bag import write_node_params
+
+pytestmark = pytest.mark.ros
+
+BAGS = pathlib.Path(__file__).parents[2] / "bags"
+# Largest error (mm) of an estimated boundary in contact, per scenario. The scan-derived field carries a spatially
+# correlated smoothing error (about 0.0015 mm RMS at default resolution) that the weakly observable HINGE_X turns
+# into up to ~0.035 mm on clean scans; the stated std does not cover it (see the issue notes).
+TOLERANCE_MM = {"clean": 0.05, "noisy_occluded": 0.1, "malformed": 0.05}
+
+
+def decoded(record_dir: pathlib.Path, topic: str) -> list:
+    store = typestore()
+    return [store.deserialize_cdr(r.data, r.msgtype) for r in read_bag(record_dir, topics=[topic])]
+
+
+def stamp(msg) -> str:
+    return f"{msg.header.stamp.sec}.{msg.header.stamp.nanosec:09d}"
+
+
+@pytest.mark.parametrize("name", ["clean", "noisy_occluded", "undeclared", "malformed"])
+def test_replay_bag(name, default_hood, tmp_path):
+    bag = BAGS / name
+    sidecar = read_sidecar(bag)
+    assert sidecar["model"]["model_id"] == default_hood.model.model_id, \
+        "bags/ are stale for the current hood model: rebuild them with scripts/make_bags.py"
+    params = write_node_params(tmp_path / "params.yaml", sidecar, decomposition_pair_timeout_s=1.0)
+    processes = start_nodes(default_hood.bases_path, params_file=params, log_dir=tmp_path)
+    try:
+        result = replay_bag(bag, record=tmp_path / "out", timeout_s=60.0, settle_s=1.5)
+        alive = [p.poll() is None for p in processes]
+    finally:
+        stop_nodes(processes)
+    assert all(alive), f"a node died; logs in {tmp_path}"
+    scans = sidecar["scans"]
+    good = [s for s in scans if s["kind"] == "good"]
+    bad = [s for s in scans if s["kind"] != "good"]
+    assert result.scans == len(scans) and not result.unanswered
+
+    # Count in equals count out: one boundary state, one correction and one effect set per good scan.
+    states = {stamp(m): m for m in decoded(tmp_path / "out", "hood_decomp/boundary_state")}
+    effects = {stamp(m): m for m in decoded(tmp_path / "out", "hood_decomp/effects")}
+    corrections = {stamp(m): m for m in decoded(tmp_path / "out", "hood_decomp/boundary_correction")}
+    expected = {s["stamp"] for s in good}
+    assert set(states) == expected and set(effects) == expected and set(corrections) == expected
+    assert len(decoded(tmp_path / "out", "hood_decomp/boundary_state")) == len(good)
+
+    # Each malformed cloud is answered on /diagnostics with its stamp and a message naming the problem.
+    for scan in bad:
+        assert scan["stamp"] in result.refused, f"no diagnostic for malformed cloud {scan['kind']}"
+    words = {"no_xyz": "no field", "size_mismatch": "row_step * height", "int16_x": "INT16", "empty": "empty",
+             "all_nan": "NaN", "metres_as_mm": "in metres"}
+    for scan in bad:
+        assert any(words[scan["kind"]] in message for message in result.refused[scan["stamp"]]), \
+            (scan["kind"], result.refused[scan["stamp"]])
+
+    # Boundary states against the truth that made the scans; the table goes to the test output.
+    rows, problems = [], []
+    for scan in good:
+        state, correction = states[scan["stamp"]], corrections[scan["stamp"]]
+        values = dict(zip(state.names, 1000.0 * np.asarray(state.values), strict=True))
+        std = dict(zip(state.names, 1000.0 * np.asarray(state.std_dev), strict=True))
+        lifted = dict(zip(state.names, state.lifted, strict=True))
+        for label, truth in scan["truth_mm"].items():
+            rows.append((scan["name"], label, truth, values[label], std[label], bool(lifted[label]),
+                         scan["lifted"].get(label, False)))
+        if scan["undeclared_mm"]:
+            if state.within_model:
+                problems.append(f"{scan['name']}: the undeclared effect went unnoticed")
+            if correction.safe_to_apply or "lacks an effect" not in correction.reason:
+                problems.append(f"{scan['name']}: correction not held back: {correction.reason!r}")
+            continue
+        if not state.within_model:
+            problems.append(f"{scan['name']}: residual {1000 * state.residual_rms:.4f} mm RMS called outside the model")
+        for label, truth in scan["truth_mm"].items():
+            # A buffer reported lifted (truly lifted, or touching too lightly to tell) is reported with the highest
+            # commanded position the field allows: the truth must not lie above it.
+            if lifted[label]:
+                if truth > values[label] + 0.05:
+                    problems.append(f"{scan['name']}: {label} reported lifted at {values[label]:.4f} mm, but the "
+                                    f"commanded {truth} mm lies above")
+            elif scan["lifted"].get(label, False):
+                problems.append(f"{scan['name']}: {label} lifted in truth, reported in contact at {values[label]:.4f}")
+            elif abs(values[label] - truth) > TOLERANCE_MM[name]:
+                problems.append(f"{scan['name']}: {label} estimated {values[label]:.4f} mm, truth {truth:.4f} mm")
+    print(f"\n{name}: scan, parameter, truth mm, estimate mm, std mm, reported lifted, lifted in truth")
+    for row in rows:
+        print(f"  {row[0]:18s} {row[1]:9s} {row[2]:8.4f} {row[3]:9.4f} {row[4]:8.4f} {row[5]!s:6s} {row[6]}")
+    assert not problems, "\n".join(problems)
