@@ -12,6 +12,8 @@ import sys
 
 import pytest
 
+from tests.required import missing
+
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -32,7 +34,7 @@ def demo_dir(tmp_path_factory):
 def test_report_renders_completely(demo_dir, tmp_path):
     chromium = shutil.which("chromium")
     if chromium is None:
-        pytest.skip("Debian chromium is not installed (scripts/setup.sh installs it when run as root)")
+        missing("browser", "Debian chromium is not installed (scripts/setup.sh installs it when run as root)")
     dom = subprocess.run([chromium, *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'profile'}",
                           "--virtual-time-budget=10000", "--dump-dom", (demo_dir / "index.html").as_uri()],
                          capture_output=True, text=True, timeout=120).stdout

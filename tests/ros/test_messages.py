@@ -8,7 +8,9 @@ import pathlib
 import numpy as np
 import pytest
 
-pytest.importorskip("hood_decomp_msgs.msg", reason="needs the colcon-built workspace (scripts/with-env)")
+from tests.required import require_import
+
+require_import("hood_decomp_msgs.msg", "colcon build", "run inside scripts/with-env after scripts/setup.sh")
 from hood_decomp_msgs import msg as hd_msg
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore

@@ -13,7 +13,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-pytest.importorskip("sensor_msgs.msg", reason="needs the ROS 2 environment (scripts/with-env)")
+from tests.required import require_import
+
+require_import("sensor_msgs.msg", "colcon build", "the ROS 2 environment: run inside scripts/with-env")
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 

@@ -8,7 +8,9 @@ import pathlib
 import numpy as np
 import pytest
 
-pytest.importorskip("hood_decomp_msgs.msg", reason="needs the colcon-built workspace (scripts/with-env)")
+from tests.required import require_import
+
+require_import("hood_decomp_msgs.msg", "colcon build", "run inside scripts/with-env after scripts/setup.sh")
 from hood_decomp.io.bags import read_bag, read_sidecar, typestore
 from hood_decomp.ros.launcher import start_nodes, stop_nodes
 from hood_decomp.ros.replay import replay_bag

@@ -14,18 +14,19 @@ from hood_decomp.core.fe.calculix import load_cases, reduce_model_calculix, run_
 from hood_decomp.core.fe.hood_preset import build_hood
 from hood_decomp.core.fe.solver import build_solver
 from hood_decomp.errors import SolverError
+from tests.required import missing
 
 
 def _ensure_ccx() -> None:
     if shutil.which("ccx"):
         return
     if os.geteuid() != 0 or shutil.which("apt-get") is None:
-        pytest.skip("ccx (Debian calculix-ccx) is not installed and we are not root to apt-get it")
+        missing("CalculiX", "ccx (Debian calculix-ccx) is not installed and we are not root to apt-get it")
     env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
     for command in (["apt-get", "update", "-qq"], ["apt-get", "install", "-y", "-qq", "calculix-ccx"]):
         subprocess.run(command, check=False, capture_output=True, env=env, timeout=600)
     if not shutil.which("ccx"):
-        pytest.skip("apt-get install calculix-ccx did not provide ccx")
+        missing("CalculiX", "apt-get install calculix-ccx did not provide ccx")
 
 
 # max |embedded - ccx| / max |embedded| on the skin for HINGE_X, HINGE_Y, LOCK_L, LOCK_R with S8R (C3D20R) decks on

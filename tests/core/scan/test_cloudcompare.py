@@ -5,7 +5,8 @@ Like with like, twice:
    distance to the nominal skin;
 2. per skin node, as the paper did: CloudCompare C2M (skin nodes as the cloud -> the meshed scan) against our node
    field, both against the synthetic truth.
-CloudCompare is installed with apt-get when missing and running as root; otherwise the test is skipped with the reason.
+CloudCompare is installed with apt-get when missing and running as root; otherwise the test is skipped with the reason
+(in CI it fails instead: tests/required.py).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import pytest
 from hood_decomp.core.scan.scan_field import ScanFieldEstimator
 from hood_decomp.io.ply import write_ply, write_skin_mesh
 from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
+from tests.required import missing
 from tests.skins import CLOUDCOMPARE, along_normals, boundary_nodes, cloudcompare_c2m, crowned_patch, mesh_scan_2p5d
 
 
@@ -42,7 +44,7 @@ def _cloudcompare_available() -> str | None:
 def cloudcompare() -> None:
     reason = _cloudcompare_available()
     if reason is not None:
-        pytest.skip(reason)
+        missing("CloudCompare", reason)
 
 
 @pytest.fixture(scope="module")
