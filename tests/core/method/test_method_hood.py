@@ -79,9 +79,16 @@ def coarse():
     return build("coarse", 150)
 
 
-def test_coarse_hood_estimators(coarse):
+@pytest.fixture(scope="module")
+def coarse_validation(coarse):
+    """(PCA basis, run_validation's result) on the coarse hood's 150 validation members."""
     model, skin, reduced, training, validation = coarse
-    _, result = run_validation(skin, reduced, training, validation, model)
+    return run_validation(skin, reduced, training, validation, model)
+
+
+def test_coarse_hood_estimators(coarse, coarse_validation):
+    reduced = coarse[2]
+    _, result = coarse_validation
     n_b = reduced.n_bilateral
     assert np.abs(result["contact"]).max() <= 1e-6
     assert result["lifted_wrong"] == 0 and result["commanded_above"] <= 0.01
@@ -93,8 +100,38 @@ def test_coarse_hood_estimators(coarse):
     # (a pad near the onset of contact) costs little.
     z = np.abs(result["contact_noisy"] / result["noisy_std"])[result["noisy_flag_ok"]]
     assert np.mean(z > 3.0) <= 0.02
-    assert np.abs(result["contact_noisy"][~result["noisy_flag_ok"]]).max(initial=0.0) <= 1.0
-    assert np.abs(result["contact_noisy"][:, :n_b]).max() <= 0.05
+    # Bounds at 1.5x today's figures (2026-11-23, 150 members, seed 0): 4 wrong noisy flags of 300 pad states costing
+    # at most 0.014 mm; hinges and locks 0.024 mm.
+    assert (~result["noisy_flag_ok"]).sum() <= 6
+    assert np.abs(result["contact_noisy"][~result["noisy_flag_ok"]]).max(initial=0.0) <= 0.021
+    assert np.abs(result["contact_noisy"][:, :n_b]).max() <= 0.036
+
+
+def test_coarse_hood_stated_std_is_the_spread(coarse, coarse_validation):
+    """Fails if the contact estimator's std is inflated or shrunk (std x10 or / 10 both fail): per parameter, the
+    median |error| / std over the members whose contact flag is right must be near a Gaussian's 0.674 (today
+    0.62-0.80 over 150 members), and the error itself stays bounded."""
+    model = coarse[0]
+    _, result = coarse_validation
+    z = np.abs(result["contact_noisy"] / result["noisy_std"])
+    for p, name in enumerate(model.names):
+        right = result["noisy_flag_ok"][:, p]
+        assert 0.45 <= np.median(z[right, p]) <= 1.2, f"{name}: median |z| {np.median(z[right, p]):.3f}"
+    assert np.abs(result["contact_noisy"])[result["observable"]].max() <= 0.05  # today 0.032 mm (BUFFER_L)
+
+
+def test_coarse_hood_pca_estimator_today(coarse, coarse_validation):
+    """Regression bounds beside the strict xfail of the paper's target: fails if the paper's PCA estimator gets
+    worse than 1.5x today's figures (buffers 0.099 / 0.112 mm, eq. 5 without its centring term: 0.73 mm; lifted flag
+    wrong on 6 of 150 members)."""
+    _, skin, reduced, _, validation = coarse
+    pca, result = coarse_validation
+    n_b = reduced.n_bilateral
+    assert np.abs(result["pca"][:, n_b:]).max() <= 0.17
+    lifted_wrong = sum(
+        int(np.any(estimate_pca(pca, field(skin, values)).lifted[n_b:] != (fraction == 0)))
+        for values, fraction in zip(validation.normal_displacement, validation.contact_fraction, strict=True))
+    assert lifted_wrong <= 9
 
 
 def test_coarse_hood_hierarchical_and_decomposition(coarse):
@@ -102,12 +139,13 @@ def test_coarse_hood_hierarchical_and_decomposition(coarse):
     basis = HierarchicalBasis(epsilon=0.01).fit(training)
     error = np.abs(reconstruct_members(basis, validation.normal_displacement) - validation.normal_displacement)
     assert error.max() <= 0.025  # the paper's Fig. 10 bound
+    assert error.max() <= 0.001  # 1.5x today's 0.0006 mm (2026-11-23)
     contact = ContactEstimator().fit(reduced, model.lower, model.upper)
     f = field(skin, validation.normal_displacement[0])
     result = decompose(basis, f, contact.estimate(f))
     total = sum(e.partial_displacement for e in result.effects)
     np.testing.assert_allclose(sum(e.contribution for e in result.effects)[total > 0], 1.0, atol=1e-12)
-    assert result.reconstruction_rms < 0.01
+    assert result.reconstruction_rms < 0.0011  # 1.5x today's 0.0007 mm (2026-11-23)
 
 
 def test_cli_bases_estimate_on_the_coarse_hood(tmp_path, capsys):
