@@ -13,15 +13,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from hood_decomp.core.fe.model import PartModel, patch_nodes
+from hood_decomp.plots.figure import save_figure
 
 KIND_COLOURS = {"fixed": "black", "prescribed": "tab:blue", "unilateral": "tab:green", "force": "tab:red"}
-
-
-def _save(fig: plt.Figure, path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return path
 
 
 def plot_model(model: PartModel, path: str | Path) -> Path:
@@ -55,7 +49,7 @@ def plot_model(model: PartModel, path: str | Path) -> Path:
     ax.set_ylabel("y (mm)")
     ax.set_title(f"{model.name}: {len(model.nodes):,} nodes, {len(model.cells):,} shell elements, "
                  f"{len(model.skin_nodes):,} visible skin nodes")
-    return _save(fig, Path(path))
+    return save_figure(fig, path)
 
 
 def plot_estimate_bars(names: Sequence[str], truth: Sequence[float], estimate: Sequence[float],
@@ -70,7 +64,7 @@ def plot_estimate_bars(names: Sequence[str], truth: Sequence[float], estimate: S
     ax.set_ylabel("parameter state (mm)")
     ax.set_title(title)
     ax.legend()
-    return _save(fig, Path(path))
+    return save_figure(fig, path)
 
 
 def plot_timings(rows: Sequence[tuple[str, float, float | None]], path: str | Path) -> Path:
@@ -84,4 +78,4 @@ def plot_timings(rows: Sequence[tuple[str, float, float | None]], path: str | Pa
     ax.set_xscale("log")
     ax.set_xlabel("seconds (log scale)")
     ax.legend()
-    return _save(fig, Path(path))
+    return save_figure(fig, path)

@@ -14,6 +14,7 @@ import numpy as np
 
 from hood_decomp.core.loop.close_loop import CloseLoopResult
 from hood_decomp.core.types import SkinSurface
+from hood_decomp.plots.figure import save_figure
 from hood_decomp.plots.method import plot_skin_field
 
 
@@ -82,8 +83,4 @@ def plot_before_after(result: CloseLoopResult, path: str | Path,
     right.set_ylabel("|estimate - truth| (mm or N)" if truth is not None else "|estimate| (mm or N)")
     right.legend()
     fig.suptitle(result.message[:140], fontsize=9)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

@@ -19,6 +19,7 @@ import matplotlib.tri as mtri
 import numpy as np
 
 from hood_decomp.core.types import Decomposition, SkinSurface
+from hood_decomp.plots.figure import save_figure
 
 _CONTRIBUTION_LEVELS = np.linspace(0.0, 100.0, 11)
 
@@ -28,13 +29,6 @@ def _triangulation(skin: SkinSurface, values: np.ndarray) -> mtri.Triangulation:
     tri = mtri.Triangulation(skin.points[:, 0], skin.points[:, 1], skin.triangles)
     tri.set_mask(np.any(~np.isfinite(values)[skin.triangles], axis=1))
     return tri
-
-
-def _finish(fig: plt.Figure, path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return path
 
 
 def plot_skin_field(
@@ -57,7 +51,7 @@ def plot_skin_field(
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
     ax.set_title(title)
-    return _finish(fig, Path(path))
+    return save_figure(fig, path)
 
 
 def _slug(name: str) -> str:
@@ -93,7 +87,7 @@ def plot_explained_variance(ratio: np.ndarray, path: str | Path, count: int = 10
     ax.set_xlabel("principal component")
     ax.set_ylabel("explained variance (%)")
     ax.legend()
-    return _finish(fig, Path(path))
+    return save_figure(fig, path)
 
 
 def plot_error_boxplot(names: Sequence[str], errors: np.ndarray, path: str | Path, title: str) -> Path:
@@ -103,7 +97,7 @@ def plot_error_boxplot(names: Sequence[str], errors: np.ndarray, path: str | Pat
     ax.axhline(0.0, color="grey", linewidth=0.5)
     ax.set_ylabel("estimation error (mm)")
     ax.set_title(title)
-    return _finish(fig, Path(path))
+    return save_figure(fig, path)
 
 
 def plot_error_histogram(values: np.ndarray, path: str | Path, title: str, xlabel: str = "max error (mm)") -> Path:
@@ -113,4 +107,4 @@ def plot_error_histogram(values: np.ndarray, path: str | Path, title: str, xlabe
     ax.set_xlabel(xlabel)
     ax.set_ylabel("members")
     ax.set_title(title)
-    return _finish(fig, Path(path))
+    return save_figure(fig, path)
