@@ -187,11 +187,10 @@ def build_hood(resolution: str = "default", pad_stiffness: float = PAD_STIFFNESS
         cells=cells.astype(np.int64),
         cell_part=cell_part,
         parts=tuple(parts),
-        material=Material(E=210000.0, nu=0.3, density=7.85e-9),
+        material=Material(),  # steel
         boundaries=boundaries,
         parameters=parameters,
         skin_part="outer_skin",
-        gravity=np.array([0.0, 0.0, -9810.0]),
     )
     validate_model(model)
     return model

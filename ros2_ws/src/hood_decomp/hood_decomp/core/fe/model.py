@@ -24,11 +24,14 @@ from hood_decomp.errors import ModelError
 
 BOUNDARY_KINDS = ("fixed", "prescribed", "unilateral", "force")
 AXES = {"x": 0, "y": 1, "z": 2}
+#: gravity of a model that states none, mm/s^2 (-Z)
+GRAVITY = (0.0, 0.0, -9810.0)
 
 
 @dataclass(frozen=True)
 class Material:
-    """Linear elastic isotropic material. E, MPa; nu; density, t/mm^3 (so that mass x mm/s^2 gives N)."""
+    """Linear elastic isotropic material. E, MPa; nu; density, t/mm^3 (so that mass x mm/s^2 gives N). The defaults
+    are steel, the material of a model that states none."""
 
     E: float = 210000.0
     nu: float = 0.3
@@ -108,7 +111,7 @@ class PartModel:
     boundaries: tuple[Boundary, ...]
     parameters: tuple[Parameter, ...]
     skin_part: str
-    gravity: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9810.0]))
+    gravity: np.ndarray = field(default_factory=lambda: np.array(GRAVITY))
 
     def part_index(self, name: str) -> int:
         for index, part in enumerate(self.parts):
