@@ -8,8 +8,8 @@ model.yaml (format hood_decomp.model, version 1)::
     mesh: mesh.vtu                 # relative to model.yaml; quad cells with cell data 'part' (index into parts),
                                    # or an ABAQUS/CalculiX deck (.inp): S4/S8R *ELEMENT blocks, ELSET = a part name
     skin_part: outer_skin          # the visible outer skin
-    material: {E: 210000.0, nu: 0.3, density: 7.85e-9}    # MPa, -, t/mm^3
-    gravity: [0.0, 0.0, -9810.0]   # mm/s^2
+    material: {E: 210000.0, nu: 0.3, density: 7.85e-9}    # MPa, -, t/mm^3; optional, default core.fe.model.Material
+    gravity: [0.0, 0.0, -9810.0]   # mm/s^2; optional, default core.fe.model.GRAVITY
     parts:                         # order = the mesh's 'part' index
       - {name: outer_skin, thickness: 0.7}                 # mm
     boundaries:
@@ -30,21 +30,27 @@ model.yaml (format hood_decomp.model, version 1)::
         patch: {...}
     parameters:                    # bilateral (prescribed) first, then unilateral
       - {label: HINGE_X, boundary: hinge_L, direction: x, range: [-1.0, 1.0]}   # mm
+    candidates:                    # optional: user candidate effects of close-loop (core.loop.candidates)
+      - {boundary: lock_L, kind: force, direction: y}
 
 Every problem is a ModelError naming the entry, what was expected and what was found.
 """
 
 from __future__ import annotations
 
+from dataclasses import fields
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
 
-from hood_decomp.core.fe.model import Boundary, Material, Parameter, Part, PartModel, Patch, validate_model
+from hood_decomp.core.fe.model import GRAVITY, Boundary, Material, Parameter, Part, PartModel, Patch, validate_model
 from hood_decomp.errors import MeshError, ModelError
 from hood_decomp.io.mesh import read_inp_mesh, read_mesh, write_mesh
+
+if TYPE_CHECKING:
+    from hood_decomp.core.loop.candidates import Candidate
 
 FORMAT = "hood_decomp.model"
 VERSION = 1
@@ -110,7 +116,21 @@ def model_path(path: str | Path) -> Path:
 
 
 def load_model(path: str | Path) -> PartModel:
-    """Read and validate a model (directory or model.yaml). Raises ModelError (or MeshError for the mesh file)."""
+    """Read and validate a model (directory or model.yaml). Raises ModelError."""
+    return _read(path)[0]
+
+
+def load_model_with_candidates(path: str | Path) -> tuple[PartModel, tuple[Candidate, ...]]:
+    """The model (as :func:`load_model`) and the user candidate effects of its optional ``candidates:`` list, from one
+    read of model.yaml. Raises ModelError."""
+    from hood_decomp.core.loop.candidates import candidates_from_document  # the loop loads only for who asks
+
+    model, document = _read(path)
+    return model, candidates_from_document(document.get("candidates"))
+
+
+def _read(path: str | Path) -> tuple[PartModel, dict]:
+    """The validated model and the parsed model.yaml document."""
     path = model_path(path)
     if not path.is_file():
         raise ModelError(f"model file {path} does not exist (expected a model directory or its model.yaml)")
@@ -141,11 +161,7 @@ def load_model(path: str | Path) -> PartModel:
     except MeshError as error:
         raise ModelError(str(error)) from error
     material_doc = document.get("material", {})
-    material = Material(
-        E=float(material_doc.get("E", 210000.0)),
-        nu=float(material_doc.get("nu", 0.3)),
-        density=float(material_doc.get("density", 7.85e-9)),
-    )
+    material = Material(**{f.name: float(material_doc[f.name]) for f in fields(Material) if f.name in material_doc})
     model = PartModel(
         name=str(document.get("name", path.parent.name)),
         nodes=nodes,
@@ -156,10 +172,10 @@ def load_model(path: str | Path) -> PartModel:
         boundaries=tuple(_boundary(entry) for entry in _list(document, "boundaries")),
         parameters=tuple(_parameter(entry) for entry in document.get("parameters") or []),
         skin_part=str(_required(document, "skin_part", "model")),
-        gravity=np.asarray(document.get("gravity", [0.0, 0.0, -9810.0]), dtype=float),
+        gravity=np.asarray(document.get("gravity", GRAVITY), dtype=float),
     )
     validate_model(model)
-    return model
+    return model, document
 
 
 def _required(entry: dict, key: str, what: str) -> Any:
