@@ -155,11 +155,11 @@ def test_ply_errors_name_the_problem(tmp_path):
 def test_cli_scan_writes_a_scan_that_gives_back_the_simulated_field(tmp_path, capsys):
     """`hood-decomp scan` on the built-in coarse hood, read back through the scan-file entry of the other verbs."""
     from hood_decomp.cli import main
-    from hood_decomp.cli.scan import field_from_scan_file
     from hood_decomp.core.fe.ensemble import simulate_setting
     from hood_decomp.core.fe.model import skin_surface
     from hood_decomp.core.fe.solver import build_solver
     from hood_decomp.io.model_files import load_model
+    from hood_decomp.io.scans import field_from_scan_file
 
     assert main(["model", "--preset", "hood", "--resolution", "coarse", "--out", str(tmp_path / "m")]) == 0
     out = tmp_path / "scan.ply"

@@ -1,7 +1,12 @@
 """The ``hood-decomp`` command line.
 
 Each verb lives in its own module ``hood_decomp.cli.<verb>`` exposing ``HELP`` (one line), ``add_arguments(parser)``
-and ``run(args) -> int``. Modules are imported lazily so ``--help`` stays fast and a verb only pays for what it uses.
+and ``run(args) -> int``, and optionally ``LOG_FORMAT``: how its progress lines look (a :mod:`logging` format; the
+default is the bare message). Modules are imported lazily so ``--help`` stays fast and a verb only pays for what it
+uses; what verbs share is in ``cli._common``, and verbs never import each other.
+
+Progress: the package's modules log to ``logging.getLogger(__name__)``; while a verb runs, one handler on the
+``hood_decomp`` logger prints INFO and above to stderr in the verb's ``LOG_FORMAT``.
 Bad input (any :class:`~hood_decomp.errors.HoodDecompError`) ends in one line on stderr and exit status 2.
 """
 
@@ -9,8 +14,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import sys
-from collections.abc import Sequence
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 
 from hood_decomp import __version__
 from hood_decomp.errors import HoodDecompError
@@ -49,8 +57,36 @@ def _build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
         module = importlib.import_module(f"hood_decomp.cli.{module_name}")
         verb_parser = sub.add_parser(verb, help=module.HELP, description=module.HELP)
         module.add_arguments(verb_parser)
-        verb_parser.set_defaults(_run=module.run)
+        verb_parser.set_defaults(_run=module.run, _log_format=getattr(module, "LOG_FORMAT", "%(message)s"))
     return parser
+
+
+class _ProgressFormatter(logging.Formatter):
+    """A format that may also use ``%(elapsed)s``: seconds since the verb started; ``%(asctime)s`` is HH:MM:SS."""
+
+    def __init__(self, fmt: str) -> None:
+        super().__init__(fmt, datefmt="%H:%M:%S")
+        self._start = time.time()
+
+    def format(self, record: logging.LogRecord) -> str:
+        record.elapsed = record.created - self._start
+        return super().format(record)
+
+
+@contextmanager
+def _progress_to_stderr(fmt: str) -> Iterator[None]:
+    """While the block runs, INFO and above of every hood_decomp logger go to stderr in ``fmt``."""
+    package = logging.getLogger("hood_decomp")
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_ProgressFormatter(fmt))
+    level = package.level
+    package.addHandler(handler)
+    package.setLevel(logging.INFO)
+    try:
+        yield
+    finally:
+        package.removeHandler(handler)
+        package.setLevel(level)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -58,7 +94,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = _build_parser(argv)
     args = parser.parse_args(argv)
     try:
-        return int(args._run(args))
+        with _progress_to_stderr(args._log_format):
+            return int(args._run(args))
     except HoodDecompError as error:
         print(f"hood-decomp {args.verb}: error: {error}", file=sys.stderr)
         return 2

@@ -3,13 +3,18 @@
 from __future__ import annotations
 
 import argparse
-import importlib
-import sys
+import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from hood_decomp.errors import EnsembleError
 
+if TYPE_CHECKING:
+    from hood_decomp.core.types import ReducedModel
+
 HELP = "build the PCA and hierarchical bases from an ensemble"
+
+logger = logging.getLogger(__name__)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -23,44 +28,35 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--epsilon", type=float, default=0.1,
                         help="hierarchical tolerance: max allowed member error, mm (default 0.1, the paper's)")
     parser.add_argument("--model", type=Path, default=None,
-                        help="model directory: its reduced FE model goes into the bases file for the contact-aware "
-                        "estimator (needed unless the ensemble store holds one)")
+                        help="model directory of the ensemble: its reduced FE model goes into the bases file for the "
+                        "contact-aware estimator (without it only the paper's 'pca' estimator is available)")
     parser.add_argument("--plots", type=Path, default=None, help="directory for the explained-variance plot (Fig. 8)")
 
 
-def load_training_set(path: Path, model_dir: Path | None, say):
-    """(training Ensemble, SkinSurface, ReducedModel or None) from the ensemble store (and the model directory)."""
-    from hood_decomp.io.ensemble_store import load_ensemble, load_skin
-
-    ensemble, skin = load_ensemble(path, "training"), load_skin(path)
-    store = importlib.import_module("hood_decomp.io.ensemble_store")
-    if hasattr(store, "load_reduced_model"):
-        reduced = store.load_reduced_model(path)
-        if reduced is not None:
-            return ensemble, skin, reduced
+def _reduced_model(model_dir: Path | None, model_id: str) -> ReducedModel | None:
+    """The ReducedModel of the model in ``model_dir`` (None without one); EnsembleError when it is not the
+    ensemble's model (``model_id``)."""
     if model_dir is None:
-        say("bases: no --model and no reduced model in the store: only the paper's 'pca' estimator will be available")
-        return ensemble, skin, None
+        logger.warning("bases: no --model: only the paper's 'pca' estimator will be available")
+        return None
     from hood_decomp.core.fe.solver import build_solver, reduce_model
     from hood_decomp.io.model_files import load_model
 
     model = load_model(model_dir)
-    if model.model_id != ensemble.model_id:
-        raise EnsembleError(
-            f"model {model_dir} (model_id {model.model_id}) is not the ensemble's ({ensemble.model_id})")
-    return ensemble, skin, reduce_model(build_solver(model, progress=say))
+    if model.model_id != model_id:
+        raise EnsembleError(f"model {model_dir} (model_id {model.model_id}) is not the ensemble's ({model_id})")
+    return reduce_model(build_solver(model))
 
 
 def run(args: argparse.Namespace) -> int:
     from hood_decomp.core.method.bases import build_bases
     from hood_decomp.io.bases import save_bases
+    from hood_decomp.io.ensemble_store import load_ensemble, load_skin
 
-    def say(text: str) -> None:
-        print(text, file=sys.stderr)
-
-    ensemble, skin, reduced = load_training_set(args.ensemble, args.model, say)
+    ensemble, skin = load_ensemble(args.ensemble, "training"), load_skin(args.ensemble)
+    reduced = _reduced_model(args.model, ensemble.model_id)
     components = 10 if args.components is None and args.explained_variance is None else args.components
-    bases = build_bases(ensemble, skin, reduced, components, args.explained_variance, args.epsilon, progress=say)
+    bases = build_bases(ensemble, skin, reduced, components, args.explained_variance, args.epsilon)
     save_bases(args.out, bases)
     if args.plots is not None:
         from hood_decomp.plots.method import plot_explained_variance

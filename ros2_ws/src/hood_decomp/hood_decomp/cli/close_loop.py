@@ -1,4 +1,4 @@
-"""`hood-decomp close-loop`: find, add and report an effect the model lacks (DESIGN.md step 7).
+"""`hood-decomp close-loop`: find, add and report an effect the model lacks (docs/close_loop.md).
 
 Writes DIR/close_loop.json (residual before/after, effect found, magnitude, parameter errors where --truth gives the
 truth), DIR/residual_before_<i>.png, DIR/residual_after_<i>.png, DIR/before_after.png and, when an effect was
@@ -8,31 +8,21 @@ added, the rebuilt bases DIR/bases_closed_loop.h5 (usable with `estimate` and `d
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
-import sys
 from pathlib import Path
 
-from hood_decomp.errors import FieldError, ModelIdMismatchError, ScanError
+from hood_decomp.cli._common import add_bases, add_inputs, emit_json, read_fields
+from hood_decomp.errors import FieldError, ModelIdMismatchError
 
 HELP = "find, add and report an effect the model lacks (residual -> candidate effects -> new parameter -> bases)"
-
-
-class _Input(argparse.Action):
-    """Collect --field and --scan in the order given, as (kind, path)."""
-
-    def __call__(self, parser, namespace, values, option_string=None) -> None:
-        inputs = list(getattr(namespace, "inputs", None) or [])
-        inputs.append((self.dest, Path(values)))
-        namespace.inputs = inputs
+LOG_FORMAT = "close-loop: %(message)s"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", required=True, type=Path, help="model directory or its model.yaml (its "
                         "optional 'candidates:' list adds user candidate effects)")
-    parser.add_argument("--bases", required=True, type=Path, help="bases file written by `hood-decomp bases`")
-    parser.add_argument("--field", action=_Input, metavar="FIELD.vtu", help="field file (repeatable)")
-    parser.add_argument("--scan", action=_Input, metavar="SCAN.ply", help="scan point cloud (repeatable)")
+    add_bases(parser)
+    add_inputs(parser, repeatable=True)
     parser.add_argument("--out", required=True, type=Path, help="output directory")
     parser.add_argument("--truth", type=Path, default=None, help="JSON: label -> true value (mm; N for a force "
                         "effect) for all fields, or a list of such objects, one per field")
@@ -44,26 +34,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-effects", type=int, default=1, help="effects added at most (default 1)")
     parser.add_argument("--method", choices=("contact", "pca"), default="contact",
                         help="estimator of the before/after estimates (tracing is always contact-aware)")
-    parser.add_argument("--min-coverage", type=float, default=0.2, help="smallest seen fraction of the skin")
-    parser.set_defaults(inputs=None)
-
-
-def _read_inputs(inputs: list[tuple[str, Path]], skin, min_coverage: float) -> list:
-    fields = []
-    for kind, path in inputs:
-        if kind == "field":
-            from hood_decomp.io.fields import read_field
-
-            fields.append(read_field(path, skin)[0])
-            continue
-        try:
-            scan_verb = importlib.import_module("hood_decomp.cli.scan")
-            from_file = scan_verb.field_from_scan_file
-        except (ImportError, AttributeError) as error:
-            raise ScanError(f"--scan needs the scan-to-field code (hood_decomp.cli.scan.field_from_scan_file and "
-                            f"hood_decomp.core.scan.scan_field.field_from_scan), not available: {error}") from error
-        fields.append(from_file(skin, path, min_coverage=min_coverage))
-    return fields
 
 
 def _read_truth(path: Path | None, n_fields: int) -> list[dict[str, float]] | None:
@@ -100,43 +70,33 @@ def _table(payload: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    import yaml
-
     from hood_decomp.core.fe.solver import build_solver
-    from hood_decomp.core.loop.candidates import candidate_fields, candidates_from_document, enumerate_candidates
-    from hood_decomp.core.loop.close_loop import close_loop, report
+    from hood_decomp.core.loop.candidates import candidate_fields, enumerate_candidates
+    from hood_decomp.core.loop.close_loop import close_loop
     from hood_decomp.core.method.residual import DEFAULT_NOISE_MM
     from hood_decomp.io.bases import load_bases, save_bases
-    from hood_decomp.io.model_files import load_model, model_path
+    from hood_decomp.io.close_loop_report import close_loop_report
+    from hood_decomp.io.model_files import load_model_with_candidates
     from hood_decomp.plots.close_loop import plot_before_after, plot_residual_maps
 
-    if not args.inputs:
-        raise FieldError("give at least one --field FIELD.vtu or --scan SCAN.ply")
-
-    def progress(message: str) -> None:
-        print(f"close-loop: {message}", file=sys.stderr)
-
-    model = load_model(args.model)
+    model, user_candidates = load_model_with_candidates(args.model)
     bases = load_bases(args.bases)
     if model.model_id != bases.model_id:
         raise ModelIdMismatchError(f"model {args.model} has model_id {model.model_id!r}, bases {args.bases} "
-                              f"{bases.model_id!r}: build the bases from this model")
-    user = candidates_from_document(yaml.safe_load(model_path(args.model).read_text()).get("candidates"))
-    fields = _read_inputs(args.inputs, bases.skin, args.min_coverage)
+                                   f"{bases.model_id!r}: build the bases from this model")
+    fields = read_fields(args.inputs, bases.skin, args.min_coverage)
     truth = _read_truth(args.truth, len(fields))
     ensemble = None
     if args.ensemble is not None:
         from hood_decomp.io.ensemble_store import load_ensemble
 
         ensemble = load_ensemble(args.ensemble, group="training")
-    solver = build_solver(model, progress=progress)
-    candidates = candidate_fields(solver, enumerate_candidates(model, user), progress=progress)
+    candidates = candidate_fields(build_solver(model), enumerate_candidates(model, user_candidates))
     result = close_loop(bases, fields, candidates, ensemble=ensemble, alpha=args.alpha,
                         default_noise_mm=DEFAULT_NOISE_MM if args.noise_mm is None else args.noise_mm,
-                        max_effects=args.max_effects, method=args.method, min_coverage=args.min_coverage,
-                        progress=progress)
+                        max_effects=args.max_effects, method=args.method, min_coverage=args.min_coverage)
     args.out.mkdir(parents=True, exist_ok=True)
-    payload = report(result, truth)
+    payload = close_loop_report(result, truth)
     payload["inputs"] = [str(path) for _, path in args.inputs]
     payload["candidates"] = list(candidates.names)
     payload["candidates_without_effect"] = list(candidates.dropped)
@@ -146,7 +106,6 @@ def run(args: argparse.Namespace) -> int:
     if result.bases_after is not None:
         save_bases(args.out / "bases_closed_loop.h5", result.bases_after)
         payload["bases_after"] = "bases_closed_loop.h5"
-    (args.out / "close_loop.json").write_text(json.dumps(payload, indent=2, allow_nan=False) + "\n")
     print(_table(payload))
-    print(f"wrote {args.out / 'close_loop.json'}", file=sys.stderr)
+    emit_json(payload, args.out / "close_loop.json")
     return 0

@@ -5,13 +5,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from hood_decomp.cli.estimate import add_input_arguments, emit, load_input
+from hood_decomp.cli._common import add_bases, add_inputs, add_json, emit_json, read_bases_and_field
 
 HELP = "decompose a field or scan into effects with contribution plots"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_input_arguments(parser)
+    add_bases(parser)
+    add_inputs(parser)
+    add_json(parser)
     parser.add_argument("--plots", type=Path, default=None, help="directory for the PNG contribution plots")
     parser.add_argument("--method", choices=("contact", "pca"), default="contact",
                         help="estimator of step 2 that selects the effect subset (default contact)")
@@ -22,7 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from hood_decomp.core.method.bases import decompose_field, estimate_field
 
-    bases, field = load_input(args)
+    bases, field = read_bases_and_field(args)
     estimate = estimate_field(bases, field, args.method, args.min_coverage)
     result = decompose_field(bases, field, estimate, min_share=args.min_share, min_coverage=args.min_coverage)
     payload = {
@@ -33,5 +35,5 @@ def run(args: argparse.Namespace) -> int:
         from hood_decomp.plots.method import plot_contributions
 
         payload["plots"] = [str(p) for p in plot_contributions(bases.skin, result, args.plots)]
-    emit(payload, args.json)
+    emit_json(payload, args.json)
     return 0

@@ -7,6 +7,7 @@ import pathlib
 import sys
 
 HELP = "run the whole pipeline on the built-in hood and write DIR/index.html"
+LOG_FORMAT = "[demo %(asctime)s] %(message)s"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

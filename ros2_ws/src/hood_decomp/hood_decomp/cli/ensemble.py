@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 
+from hood_decomp.cli._common import emit_json
+from hood_decomp.errors import EnsembleError
+
 HELP = "generate the simulation ensemble (full factorial + uniform validation) into an HDF5 store"
+LOG_FORMAT = "[%(elapsed)7.1f s] %(message)s"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -26,41 +29,35 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from hood_decomp.core.fe.model import skin_surface
-    from hood_decomp.errors import EnsembleError
     from hood_decomp.io.ensemble_store import write_ensemble
     from hood_decomp.io.model_files import load_model
-
-    start = time.perf_counter()
-
-    def progress(message: str) -> None:
-        print(f"[{time.perf_counter() - start:7.1f} s] {message}", file=sys.stderr, flush=True)
 
     if args.export is not None:
         return _export(args)
     if args.model is None:
         raise EnsembleError("--model is required to compute an ensemble")
+    start = time.perf_counter()
     model = load_model(args.model)
     if args.solver == "embedded":
         from hood_decomp.core.fe.solver import build_solver, reduce_model
 
-        solver = build_solver(model, progress=progress)
-        reduced, backend = reduce_model(solver, progress=progress), solver.backend
+        solver = build_solver(model)
+        reduced, backend = reduce_model(solver), solver.backend
     else:
         from hood_decomp.core.fe.calculix import reduce_model_calculix
 
-        reduced = reduce_model_calculix(model, scheduler=args.scheduler, progress=progress)
+        reduced = reduce_model_calculix(model, scheduler=args.scheduler)
         backend = "ccx"
     summary = write_ensemble(args.out, reduced, skin_surface(model), model.lower, model.upper,
                              n_validation=args.validation, seed=args.seed, solver=args.solver,
-                             solver_backend=backend, progress=progress)
+                             solver_backend=backend)
     summary["out"] = args.out
     summary["seconds"] = round(time.perf_counter() - start, 2)
-    print(json.dumps(summary))
+    emit_json(summary)
     return 0
 
 
 def _export(args: argparse.Namespace) -> int:
-    from hood_decomp.errors import EnsembleError
     from hood_decomp.io.ensemble_store import export_member
 
     group, _, index = args.export.partition(":")

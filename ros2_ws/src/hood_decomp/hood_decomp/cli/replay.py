@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import json
 import pathlib
 import sys
 
+from hood_decomp.cli._common import write_json
+
 HELP = "publish a bag's scans into the nodes (started here with --bases) and record what they publish"
+LOG_FORMAT = "hood-decomp replay: %(message)s"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -27,15 +29,14 @@ def run(args: argparse.Namespace) -> int:
 
     processes = start_nodes(args.bases.resolve(), params_file=args.params) if args.bases else []
     try:
-        result = replay_bag(args.bag, record=args.record, timeout_s=args.timeout, publish_clock=args.clock,
-                            progress=lambda line: print(f"hood-decomp replay: {line}", file=sys.stderr))
+        result = replay_bag(args.bag, record=args.record, timeout_s=args.timeout, publish_clock=args.clock)
     finally:
         stop_nodes(processes)
     summary = {"scans": result.scans, "answered": result.answered, "refused": result.refused,
                "unanswered": result.unanswered, "recorded": result.recorded, "seconds": round(result.seconds, 2),
                "record": str(args.record) if args.record else None}
     if args.json:
-        args.json.write_text(json.dumps(summary, indent=2) + "\n")
+        write_json(args.json, summary)
     print(f"hood-decomp replay: {result.scans} scans, {result.answered} answered, {len(result.refused)} refused, "
           f"{len(result.unanswered)} unanswered, {result.recorded} messages recorded"
           + (f" in {args.record}" if args.record else ""), file=sys.stderr)

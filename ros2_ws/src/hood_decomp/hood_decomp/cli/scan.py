@@ -3,29 +3,29 @@
 One forward FE solve of the boundary setting, then the synthetic scanner (synthetic/scanner.py) looks at the displaced
 visible skin in its fixture: about a million points in the scanner frame with range noise, dropouts, occlusion,
 outliers and the fixture markers, written as SCAN.ply (io/ply.py) with a sidecar SCAN.json stating the truth (setting,
-noise, scanner and part transforms). Also home of :func:`field_from_scan_file`, the scan-file entry the other verbs
-(estimate, decompose, close-loop) use for ``--scan``.
+noise, scanner and part transforms). The other verbs read such a file with ``--scan`` (io/scans.py).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import sys
+import logging
 from pathlib import Path
 
 import numpy as np
 
-from hood_decomp.core.types import DisplacementField, SkinSurface
+from hood_decomp.cli._common import add_setting, emit_json, parse_settings, write_json
 from hood_decomp.errors import ScanError
 
 HELP = "synthesise a structured-light scan of a displaced part -> SCAN.ply (+ SCAN.json with the truth)"
+LOG_FORMAT = "hood-decomp scan: %(message)s"
+
+logger = logging.getLogger(__name__)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", required=True, help="model directory or its model.yaml")
-    parser.add_argument("--set", dest="settings", default="", metavar="LABEL=VALUE[,LABEL=VALUE...]",
-                        help="boundary setting in mm (parameter labels or BOUNDARY.DIRECTION); unset parameters are 0")
+    add_setting(parser)
     parser.add_argument("--out", required=True, help="output scan (.ply, points in the scanner frame, mm)")
     parser.add_argument("--noise-mm", type=float, default=0.02, help="range noise along the ray, mm (default 0.02)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (noise, dropouts, pose error)")
@@ -47,7 +47,6 @@ def _misplacement(text: str) -> tuple[float, float, float, float, float, float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hood_decomp.cli.simulate import parse_settings
     from hood_decomp.core.fe.ensemble import simulate_setting
     from hood_decomp.core.fe.model import skin_surface
     from hood_decomp.core.fe.solver import build_solver
@@ -62,10 +61,9 @@ def run(args: argparse.Namespace) -> int:
     settings = parse_settings(args.settings)
     model = load_model(args.model)
     skin = skin_surface(model)
-    what = settings or "the nominal setting"
-    print(f"hood-decomp scan: solving {what} on {skin.n_nodes} skin nodes", file=sys.stderr)
+    logger.info("solving %s on %d skin nodes", settings or "the nominal setting", skin.n_nodes)
     result = simulate_setting(build_solver(model), settings)
-    print(f"hood-decomp scan: scanning about {args.points} points", file=sys.stderr)
+    logger.info("scanning about %d points", args.points)
     scan = synthesize_scan(skin, result.displacement, config, seed=args.seed)
     out = Path(args.out)
     write_scan(out, scan.points, scanner_pose=scan.scanner_pose, markers=scan.markers, marker_ids=scan.marker_ids,
@@ -85,39 +83,6 @@ def run(args: argparse.Namespace) -> int:
         "max_abs_normal_displacement_mm": float(np.abs(result.normal_displacement).max()),
     }
     sidecar = out.with_suffix(".json")
-    sidecar.write_text(json.dumps(truth, indent=2))
-    print(json.dumps({"out": str(out), "truth": str(sidecar), "n_points": truth["n_points"],
-                      "n_markers": truth["n_markers"]}))  # fmt: skip
+    write_json(sidecar, truth)
+    emit_json({"out": str(out), "truth": str(sidecar), "n_points": truth["n_points"], "n_markers": truth["n_markers"]})
     return 0
-
-
-def field_from_scan_file(
-    skin: SkinSurface,
-    path: str | Path,
-    datum_centers_mm: np.ndarray | None = None,
-    datum_radius_mm: float = 150.0,
-    min_coverage: float = 0.2,
-) -> DisplacementField:
-    """The displacement field of a scan file: read (io/ply.py), register (markers, else the stored scanner pose,
-    else the identity; plus datum regions around ``datum_centers_mm`` (K, 3) when given) and evaluate per node.
-    Progress goes to stderr; ScanError names any problem."""
-    from hood_decomp.core.scan.registration import datum_mask_near
-    from hood_decomp.core.scan.scan_field import field_from_scan
-    from hood_decomp.io.ply import read_scan
-
-    scan = read_scan(path)
-    has_markers = scan.markers.shape[0] >= 3
-    datum = None if datum_centers_mm is None else datum_mask_near(skin.points, datum_centers_mm, datum_radius_mm)
-    field, registration = field_from_scan(
-        skin,
-        scan.points,
-        scanner_pose=scan.scanner_pose,
-        markers_mm=scan.markers if has_markers else None,
-        markers_nominal_mm=scan.markers_nominal if has_markers else None,
-        datum_mask=datum,
-        min_coverage=min_coverage,
-        progress=lambda line: print(f"scan {Path(path).name}: {line}", file=sys.stderr),
-    )
-    print(f"scan {Path(path).name}: registered by {registration.method}, coverage {field.coverage:.1%}, "
-          f"noise {field.noise_rms:.4f} mm", file=sys.stderr)  # fmt: skip
-    return field

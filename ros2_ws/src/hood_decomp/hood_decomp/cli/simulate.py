@@ -3,35 +3,17 @@
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 
-from hood_decomp.errors import ModelError
+from hood_decomp.cli._common import add_setting, emit_json, parse_settings
 
 HELP = "one forward FE solve of a boundary setting (any boundary, declared parameter or not) -> FIELD.vtu"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", required=True, help="model directory or its model.yaml")
-    parser.add_argument("--set", dest="settings", default="", metavar="LABEL=VALUE[,LABEL=VALUE...]",
-                        help="mm; LABEL is a parameter label (HINGE_X) or BOUNDARY.DIRECTION (hinge_R.z, lock_L.x); "
-                        "unset parameters are 0")
+    add_setting(parser)
     parser.add_argument("--out", required=True, help="output field file (.vtu, skin point data displacement and "
                         "normal_displacement in mm)")
-
-
-def parse_settings(text: str) -> dict[str, float]:
-    """'A=1,B=-0.5' -> {'A': 1.0, 'B': -0.5}; ModelError on a malformed item."""
-    settings: dict[str, float] = {}
-    for item in filter(None, (part.strip() for part in text.split(","))):
-        label, sep, value = item.partition("=")
-        try:
-            settings[label.strip()] = float(value)
-        except ValueError:
-            sep = ""
-        if not sep or not label.strip():
-            raise ModelError(f"--set item {item!r}: expected LABEL=VALUE with VALUE in mm")
-    return settings
 
 
 def run(args: argparse.Namespace) -> int:
@@ -48,7 +30,7 @@ def run(args: argparse.Namespace) -> int:
     field = DisplacementField(model_id=model.model_id, normal_displacement=result.normal_displacement, coverage=1.0,
                               noise_rms=float("nan"))
     write_field(args.out, skin_surface(model), field, result.displacement)
-    print(json.dumps({"out": args.out, "settings_mm": settings, "max_abs_normal_displacement_mm":
-                      float(abs(result.normal_displacement).max()), "pad_contact_fraction": result.contact_fraction,
-                      "pad_reaction_n": result.reactions}), file=sys.stdout)
+    emit_json({"out": args.out, "settings_mm": settings,
+               "max_abs_normal_displacement_mm": float(abs(result.normal_displacement).max()),
+               "pad_contact_fraction": result.contact_fraction, "pad_reaction_n": result.reactions})
     return 0
