@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from hood_decomp.core.fe.model import Boundary, Material, Part, PartModel, Patch
-from hood_decomp.core.fe.shell import triangle_stiffness
+from hood_decomp.core.fe.shell import QUAD_SPLITS, quad_stiffness, triangle_stiffness
 from hood_decomp.core.fe.solver import build_solver
 
 E, NU, T = 210000.0, 0.3, 0.7
@@ -38,6 +38,22 @@ def test_element_has_exactly_six_rigid_modes_and_they_cost_nothing() -> None:
         for u in _rigid_motions(x):
             assert np.linalg.norm(k @ u) < 1e-9 * np.linalg.norm(k) * np.linalg.norm(u)
 
+
+
+def test_quad_is_both_diagonal_splits_at_half_weight() -> None:
+    """A quad's (24, 24) stiffness is the four triangles of both diagonals, each counted half, placed on its corners."""
+    rng = np.random.default_rng(2)
+    xyz = np.array([[0.0, 0, 0], [30, 0, 0], [32, 25, 0], [-1, 28, 0]]) + rng.normal(size=(5, 4, 3))
+    thickness = np.linspace(0.7, 2.0, 5)
+    K = quad_stiffness(xyz, thickness, E, NU)
+    for quad, t, k in zip(xyz, thickness, K, strict=True):
+        expected = np.zeros((24, 24))
+        for corners in QUAD_SPLITS:
+            dofs = (6 * corners[:, None] + np.arange(6)).ravel()
+            expected[np.ix_(dofs, dofs)] += 0.5 * triangle_stiffness(quad[corners][None], np.array([t]), E, NU)[0]
+        np.testing.assert_allclose(k, expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+        eig = np.linalg.eigvalsh(k)
+        assert np.sum(eig < 1e-9 * eig.max()) == 6
 
 def _plate(n: int, size: float) -> tuple[np.ndarray, np.ndarray]:
     g = np.linspace(0.0, size, n + 1)

@@ -19,10 +19,10 @@ numpy data; nothing in the core imports it.
 
 from __future__ import annotations
 
+import logging
 import shutil
 import subprocess
 import tempfile
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,7 +33,7 @@ from hood_decomp.core.fe.solver import PAD_LATTICE, condense, constrained_dofs, 
 from hood_decomp.core.types import ReducedModel
 from hood_decomp.errors import SolverError
 
-Progress = Callable[[str], None]
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -186,8 +186,7 @@ def _deck_text(model: PartModel, case: LoadCase, constrained: np.ndarray) -> str
 
 
 def run_cases(model: PartModel, cases: list[LoadCase], constrained: np.ndarray, scheduler: str | None = None,
-              progress: Progress | None = None, workdir: str | None = None,
-              executable: str | None = None) -> dict[str, np.ndarray]:
+              workdir: str | None = None, executable: str | None = None) -> dict[str, np.ndarray]:
     """Run the cases as independent Dask jobs; returns name -> translations (n, 3). Failed jobs raise SolverError
     naming every failed case. ``executable`` overrides the ccx binary (path, e.g. a wrapper script)."""
     from dask.distributed import Client, LocalCluster, as_completed
@@ -212,8 +211,7 @@ def run_cases(model: PartModel, cases: list[LoadCase], constrained: np.ndarray, 
                 results[name] = future.result()
             except Exception as error:  # a worker error of any kind is reported by job name
                 failed[name] = str(error)
-            if progress is not None:
-                progress(f"ccx jobs {done}/{len(futures)} ({len(failed)} failed)")
+            logger.info("ccx jobs %d/%d (%d failed)", done, len(futures), len(failed))
     finally:
         client.close()
         if cluster is not None:
@@ -223,12 +221,12 @@ def run_cases(model: PartModel, cases: list[LoadCase], constrained: np.ndarray, 
     return results
 
 
-def reduce_model_calculix(model: PartModel, scheduler: str | None = None, progress: Progress | None = None,
-                          pad_lattice: int = PAD_LATTICE, workdir: str | None = None) -> ReducedModel:
+def reduce_model_calculix(model: PartModel, scheduler: str | None = None, pad_lattice: int = PAD_LATTICE,
+                          workdir: str | None = None) -> ReducedModel:
     """The ReducedModel from CalculiX responses (same patches, loads and pad springs as the embedded solver)."""
     validate_model(model)
     cases, constrained = load_cases(model, pad_lattice)
-    results = run_cases(model, cases, constrained, scheduler, progress, workdir)
+    results = run_cases(model, cases, constrained, scheduler, workdir)
     columns = np.stack([results[c.name] for c in cases if not c.name.startswith("pad_")], axis=2)
     pad_columns = np.stack([results[c.name] for c in cases if c.name.startswith("pad_")], axis=2) if any(
         c.name.startswith("pad_") for c in cases) else np.zeros((len(model.nodes), 3, 0))

@@ -9,7 +9,7 @@ rank as in Table 1 (rank = number of non-zero parameters); validation members ar
 from __future__ import annotations
 
 import itertools
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -99,15 +99,13 @@ def solve_members(reduced: ReducedModel, commanded: np.ndarray) -> MemberBlock:
     return MemberBlock(effective, contact_fraction, reactions, normal, vectors, forces, compression)
 
 
-def iter_members(reduced: ReducedModel, commanded: np.ndarray, block: int = 128,
-                 progress: Callable[[int, int], None] | None = None) -> Iterator[tuple[slice, MemberBlock]]:
-    """Solve members block by block (bounded memory for large skins); ``progress(done, total)`` after each block."""
+def iter_members(reduced: ReducedModel, commanded: np.ndarray, block: int = 128
+                 ) -> Iterator[tuple[slice, MemberBlock]]:
+    """Solve members (m, P) mm block by block (bounded memory for large skins): (rows, solutions) per block."""
     total = len(commanded)
     for start in range(0, total, block):
         rows = slice(start, min(start + block, total))
         yield rows, solve_members(reduced, commanded[rows])
-        if progress is not None:
-            progress(rows.stop, total)
 
 
 def simulate_ensemble(reduced: ReducedModel, commanded: np.ndarray, rank: np.ndarray, lower: np.ndarray,

@@ -7,8 +7,8 @@ discrete Kirchhoff triangle of Batoz, Bathe & Ho (1980), and the drilling rotati
 (a fraction of the plate bending stiffness) so that coplanar nodes are not singular; it carries no physical load.
 Kirchhoff bending is the right model for 0.7-2 mm sheets whose element size is far larger than the thickness.
 
-Quads are handled by :func:`quad_triangles`: each quad gives the four triangles of both diagonal splits at half
-thickness weight, so no diagonal direction is preferred.
+Quads are handled by :func:`quad_stiffness`: each quad is the four triangles of both diagonal splits at half weight,
+so no diagonal direction is preferred.
 """
 
 from __future__ import annotations
@@ -19,11 +19,8 @@ import numpy as np
 DRILLING_FACTOR = 1e-3
 
 
-def quad_triangles(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Split quads (E, 4) into the four triangles of both diagonals: (4E, 3) node indices and (4E,) source quad."""
-    tris = np.concatenate([cells[:, [0, 1, 2]], cells[:, [0, 2, 3]], cells[:, [0, 1, 3]], cells[:, [1, 2, 3]]])
-    source = np.tile(np.arange(len(cells)), 4)
-    return tris, source
+#: the four triangles of a quad (corner indices), both diagonal splits
+QUAD_SPLITS = np.array([[0, 1, 2], [0, 2, 3], [0, 1, 3], [1, 2, 3]])
 
 
 def local_frames(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -149,3 +146,19 @@ def triangle_stiffness(xyz: np.ndarray, thickness: np.ndarray, E: float, nu: flo
     for block in range(6):
         T[:, 3 * block : 3 * block + 3, 3 * block : 3 * block + 3] = R
     return np.matmul(T.transpose(0, 2, 1), np.matmul(local, T))
+
+
+def quad_stiffness(xyz: np.ndarray, thickness: np.ndarray, E: float, nu: float) -> np.ndarray:
+    """Global stiffness of flat shell quads, (Q, 24, 24), DOFs per corner (ux, uy, uz, rx, ry, rz).
+
+    Each quad is the four triangles of both diagonal splits (:data:`QUAD_SPLITS`), each counted half.
+    xyz: (Q, 4, 3) mm; thickness: (Q,) mm; E MPa; nu.
+    """
+    n_quads = len(xyz)
+    triangles = 0.5 * triangle_stiffness(xyz[:, QUAD_SPLITS].reshape(4 * n_quads, 3, 3), np.repeat(thickness, 4), E, nu)
+    triangles = triangles.reshape(n_quads, len(QUAD_SPLITS), 18, 18)
+    K = np.zeros((n_quads, 24, 24))
+    for split, corners in enumerate(QUAD_SPLITS):
+        dofs = (6 * corners[:, None] + np.arange(6)).ravel()
+        K[:, dofs[:, None], dofs[None, :]] += triangles[:, split]
+    return K
