@@ -1,6 +1,6 @@
-"""Closing the loop (core/candidates.py, core/close_loop.py, cli/close_loop.py): the acceptance runs (three undeclared
-effects at two noise levels) on the default hood, whose 30,107 skin nodes make 0.02 mm scan noise cost each declared
-parameter a few micrometres; the logic tests on the coarse hood.
+"""Closing the loop (core/loop/candidates.py, core/loop/close_loop.py, io/close_loop_report.py, cli/close_loop.py):
+the acceptance runs (three undeclared effects at two noise levels) on the default hood, whose 30,107 skin nodes make
+0.02 mm scan noise cost each declared parameter a few micrometres; the logic tests on the coarse hood.
 
 Fields with an undeclared effect are made by the FE model itself, independently of the candidate/augmentation code:
 a boundary motion with ``simulate_setting`` (its own reduced model and exact contact), a gas spring force change by
@@ -23,9 +23,10 @@ from hood_decomp.core.loop.candidates import (
     candidates_from_document,
     enumerate_candidates,
 )
-from hood_decomp.core.loop.close_loop import close_loop, effect_range, extend_ensemble, report, trace_effect
+from hood_decomp.core.loop.close_loop import close_loop, effect_range, extend_ensemble, trace_effect
 from hood_decomp.core.types import DisplacementField
 from hood_decomp.errors import EnsembleError, ModelError
+from hood_decomp.io.close_loop_report import close_loop_report
 from hood_decomp.plots.close_loop import plot_before_after, plot_residual_maps
 
 TRUTH = {"HINGE_X": 0.3, "HINGE_Y": -0.4, "LOCK_L": 0.6, "LOCK_R": -0.5, "BUFFER_L": 0.4, "BUFFER_R": -0.3}
@@ -196,7 +197,7 @@ def test_undeclared_effect_is_found_added_and_closes_the_gap(default_hood, defau
                     f"{after.max_mm:9.4f} {worst_before:10.4f} {worst_after:10.4f} {added.values[i]:+9.4g} "
                     f"{added.unit}")
     truth = [{**TRUTH, effect: value}] * len(fields)
-    payload = report(result, truth)
+    payload = close_loop_report(result, truth)
     json.dumps(payload, allow_nan=False)
     assert payload["effects_found"][0]["name"] == effect
     assert payload["fields"][0]["after"]["parameters"][effect]["error"] == pytest.approx(added.values[0] - value)

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import logging
 import pathlib
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
+
+logger = logging.getLogger(__name__)
 
 # The paper's Table 3, seconds (ABAQUS on an i7-5820K; PCA with scikit-learn; scipy least squares).
 PAPER_TABLE3_S = {
@@ -33,18 +36,17 @@ class DemoConfig:
 
 @dataclass
 class Timer:
-    """Wall times of the demo's steps, shown as they finish."""
+    """Wall times of the demo's steps (s, by step name), logged as each starts and finishes."""
 
-    progress: Callable[[str], None]
     seconds: dict[str, float] = field(default_factory=dict)
 
     @contextmanager
     def step(self, name: str) -> Iterator[None]:
-        self.progress(f"{name} ...")
+        logger.info("%s ...", name)
         start = time.perf_counter()
         yield
         self.seconds[name] = time.perf_counter() - start
-        self.progress(f"{name}: done in {self.seconds[name]:.1f} s")
+        logger.info("%s: done in %.1f s", name, self.seconds[name])
 
 
 def max_abs(values: np.ndarray) -> float:

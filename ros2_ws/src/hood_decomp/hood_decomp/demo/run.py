@@ -3,30 +3,27 @@
 Steps (each timed and shown on the terminal): hood model -> solver and ensemble (729 training + validation members)
 -> PCA and hierarchical bases, validated on the validation set -> synthetic scans with known truth (clean, noisy,
 occluded, one with an undeclared effect) written as a bag -> bag replayed through the three ROS nodes running as
-separate processes, their output recorded -> close the loop on the undeclared scan -> the report.
+separate processes, their output recorded -> close the loop on the undeclared scan -> the report. Progress goes to
+the ``hood_decomp`` loggers (``hood-decomp demo`` prints it).
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import pathlib
-import sys
-import time
-from collections.abc import Callable
 
 from hood_decomp.demo import steps
 from hood_decomp.demo.config import DemoConfig, Timer
 
-
-def _print(line: str) -> None:
-    print(f"[demo {time.strftime('%H:%M:%S')}] {line}", file=sys.stderr, flush=True)
+logger = logging.getLogger(__name__)
 
 
-def run_demo(config: DemoConfig, progress: Callable[[str], None] = _print) -> pathlib.Path:
+def run_demo(config: DemoConfig) -> pathlib.Path:
     """Run every step; returns the path of the report."""
     out = config.out
     out.mkdir(parents=True, exist_ok=True)
-    timer = Timer(progress)
+    timer = Timer()
     state = steps.DemoState(config=config, out=out, timer=timer)
     for title, step in (
         ("hood model", steps.build_model),
@@ -44,5 +41,5 @@ def run_demo(config: DemoConfig, progress: Callable[[str], None] = _print) -> pa
     with timer.step("report"):
         path = steps.write_report(state)
     (out / "timings.json").write_text(json.dumps({k: round(v, 3) for k, v in timer.seconds.items()}, indent=2))
-    progress(f"report: {path.resolve()}")
+    logger.info("report: %s", path.resolve())
     return path

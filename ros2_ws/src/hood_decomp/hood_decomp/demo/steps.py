@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import pathlib
 import time
 from dataclasses import dataclass, field
@@ -15,6 +16,8 @@ from hood_decomp.demo.config import PAPER_TABLE3_S, DemoConfig, Timer, max_abs
 from hood_decomp.demo.html import Report
 from hood_decomp.plots import method as plots
 from hood_decomp.synthetic.scanner import ScannerConfig
+
+logger = logging.getLogger(__name__)
 
 SCAN_TOPIC_OUTPUTS = ("hood_decomp/displacement", "hood_decomp/boundary_state", "hood_decomp/boundary_correction",
                       "hood_decomp/effects")
@@ -47,7 +50,7 @@ def build_model(state: DemoState) -> None:
 def build_solver_and_reduce(state: DemoState) -> None:
     from hood_decomp.core.fe.solver import build_solver, reduce_model
 
-    solver = build_solver(state.data["model"], progress=state.timer.progress)
+    solver = build_solver(state.data["model"])
     state.data.update(solver=solver, reduced=reduce_model(solver))
 
 
@@ -57,7 +60,7 @@ def build_ensemble(state: DemoState) -> None:
     model, path = state.data["model"], state.out / "ensemble.h5"
     start = time.perf_counter()
     summary = write_ensemble(path, state.data["reduced"], state.data["skin"], model.lower, model.upper,
-                             n_validation=state.config.n_validation, progress=state.timer.progress)
+                             n_validation=state.config.n_validation)
     state.data.update(ensemble_summary=summary, ensemble_seconds=time.perf_counter() - start,
                       training=load_ensemble(path, "training"), validation=load_ensemble(path, "validation"))
 
@@ -68,7 +71,7 @@ def build_bases_step(state: DemoState) -> None:
 
     data = state.data
     start = time.perf_counter()
-    bases: Bases = build_bases(data["training"], data["skin"], data["reduced"], progress=state.timer.progress)
+    bases: Bases = build_bases(data["training"], data["skin"], data["reduced"])
     data["bases_seconds"] = time.perf_counter() - start
     save_bases(state.out / "bases.h5", bases)
     data["bases"] = bases
@@ -151,7 +154,7 @@ def make_scans(state: DemoState) -> None:
     data = state.data
     scans, specs = [], demo_scans(data["reduced"].names, state.config.scan_points)
     for seed, spec in enumerate(specs, start=1):
-        state.timer.progress(f"scan '{spec.name}': {spec.what}")
+        logger.info("scan '%s': %s", spec.name, spec.what)
         scans.append(make_scenario_scan(spec.name, data["solver"], data["reduced"], data["skin"], spec.settings,
                                         spec.config, seed))
     bag = state.out / "bags" / "scans"
@@ -181,7 +184,7 @@ def replay(state: DemoState) -> None:
     params = write_node_params(state.out / "node_params.yaml", read_sidecar(bag))
     processes = start_nodes((state.out / "bases.h5").resolve(), params_file=params, log_dir=logs)
     try:
-        result = replay_bag(bag, record=record, progress=state.timer.progress)
+        result = replay_bag(bag, record=record)
     finally:
         stop_nodes(processes)
     state.data.update(replay=result, record=record)
@@ -262,17 +265,16 @@ def close_loop(state: DemoState) -> None:
     """Trace the undeclared scan's residual to a candidate effect, add it, rebuild the bases, estimate again."""
     from hood_decomp.core.loop.candidates import candidate_fields, enumerate_candidates
     from hood_decomp.core.loop.close_loop import close_loop as run_close_loop
-    from hood_decomp.core.loop.close_loop import report
+    from hood_decomp.io.close_loop_report import close_loop_report
     from hood_decomp.plots.close_loop import plot_before_after, plot_residual_maps
 
     data = state.data
     row = next(r for r in data["scan_rows"] if r["scan"].undeclared_mm and "field" in r)
     scan = row["scan"]
-    candidates = candidate_fields(data["solver"], enumerate_candidates(data["model"]), state.timer.progress)
-    result = run_close_loop(data["bases"], [row["field"]], candidates, ensemble=data["training"],
-                            progress=state.timer.progress)
+    candidates = candidate_fields(data["solver"], enumerate_candidates(data["model"]))
+    result = run_close_loop(data["bases"], [row["field"]], candidates, ensemble=data["training"])
     truth = [{**scan.truth_mm, **scan.undeclared_mm}]
-    summary = report(result, truth)
+    summary = close_loop_report(result, truth)
     directory = state.out / "figures" / "close_loop"
     for path in plot_residual_maps(data["skin"], result, directory):
         state.figure("close_loop", path, path.stem.replace("_", " "))

@@ -19,14 +19,15 @@ Schema (``schema`` = "hood_decomp.ensemble", ``schema_version`` = 1; also in doc
     <group> attrs: complete (bool: all M members written), n_members (int)
 
 Groups: ``training`` (full factorial, section 3.1.1) and ``validation`` (uniform random, section 4.1).
-Large arrays are chunked per member so one member reads fast.
+Large arrays are chunked per member so one member reads fast. Progress of :func:`write_ensemble` goes to this
+module's logger.
 """
 
 from __future__ import annotations
 
 import datetime
 import json
-from collections.abc import Callable
+import logging
 from pathlib import Path
 
 import h5py
@@ -37,6 +38,8 @@ from hood_decomp.core.types import DisplacementField, Ensemble, ReducedModel, Sk
 from hood_decomp.errors import EnsembleError
 from hood_decomp.io.fields import write_field
 from hood_decomp.io.hdf5 import open_hdf5
+
+logger = logging.getLogger(__name__)
 
 SCHEMA = "hood_decomp.ensemble"
 SCHEMA_VERSION = 1
@@ -112,8 +115,8 @@ class EnsembleWriter:
 
 
 def write_ensemble(path: str | Path, reduced: ReducedModel, skin: SkinSurface, lower: np.ndarray, upper: np.ndarray,
-                   n_validation: int = 1400, seed: int = 0, solver: str = "embedded", solver_backend: str = "",
-                   progress: Callable[[str], None] | None = None) -> dict[str, object]:
+                   n_validation: int = 1400, seed: int = 0, solver: str = "embedded", solver_backend: str = ""
+                   ) -> dict[str, object]:
     """Solve the full factorial (training) and ``n_validation`` uniform random members and store them at ``path``.
 
     Returns a summary: member counts, pad contact counts per group (lifted / partial / full (member, pad) pairs).
@@ -129,17 +132,13 @@ def write_ensemble(path: str | Path, reduced: ReducedModel, skin: SkinSurface, l
                         {g: len(c) for g, (c, _) in plans.items()}, solver, solver_backend) as writer:
         for group, (commanded, ranks) in plans.items():
             fractions = []
-
-            def report(done: int, total: int, group: str = group) -> None:
-                if progress is not None:
-                    progress(f"{group}: {done}/{total} members")
-
-            for rows, block in iter_members(reduced, commanded, progress=report):
+            for rows, block in iter_members(reduced, commanded):
                 writer.write(group, rows, commanded=commanded[rows], effective=block.effective,
                              contact_fraction=block.contact_fraction, reactions=block.reactions, rank=ranks[rows],
                              normal_displacement=block.normal_displacement.astype(np.float32),
                              displacement=block.displacement.astype(np.float32))
                 fractions.append(block.contact_fraction)
+                logger.info("%s: %d/%d members", group, rows.stop, len(commanded))
             counts = contact_counts(np.concatenate(fractions))
             summary[group] = {"members": len(commanded), "pad_contact": counts}
             writer.finish(group, **{f"{group}_pad_contact": counts})

@@ -10,19 +10,20 @@ by a pair of triangular solves (:class:`~hood_decomp.core.fe.solver.ShellSolver`
 - ``force``: a 1 N total force spread over a boundary patch along an axis (:meth:`ShellSolver.force_response`). Every
   force boundary along its own axis ("gas_spring_L.force": a gas spring force change), and every pad along its axis
   ("buffer_L.stick": an extra pad force; negative means the pad pulls, a buffer that does not release).
-- user candidates: a ``candidates:`` list in model.yaml (read by the caller, parsed by
-  :func:`candidates_from_document`), e.g. ``{boundary: lock_L, kind: force, direction: y}``. A location that is no
-  boundary yet becomes one by adding a ``force`` boundary with ``force: 0`` to model.yaml: its force candidate is
-  then enumerated.
+- user candidates: a ``candidates:`` list in model.yaml, e.g. ``{boundary: lock_L, kind: force, direction: y}``
+  (parsed by :func:`candidates_from_document`; :func:`hood_decomp.io.model_files.load_model_with_candidates` reads it
+  with the model). A location that is no boundary yet becomes one by adding a ``force`` boundary with ``force: 0`` to
+  model.yaml: its force candidate is then enumerated.
 
 Responses are computed once per model (hundreds of candidates: seconds) and appended to a reduced model as extra
 bilateral inputs by :func:`augment_reduced` (the same columns :func:`~hood_decomp.core.fe.solver.reduce_model` builds
-for ``extra`` motions).
+for ``extra`` motions). Progress goes to this module's logger.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -31,6 +32,8 @@ from hood_decomp.core.fe.model import AXES, PartModel, skin_surface
 from hood_decomp.core.fe.solver import ShellSolver
 from hood_decomp.core.types import ReducedModel
 from hood_decomp.errors import ModelError
+
+logger = logging.getLogger(__name__)
 
 KINDS = ("motion", "force")
 UNITS = {"motion": "mm", "force": "N"}
@@ -188,8 +191,7 @@ def candidate_response(solver: ShellSolver, candidate: Candidate) -> np.ndarray:
                if a != 0.0)
 
 
-def candidate_fields(solver: ShellSolver, candidates: Sequence[Candidate],
-                     progress: Callable[[str], None] | None = None) -> CandidateFields:
+def candidate_fields(solver: ShellSolver, candidates: Sequence[Candidate]) -> CandidateFields:
     """Solve every candidate's unit response (one factorisation, shared) and condense it to the skin and pads."""
     model = solver.model
     if not candidates:
@@ -199,8 +201,7 @@ def candidate_fields(solver: ShellSolver, candidates: Sequence[Candidate],
     columns = []
     for index, candidate in enumerate(candidates):
         columns.append(candidate_response(solver, candidate))
-        if progress is not None:
-            progress(f"candidate {index + 1}/{len(candidates)} {candidate.name} solved")
+        logger.info("candidate %d/%d %s solved", index + 1, len(candidates), candidate.name)
     U = np.stack(columns, axis=1)
     vectors = U.reshape(len(model.nodes), 6, -1)[skin, :3]
     normal = np.einsum("nak,na->nk", vectors, normals)

@@ -1,4 +1,4 @@
-"""Closing the loop (DESIGN.md step 7): locate the residual, trace it to an effect the model lacks, add that effect
+"""Closing the loop (docs/close_loop.md): locate the residual, trace it to an effect the model lacks, add that effect
 as a parameter, rebuild the bases and report the error before and after.
 
 1. **Residual** of every field against the current bases (:mod:`hood_decomp.core.method.residual`): chi-square
@@ -23,15 +23,19 @@ as a parameter, rebuild the bases and report the error before and after.
    gets its column (:func:`~hood_decomp.core.loop.candidates.augment_reduced`, the same column
    ``reduce_model(solver, extra=...)`` builds for a motion); the full-factorial ensemble is extended by the new
    parameter's min and max layers only, the old members being its 0 layer (:func:`extend_ensemble`); both bases are
-   rebuilt (:func:`hood_decomp.io.bases.build_bases`) and every field is estimated again.
+   rebuilt (:func:`hood_decomp.core.method.bases.build_bases`) and every field is estimated again.
 Up to ``max_effects`` effects are added greedily (trace again on the augmented reduced model) before the one rebuild.
+
+Progress goes to this module's logger. The JSON report of a :class:`CloseLoopResult` is
+:func:`hood_decomp.io.close_loop_report.close_loop_report`.
 """
 
 from __future__ import annotations
 
 import itertools
+import logging
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,17 +57,13 @@ from hood_decomp.core.method.residual import (
 from hood_decomp.core.types import DisplacementField, Ensemble, ParameterEstimate, ReducedModel
 from hood_decomp.errors import BasisError, EnsembleError, FieldError, ModelError, ModelIdMismatchError
 
-Progress = Callable[[str], None]
+logger = logging.getLogger(__name__)
+
 #: an effect "explains" the residual when it removes at least this fraction of the residual energy beyond noise
 EXPLAINED_MIN = 0.8
 #: the new parameter's range covers this factor times (|estimate| + 3 std)
 RANGE_MARGIN = 1.5
 STATUSES = ("within_model", "found", "ambiguous", "unexplained")
-
-
-def _say(progress: Progress | None, message: str) -> None:
-    if progress is not None:
-        progress(message)
 
 
 @dataclass(frozen=True)
@@ -201,7 +201,6 @@ def trace_effect(
     noise: Sequence[float],
     alpha: float = DEFAULT_ALPHA,
     min_coverage: float = DEFAULT_MIN_COVERAGE,
-    progress: Progress | None = None,
 ) -> Trace:
     """Rank the candidates by the residual they explain with the current model (module docstring, step 2).
 
@@ -229,7 +228,7 @@ def trace_effect(
         estimates = tuple(estimator.estimate(field) for field in fields)
         rss = np.array([np.nansum(e.residual**2) for e in estimates])
         rows.append((name, rss, estimates))
-        _say(progress, f"trace {index + 1}/{len(names)} {name}: weighted RSS {weights @ rss:.1f}")
+        logger.info("trace %d/%d %s: weighted RSS %.1f", index + 1, len(names), name, weights @ rss)
     rows.sort(key=lambda row: float(weights @ row[1]))
     column = reduced.n_bilateral
     scores = []
@@ -285,8 +284,7 @@ def effect_range(values: np.ndarray, std: np.ndarray) -> float:
     return float(np.ceil(half / scale - 1e-9) * scale)
 
 
-def extend_ensemble(ensemble: Ensemble, reduced: ReducedModel, lower: np.ndarray, upper: np.ndarray,
-                    progress: Progress | None = None) -> Ensemble:
+def extend_ensemble(ensemble: Ensemble, reduced: ReducedModel, lower: np.ndarray, upper: np.ndarray) -> Ensemble:
     """The full-factorial ensemble of ``reduced`` from the one of a model without its new inputs.
 
     ensemble: a full-factorial Ensemble (ranks >= 0) whose names are a subset of ``reduced.names`` with the same
@@ -332,7 +330,7 @@ def extend_ensemble(ensemble: Ensemble, reduced: ReducedModel, lower: np.ndarray
         blocks.append((commanded, solved.effective, solved.contact_fraction, solved.reactions, rank,
                        solved.normal_displacement, solved.displacement))
         layer = {names[c]: float(v) for c, v in zip(new_columns, combination, strict=True)}
-        _say(progress, f"extended ensemble: layer {layer} solved ({m} members)")
+        logger.info("extended ensemble: layer %s solved (%d members)", layer, m)
     parts = [np.concatenate(items) for items in zip(*blocks, strict=True)]
     order = np.argsort(parts[4], kind="stable")
     commanded, effective, fraction, reactions, rank, normal, vectors = (p[order] for p in parts)
@@ -361,7 +359,6 @@ def close_loop(
     max_effects: int = 1,
     method: str = "contact",
     min_coverage: float = DEFAULT_MIN_COVERAGE,
-    progress: Progress | None = None,
 ) -> CloseLoopResult:
     """Find, add and report the effect the model lacks for F fields of one model (module docstring).
 
@@ -386,8 +383,8 @@ def close_loop(
     before = tuple(estimate_field(bases, fd, method, min_coverage) for fd in fields)
     analyses_before, p_before, within_before = _analyse(bases, before, noise, alpha)
     timings["before_s"] = time.perf_counter() - start
-    _say(progress, f"before: residual RMS {[round(a.rms_mm, 4) for a in analyses_before]} mm, "
-                   f"within model: {within_before} (p {p_before:.3g})")
+    logger.info("before: residual RMS %s mm, within model: %s (p %.3g)",
+                [round(a.rms_mm, 4) for a in analyses_before], within_before, p_before)
 
     start = time.perf_counter()
     reduced, lower, upper = bases.reduced_model, bases.pca.lower_, bases.pca.upper_
@@ -397,8 +394,8 @@ def close_loop(
     traces: list[Trace] = []
     trace_lower, trace_upper = lower, upper
     for _ in range(max_effects):
-        trace = trace_effect(reduced, trace_lower, trace_upper, fields, candidates, current, noise, alpha,
-                             min_coverage, progress)
+        trace = trace_effect(reduced, trace_lower, trace_upper, fields, candidates, current, noise, alpha=alpha,
+                             min_coverage=min_coverage)
         traces.append(trace)
         if within_before or not trace.conclusive:
             break
@@ -418,8 +415,12 @@ def close_loop(
                                                        else "unexplained")
         message = ("the residual is what the scan noise explains: nothing added" if within_before
                    else f"nothing added: {first.reason}")
-        return CloseLoopResult(status, message, before, analyses_before, within_before, p_before, tuple(traces), (),
-                               None, (), (), None, None, timings)
+        return CloseLoopResult(
+            status=status, message=message, before=before, analyses_before=analyses_before,
+            within_model_before=within_before, p_value_before=p_before, traces=tuple(traces), added=(),
+            bases_after=None, after=(), analyses_after=(), within_model_after=None, p_value_after=None,
+            timings=timings,
+        )
 
     start = time.perf_counter()
     n_new = len(added_names)
@@ -431,12 +432,11 @@ def close_loop(
     new_lower = np.insert(np.asarray(lower, float), b, [-h for h in halves])
     new_upper = np.insert(np.asarray(upper, float), b, halves)
     old = ensemble if ensemble is not None else training_ensemble(bases)
-    extended = extend_ensemble(old, reduced, new_lower, new_upper, progress)
+    extended = extend_ensemble(old, reduced, new_lower, new_upper)
     timings["ensemble_s"] = time.perf_counter() - start
     start = time.perf_counter()
     bases_after = build_bases(extended, bases.skin, reduced, n_components=bases.pca.n_components,
-                              explained_variance=bases.pca.explained_variance, epsilon=bases.hierarchical.epsilon_,
-                              progress=progress)
+                              explained_variance=bases.pca.explained_variance, epsilon=bases.hierarchical.epsilon_)
     timings["bases_s"] = time.perf_counter() - start
     start = time.perf_counter()
     after = tuple(estimate_field(bases_after, fd, method, min_coverage) for fd in fields)
@@ -454,80 +454,9 @@ def close_loop(
     summary = ", ".join(f"{a.name} ({', '.join(f'{v:+.4g}' for v in a.values)} {a.unit})" for a in added)
     message = (f"added {summary}; residual RMS {max(a.rms_mm for a in analyses_before):.4g} -> "
                f"{max(a.rms_mm for a in analyses_after):.4g} mm; within the model after: {within_after}")
-    return CloseLoopResult("found", message, before, analyses_before, within_before, p_before, tuple(traces),
-                           tuple(added), bases_after, after, analyses_after, within_after, p_after, timings)
-
-
-# --- report ------------------------------------------------------------------------------------------------------
-def _number(value: float) -> float | None:
-    """JSON has no NaN or inf: those become null."""
-    value = float(value)
-    return value if np.isfinite(value) else None
-
-
-def _estimate_entry(estimate: ParameterEstimate, truth: Mapping[str, float]) -> dict:
-    params = {}
-    for name, value, std, lifted in zip(estimate.names, estimate.values, estimate.std, estimate.lifted, strict=True):
-        entry = {"value": _number(value), "std": _number(std), "lifted": bool(lifted)}
-        if name in truth:
-            entry["truth"] = float(truth[name])
-            # a lifted pad's value is the part's position there, not its commanded position: no error to state
-            entry["error"] = None if lifted else _number(value - truth[name])
-        params[name] = entry
-    return params
-
-
-def _analysis_entry(analysis: ResidualAnalysis, max_regions: int = 5) -> dict:
-    return {
-        "residual_rms_mm": analysis.rms_mm, "residual_max_mm": analysis.max_mm, "residual_mean_mm": analysis.mean_mm,
-        "noise_mm": analysis.noise_mm, "noise_source": analysis.noise_source, "chi2": analysis.chi2,
-        "dof": analysis.dof, "p_value": analysis.p_value, "within_model": analysis.within_model,
-        "regions": [{"centroid_mm": r.centroid.tolist(), "peak_mm": r.peak_mm, "peak_point_mm": r.peak_point.tolist(),
-                     "area_mm2": r.area_mm2, "rms_mm": r.rms_mm, "n_nodes": int(r.nodes.size)}
-                    for r in analysis.regions[:max_regions]],
-    }
-
-
-def report(result: CloseLoopResult, truth: Sequence[Mapping[str, float]] | None = None, top: int = 5) -> dict:
-    """The JSON report (DESIGN.md close-loop): residual before/after, effect found, magnitude, parameter errors.
-
-    truth: per field, label -> true value (mm, or N for a force effect); parameters without truth get no error.
-    """
-    truth = list(truth) if truth is not None else [{} for _ in result.before]
-    if len(truth) != len(result.before):
-        raise FieldError(f"truth has {len(truth)} entries, expected one per field ({len(result.before)})")
-    fields = []
-    for i, estimate in enumerate(result.before):
-        entry = {"before": {"parameters": _estimate_entry(estimate, truth[i]),
-                            **_analysis_entry(result.analyses_before[i])}}
-        if result.after:
-            entry["after"] = {"parameters": _estimate_entry(result.after[i], truth[i]),
-                              **_analysis_entry(result.analyses_after[i])}
-        fields.append(entry)
-    traces = [{
-        "ranking": [{"name": s.name, "kind": s.kind, "unit": s.unit, "description": s.description,
-                     "explained": _number(s.explained), "f_statistic": _number(s.f_statistic),
-                     "p_adjusted": _number(s.p_adjusted), "magnitude": [_number(v) for v in s.values],
-                     "std": [_number(v) for v in s.std]} for s in trace.scores[:top]],
-        "significant": trace.significant, "decisive": trace.decisive, "explains": trace.explains,
-        "conclusive": trace.conclusive, "likelihood_ratio_to_runner_up": _number(trace.decisiveness),
-        "reason": trace.reason,
-    } for trace in result.traces]
-    return {
-        "status": result.status,
-        "message": result.message,
-        "within_model_before": result.within_model_before,
-        "p_value_before": result.p_value_before,
-        "within_model_after": result.within_model_after,
-        "p_value_after": result.p_value_after,
-        "residual_rms_before_mm": [a.rms_mm for a in result.analyses_before],
-        "residual_max_before_mm": [a.max_mm for a in result.analyses_before],
-        "residual_rms_after_mm": [a.rms_mm for a in result.analyses_after],
-        "residual_max_after_mm": [a.max_mm for a in result.analyses_after],
-        "effects_found": [{"name": a.name, "kind": a.kind, "unit": a.unit, "boundary": a.boundary,
-                           "description": a.description, "magnitude": [_number(v) for v in a.values],
-                           "std": [_number(v) for v in a.std], "range": [a.lower, a.upper]} for a in result.added],
-        "traces": traces,
-        "fields": fields,
-        "timings_s": result.timings,
-    }
+    return CloseLoopResult(
+        status="found", message=message, before=before, analyses_before=analyses_before,
+        within_model_before=within_before, p_value_before=p_before, traces=tuple(traces), added=tuple(added),
+        bases_after=bases_after, after=after, analyses_after=analyses_after, within_model_after=within_after,
+        p_value_after=p_after, timings=timings,
+    )
