@@ -1,5 +1,6 @@
 """Hierarchical basis (Fig. 5) on synthetic ensembles with known interaction effects."""
 
+import logging
 from dataclasses import replace
 
 import numpy as np
@@ -27,10 +28,11 @@ def interacting():
     return (skin, *interacting_ensemble(skin))
 
 
-def test_finds_exactly_the_true_interactions(interacting):
+def test_finds_exactly_the_true_interactions(interacting, caplog):
     _, _, ensemble, _ = interacting
-    lines = []
-    basis = HierarchicalBasis(epsilon=0.01, progress=lines.append).fit(ensemble)
+    with caplog.at_level(logging.INFO, logger="hood_decomp.core.method.hierarchical"):
+        basis = HierarchicalBasis(epsilon=0.01).fit(ensemble)
+    lines = [r.getMessage() for r in caplog.records if r.name == "hood_decomp.core.method.hierarchical"]
     assert basis.effect_names_ == (*SINGLES, "LOCK_L & LOCK_R", "HINGE_X & HINGE_Y & LOCK_L")
     assert basis.effect_parameters(5) == ("LOCK_L", "LOCK_R")
     assert basis.effect_parameters(6) == ("HINGE_X", "HINGE_Y", "LOCK_L")

@@ -16,12 +16,14 @@ field is kept as a combination of ensemble members, so its 3D field and paramete
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import logging
 
 import numpy as np
 
 from hood_decomp.core.types import Ensemble
 from hood_decomp.errors import BasisError
+
+logger = logging.getLogger(__name__)
 
 LOADS = "LOADS"
 # A field whose part orthogonal to the current span is below this fraction of its norm adds no direction: it is
@@ -31,11 +33,108 @@ LOADS = "LOADS"
 DEPENDENT_RTOL = 1e-5
 
 
+class _GreedyBuild:
+    """Scratch state of one greedy build: the basis fields and effects found so far and the orthonormal span Q.
+
+    x: (M, N) mm member normal fields. Every basis field is kept with its member weights (M,), so its 3D field and
+    parameter state follow by the same weights. While a rank is worked on, ``diff`` (R, N) holds its members' parts
+    outside the span.
+    """
+
+    def __init__(self, x: np.ndarray, n_params: int) -> None:
+        self.x = x
+        self.eye = np.eye(len(x))
+        self.q = np.zeros((2 * n_params + 2, x.shape[1]))  # rows 0..k-1 span the basis; grows by doubling
+        self.k = 0
+        self.combos: list[np.ndarray] = []  # per basis field: member weights (M,)
+        self.normal: list[np.ndarray] = []  # per basis field: normal values (N,) mm
+        self.members: list[int] = []  # per basis field: the member that defined it
+        self.independent: list[bool] = []  # per basis field: brought a new direction
+        self.names: list[str] = []  # per effect
+        self.masks: list[np.ndarray] = []  # per effect: (P,) parameters involved
+        self.ranks: list[int] = []  # per effect
+        self.effect_fields: list[list[int]] = []  # per effect: indices of B_i and B_i^-1 (-1: none)
+        self.diff: np.ndarray | None = None
+
+    def add(self, vector: np.ndarray, combination: np.ndarray, member: int) -> None:
+        """Add one basis field (normal values (N,), member weights (M,)); extend Q if it brings a new direction."""
+        self.combos.append(combination)
+        self.normal.append(vector)
+        self.members.append(member)
+        if self.k == self.q.shape[0]:
+            self.q = np.vstack([self.q, np.zeros_like(self.q)])
+        q = self.q[: self.k]
+        h = q @ vector
+        rest = vector - h @ q
+        h2 = q @ rest
+        rest -= h2 @ q
+        h += h2
+        norm = float(np.linalg.norm(rest))
+        if norm <= DEPENDENT_RTOL * max(float(np.linalg.norm(vector)), 1e-300):
+            self.independent.append(False)
+            return
+        self.independent.append(True)
+        direction = rest / norm
+        self.q[self.k] = direction
+        self.k += 1
+        if self.diff is not None:
+            self.diff -= np.outer(self.diff @ direction, direction)
+
+    def add_effect(self, name: str, mask: np.ndarray, rank: int, fields: list[int]) -> None:
+        """Record an effect over the basis fields ``fields``; a repeated name gets a ``#2``, ``#3`` ... suffix."""
+        base, count = name, 2
+        while name in self.names:
+            name = f"{base} #{count}"
+            count += 1
+        self.names.append(name)
+        self.masks.append(mask)
+        self.ranks.append(rank)
+        self.effect_fields.append([*fields, -1][:2])
+
+    def difference(self, member: int, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Difference field of ``member`` (N,) and its member weights (M,): the member minus its least-squares fit
+        with the effects whose parameters it involves (LOADS included)."""
+        fields = [i for e, m in enumerate(self.masks) if not np.any(m & ~mask)
+                  for i in self.effect_fields[e] if i >= 0 and self.independent[i]]
+        sub = np.array([self.normal[i] for i in fields])
+        coeff = np.linalg.lstsq(sub.T, self.x[member], rcond=None)[0]
+        combo = self.eye[member] - coeff @ np.array([self.combos[i] for i in fields])
+        return self.x[member] - coeff @ sub, combo
+
+    def grow_rank(self, rank: int, members: np.ndarray, commanded: np.ndarray, names: tuple[str, ...],
+                  epsilon: float, trace: list[tuple[int, int, float]]) -> float:
+        """Add effects until every member of ``rank`` (indices ``members``) is within ``epsilon`` mm of the span; one
+        trace row per step. Returns the rank's final worst member error (mm)."""
+        x = self.x
+        q = self.q[: self.k]
+        self.diff = x[members] - (x[members] @ q.T) @ q
+        while True:
+            errors = np.abs(self.diff).max(axis=1)
+            worst = int(np.argmax(errors))
+            trace.append((rank, len(self.names), float(errors[worst])))
+            if errors[worst] <= epsilon:
+                self.diff = None
+                return float(errors[worst])
+            m = int(members[worst])
+            partner = np.flatnonzero(np.all(commanded[members] == -commanded[m], axis=1))
+            mask = commanded[m] != 0
+            group = [m] + [int(members[i]) for i in partner[:1]]
+            diffs = [(*self.difference(j, mask), j) for j in group]
+            k_before = self.k
+            fields = []
+            for diff, combo, j in diffs:
+                fields.append(len(self.combos))
+                self.add(diff, combo, j)
+            if self.k == k_before:
+                raise BasisError(f"rank {rank}: the worst member ({errors[worst]:.3g} mm) adds no new direction")
+            self.add_effect(" & ".join(n for n, used in zip(names, mask, strict=True) if used), mask, rank, fields)
+            logger.info("hierarchical: rank %d, max error %.4g mm -> %d effects", rank, errors[worst], len(self.names))
+
+
 class HierarchicalBasis:
     """Greedy hierarchical basis of effects (Fig. 5).
 
-    Parameters: epsilon (mm), the largest allowed max-abs difference of any member; progress, an optional callable
-    taking one line of text.
+    Parameters: epsilon (mm), the largest allowed max-abs difference of any member. Progress is logged (INFO).
 
     Fitted attributes (F basis fields, E effects, N nodes, P parameters):
     model_id_, names_, n_bilateral_, epsilon_.
@@ -48,64 +147,12 @@ class HierarchicalBasis:
     rank_max_error_ (R,) mm: the final worst member error of each rank; gram_ (F, F) over all nodes.
     """
 
-    def __init__(self, epsilon: float = 0.1, progress: Callable[[str], None] | None = None):
+    def __init__(self, epsilon: float = 0.1) -> None:
         self.epsilon = epsilon
-        self.progress = progress
-
-    # -- growing the orthonormal span ------------------------------------------------------------------------
-    def _add(self, vector: np.ndarray, combination: np.ndarray, member: int) -> None:
-        """Add one basis field (normal values (N,), member weights (M,)); extend Q if it brings a new direction."""
-        self._combos.append(combination)
-        self._normal.append(vector)
-        self._members.append(member)
-        if self._k == self._q.shape[0]:
-            self._q = np.vstack([self._q, np.zeros_like(self._q)])
-        q = self._q[: self._k]
-        h = q @ vector
-        rest = vector - h @ q
-        h2 = q @ rest
-        rest -= h2 @ q
-        h += h2
-        norm = float(np.linalg.norm(rest))
-        if norm <= DEPENDENT_RTOL * max(float(np.linalg.norm(vector)), 1e-300):
-            self._independent.append(False)
-            return
-        self._independent.append(True)
-        direction = rest / norm
-        self._q[self._k] = direction
-        self._k += 1
-        if self._diff is not None:
-            self._diff -= np.outer(self._diff @ direction, direction)
-
-    def _difference(self, member: int, mask: np.ndarray, x: np.ndarray, eye: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray]:
-        """Difference field of ``member`` (N,) and its member weights (M,): the member minus its least-squares fit
-        with the effects whose parameters it involves (LOADS included)."""
-        fields = [i for e, m in enumerate(self._masks) if not np.any(m & ~mask)
-                  for i in self._effect_fields[e] if i >= 0 and self._independent[i]]
-        sub = np.array([self._normal[i] for i in fields])
-        coeff = np.linalg.lstsq(sub.T, x[member], rcond=None)[0]
-        combo = eye[member] - coeff @ np.array([self._combos[i] for i in fields])
-        return x[member] - coeff @ sub, combo
-
-    def _say(self, text: str) -> None:
-        if self.progress is not None:
-            self.progress(text)
-
-    def _add_effect(self, name: str, mask: np.ndarray, rank: int, fields: list[int]) -> None:
-        base, count = name, 2
-        while name in self._names:
-            name = f"{base} #{count}"
-            count += 1
-        self._names.append(name)
-        self._masks.append(mask)
-        self._ranks.append(rank)
-        self._effect_fields.append([*fields, -1][:2])
 
     def fit(self, ensemble: Ensemble) -> HierarchicalBasis:
         """Build the basis from a full-factorial ensemble (ranks >= 0, both signs of every sample present)."""
         x = np.asarray(ensemble.normal_displacement, dtype=float)
-        n_members, n_nodes = x.shape
         commanded = np.asarray(ensemble.commanded, dtype=float)
         rank = np.asarray(ensemble.rank)
         names = tuple(ensemble.names)
@@ -119,24 +166,11 @@ class HierarchicalBasis:
         if rank0.size != 1:
             raise BasisError(f"expected exactly one rank-0 member, found {rank0.size}")
 
-        eye = np.eye(n_members)
-        self._q = np.zeros((2 * len(names) + 2, n_nodes))  # grows by doubling
-        self._k = 0
-        self._combos: list[np.ndarray] = []
-        self._normal: list[np.ndarray] = []
-        self._members: list[int] = []
-        self._independent: list[bool] = []
-        self._names: list[str] = []
-        self._masks: list[np.ndarray] = []
-        self._ranks: list[int] = []
-        self._effect_fields: list[list[int]] = []
-        self._diff = None
-        trace: list[tuple[int, int, float]] = []
-
+        build = _GreedyBuild(x, len(names))
         origin = int(rank0[0])
         if np.abs(x[origin]).max() > 1e-12:
-            self._add(x[origin], eye[origin], origin)
-            self._add_effect(LOADS, np.zeros(len(names), dtype=bool), 0, [0])
+            build.add(x[origin], build.eye[origin], origin)
+            build.add_effect(LOADS, np.zeros(len(names), dtype=bool), 0, [0])
         for p, label in enumerate(names):
             pair = []
             for sign in (1.0, -1.0):
@@ -145,42 +179,17 @@ class HierarchicalBasis:
                     raise BasisError(f"expected one rank-1 member with {label} at its {'max' if sign > 0 else 'min'}, "
                                      f"found {hit.size}")
                 m = int(hit[0])
-                pair.append(len(self._combos))
-                self._add(x[m] - x[origin], eye[m] - eye[origin], m)
-            self._add_effect(label, np.arange(len(names)) == p, 1, pair)
-        self._say(f"hierarchical: rank 0-1 basis, {len(self._names)} effects")
+                pair.append(len(build.combos))
+                build.add(x[m] - x[origin], build.eye[m] - build.eye[origin], m)
+            build.add_effect(label, np.arange(len(names)) == p, 1, pair)
+        logger.info("hierarchical: rank 0-1 basis, %d effects", len(build.names))
 
-        max_rank = int(rank.max())
-        rank_error = np.zeros(max_rank + 1)
-        for r in range(2, max_rank + 1):
-            members = np.flatnonzero(rank == r)
-            q = self._q[: self._k]
-            self._diff = x[members] - (x[members] @ q.T) @ q
-            while True:
-                errors = np.abs(self._diff).max(axis=1)
-                worst = int(np.argmax(errors))
-                trace.append((r, len(self._names), float(errors[worst])))
-                if errors[worst] <= self.epsilon:
-                    rank_error[r] = errors[worst]
-                    break
-                m = int(members[worst])
-                partner = np.flatnonzero(np.all(commanded[members] == -commanded[m], axis=1))
-                mask = commanded[m] != 0
-                group = [m] + [int(members[i]) for i in partner[:1]]
-                diffs = [(*self._difference(j, mask, x, eye), j) for j in group]
-                k_before = self._k
-                fields = []
-                for diff, combo, j in diffs:
-                    fields.append(len(self._combos))
-                    self._add(diff, combo, j)
-                if self._k == k_before:
-                    raise BasisError(f"rank {r}: the worst member ({errors[worst]:.3g} mm) adds no new direction")
-                self._add_effect(" & ".join(n for n, used in zip(names, mask, strict=True) if used), mask, r, fields)
-                self._say(f"hierarchical: rank {r}, max error {errors[worst]:.4g} mm -> {len(self._names)} effects")
-            self._diff = None
-        rank_error[:2] = 0.0
+        trace: list[tuple[int, int, float]] = []
+        rank_error = np.zeros(int(rank.max()) + 1)
+        for r in range(2, len(rank_error)):
+            rank_error[r] = build.grow_rank(r, np.flatnonzero(rank == r), commanded, names, self.epsilon, trace)
 
-        combos = np.array(self._combos)
+        combos = np.array(build.combos)
         self.model_id_ = ensemble.model_id
         self.names_ = names
         self.n_bilateral_ = int(ensemble.n_bilateral)
@@ -188,18 +197,15 @@ class HierarchicalBasis:
         self.fields_ = combos @ x
         self.fields_3d_ = np.tensordot(combos, np.asarray(ensemble.displacement, dtype=float), axes=1)
         self.field_states_ = combos @ np.asarray(ensemble.effective, dtype=float)
-        self.field_member_ = np.array(self._members, dtype=np.int64)
-        self.independent_ = np.array(self._independent, dtype=bool)
-        self.effect_names_ = tuple(self._names)
-        self.effect_mask_ = np.array(self._masks, dtype=bool).reshape(len(self._names), len(names))
-        self.effect_fields_ = np.array(self._effect_fields, dtype=np.int64).reshape(len(self._names), 2)
-        self.effect_rank_ = np.array(self._ranks, dtype=np.int64)
+        self.field_member_ = np.array(build.members, dtype=np.int64)
+        self.independent_ = np.array(build.independent, dtype=bool)
+        self.effect_names_ = tuple(build.names)
+        self.effect_mask_ = np.array(build.masks, dtype=bool).reshape(len(build.names), len(names))
+        self.effect_fields_ = np.array(build.effect_fields, dtype=np.int64).reshape(len(build.names), 2)
+        self.effect_rank_ = np.array(build.ranks, dtype=np.int64)
         self.trace_ = np.array(trace, dtype=float).reshape(len(trace), 3)
         self.rank_max_error_ = rank_error
         self.gram_ = self.fields_ @ self.fields_.T
-        for attr in ("_q", "_normal", "_combos", "_members", "_independent", "_names", "_masks", "_ranks",
-                     "_effect_fields", "_diff", "_k"):
-            delattr(self, attr)
         return self
 
     def effect_parameters(self, index: int) -> tuple[str, ...]:
