@@ -1,13 +1,14 @@
 """The bases of one model (section 3.1.2) and what is done with them: build, estimate, decompose.
 
 A :class:`Bases` bundles the PCA basis, the hierarchical basis, the visible skin and (optionally) the reduced FE
-model; it is all estimation and decomposition need. Saving and loading is in :mod:`hood_decomp.io.bases`.
+model; it is all estimation and decomposition need, and it keeps its contact-aware estimator once fitted, so a stream
+of fields (the estimator node, the CLI) prepares it once. Saving and loading is in :mod:`hood_decomp.io.bases`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+import dataclasses
+import logging
 
 from hood_decomp.core.method.contact_estimation import ContactEstimator
 from hood_decomp.core.method.decomposition import decompose
@@ -24,10 +25,12 @@ from hood_decomp.core.types import (
 )
 from hood_decomp.errors import BasisError, ModelIdMismatchError
 
+logger = logging.getLogger(__name__)
+
 METHODS = ("contact", "pca")
 
 
-@dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True)
 class Bases:
     """Everything a bases file holds. reduced_model is None when the bases were built without one (then only the
     paper's "pca" estimator is available)."""
@@ -37,10 +40,27 @@ class Bases:
     pca: PCABasis
     hierarchical: HierarchicalBasis
     reduced_model: ReducedModel | None
+    # min_coverage -> fitted ContactEstimator; filled on first use, not part of the bases' value
+    _contact_estimators: dict[float, ContactEstimator] = dataclasses.field(default_factory=dict, init=False,
+                                                                           repr=False, compare=False)
 
     @property
     def names(self) -> tuple[str, ...]:
         return self.pca.names_
+
+    def contact_estimator(self, min_coverage: float = DEFAULT_MIN_COVERAGE) -> ContactEstimator:
+        """The contact-aware estimator on these bases, fitted on first use and kept (one per ``min_coverage``).
+
+        Fitting forms the (B + S, N) fields and their Gram matrix, which costs as much as estimating a field; the
+        fitted estimator is only read by ``estimate``, so one instance serves every later field.
+        """
+        if self.reduced_model is None:
+            raise BasisError("the bases file holds no reduced model: the contact-aware estimator needs one (use 'pca')")
+        estimator = self._contact_estimators.get(min_coverage)
+        if estimator is None:
+            estimator = ContactEstimator(min_coverage).fit(self.reduced_model, self.pca.lower_, self.pca.upper_)
+            estimator = self._contact_estimators.setdefault(min_coverage, estimator)
+        return estimator
 
 
 def build_bases(
@@ -50,7 +70,6 @@ def build_bases(
     n_components: int | None = 10,
     explained_variance: float | None = None,
     epsilon: float = 0.1,
-    progress: Callable[[str], None] | None = None,
 ) -> Bases:
     """Build both bases from a full-factorial ensemble (section 3.1.2) and bundle them with the skin and model."""
     for what, other in (("skin", skin.model_id), ("reduced model", getattr(reduced_model, "model_id", None))):
@@ -59,12 +78,11 @@ def build_bases(
     if skin.n_nodes != ensemble.normal_displacement.shape[1]:
         raise BasisError(f"skin has {skin.n_nodes} nodes, ensemble fields have {ensemble.normal_displacement.shape[1]}")
     pca = PCABasis(n_components=n_components, explained_variance=explained_variance).fit(ensemble)
-    if progress is not None:
-        progress(f"PCA: {pca.n_components_} components, cumulative explained variance "
-                 f"{pca.cumulative_explained_variance_[pca.n_components_ - 1]:.8f}")
-        for note in pca.notes_:
-            progress(f"PCA: {note}")
-    hierarchical = HierarchicalBasis(epsilon=epsilon, progress=progress).fit(ensemble)
+    logger.info("PCA: %d components, cumulative explained variance %.8f", pca.n_components_,
+                pca.cumulative_explained_variance_[pca.n_components_ - 1])
+    for note in pca.notes_:
+        logger.info("PCA: %s", note)
+    hierarchical = HierarchicalBasis(epsilon=epsilon).fit(ensemble)
     return Bases(ensemble.model_id, skin, pca, hierarchical, reduced_model)
 
 
@@ -76,10 +94,7 @@ def estimate_field(
         raise BasisError(f"unknown estimation method {method!r}, expected one of {METHODS}")
     if method == "pca":
         return estimate_pca(bases.pca, field, min_coverage)
-    if bases.reduced_model is None:
-        raise BasisError("the bases file holds no reduced model: the contact-aware estimator needs one (use 'pca')")
-    estimator = ContactEstimator(min_coverage).fit(bases.reduced_model, bases.pca.lower_, bases.pca.upper_)
-    return estimator.estimate(field)
+    return bases.contact_estimator(min_coverage).estimate(field)
 
 
 def decompose_field(

@@ -27,8 +27,8 @@ Units: mm throughout. Node order: the skin's.
 
 from __future__ import annotations
 
+import logging
 import os
-from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -40,6 +40,8 @@ from scipy.spatial import cKDTree
 from hood_decomp.core.scan.registration import RegistrationResult, register_scan
 from hood_decomp.core.types import DisplacementField, SkinSurface
 from hood_decomp.errors import ScanError
+
+logger = logging.getLogger(__name__)
 
 # A lookup grid finer than this many cells would cost more memory than it saves time.
 _MAX_GRID_CELLS = 12_000_000
@@ -409,12 +411,7 @@ class ScanFieldEstimator:
         coef, inv00 = _solve_3x3(system, rhs)
         return coef, s0, s0 * inv00
 
-    def field(
-        self,
-        points_mm: np.ndarray,
-        transform: np.ndarray | None = None,
-        progress: Callable[[str], None] | None = None,
-    ) -> DisplacementField:
+    def field(self, points_mm: np.ndarray, transform: np.ndarray | None = None) -> DisplacementField:
         """The signed normal displacement (N,) mm of every skin node from scan points (M, 3), mm, in the part frame
         (or in the scanner frame with ``transform`` (4, 4) the scanner-to-part registration).
 
@@ -428,8 +425,7 @@ class ScanFieldEstimator:
         cells = self._cell_moments(j, u, v, d)
         mixed = self.kernel_ @ self._raw_moments(cells)
         coef, _, _ = self._node_fits(mixed)
-        if progress is not None:
-            progress(f"first pass: {j.size} points on the skin")
+        logger.info("first pass: %d points on the skin", j.size)
         # Second pass: drop points far from their own node's fit and take their sums out of the cells and, through
         # the few kernel columns of those cells, out of the mixed moments.
         c = coef[j]
@@ -455,8 +451,7 @@ class ScanFieldEstimator:
         inlier = finite.copy()
         inlier[drop] = False
         noise = float(np.sqrt(np.mean(residual[inlier] ** 2))) if inlier.any() else float("nan")
-        if progress is not None:
-            progress(f"second pass: {j.size - drop.size} inliers, {int(supported.sum())} of {n} nodes seen")
+        logger.info("second pass: %d inliers, %d of %d nodes seen", j.size - drop.size, supported.sum(), n)
         return DisplacementField(self.skin_.model_id, value, float(supported.mean()), noise)
 
 
@@ -519,7 +514,6 @@ def field_from_scan(
     min_coverage: float = 0.2,
     min_overlap: float = 0.02,
     estimator: ScanFieldEstimator | None = None,
-    progress: Callable[[str], None] | None = None,
 ) -> tuple[DisplacementField, RegistrationResult]:
     """A raw scan (M, 3) mm in the scanner frame -> registered -> signed normal displacement per skin node.
 
@@ -547,14 +541,13 @@ def field_from_scan(
         datum_mask=datum_mask,
         tolerance_mm=datum_tolerance_mm,
     )
-    if progress is not None:
-        progress(f"registered by {registration.method}: overlap {registration.overlap:.1%}")
+    logger.info("registered by %s: overlap %.1f%%", registration.method, 100.0 * registration.overlap)
     if registration.overlap < min_overlap:
         raise ScanError(
             f"scan does not overlap the part: {registration.overlap:.2%} of {points.shape[0]} points lie within "
             f"{est.max_distance_mm} mm of the nominal skin after registration (expected at least {min_overlap:.0%})"
         )
-    field = est.field(points, registration.transform, progress=progress)
+    field = est.field(points, registration.transform)
     if field.coverage < min_coverage:
         raise ScanError(
             f"scan coverage too low: {field.coverage:.1%} of {skin.n_nodes} skin nodes have support "
