@@ -1,4 +1,4 @@
-"""Field files: a displacement field as a ``.vtu`` on the visible skin (DESIGN.md, "A field file").
+"""Field files: a displacement field as a ``.vtu`` on the visible skin.
 
 Layout: points = skin node positions (N, 3) mm, triangle cells = skin triangles, point data ``normal_displacement``
 (N,) mm (NaN where unknown) and, when known, ``displacement`` (N, 3) mm. VTK FieldData carries ``model_id`` (UInt8
