@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import array
 import json
+import logging
 import pathlib
 import platform
 import statistics
@@ -42,6 +43,15 @@ def log(line: str) -> None:
     print(f"[bench_nodes {time.strftime('%H:%M:%S')}] {line}", file=sys.stderr, flush=True)
 
 
+def log_library_progress() -> None:
+    """The package's progress (its INFO log records) on stderr, formatted like :func:`log`."""
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("[bench_nodes %(asctime)s] %(message)s", "%H:%M:%S"))
+    package = logging.getLogger("hood_decomp")
+    package.addHandler(handler)
+    package.setLevel(logging.INFO)
+
+
 def prepared(resolution: str):
     """(skin, solver, reduced, bases path), building and caching the ensemble and bases when missing."""
     from hood_decomp.core.fe.hood_preset import build_hood
@@ -55,14 +65,14 @@ def prepared(resolution: str):
     cache.mkdir(parents=True, exist_ok=True)
     model = build_hood(resolution)
     skin = skin_surface(model)
-    solver = build_solver(model, progress=log)
+    solver = build_solver(model)
     reduced = reduce_model(solver)
     bases_path = cache / "bases.h5"
     if not bases_path.exists():
         ensemble_path = cache / "ensemble.h5"
         if not ensemble_path.exists():
-            write_ensemble(ensemble_path, reduced, skin, model.lower, model.upper, n_validation=0, progress=log)
-        save_bases(bases_path, build_bases(load_ensemble(ensemble_path), skin, reduced, progress=log))
+            write_ensemble(ensemble_path, reduced, skin, model.lower, model.upper, n_validation=0)
+        save_bases(bases_path, build_bases(load_ensemble(ensemble_path), skin, reduced))
     return skin, solver, reduced, bases_path
 
 
@@ -75,6 +85,7 @@ def main() -> int:
     parser.add_argument("--oversize-points", type=int, default=0,
                         help="also send one cloud of this many points (e.g. 20000000) and check it is refused")
     args = parser.parse_args()
+    log_library_progress()
     skin, solver, reduced, bases_path = prepared(args.resolution)
     rng = np.random.default_rng(0)
     scans = [make_scenario_scan(f"s{i}", solver, reduced, skin,

@@ -4,11 +4,13 @@ Nodes stay wiring only: declare parameters, convert, call the core, convert, pub
 message (bad input, a core error, a bug) is reported on /diagnostics with the stamp of the offending message and the
 node keeps serving the next one. Messages that never reach the node (the keep-last queue overflowed while it was busy,
 or they were published before it subscribed) are counted from gaps in the publishers' sequence numbers and reported
-too: nothing disappears unannounced.
+too: nothing disappears unannounced. What the package's modules log (``logging``, e.g. the scan field's progress lines)
+goes to the node's ROS logger.
 """
 
 from __future__ import annotations
 
+import logging
 import traceback
 from collections.abc import Callable
 from typing import Any
@@ -16,6 +18,7 @@ from typing import Any
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.impl.rcutils_logger import RcutilsLogger
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
@@ -113,13 +116,51 @@ def load_bases_or_reason(path: str) -> tuple[Any, str]:
         return None, f"bases not loaded: {error}"
 
 
+class RosLogHandler(logging.Handler):
+    """Forwards :mod:`logging` records to an rclpy logger at the matching severity."""
+
+    def __init__(self, ros_logger: RcutilsLogger) -> None:
+        super().__init__()
+        self.ros_logger = ros_logger
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            message = self.format(record)
+            # One call per severity: rclpy ties each call site to the severity it was first called with.
+            if record.levelno >= logging.CRITICAL:
+                self.ros_logger.fatal(message)
+            elif record.levelno >= logging.ERROR:
+                self.ros_logger.error(message)
+            elif record.levelno >= logging.WARNING:
+                self.ros_logger.warning(message)
+            elif record.levelno >= logging.INFO:
+                self.ros_logger.info(message)
+            else:
+                self.ros_logger.debug(message)
+        except Exception:  # logging must never break the node
+            self.handleError(record)
+
+
+def forward_package_logging(ros_logger: RcutilsLogger) -> None:
+    """Send the records of every ``hood_decomp`` logger to ``ros_logger`` (a node's), at that logger's level.
+
+    Once per process: if a forwarding handler is already installed, this does nothing.
+    """
+    package = logging.getLogger("hood_decomp")
+    if any(isinstance(handler, RosLogHandler) for handler in package.handlers):
+        return
+    package.addHandler(RosLogHandler(ros_logger))
+    package.setLevel(int(ros_logger.get_effective_level()))
+
+
 class HoodNode(Node):
     """What every hood_decomp node has: the ``bases`` and ``queue_depth`` parameters, the bases loaded (or the reason
-    they are not, reported at start and on every message), diagnostics, and publishers/subscriptions with the
-    project's QoS, overridable per topic."""
+    they are not, reported at start and on every message), diagnostics, publishers/subscriptions with the project's
+    QoS, overridable per topic, and the package's log records in its ROS log."""
 
     def __init__(self, name: str) -> None:
         super().__init__(name)
+        forward_package_logging(self.get_logger())
         self.bases_path = declare(self, "bases", "", "path of the bases file (hood-decomp bases --out)")
         self.depth = declare(self, "queue_depth", 10, "messages held per topic while the node is busy", 1, 1000)
         self.diagnostics = Diagnostics(self)

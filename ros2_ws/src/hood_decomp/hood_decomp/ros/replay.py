@@ -8,6 +8,7 @@ recorded, as it arrives, into an MCAP bag.
 
 from __future__ import annotations
 
+import logging
 import pathlib
 import time
 from collections.abc import Callable, Sequence
@@ -23,6 +24,8 @@ from sensor_msgs.msg import PointCloud2
 from hood_decomp.errors import BagError
 from hood_decomp.io.bags import BagWriter, Record, read_bag
 from hood_decomp.ros.participant import Participant
+
+logger = logging.getLogger(__name__)
 
 SCAN_TOPIC = "scan/points"
 OUTPUTS: dict[str, type] = {
@@ -61,8 +64,7 @@ class ReplayResult:
 
 def replay_bag(bag: str | pathlib.Path, *, record: str | pathlib.Path | None = None, timeout_s: float = 60.0,
                startup_timeout_s: float = 60.0, settle_s: float = 3.0, publish_clock: bool = False,
-               answers: Sequence[str] = ANSWERS,
-               progress: Callable[[str], None] | None = None) -> ReplayResult:
+               answers: Sequence[str] = ANSWERS) -> ReplayResult:
     """Publish the scans of ``bag`` into running nodes; record their output into ``record`` (a new bag directory).
 
     timeout_s: longest wait for the answer to one scan; startup_timeout_s: longest wait for the nodes to appear;
@@ -119,9 +121,8 @@ def replay_bag(bag: str | pathlib.Path, *, record: str | pathlib.Path | None = N
                 result.unanswered.append(key)
             elif key not in result.refused:
                 result.answered += 1
-            if progress is not None:
-                state = "refused" if key in result.refused else "answered" if done else "NO ANSWER"
-                progress(f"scan {index}/{len(scans)} (stamp {key}): {state}")
+            state = "refused" if key in result.refused else "answered" if done else "NO ANSWER"
+            logger.info("scan %d/%d (stamp %s): %s", index, len(scans), key, state)
         last_arrival[0] = time.monotonic()
         peer.wait(lambda: time.monotonic() - last_arrival[0] > settle_s, settle_s + timeout_s)
     result.seconds = time.monotonic() - start
