@@ -24,6 +24,8 @@ from hood_decomp.core.types import (
     ParameterEstimate,
 )
 from hood_decomp.ros import messages
+from hood_decomp.ros.pointcloud import cloud_channel, cloud_to_xyz, xyz_to_cloud
+from tests.toy_models import make_skin
 
 MSG_DIR = pathlib.Path(__file__).parents[2] / "ros2_ws/src/hood_decomp_msgs/msg"
 NAMES = ["DisplacementField", "BoundaryState", "BoundaryCorrection", "EffectField", "EffectFields"]
@@ -109,3 +111,53 @@ def test_effect_fields_mm_to_m(typestore):
     np.testing.assert_allclose(back.effects[1].contribution, [0.0, 1.0])
     np.testing.assert_allclose(back.residual, [0.001, np.nan], rtol=1e-6)
     assert back.reconstruction_rms == pytest.approx(0.0007)
+
+
+def _cloud(points_m: np.ndarray, ids: np.ndarray | None = None):
+    return xyz_to_cloud(points_m, Header(), channels=None if ids is None else {"marker_id": ids})
+
+
+def test_scan_cloud_to_mm_drops_no_return_points_and_takes_known_markers_out():
+    points_m = np.array([[0.1, 0.2, 0.3], [np.nan, 0.0, 0.0], [0.4, 0.5, 0.6], [1.0, 2.0, 3.0], [4.0, 5.0, 6.0],
+                         [np.nan, 8.0, 9.0], [7.0, 8.0, 9.0]])
+    ids = np.array([-1, -1, -1, 3, 9, 4, 4], dtype=float)  # marker 9 is not configured; one centre of 4 has no return
+    nominal = {3: np.array([10.0, 20.0, 30.0]), 4: np.array([40.0, 50.0, 60.0])}
+    surface, markers, markers_nominal = messages.scan_to_mm(_cloud(points_m, ids), "marker_id", nominal)
+    np.testing.assert_allclose(surface, [[100.0, 200.0, 300.0], [400.0, 500.0, 600.0]], rtol=1e-6)
+    np.testing.assert_allclose(markers, [[1000.0, 2000.0, 3000.0], [7000.0, 8000.0, 9000.0]], rtol=1e-6)
+    np.testing.assert_array_equal(markers_nominal, [nominal[3], nominal[4]])
+    # No marker configured (or no marker channel): every finite point is a surface point.
+    surface, markers, markers_nominal = messages.scan_to_mm(_cloud(points_m, ids), "marker_id", {})
+    assert surface.shape == (5, 3) and markers is None and markers_nominal is None
+    assert messages.scan_to_mm(_cloud(points_m), "marker_id", nominal)[0].shape == (5, 3)
+    # Nothing finite: the rows go on whole, so the core names the all-NaN scan.
+    surface, _, _ = messages.scan_to_mm(_cloud(np.full((4, 3), np.nan)), "marker_id", nominal)
+    assert surface.shape == (4, 3) and np.isnan(surface).all()
+
+
+def test_skin_clouds_are_the_skin_in_metres_with_the_per_node_channels():
+    skin = make_skin(6, 5)
+    values = np.linspace(-1.0, 1.0, skin.n_nodes)
+    values[3] = np.nan
+    clouds = messages.SkinClouds(skin)
+    header = Header(frame_id="hood")
+    cloud = clouds.displacement(DisplacementField(skin.model_id, values, 0.9, 0.01), header)
+    assert [f.name for f in cloud.fields] == ["x", "y", "z", "normal_displacement"] and cloud.header.frame_id == "hood"
+    np.testing.assert_allclose(cloud_to_xyz(cloud), skin.points / 1000.0, rtol=1e-7)
+    np.testing.assert_allclose(cloud_channel(cloud, "normal_displacement"), values / 1000.0, rtol=1e-6)
+    effect = EffectContribution("LOCK_L & LOCK_R", ("LOCK_L", "LOCK_R"), values, np.full(skin.n_nodes, 0.25), 0.25)
+    cloud = clouds.effects(Decomposition(skin.model_id, (effect,), values, values, 0.0), header)
+    assert [f.name for f in cloud.fields] == ["x", "y", "z", "LOCK_L__LOCK_R"]
+    np.testing.assert_array_equal(cloud_channel(cloud, "LOCK_L__LOCK_R"), 0.25)
+
+
+def test_cell_calibration_parameters_mm_to_m_and_back():
+    pose_mm = np.eye(4)
+    pose_mm[:3, 3] = [1200.0, -35.5, 800.0]
+    markers_mm = {"3": [10.0, 20.0, 30.0], "11": [-400.0, 0.0, 5.5]}
+    pose, markers = messages.calibration_to_params(pose_mm, markers_mm)
+    assert pose[3] == pytest.approx(1.2) and markers[:4] == pytest.approx([3.0, 0.01, 0.02, 0.03])
+    back_pose, back_markers = messages.calibration_from_params(pose, markers)
+    np.testing.assert_allclose(back_pose, pose_mm, rtol=1e-12)
+    assert sorted(back_markers) == [3, 11]
+    np.testing.assert_allclose(back_markers[11], markers_mm["11"], rtol=1e-12)

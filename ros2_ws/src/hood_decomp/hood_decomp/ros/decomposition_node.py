@@ -8,7 +8,6 @@ hierarchical subset is chosen from the estimate (paper step 3). A field whose st
 
 from __future__ import annotations
 
-import re
 import time
 from collections import OrderedDict
 from typing import Any, NamedTuple
@@ -18,7 +17,6 @@ from sensor_msgs.msg import PointCloud2
 
 from hood_decomp.ros import messages
 from hood_decomp.ros.node_common import HoodNode, declare, spin
-from hood_decomp.ros.pointcloud import xyz_to_cloud
 
 MAX_UNPAIRED_STATES = 100  # states are small; one whose field never comes is dropped after this many newer ones
 
@@ -33,11 +31,6 @@ def _key(header: Any) -> tuple[int, int]:
     return header.stamp.sec, header.stamp.nanosec
 
 
-def channel_name(effect_name: str) -> str:
-    """A PointCloud2 field name for an effect: 'LOCK_L & LOCK_R' -> 'LOCK_L__LOCK_R'."""
-    return re.sub(r"\W+", "_", effect_name.replace(" & ", "__"))
-
-
 class DecompositionNode(HoodNode):
     def __init__(self) -> None:
         super().__init__("hood_decomp_decomposition")
@@ -48,6 +41,7 @@ class DecompositionNode(HoodNode):
         self.min_coverage = declare(self, "min_coverage", 0.2, "smallest seen fraction of the skin", 0.0, 1.0)
         self.fields: OrderedDict[tuple[int, int], tuple[DisplacementField, float]] = OrderedDict()
         self.states: OrderedDict[tuple[int, int], BoundaryState] = OrderedDict()
+        self.skin_clouds = messages.SkinClouds(self.bases.skin) if self.bases is not None else None  # xyz once
         self.process = self.guarded("decomposition", self.decompose)
         self.effects_pub = self.publisher(EffectFields, "hood_decomp/effects")
         self.cloud_pub = self.publisher(PointCloud2, "hood_decomp/effects_cloud")
@@ -89,9 +83,7 @@ class DecompositionNode(HoodNode):
         decomposition = decompose_field(bases, messages.msg_to_field(pair.field), estimate,
                                         min_coverage=self.min_coverage)
         self.effects_pub.publish(messages.decomposition_to_msg(decomposition, pair.header))
-        channels = {channel_name(effect.name): effect.contribution for effect in decomposition.effects}
-        self.cloud_pub.publish(xyz_to_cloud(bases.skin.points, pair.header, channels=channels,
-                                            scale=messages.M_PER_MM))
+        self.cloud_pub.publish(self.skin_clouds.effects(decomposition, pair.header))
         return {"effects": ", ".join(effect.name for effect in decomposition.effects),
                 "paired_with_boundary_state": pair.state is not None,
                 "reconstruction_rms_mm": f"{decomposition.reconstruction_rms:.4f}"}

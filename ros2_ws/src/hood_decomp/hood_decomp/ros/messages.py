@@ -1,11 +1,15 @@
-"""hood_decomp_msgs <-> core dataclasses. The only place where millimetres (core) become metres (ROS, REP 103).
+"""hood_decomp_msgs and sensor_msgs <-> core data. The only place where millimetres (core) become metres (ROS, REP 103).
 
 Per-node arrays are copied once into the message's float32 array (``array.array('f')``), never element by element.
+Besides the project messages: the scan cloud in (:func:`scan_to_mm`), the skin clouds out (:class:`SkinClouds`) and
+the scan node's cell calibration parameters (:func:`calibration_from_params`, :func:`calibration_to_params`).
 """
 
 from __future__ import annotations
 
 import array
+import re
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -16,7 +20,9 @@ from hood_decomp.core.types import (
     DisplacementField,
     EffectContribution,
     ParameterEstimate,
+    SkinSurface,
 )
+from hood_decomp.ros.pointcloud import cloud_channel, cloud_to_xyz, xyz_to_cloud
 
 MM_PER_M = 1000.0
 M_PER_MM = 1.0 / MM_PER_M
@@ -171,3 +177,85 @@ def msg_to_decomposition(msg: Any) -> Decomposition:
         residual=_numpy(msg.residual, MM_PER_M),
         reconstruction_rms=float(msg.reconstruction_rms) * MM_PER_M,
     )
+
+
+def scan_to_mm(cloud: Any, marker_field: str, markers_nominal_mm: Mapping[int, np.ndarray]
+               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """A scan (sensor_msgs/PointCloud2, metres, scanner frame) as the core's inputs in mm.
+
+    Returns the surface points (M, 3) mm, and the measured marker centres (K, 3) mm (scanner frame) with their nominal
+    positions (K, 3) mm for the markers ``markers_nominal_mm`` (id -> (3,) mm, part frame) knows; both None when the
+    cloud has no ``marker_field`` channel, reports no known marker, or no marker is configured. In ``marker_field`` a
+    surface point has a negative id. Points without a return (NaN) are dropped in the same selection that takes the
+    markers out; when no surface point is finite the surface rows are passed on whole, so the core names the all-NaN
+    (or empty) scan.
+    """
+    points = cloud_to_xyz(cloud, scale=MM_PER_M, drop_nan=False)
+    finite = np.isfinite(points).all(axis=1)
+    surface = np.ones(len(points), dtype=bool)
+    markers = nominal = None
+    if markers_nominal_mm and marker_field in {field.name for field in cloud.fields}:
+        ids = cloud_channel(cloud, marker_field)
+        surface = ids < 0
+        known = np.isin(ids, np.fromiter(markers_nominal_mm, dtype=float)) & finite
+        if known.any():
+            markers = points[known]
+            nominal = np.array([markers_nominal_mm[int(i)] for i in ids[known]])
+    keep = surface & finite
+    if not keep.any():
+        keep = surface
+    return (points if keep.all() else points[keep]), markers, nominal
+
+
+def points_to_cloud(points_mm: np.ndarray, header: Any, channels: Mapping[str, np.ndarray] | None = None) -> Any:
+    """Points (M, 3) mm as a sensor_msgs/PointCloud2 in metres (float32), with per-point ``channels`` (M,) unscaled."""
+    return xyz_to_cloud(points_mm, header, channels=channels, scale=M_PER_MM)
+
+
+def channel_name(effect_name: str) -> str:
+    """A PointCloud2 field name for an effect: 'LOCK_L & LOCK_R' -> 'LOCK_L__LOCK_R'."""
+    return re.sub(r"\W+", "_", effect_name.replace(" & ", "__"))
+
+
+class SkinClouds:
+    """Per-node results over the skin as sensor_msgs/PointCloud2 (metres, for RViz).
+
+    The skin's node positions (N, 3) mm are converted to float32 metres once; each cloud only adds its channels.
+    """
+
+    def __init__(self, skin: SkinSurface) -> None:
+        self._xyz_m = (np.asarray(skin.points, dtype=np.float64) * M_PER_MM).astype(np.float32)
+
+    def displacement(self, field: DisplacementField, header: Any) -> Any:
+        """The skin with a ``normal_displacement`` channel (N,) in metres (NaN where unseen)."""
+        return xyz_to_cloud(self._xyz_m, header, channels={"normal_displacement": field.normal_displacement * M_PER_MM})
+
+    def effects(self, decomposition: Decomposition, header: Any) -> Any:
+        """The skin with one contribution channel (N,) per effect (0..1), named by :func:`channel_name`."""
+        return xyz_to_cloud(self._xyz_m, header, channels={channel_name(effect.name): effect.contribution
+                                                           for effect in decomposition.effects})
+
+
+def calibration_from_params(pose: Sequence[float], markers: Sequence[float]
+                            ) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+    """The scan node's cell calibration parameters (metres) in mm.
+
+    pose: 16 numbers, the row-major (4, 4) scanner-to-part transform with its translation in metres; markers: id, x,
+    y, z (metres, part frame) per reference marker. Returns the (4, 4) transform with its translation in mm and
+    marker id -> nominal centre (3,) mm.
+    """
+    scanner_pose = np.array(pose, dtype=float).reshape(4, 4)
+    scanner_pose[:3, 3] *= MM_PER_M
+    table = np.asarray(markers, dtype=float).reshape(-1, 4)
+    return scanner_pose, {int(row[0]): row[1:] * MM_PER_M for row in table}
+
+
+def calibration_to_params(pose_mm: np.ndarray, markers_mm: Mapping[int | str, Sequence[float]]
+                          ) -> tuple[list[float], list[float]]:
+    """The inverse of :func:`calibration_from_params`: the (4, 4) transform (translation mm) and marker id -> centre
+    (3,) mm as the parameter values (16 numbers; id, x, y, z per marker; metres)."""
+    pose = np.array(pose_mm, dtype=float).reshape(4, 4)
+    pose[:3, 3] *= M_PER_MM
+    markers = [value for marker_id, position in markers_mm.items()
+               for value in (float(marker_id), *(np.asarray(position, dtype=float) * M_PER_MM))]
+    return pose.ravel().tolist(), markers

@@ -18,8 +18,7 @@ from rclpy.serialization import serialize_message
 from std_msgs.msg import Header
 
 from hood_decomp.io.bags import Record, write_bag, write_sidecar
-from hood_decomp.ros.messages import M_PER_MM
-from hood_decomp.ros.pointcloud import xyz_to_cloud
+from hood_decomp.ros import messages
 from hood_decomp.synthetic.scanner import SyntheticScan
 from hood_decomp.synthetic.scenarios import ScenarioScan
 
@@ -42,19 +41,19 @@ def scan_cloud(scan: SyntheticScan, stamp_ns: int) -> Any:
     """The scan's points and marker centres as one PointCloud2 in metres, scanner frame."""
     points = np.vstack([scan.points, scan.markers])
     ids = np.concatenate([np.full(len(scan.points), -1.0), scan.marker_ids.astype(float)])
-    return xyz_to_cloud(points, _header(stamp_ns), channels={MARKER_FIELD: ids}, scale=M_PER_MM)
+    return messages.points_to_cloud(points, _header(stamp_ns), channels={MARKER_FIELD: ids})
 
 
 def malformed_cloud(kind: str, scan: SyntheticScan, stamp_ns: int, n_points: int = 5000) -> Any:
     """A cloud of (at most) ``n_points`` of the scan that is wrong in the way ``kind`` (a key of MALFORMED) says."""
     points = scan.points[:: max(1, len(scan.points) // n_points)]
     if kind == "empty":
-        return xyz_to_cloud(np.zeros((0, 3)), _header(stamp_ns))
+        return messages.points_to_cloud(np.zeros((0, 3)), _header(stamp_ns))
     if kind == "all_nan":
-        return xyz_to_cloud(np.full((n_points, 3), np.nan), _header(stamp_ns))
-    if kind == "metres_as_mm":
-        return xyz_to_cloud(points, _header(stamp_ns), scale=M_PER_MM * M_PER_MM)
-    cloud = xyz_to_cloud(points, _header(stamp_ns), scale=M_PER_MM)
+        return messages.points_to_cloud(np.full((n_points, 3), np.nan), _header(stamp_ns))
+    if kind == "metres_as_mm":  # converted to metres once too often
+        return messages.points_to_cloud(points * messages.M_PER_MM, _header(stamp_ns))
+    cloud = messages.points_to_cloud(points, _header(stamp_ns))
     if kind == "no_xyz":
         for field in cloud.fields:
             field.name = {"x": "a", "y": "b", "z": "c"}.get(field.name, field.name)
@@ -112,14 +111,11 @@ def write_node_params(path: str | pathlib.Path, sidecar: dict[str, Any],
                       decomposition_pair_timeout_s: float = 2.0) -> pathlib.Path:
     """A ROS parameter file (--params-file) with the cell calibration a bag's sidecar states, in ROS units (metres):
     the scan node's nominal scanner pose and reference-marker positions."""
-    pose = np.array(sidecar["scanner_pose_mm"], dtype=float)
-    pose[:3, 3] *= M_PER_MM
-    markers = [value for marker_id, position in sidecar["marker_positions_mm"].items()
-               for value in (float(marker_id), *(np.asarray(position, dtype=float) * M_PER_MM))]
+    pose, markers = messages.calibration_to_params(sidecar["scanner_pose_mm"], sidecar["marker_positions_mm"])
     path = pathlib.Path(path)
     path.write_text(
         "hood_decomp_scan:\n  ros__parameters:\n"
-        f"    scanner_pose: {json.dumps(pose.ravel().tolist())}\n"
+        f"    scanner_pose: {json.dumps(pose)}\n"
         f"    marker_positions: {json.dumps(markers)}\n"
         f"    marker_field: {MARKER_FIELD}\n"
         "hood_decomp_decomposition:\n  ros__parameters:\n"

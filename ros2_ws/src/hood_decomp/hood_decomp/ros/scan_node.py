@@ -1,9 +1,9 @@
 """Scan node: scan/points (sensor_msgs/PointCloud2, metres, scanner frame) -> hood_decomp/displacement and
 hood_decomp/displacement_cloud (the skin with a normal-displacement channel, metres, for RViz).
 
-The cloud is read with one buffer copy (hood_decomp.ros.pointcloud), registered to the nominal part and turned into
-one signed normal displacement per visible skin node (hood_decomp.core.scan.scan_field). Clouds larger than
-``max_points`` are refused before any copy.
+The cloud is read with one buffer copy (hood_decomp.ros.messages / pointcloud), registered to the nominal part and
+turned into one signed normal displacement per visible skin node (hood_decomp.core.scan.scan_field). Clouds larger
+than ``max_points`` are refused before any copy.
 """
 
 from __future__ import annotations
@@ -17,7 +17,6 @@ from sensor_msgs.msg import PointCloud2
 from hood_decomp.errors import ScanError
 from hood_decomp.ros import messages
 from hood_decomp.ros.node_common import HoodNode, declare, spin
-from hood_decomp.ros.pointcloud import cloud_channel, cloud_to_xyz, xyz_to_cloud
 
 
 class ScanNode(HoodNode):
@@ -32,15 +31,13 @@ class ScanNode(HoodNode):
         self.marker_field = declare(self, "marker_field", "marker_id", "per-point field holding marker ids")
         self.max_points = declare(self, "max_points", 5_000_000, "largest cloud accepted (points)", 1, 100_000_000)
         self.min_coverage = declare(self, "min_coverage", 0.2, "smallest seen fraction of the skin", 0.0, 1.0)
-        self.scanner_pose = np.asarray(pose, dtype=float).reshape(4, 4)
-        self.scanner_pose[:3, 3] *= messages.MM_PER_M
-        table = np.asarray(markers if markers is not None else [], dtype=float).reshape(-1, 4)
-        self.markers_nominal = {int(row[0]): row[1:] * messages.MM_PER_M for row in table}
-        self.estimator = None
-        if self.bases is not None:
+        self.scanner_pose, self.markers_nominal = messages.calibration_from_params(pose, markers or [])
+        self.estimator = self.skin_clouds = None
+        if self.bases is not None:  # one-time preparation of the skin: the scan-field estimator and the cloud's xyz
             from hood_decomp.core.scan.scan_field import prepared_estimator
 
-            self.estimator = prepared_estimator(self.bases.skin)  # one-time preparation of the skin
+            self.estimator = prepared_estimator(self.bases.skin)
+            self.skin_clouds = messages.SkinClouds(self.bases.skin)
         self.field_pub = self.publisher(DisplacementField, "hood_decomp/displacement")
         self.cloud_pub = self.publisher(PointCloud2, "hood_decomp/displacement_cloud")
         self.subscription(PointCloud2, "scan/points", self.guarded("scan", self.on_cloud))
@@ -53,35 +50,18 @@ class ScanNode(HoodNode):
         if n_points > self.max_points:
             raise ScanError(f"cloud has {n_points:,} points; this node accepts at most {self.max_points:,} "
                             "(parameter max_points)")
-        points_mm, markers_mm, markers_nominal_mm = self.split_markers(msg)
+        points_mm, markers_mm, markers_nominal_mm = messages.scan_to_mm(msg, self.marker_field, self.markers_nominal)
         field, registration = field_from_scan(bases.skin, points_mm, scanner_pose=self.scanner_pose,
                                               markers_mm=markers_mm, markers_nominal_mm=markers_nominal_mm,
                                               min_coverage=self.min_coverage, estimator=self.estimator)
         header = msg.header
         header.frame_id = self.part_frame
         self.field_pub.publish(messages.field_to_msg(field, header))
-        self.cloud_pub.publish(xyz_to_cloud(bases.skin.points, header, scale=messages.M_PER_MM,
-                                            channels={"normal_displacement":
-                                                      field.normal_displacement * messages.M_PER_MM}))
+        self.cloud_pub.publish(self.skin_clouds.displacement(field, header))
         return {"points": points_mm.shape[0], "markers": 0 if markers_mm is None else len(markers_mm),
                 "coverage": f"{field.coverage:.3f}",
                 "noise_rms_mm": f"{field.noise_rms:.4f}", "registration": registration.method,
                 "overlap": f"{registration.overlap:.3f}"}
-
-    def split_markers(self, msg: PointCloud2) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-        """Surface points (M, 3) mm (NaN rows kept: the core names an all-NaN scan), and the measured marker centres
-        with their nominal positions (K, 3) mm that this node knows (None when the cloud reports none or no marker
-        positions are configured)."""
-        points = cloud_to_xyz(msg, scale=messages.MM_PER_M, drop_nan=False)
-        if not self.markers_nominal or self.marker_field not in {f.name for f in msg.fields}:
-            return points, None, None
-        ids = cloud_channel(msg, self.marker_field)
-        known = np.isin(ids, np.fromiter(self.markers_nominal, dtype=float)) & np.isfinite(points).all(axis=1)
-        surface = points[ids < 0]
-        if not known.any():
-            return surface, None, None
-        nominal = np.array([self.markers_nominal[int(i)] for i in ids[known]])
-        return surface, points[known], nominal
 
 
 def main(args: list[str] | None = None) -> int:
