@@ -28,7 +28,7 @@ pytestmark = pytest.mark.ros
 def running(coarse_hood, tmp_path_factory):
     logs = tmp_path_factory.mktemp("node_logs")
     processes = start_nodes(coarse_hood.bases_path, nodes=("estimator_node", "decomposition_node"),
-                            extra_params=["pair_timeout_s:=1.0"], log_dir=logs)
+                            extra_params=["pair_timeout_s:=30.0"], log_dir=logs)  # pairing never times out here
     peer = Participant("test_nodes")
     received = {topic: peer.collect(topic, cls) for topic, cls in (
         ("hood_decomp/boundary_state", BoundaryState), ("hood_decomp/boundary_correction", BoundaryCorrection),
@@ -126,4 +126,39 @@ def test_scan_node_refuses_oversized_and_empty_clouds(coarse_hood, tmp_path):
     finally:
         peer.close()
         stop_nodes(processes)
+
+
+def test_effects_follow_the_boundary_state_of_their_field(coarse_hood, running):
+    """Fails if the decomposition node skips paper step 3 (an unpaired field, e.g. a pairing timeout under load, is
+    decomposed from every effect), or converts its output wrongly. HINGE_Y and LOCK_R are 0 in the truth: their
+    effects must be absent, the set parameters' effects present, and contributions and shares those of the core's
+    decomposition with the node's own published state."""
+    from hood_decomp.core.method.bases import decompose_field
+
+    peer, received, _, connected, logs = running
+    assert connected, f"nodes did not come up; logs in {logs}"
+    truth = np.array([[0.4, 0.0, 0.5, 0.0, 0.3, 0.6]])
+    values = solve_members(coarse_hood.reduced, truth).normal_displacement[0]
+    peer.publishers["hood_decomp/displacement"].publish(_field_msg(coarse_hood, values, 6))
+    effects, states = received["hood_decomp/effects"], received["hood_decomp/boundary_state"]
+
+    def paired() -> list[str]:
+        """The decomposition node's word, on /diagnostics, on whether field 6 met its boundary state."""
+        return [kv.value for array in received["/diagnostics"] for s in array.status
+                if s.name == "hood_decomp/hood_decomp_decomposition" and stamp_of(s) == "6.000000000"
+                for kv in s.values if kv.key == "paired_with_boundary_state"]
+
+    assert peer.wait(lambda: any(e.header.stamp.sec == 6 for e in effects)
+                     and any(s.header.stamp.sec == 6 for s in states) and paired(), 60.0), f"no answer; logs: {logs}"
+    answer = next(e for e in effects if e.header.stamp.sec == 6)
+    state = next(s for s in states if s.header.stamp.sec == 6)
+    names = [e.name for e in answer.effects]
+    assert {"LOADS", "HINGE_X", "LOCK_L"} <= set(names) and not {"HINGE_Y", "LOCK_R"} & set(names), names
+    assert paired() == ["True"]
+    core = decompose_field(coarse_hood.bases, CoreField(coarse_hood.bases.model_id, values, 1.0, 0.0),
+                           messages.msg_to_estimate(state))
+    assert names == [e.name for e in core.effects]
+    for sent, expected in zip(answer.effects, core.effects, strict=True):
+        np.testing.assert_allclose(np.asarray(sent.contribution), expected.contribution, atol=1e-6)
+        assert sent.share == pytest.approx(expected.share, abs=1e-6)
 

@@ -11,6 +11,7 @@ import pytest
 from tests.required import require_import
 
 require_import("hood_decomp_msgs.msg", "colcon build", "run inside scripts/with-env after scripts/setup.sh")
+from hood_decomp.core.method.decomposition import DEFAULT_ZERO_TOL_MM
 from hood_decomp.io.bags import read_bag, read_sidecar, typestore
 from hood_decomp.ros.launcher import start_nodes, stop_nodes
 from hood_decomp.ros.replay import replay_bag
@@ -40,7 +41,8 @@ def test_replay_bag(name, default_hood, tmp_path):
     sidecar = read_sidecar(bag)
     assert sidecar["model"]["model_id"] == default_hood.model.model_id, \
         "bags/ are stale for the current hood model: rebuild them with scripts/make_bags.py"
-    params = write_node_params(tmp_path / "params.yaml", sidecar, decomposition_pair_timeout_s=1.0)
+    # Pairing must never time out here: an unpaired field skips paper step 3 (checked below).
+    params = write_node_params(tmp_path / "params.yaml", sidecar, decomposition_pair_timeout_s=30.0)
     processes = start_nodes(default_hood.bases_path, params_file=params, log_dir=tmp_path)
     try:
         result = replay_bag(bag, record=tmp_path / "out", timeout_s=60.0, settle_s=1.5)
@@ -99,6 +101,23 @@ def test_replay_bag(name, default_hood, tmp_path):
                 problems.append(f"{scan['name']}: {label} lifted in truth, reported in contact at {values[label]:.4f}")
             elif abs(values[label] - truth) > TOLERANCE_MM[name]:
                 problems.append(f"{scan['name']}: {label} estimated {values[label]:.4f} mm, truth {truth:.4f} mm")
+    # Effects against the truth and the state of the same stamp (paper step 3): every boundary set by at least 0.3 mm
+    # and in contact has its effect; a boundary its state calls zero has none; every field met its state.
+    paired = [kv.value for array in decoded(tmp_path / "out", "/diagnostics") for s in array.status
+              if s.name == "hood_decomp/hood_decomp_decomposition" for kv in s.values
+              if kv.key == "paired_with_boundary_state"]
+    assert paired == ["True"] * len(good), paired
+    for scan in good:
+        state, names = states[scan["stamp"]], {e.name for e in effects[scan["stamp"]].effects}
+        present = {label for label, truth in scan["truth_mm"].items()
+                   if abs(truth) >= 0.3 and not scan["lifted"].get(label, False)}
+        zero = {label for label, value, std, lifted in zip(state.names, state.values, state.std_dev, state.lifted,
+                                                           strict=True)
+                if not lifted and abs(1000.0 * value) <= max(DEFAULT_ZERO_TOL_MM, 3000.0 * std)}
+        if not {"LOADS"} | present <= names:
+            problems.append(f"{scan['name']}: effects {sorted(names)} lack {sorted({'LOADS'} | present - names)}")
+        if names & zero:
+            problems.append(f"{scan['name']}: effects {sorted(names & zero)} kept though their state is zero")
     print(f"\n{name}: scan, parameter, truth mm, estimate mm, std mm, reported lifted, lifted in truth")
     for row in rows:
         print(f"  {row[0]:18s} {row[1]:9s} {row[2]:8.4f} {row[3]:9.4f} {row[4]:8.4f} {row[5]!s:6s} {row[6]}")
