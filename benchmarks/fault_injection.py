@@ -4,7 +4,7 @@ Each fault is one textual change to one module of a copy of the package (the wor
 fast tests of the method and the close loop then run against the copy. A fault is caught when at least one test
 fails; the table names those tests. A control run without any fault must pass first, or nothing here means anything.
 
-    scripts/with-env python benchmarks/fault_injection.py [--only NAME ...]
+    scripts/with-env python benchmarks/fault_injection.py [--only NAME ...] [--tests PATH ...]
 
 Prints a table and writes benchmarks/out/fault_injection.json. Takes a few minutes (one pytest run per fault).
 """
@@ -65,13 +65,14 @@ FAULTS = (
 )
 
 
-def run_tests(package: pathlib.Path, junit: pathlib.Path) -> tuple[int, list[str], float]:
-    """Run TESTS (not slow) with ``package`` first on the path; (exit status, failed test ids, seconds)."""
+def run_tests(package: pathlib.Path, junit: pathlib.Path, tests: tuple[str, ...] = TESTS
+              ) -> tuple[int, list[str], float]:
+    """Run ``tests`` (not slow) with ``package`` first on the path; (exit status, failed test ids, seconds)."""
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(package.parent), str(ROOT), env.get("PYTHONPATH", "")])
     start = time.perf_counter()
     run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", "not slow",
-                          f"--junitxml={junit}", *TESTS], cwd=ROOT, env=env, capture_output=True, text=True)
+                          f"--junitxml={junit}", *tests], cwd=ROOT, env=env, capture_output=True, text=True)
     seconds = time.perf_counter() - start
     failed = []
     if junit.is_file():
@@ -97,20 +98,22 @@ def inject(fault: Fault, workdir: pathlib.Path) -> pathlib.Path:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", nargs="*", default=None, help="fault names to run (default: all)")
+    parser.add_argument("--tests", nargs="*", default=list(TESTS), help=f"test paths to run (default: {TESTS})")
     args = parser.parse_args()
+    tests = tuple(args.tests)
     faults = [f for f in FAULTS if args.only is None or f.name in args.only]
     rows = []
     with tempfile.TemporaryDirectory(prefix="hood_faults_") as tmp:
         work = pathlib.Path(tmp)
         control = work / "control" / "hood_decomp"
         shutil.copytree(PACKAGE, control, ignore=shutil.ignore_patterns("__pycache__"))
-        status, failed, seconds = run_tests(control, work / "control.xml")
+        status, failed, seconds = run_tests(control, work / "control.xml", tests)
         print(f"control (no fault): exit {status}, {len(failed)} failed, {seconds:.0f} s", flush=True)
         if status != 0:
             print("the control run fails; fix the tests first:\n  " + "\n  ".join(failed), file=sys.stderr)
             return 1
         for fault in faults:
-            status, failed, seconds = run_tests(inject(fault, work), work / f"{fault.name}.xml")
+            status, failed, seconds = run_tests(inject(fault, work), work / f"{fault.name}.xml", tests)
             rows.append({"fault": fault.name, "what": fault.what, "module": fault.module, "caught": bool(failed),
                          "caught_by": failed, "seconds": round(seconds, 1)})
             print(f"{fault.name:20s} {'CAUGHT' if failed else 'MISSED':7s} {len(failed):3d} failing test(s), "
@@ -121,7 +124,7 @@ def main() -> int:
         by = ", ".join(t.split("::")[-1] for t in row["caught_by"][:3]) or "-"
         print(f"| {row['fault']} | {'yes' if row['caught'] else 'NO'} | {by} |")
     OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps({"date": time.strftime("%Y-%m-%d"), "tests": TESTS, "faults": rows}, indent=2))
+    OUT.write_text(json.dumps({"date": time.strftime("%Y-%m-%d"), "tests": tests, "faults": rows}, indent=2))
     print(f"\nwritten: {OUT}")
     return 0 if all(row["caught"] for row in rows) else 1
 
