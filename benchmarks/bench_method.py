@@ -34,7 +34,7 @@ from hood_decomp.core.method.estimation import estimate_pca  # noqa: E402
 from hood_decomp.core.method.hierarchical import HierarchicalBasis  # noqa: E402
 from hood_decomp.core.method.pca import PCABasis  # noqa: E402
 from hood_decomp.core.types import DisplacementField, Ensemble  # noqa: E402
-from tests.synthetic import (  # noqa: E402
+from tests.toy_models import (  # noqa: E402
     full_factorial,
     make_ensemble,
     make_reduced_model,
