@@ -14,16 +14,14 @@ import pytest
 
 from hood_decomp.core.method.correction import CorrectionPolicy, plan_correction
 from hood_decomp.core.types import ParameterEstimate
+from tests.core.method.test_correction import estimate as correction_estimate
 
 
 def estimate(**changes) -> ParameterEstimate:
-    base = dict(
-        model_id="m", names=("HINGE_X", "LOCK_L", "BUFFER_R"), values=np.array([0.25, -0.5, 0.125]),
-        std=np.array([0.0, 0.0, 0.0]), lower=-np.ones(3), upper=np.ones(3),
-        lifted=np.array([False, False, False]), reconstruction=np.zeros(4), residual=np.zeros(4),
-        residual_rms=0.0, residual_max=0.0, coverage=1.0, within_model=True, method="contact",
-    )
-    return ParameterEstimate(**{**base, **changes})
+    """test_correction's estimate with binary-fraction values, zero std and full coverage (exact boundaries)."""
+    exact = dict(values=np.array([0.25, -0.5, 0.125]), std=np.zeros(3), residual_rms=0.0, residual_max=0.0,
+                 coverage=1.0)
+    return correction_estimate(**{**exact, **changes})
 
 
 def test_default_policy_is_the_documented_one():
