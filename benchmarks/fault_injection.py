@@ -61,7 +61,7 @@ FAULTS = (
           "if magnitude[smallest] >= min_share * magnitude.sum():"),
     Fault("non_candidate_found", "close-loop names a candidate for any residual it reduces at all (a missing effect "
           "outside the candidates is forced onto one)",
-          "core/loop/close_loop.py", "EXPLAINED_MIN = 0.8", "EXPLAINED_MIN = 0.0"),
+          "core/loop/close_loop.py", "PARTIAL_MIN = 0.75", "PARTIAL_MIN = 0.0"),
 )
 
 

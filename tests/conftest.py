@@ -59,3 +59,17 @@ def coarse_hood(tmp_path_factory: pytest.TempPathFactory) -> HoodCase:
 def default_hood(tmp_path_factory: pytest.TempPathFactory) -> HoodCase:
     """Default hood (30,107 skin nodes): what scans need (the coarse grid is too coarse for a scan-derived field)."""
     return _hood_case("default", tmp_path_factory.mktemp("default_hood"))
+
+
+@pytest.fixture(scope="session")
+def coarse_calculix_columns() -> dict[str, Any]:
+    """CalculiX (S8R decks) translations (n, 3) mm of the coarse hood's load case ("load") and unit bilateral motions
+    ("unit_<LABEL>"): 5 ccx jobs through Dask, shared by the solver comparison and the close-loop tests."""
+    from hood_decomp.core.fe.calculix import load_cases, run_cases
+    from hood_decomp.core.fe.hood_preset import build_hood
+    from tests.required import ensure_ccx
+
+    ensure_ccx()
+    model = build_hood("coarse")
+    cases, constrained = load_cases(model, pad_lattice=1)
+    return run_cases(model, [c for c in cases if not c.name.startswith("pad_")], constrained)

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import importlib
 import os
+import shutil
+import subprocess
 from types import ModuleType
 
 import pytest
@@ -42,3 +44,16 @@ def require_import(module: str, part: str, reason: str) -> ModuleType:
     except ImportError as error:
         missing(part, f"{reason} ({error})")
         raise  # not reached: missing() always raises
+
+
+def ensure_ccx() -> None:
+    """CalculiX's ``ccx`` on PATH: installed with apt-get when root, else :func:`missing`."""
+    if shutil.which("ccx"):
+        return
+    if os.geteuid() != 0 or shutil.which("apt-get") is None:
+        missing("CalculiX", "ccx (Debian calculix-ccx) is not installed and we are not root to apt-get it")
+    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
+    for command in (["apt-get", "update", "-qq"], ["apt-get", "install", "-y", "-qq", "calculix-ccx"]):
+        subprocess.run(command, check=False, capture_output=True, env=env, timeout=600)
+    if not shutil.which("ccx"):
+        missing("CalculiX", "apt-get install calculix-ccx did not provide ccx")

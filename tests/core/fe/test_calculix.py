@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import itertools
-import os
-import shutil
-import subprocess
 
 import numpy as np
 import pytest
@@ -14,20 +11,7 @@ from hood_decomp.core.fe.calculix import load_cases, reduce_model_calculix, run_
 from hood_decomp.core.fe.hood_preset import build_hood
 from hood_decomp.core.fe.solver import build_solver
 from hood_decomp.errors import SolverError
-from tests.required import missing
-
-
-def _ensure_ccx() -> None:
-    if shutil.which("ccx"):
-        return
-    if os.geteuid() != 0 or shutil.which("apt-get") is None:
-        missing("CalculiX", "ccx (Debian calculix-ccx) is not installed and we are not root to apt-get it")
-    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
-    for command in (["apt-get", "update", "-qq"], ["apt-get", "install", "-y", "-qq", "calculix-ccx"]):
-        subprocess.run(command, check=False, capture_output=True, env=env, timeout=600)
-    if not shutil.which("ccx"):
-        missing("CalculiX", "apt-get install calculix-ccx did not provide ccx")
-
+from tests.required import ensure_ccx
 
 # max |embedded - ccx| / max |embedded| on the skin for HINGE_X, HINGE_Y, LOCK_L, LOCK_R with S8R (C3D20R) decks on
 # the coarse hood (64 x 74 skin grid, ~19 mm elements): 2.0, 1.6, 0.6, 0.6 % (1.5, 0.9, 0.5, 0.5 % at 96 x 112). A 44 x
@@ -81,12 +65,8 @@ def test_deck_numbers_fit_the_20_characters_ccx_reads(tmp_path) -> None:
 
 
 @pytest.fixture(scope="module")
-def ccx_unit_responses():
-    _ensure_ccx()
-    model = build_hood("coarse")
-    cases, constrained = load_cases(model)
-    unit = [c for c in cases if c.name.startswith("unit_")]
-    return model, run_cases(model, unit, constrained)
+def ccx_unit_responses(coarse_calculix_columns):
+    return build_hood("coarse"), {k: v for k, v in coarse_calculix_columns.items() if k.startswith("unit_")}
 
 
 @pytest.mark.slow
@@ -114,7 +94,7 @@ def test_failed_ccx_jobs_are_reported_by_name() -> None:
 def test_reduced_model_from_calculix_has_the_embedded_structure() -> None:
     """The ccx path yields the same kind of ReducedModel: symmetric PSD pad compliance, same names and springs.
     Structure only, so the smallest sensible grid keeps its 7 ccx jobs short."""
-    _ensure_ccx()
+    ensure_ccx()
     model = build_hood("coarse", grid=(44, 51))
     reduced = reduce_model_calculix(model, pad_lattice=1)
     assert reduced.names == model.names and reduced.n_bilateral == 4

@@ -31,7 +31,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--alpha", type=float, default=0.01, help="significance level of the tests (default 0.01)")
     parser.add_argument("--noise-mm", type=float, default=None, help="scan noise (mm, one sigma) of fields that do "
                         "not state their own (default: hood_decomp.core.method.residual.DEFAULT_NOISE_MM)")
-    parser.add_argument("--max-effects", type=int, default=1, help="effects added at most (default 1)")
+    parser.add_argument("--max-effects", type=int, default=2,
+                        help="effects added at most (default 2: a pair of candidates may explain one missing effect)")
     parser.add_argument("--method", choices=("contact", "pca"), default="contact",
                         help="estimator of the before/after estimates (tracing is always contact-aware)")
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
+import numpy as np
+
 from hood_decomp.core.loop.close_loop import CloseLoopResult
 from hood_decomp.core.method.residual import ResidualAnalysis
 from hood_decomp.core.types import ParameterEstimate
@@ -35,6 +37,17 @@ def _analysis_entry(analysis: ResidualAnalysis, max_regions: int = 5) -> dict:
     }
 
 
+def _named(result: CloseLoopResult) -> list[dict]:
+    """A partial outcome's named candidate (not added): its magnitude per field and the residual RMS with it."""
+    if result.status != "partial":
+        return []
+    best = result.traces[0].best
+    return [{"name": best.name, "kind": best.kind, "unit": best.unit, "description": best.description,
+             "magnitude": best.values, "std": best.std, "explained": best.explained,
+             "residual_rms_with_it_mm": [float(np.sqrt(rss / a.n_seen))
+                                         for rss, a in zip(best.rss_mm2, result.analyses_before, strict=True)]}]
+
+
 def close_loop_report(result: CloseLoopResult, truth: Sequence[Mapping[str, float]] | None = None,
                       top: int = 5) -> dict:
     """The JSON-ready report of :func:`hood_decomp.core.loop.close_loop.close_loop` (non-finite numbers are null).
@@ -57,8 +70,11 @@ def close_loop_report(result: CloseLoopResult, truth: Sequence[Mapping[str, floa
         "ranking": [{"name": s.name, "kind": s.kind, "unit": s.unit, "description": s.description,
                      "explained": s.explained, "f_statistic": s.f_statistic, "p_adjusted": s.p_adjusted,
                      "magnitude": s.values, "std": s.std} for s in trace.scores[:top]],
-        "significant": trace.significant, "decisive": trace.decisive, "explains": trace.explains,
-        "conclusive": trace.conclusive, "likelihood_ratio_to_runner_up": trace.decisiveness,
+        "pairs": [{"names": list(p.names), "explained": p.explained, "f_statistic": p.f_statistic,
+                   "p_adjusted": p.p_adjusted, "within_model": p.within_after, "magnitude": p.values, "std": p.std}
+                  for p in trace.pairs[:top]],
+        "significant": trace.significant, "decisive": trace.decisive, "within_model_with_best": trace.within_after,
+        "outcome": trace.outcome, "named": list(trace.named), "likelihood_ratio_to_runner_up": trace.decisiveness,
         "reason": trace.reason,
     } for trace in result.traces]
     return json_ready({
@@ -75,6 +91,7 @@ def close_loop_report(result: CloseLoopResult, truth: Sequence[Mapping[str, floa
         "effects_found": [{"name": a.name, "kind": a.kind, "unit": a.unit, "boundary": a.boundary,
                            "description": a.description, "magnitude": a.values, "std": a.std,
                            "range": [a.lower, a.upper]} for a in result.added],
+        "effects_named": _named(result),
         "traces": traces,
         "fields": fields,
         "timings_s": result.timings,
