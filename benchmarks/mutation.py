@@ -300,6 +300,79 @@ NOTES += (
          "their neighbours' ring means alone); possible with cancelling patterns, not constructed"),
 )
 
+_KEEP = "keep = size > NEGLIGIBLE_RTOL * max(size.max(), 1e-300)"
+NOTES += (
+    Note("candidates", "core/NumberReplacer",
+         "length = float(np.linalg.norm(vector)) if vector.shape == (3,) else 0.0",
+         "length = float(np.linalg.norm(vector)) if vector.shape == (3,) else -1.0", "equivalent",
+         "a length of 0 or -1 both fail the next line's `length > 0` and raise the same ModelError"),
+    Note("candidates", "core/ReplaceComparisonOperator_Eq_GtE", 'elif boundary.kind == "unilateral":',
+         'elif boundary.kind >= "unilateral":', "equivalent",
+         "a boundary's kind is one of BOUNDARY_KINDS (checked when the model is made); here it is \"unilateral\" or "
+         "\"force\", and \"force\" < \"unilateral\""),
+    Note("candidates", "core/ReplaceComparisonOperator_Eq_GtE", 'elif boundary.kind == "force":',
+         'elif boundary.kind >= "force":', "equivalent",
+         "fixed, prescribed and unilateral boundaries took the branches above, so the kind is \"force\" here"),
+    Note("candidates", "core/ReplaceComparisonOperator_Eq_GtE", 'if kind == "motion":', 'if kind >= "motion":',
+         "equivalent", "the entry's kind was checked to be one of KINDS = (\"motion\", \"force\") above, and "
+         "\"force\" < \"motion\""),
+    Note("candidates", "core/ReplaceComparisonOperator_Eq_GtE", 'if candidate.kind == "motion":',
+         'if candidate.kind >= "motion":', "equivalent",
+         "a candidate's kind is \"motion\" or \"force\" (KINDS; its unit is looked up in UNITS), and \"force\" < "
+         "\"motion\""),
+    Note("candidates", "core/NumberReplacer", _KEEP, _KEEP.replace("1e-300", "-1.0"), "equivalent",
+         "size is a maximum of absolute values, >= 0: the floor matters only when every candidate's size is 0, where "
+         "0 > 1e-309 and 0 > 0 are both false (every candidate dropped either way)"),
+    Note("candidates", "core/ReplaceComparisonOperator_Gt_GtE", _KEEP, _KEEP.replace("size >", "size >="),
+         "justified", "differs only for a candidate whose largest response equals 1e-9 x the largest of all to the "
+         "last bit (a zero response stays below the positive floor either way); not constructed"),
+)
+
+_CL320 = ("decisiveness = (scores[1].weighted_rss - best.weighted_rss) / variance if len(scores) > 1 else np.inf")
+_CL395 = "if best.within_after and best.p_adjusted < alpha and ratio > threshold:"
+NOTES += (
+    Note("close_loop", "core/ReplaceTrueWithFalse", "for estimate, sigma in zip(estimates, noise, strict=True):",
+         "for estimate, sigma in zip(estimates, noise, strict=False):", "equivalent",
+         "both sequences are made from the same fields (one estimate and one noise level per field), so their "
+         "lengths are equal and strict only guards against a future caller"),
+    Note("close_loop", "core/ReplaceComparisonOperator_Eq_Is",
+         "if not len(fields) == len(current) == len(noise) >= 1:",
+         "if not len(fields) == len(current) is len(noise) >= 1:", "justified",
+         "CPython keeps one object per small int (-5..256), so `is` and `==` agree on the lengths of up to 256 "
+         "fields; 257 fields traced jointly would separate them (not constructed: minutes of fits)"),
+    Note("close_loop", "core/NumberReplacer", "variance = max(best.weighted_rss / dof1, 1e-300)",
+         "variance = max(best.weighted_rss / dof1, -1.0)", "justified",
+         "differs only when the best candidate fits every seen node to the last bit (weighted RSS exactly 0: a "
+         "division by zero instead of a huge likelihood ratio); a field with any noise or round-off never does"),
+    Note("close_loop", "core/ReplaceComparisonOperator_Gt_NotEq", _CL320, _CL320.replace("> 1 else", "!= 1 else"),
+         "equivalent", "there is at least one candidate (ModelError above otherwise), so len(scores) != 1 is "
+         "len(scores) > 1"),
+    Note("close_loop", "core/NumberReplacer",
+         "explained=float(weights @ (rss0 - rss)) / excess if excess > 0 else 0.0, f_statistic=statistic,",
+         "explained=float(weights @ (rss0 - rss)) / excess if excess > 1 else 0.0, f_statistic=statistic,",
+         "justified", "differs only for 0 < excess <= 1; pairs are fitted only when the best single leaves the fields "
+         "outside the model (its weighted RSS above the chi-square(d) quantile at alpha, which exceeds the "
+         "degrees of freedom by far more than 1 for alpha <= 0.1), so excess > 1 there unless alpha is near 0.5"),
+    Note("close_loop", "core/ReplaceComparisonOperator_Lt_IsNot", _CL395,
+         _CL395.replace("p_adjusted < alpha", "p_adjusted is not alpha"), "justified",
+         "drops the significance test of the second effect; differs only when the best pair brings the fields "
+         "within the model and beats the runner-up pair by more than the chi-square quantile while its own gain "
+         "over the single is not significant after Bonferroni (a gain between ~7 and ~12 variance units with every "
+         "other pair gaining almost nothing); searched for on the 20 x 20 hood and not found. Where it happens the "
+         "original takes the 'alike' branch, which misstates the reason (and fails with one pair)"),
+    Note("close_loop", "core/ReplaceComparisonOperator_Gt_GtE", _CL395, _CL395.replace("ratio >", "ratio >="),
+         "justified", "differs only when the likelihood ratio between the two best pairs equals the chi-square "
+         "quantile to the last bit; not constructed"),
+    Note("close_loop", "core/NumberReplacer", "variance = max(weighted / dof2, 1e-300)",
+         "variance = max(weighted / dof2, -1.0)", "justified",
+         "differs only when a pair fits every seen node to the last bit (weighted RSS exactly 0); a field with any "
+         "noise or round-off never does"),
+    Note("close_loop", "core/ReplaceComparisonOperator_NotEq_IsNot", 'if within_before or trace.outcome != "found":',
+         'if within_before or trace.outcome is not "found":', "equivalent",
+         "a trace's outcome is always one of this module's string constants, and CPython interns identifier-like "
+         "constants: \"found\" is one object, so `is not` agrees with `!=`"),
+)
+
 
 # ---------------------------------------------------------------------------------------------------------------------
 # Sessions

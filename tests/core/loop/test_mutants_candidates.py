@@ -278,3 +278,44 @@ def test_augmented_model_puts_new_inputs_after_the_bilateral_ones(tiny, fields):
         augment_reduced(augmented, fields, ["hinge_R.x"])
     with pytest.raises(ModelError, match="unknown candidate"):
         augment_reduced(reduced, fields, ["nope"])
+
+
+def test_candidates_are_frozen():
+    """Fails if a candidate can be changed after it was made (or is not hashable)."""
+    c = motion("b", "x")
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        c.name = "other"
+    assert hash(c) == hash(motion("b", "x"))
+
+
+@pytest.mark.parametrize("axis", [[1.0, 0.0, 0.0, 0.0], [[1.0], [0.0], [0.0]]])
+def test_force_axis_must_have_shape_3(axis):
+    """Fails if a 4-vector or a 3 x 1 column is accepted as a force axis."""
+    with pytest.raises(ModelError, match="non-zero 3-vector"):
+        force("b", axis, "b.f", "d")
+
+
+def test_only_candidates_that_move_nothing_are_all_dropped(tiny):
+    """Fails if candidates whose skin response is zero are kept when no candidate moves anything."""
+    _, solver, _ = tiny
+    held = force("hinge_R", (0.0, 0.0, 1.0), "hinge_R.push_z", "pushes a held direction")
+    fields = candidate_fields(solver, [held])
+    assert fields.dropped == ("hinge_R.push_z",) and fields.candidates == ()
+
+
+def test_augmenting_with_a_declared_name_names_it(tiny):
+    """Fails if the error for candidates already in the model does not name exactly those."""
+    model, solver, reduced = tiny
+    fields = candidate_fields(solver, enumerate_candidates(model))
+    with pytest.raises(ModelError, match=r"candidates \['HINGE_X'\] are already inputs"):
+        augment_reduced(reduced, fields, ["hinge_R.z", "HINGE_X"])
+
+
+def test_a_model_without_pads_has_no_pad_rows(tiny):
+    """Fails if candidate responses of a model without unilateral boundaries do not have zero pad rows."""
+    model, _, _ = tiny
+    pads = {b.name for b in model.boundaries if b.kind == "unilateral"}
+    padless = dataclasses.replace(model, boundaries=tuple(b for b in model.boundaries if b.name not in pads),
+                                  parameters=tuple(p for p in model.parameters if p.boundary not in pads))
+    fields = candidate_fields(build_solver(padless), [motion("hinge_R", "z")])
+    assert fields.pad.shape == (0, 1) and fields.normal.shape[1] == 1
