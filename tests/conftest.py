@@ -59,3 +59,11 @@ def coarse_hood(tmp_path_factory: pytest.TempPathFactory) -> HoodCase:
 def default_hood(tmp_path_factory: pytest.TempPathFactory) -> HoodCase:
     """Default hood (30,107 skin nodes): what scans need (the coarse grid is too coarse for a scan-derived field)."""
     return _hood_case("default", tmp_path_factory.mktemp("default_hood"))
+
+
+@pytest.fixture(scope="session")
+def tiny_workspace(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    """Valid inputs of every verb on a 20 x 20 hood (tests/bad_inputs.py): what the bad-input tests break."""
+    from tests.bad_inputs import build_workspace
+
+    return build_workspace(tmp_path_factory.mktemp("tiny_workspace"))
