@@ -114,7 +114,7 @@ def _external_link_group(h5: h5py.File, name: str, ws: Workspace) -> None:
 
 def _virtual(h5: h5py.File, name: str, ws: Workspace) -> None:
     shape, _ = _replace(h5, name)
-    count = int(np.prod(shape))
+    count = min(int(np.prod(shape)), 1 << 16)
     layout = h5py.VirtualLayout(shape=(count,), dtype="f8")
     layout[:] = h5py.VirtualSource(str(ws.other), "/numbers", shape=(1 << 16,))[:count]
     h5.create_virtual_dataset(name, layout)

@@ -123,6 +123,7 @@ def check_output(path: Path | str, inputs: Iterable[Path | str], option: str = "
     where a directory is, or when it (or a file ``writes`` names inside a directory output) is one of ``inputs``:
     same resolved path or same file (hard links, ``os.path.samefile``). ``parents``: a directory output whose
     missing parents the verb creates (then the nearest existing ancestor must be writable)."""
+    wants_directory = str(path).endswith(("/", os.sep))
     path = Path(path)
     if directory:
         if path.exists() and not path.is_dir():
@@ -132,7 +133,7 @@ def check_output(path: Path | str, inputs: Iterable[Path | str], option: str = "
         while parents and not place.exists() and place != place.parent:
             place = place.parent
     else:
-        if path.is_dir() or str(path).endswith(os.sep):
+        if path.is_dir() or wants_directory:
             raise OutputError(f"{option} {path} is a directory; expected a file name")
         targets, place = [path], path.parent
     if not place.is_dir():

@@ -36,6 +36,10 @@ def run(args: argparse.Namespace) -> int:
         check_output(args.record, inputs, "--record", directory=True)
     if args.json is not None:
         check_output(args.json, inputs, "--json")
+    if args.bases is not None:
+        from hood_decomp.io.bases import load_bases
+
+        load_bases(args.bases)  # a bad bases file is refused here, not in three node logs
     processes = start_nodes(args.bases.resolve(), params_file=args.params) if args.bases else []
     try:
         result = replay_bag(args.bag, record=args.record, timeout_s=args.timeout, publish_clock=args.clock)

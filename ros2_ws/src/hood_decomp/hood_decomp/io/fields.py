@@ -123,11 +123,11 @@ def _plausible(values: object, path: Path, name: str) -> np.ndarray:
 
 
 def read_vtu(path: Path, error: type[HoodDecompError]) -> meshio.Mesh:
-    """meshio's reading of a .vtu with every failure as ``error`` naming the file: meshio raises many exception
-    types for a corrupt file, and for some (an unknown data type, a broken header) it ends the process with
-    ``sys.exit``, which would bypass the command line's error handling."""
+    """meshio's .vtu reader with every failure as ``error`` naming the file. Its format reader is called directly:
+    ``meshio.read`` prints the reader's error on stdout and ends the process with ``sys.exit(1)`` for a file it
+    cannot read, which would bypass the command line's one-line errors."""
     try:
-        return meshio.read(path, file_format="vtu")
+        return meshio.vtu.read(str(path))
     except (Exception, SystemExit) as failure:  # any failure of a foreign reader means a bad file
         text = " ".join(str(failure).split())[:200] or type(failure).__name__
         raise error(f"cannot read {path} as a .vtu file: {text}") from failure

@@ -127,7 +127,10 @@ def model_files(path: str | Path) -> list[Path]:
         mesh = _document(path).get("mesh")
     except ModelError:
         return [path]
-    return [path, path.parent / mesh] if isinstance(mesh, str) and mesh else [path]
+    try:
+        return [path, _mesh_file(path, mesh)] if isinstance(mesh, str) and mesh else [path]
+    except ModelError:
+        return [path]
 
 
 def load_model(path: str | Path) -> PartModel:
@@ -202,8 +205,7 @@ def _read(path: str | Path) -> tuple[PartModel, dict]:
     """The validated model and the parsed model.yaml document."""
     path = model_path(path)
     document = _document(path)
-    mesh_name = _name(_required(document, "mesh", "model"), "model mesh")
-    mesh_file = path.parent / mesh_name
+    mesh_file = _mesh_file(path, _name(_required(document, "mesh", "model"), "model mesh"))
     parts = tuple(_part(entry, i) for i, entry in enumerate(_list(document, "parts")))
     try:
         if mesh_file.suffix.lower() == ".inp":
@@ -237,6 +239,16 @@ def _read(path: str | Path) -> tuple[PartModel, dict]:
     )
     validate_model(model)
     return model, document
+
+
+def _mesh_file(path: Path, name: str) -> Path:
+    """The mesh named in model.yaml: a file in the model's directory tree (a model.yaml from elsewhere must not make
+    the program read /etc/passwd or another user's file as a mesh)."""
+    directory = path.parent.resolve()
+    mesh = (path.parent / name).resolve()
+    if Path(name).is_absolute() or not mesh.is_relative_to(directory):
+        raise ModelError(f"{path}: mesh {_show(name)} must be a file in the model's directory ({directory})")
+    return path.parent / name
 
 
 def _keys(entry: object, known: tuple[str, ...], what: str) -> None:
