@@ -8,7 +8,6 @@ added, the rebuilt bases DIR/bases_closed_loop.h5 (usable with `estimate` and `d
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -24,6 +23,7 @@ from hood_decomp.cli._common import (
     written_whole_directory,
 )
 from hood_decomp.errors import FieldError, ModelIdMismatchError
+from hood_decomp.io.json_values import loads_strict
 
 HELP = "find, add and report an effect the model lacks (residual -> candidate effects -> new parameter -> bases)"
 LOG_FORMAT = "close-loop: %(message)s"
@@ -54,8 +54,8 @@ def _read_truth(path: Path | None, n_fields: int) -> list[dict[str, float]] | No
     if path is None:
         return None
     try:
-        document = json.loads(path.read_text(), parse_constant=_no_constant)
-    except (OSError, ValueError, RecursionError) as error:
+        document = loads_strict(path.read_text())
+    except (OSError, ValueError) as error:
         raise FieldError(f"--truth {path}: not a readable JSON file: {' '.join(str(error).split())[:120]}") from error
     entries = document if isinstance(document, list) else [document] * n_fields
     if len(entries) != n_fields or not all(isinstance(e, dict) for e in entries):
@@ -68,10 +68,6 @@ def _read_truth(path: Path | None, n_fields: int) -> list[dict[str, float]] | No
         raise FieldError(f"--truth {path}: values must be finite numbers")
     return truth
 
-
-def _no_constant(name: str) -> float:
-    """JSON has no NaN or Infinity; Python's reader would accept them."""
-    raise ValueError(f"{name} is not a JSON number")
 
 
 def _table(payload: dict) -> str:

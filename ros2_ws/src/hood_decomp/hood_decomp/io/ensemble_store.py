@@ -28,6 +28,8 @@ from __future__ import annotations
 import datetime
 import json
 import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -158,11 +160,11 @@ class _Header:
     upper: np.ndarray
 
 
-def _open(path: str | Path) -> tuple[h5py.File, Reader, _Header]:
-    """The audited store, a Reader with N, P and U bound, and the header; EnsembleError for a foreign schema or a
-    content that does not match its ``content_id``."""
-    f = open_hdf5(path, "ensemble store", EnsembleError)
-    try:
+@contextmanager
+def _open(path: str | Path) -> Iterator[tuple[h5py.File, Reader, _Header]]:
+    """For a ``with`` block: the audited store, a Reader with N, P and U bound, and the header; EnsembleError for a
+    foreign schema, a damaged file or a content that does not match its ``content_id``."""
+    with open_hdf5(path, "ensemble store", EnsembleError) as f:
         read = Reader(f, path, EnsembleError)
         schema, version = f.attrs.get("schema"), f.attrs.get("schema_version")
         if schema != SCHEMA or not isinstance(version, int | np.integer) or int(version) != SCHEMA_VERSION:
@@ -185,10 +187,7 @@ def _open(path: str | Path) -> tuple[h5py.File, Reader, _Header]:
         if content_id(skin, names, n_bilateral, lower, upper) != read.attr("/", "content_id", "str"):
             raise EnsembleError(f"{path}: content does not match its content_id (the file was altered after it was "
                                 "written: a rewritten model_id, skin or range); compute it again")
-    except BaseException:
-        f.close()
-        raise
-    return f, read, _Header(skin, names, n_bilateral, lower, upper)
+        yield f, read, _Header(skin, names, n_bilateral, lower, upper)
 
 
 def content_id(skin: SkinSurface, names: tuple[str, ...], n_bilateral: int, lower: np.ndarray, upper: np.ndarray
@@ -206,8 +205,7 @@ def load_ensemble(path: str | Path, group: str = "training", members: slice | No
     if group not in GROUPS:
         raise EnsembleError(f"group must be one of {GROUPS}, got {group!r}")
     rows = members if members is not None else slice(None)
-    f, read, head = _open(path)
-    with f:
+    with _open(path) as (f, read, head):
         if group not in f:
             raise EnsembleError(f"{path}: group {group!r} is missing")
         if not read.attr(group, "complete", "bool"):
@@ -235,15 +233,13 @@ _MEMBER_DIMS = {
 
 def load_skin(path: str | Path) -> SkinSurface:
     """The visible skin stored with an ensemble."""
-    f, _, head = _open(path)
-    with f:
+    with _open(path) as (_, _, head):
         return head.skin
 
 
 def store_info(path: str | Path) -> dict[str, object]:
     """Root attributes and group sizes of a store (JSON-able)."""
-    f, read, _ = _open(path)
-    with f:
+    with _open(path) as (f, read, _):
         info: dict[str, object] = {k: read.attr("/", k, "str") for k in ("model_id", "solver", "created_utc")}
         for group in GROUPS:
             if group in f:

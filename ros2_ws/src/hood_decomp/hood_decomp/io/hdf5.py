@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 import h5py
@@ -39,23 +40,30 @@ SLACK_BYTES = 256 * 2**20
 _NUMBER_KINDS = {"f": "float", "i": "integer", "u": "integer", "b": "bool"}
 
 
-def open_hdf5(path: str | Path, what: str, error: type[HoodDecompError]) -> h5py.File:
-    """Open an existing HDF5 file for reading after :func:`audit_hdf5`; raise ``error`` naming ``what`` (e.g. "bases
-    file") when the file is missing, not HDF5, or holds anything the module docstring refuses. Schema checks stay
-    with each reader (:class:`Reader`)."""
+#: what h5py raises for a damaged file (corrupt metadata surfaces as any of these, at any access)
+_DAMAGE = (OSError, RuntimeError, KeyError, ValueError, TypeError, IndexError, OverflowError)
+
+
+@contextmanager
+def open_hdf5(path: str | Path, what: str, error: type[HoodDecompError]) -> Iterator[h5py.File]:
+    """Open an existing HDF5 file for reading after :func:`audit_hdf5`, for a ``with`` block; raise ``error`` naming
+    ``what`` (e.g. "bases file") when the file is missing, not HDF5, or holds anything the module docstring refuses,
+    and turn what h5py raises for damaged metadata anywhere in the block into ``error`` too. Schema checks stay with
+    each reader (:class:`Reader`)."""
     path = Path(path)
     if not path.is_file():
         raise error(f"{what} {path} does not exist")
     try:
         h5 = h5py.File(path, "r", locking=False)
-    except OSError as failure:
+    except _DAMAGE as failure:
         raise error(f"{path} is not an HDF5 {what}: {_first_line(failure)}") from failure
     try:
         audit_hdf5(h5, path, error)
-    except BaseException:
+        yield h5
+    except _DAMAGE as failure:
+        raise error(f"{path}: damaged {what}: {type(failure).__name__}: {_first_line(failure)[:200]}") from failure
+    finally:
         h5.close()
-        raise
-    return h5
 
 
 def _first_line(failure: BaseException) -> str:
@@ -78,7 +86,7 @@ def audit_hdf5(h5: h5py.File, path: Path, error: type[HoodDecompError]) -> None:
             where = f"{group.name.rstrip('/')}/{name}"
             try:
                 link = group.get(name, getlink=True)
-            except (KeyError, OSError) as failure:
+            except _DAMAGE as failure:
                 raise error(f"{path}: link {where} cannot be read: {_first_line(failure)}") from failure
             if isinstance(link, h5py.ExternalLink):
                 raise error(f"{path}: {where} is an external link to {link.filename}:{link.path}; refused (a "
@@ -88,7 +96,7 @@ def audit_hdf5(h5: h5py.File, path: Path, error: type[HoodDecompError]) -> None:
                             "hard links)")
             try:
                 item = group[name]
-            except (KeyError, OSError) as failure:
+            except _DAMAGE as failure:
                 raise error(f"{path}: object {where} cannot be opened: {_first_line(failure)}") from failure
             if isinstance(item, h5py.Group):
                 pending.append(item)
@@ -204,7 +212,7 @@ class Reader:
             raise self.error(f"{where} is missing")
         try:
             value = attrs[key]
-        except (OSError, TypeError) as failure:
+        except _DAMAGE as failure:
             raise self.error(f"{where} cannot be read: {_first_line(failure)}") from failure
         if isinstance(value, np.ndarray) and value.size == 1 and value.dtype.kind != "O":
             value = value.reshape(()).item()

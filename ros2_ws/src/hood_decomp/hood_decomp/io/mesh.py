@@ -64,9 +64,13 @@ def read_inp_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     path = Path(path)
     if not path.is_file():
         raise MeshError(f"mesh file {path} does not exist")
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise MeshError(f"{path}: not a text deck (byte {error.start} is not UTF-8)") from error
     node_ids, coords, elements, midside = [], [], [], set()
     block, elset, size = None, "", 0
-    for number, raw in enumerate(path.read_text().splitlines(), start=1):
+    for number, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()
         if not line or line.startswith("**"):
             continue
