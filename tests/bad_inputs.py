@@ -17,6 +17,9 @@ import numpy as np
 
 #: the text a hostile file tries to leak; it must never appear in any output
 SECRET = "root:x:0:0:SECRET-7f3a9c:/root:/bin/bash"
+#: a YAML alias bomb of 421 bytes: 9 levels of 9 aliases, 9**10 = 3.5e9 leaves once expanded
+BOMB = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
+    f"{chr(98 + i)}: &{chr(98 + i)} [" + ", ".join([f"*{chr(97 + i)}"] * 9) + "]\n" for i in range(9))
 
 
 @dataclasses.dataclass(frozen=True)

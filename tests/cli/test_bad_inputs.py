@@ -22,7 +22,7 @@ import pytest
 import yaml
 
 from hood_decomp.cli import main
-from tests.bad_inputs import H5_MUTATIONS, SECRET, Workspace, mutated_copy
+from tests.bad_inputs import BOMB, H5_MUTATIONS, SECRET, Workspace, mutated_copy
 
 #: category -> case name -> passed (filled as the cases run; printed by tests/cli/conftest.py)
 MATRIX: dict[str, dict[str, bool]] = {}
@@ -246,9 +246,6 @@ def _rename_key(name: str, old: str, new: str) -> Callable[[dict], None]:
     return edit
 
 
-BOMB = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
-    f"{chr(98 + i)}: &{chr(98 + i)} [*{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, "
-    f"*{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}]\n" for i in range(9))
 MODEL_CASES: list[tuple[str, str, Build, str]] = [
     ("unknown key", "forse: 580 (typo of force)", _model(_rename_key("gas_spring_L", "force", "forse")),
      "did you mean 'force'"),
