@@ -502,6 +502,35 @@ for _name, _text in (("NaN value", '{"LOCK_L": NaN}'), ("Infinity", '{"LOCK_L": 
     add("truth JSON", _name, _truth(_text), "--truth")
 
 
+# --- bags ------------------------------------------------------------------------------------------------------
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _bag(edit: str) -> Build:
+    def build(ws: Workspace, tmp: Path) -> list[str]:
+        bag = tmp / "bag"
+        if edit != "missing":
+            shutil.copytree(REPO / "bags" / "clean", bag)
+            shutil.copyfile(REPO / "bags" / "clean.json", tmp / "bag.json")
+        metadata = bag / "metadata.yaml"
+        if edit == "storage file outside the bag":
+            metadata.write_text(metadata.read_text().replace("- clean.mcap", f"- ../decoys/{ws.secret.name}")
+                                .replace("path: clean.mcap", f"path: {ws.secret}"))
+        elif edit == "truncated mcap":
+            data = (bag / "clean.mcap").read_bytes()
+            (bag / "clean.mcap").write_bytes(data[: len(data) // 3])
+        elif edit == "metadata not YAML":
+            metadata.write_text("rosbag2_bagfile_information: [unclosed\n")
+        return ["replay", str(bag)]
+
+    return build
+
+
+for _edit, _fragment in (("missing", "not a rosbag2 directory"), ("storage file outside the bag", "outside the bag"),
+                         ("truncated mcap", "cannot read bag"), ("metadata not YAML", "metadata")):
+    add("bag", _edit, _bag(_edit), _fragment)
+
+
 # --- outputs -----------------------------------------------------------------------------------------------------
 for _name, _argv_out, _fragment in (
     ("bases --out in a missing directory", (*BASES[:-1], "{tmp}/missing/b.h5"), "does not exist"),
@@ -583,7 +612,7 @@ def test_the_matrix_covers_every_category() -> None:
     assert {"file missing", "file empty", "file garbage", "file truncated", "hdf5 crafted bases",
             "hdf5 crafted ensemble", "hdf5 attributes", "model.yaml unknown key", "model.yaml wrong type",
             "model.yaml non-finite", "model.yaml hostile text", "scan file (PLY)", "field file", "mesh file",
-            "option NaN/inf/garbage", "scheduler", "output", "truth JSON"} <= categories
+            "option NaN/inf/garbage", "scheduler", "output", "truth JSON", "bag"} <= categories
 
 
 SUBPROCESS_CASES = ["option NaN/inf/garbage: simulate --set HINGE_X=nan", "model.yaml hostile text: YAML alias bomb",
