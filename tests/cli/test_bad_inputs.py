@@ -141,12 +141,14 @@ def _h5(kind: str, mutation: str, target: str) -> Build:
     return build
 
 
+#: what the error names for a mutation of a per-node numeric dataset: the dimension and where it was fixed
+_NUMERIC = {"wrong width": "but skin/points has N = 400", "strings for numbers": "holds str, expected float"}
 for _mutation, (_, _fragment) in H5_MUTATIONS.items():
     add("hdf5 crafted bases", f"{_mutation} in pca/components", _h5("bases (estimate)", _mutation, "pca/components"),
-        _fragment if _mutation not in ("wrong width", "strings for numbers") else "")
+        _NUMERIC.get(_mutation, _fragment))
     add("hdf5 crafted ensemble", f"{_mutation} in training/normal_displacement",
         _h5("ensemble", _mutation, "training/normal_displacement"),
-        _fragment if _mutation not in ("wrong width", "strings for numbers") else "")
+        _NUMERIC.get(_mutation, _fragment))
 for _mutation in ("external storage (text)", "external link", "missing dataset", "object references",
                   "variable-length numbers"):
     add("hdf5 crafted bases", f"{_mutation} in hierarchical/effect_names",

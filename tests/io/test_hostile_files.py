@@ -102,3 +102,17 @@ def test_a_rewritten_ensemble_store_does_not_pass(tiny_workspace, tmp_path, caps
         forged = mutated_copy(tiny_workspace.ensemble, tmp_path / f"forged_{name}.h5", edit)
         assert main(["bases", "--ensemble", str(forged), "--out", str(tmp_path / "b.h5")]) == 2
         assert "does not match its content_id" in capsys.readouterr().err
+
+
+def test_a_node_given_a_hostile_bases_file_reports_it_without_the_secret(tiny_workspace, tmp_path):
+    """Fails if the nodes' bases loader (every node loads its bases through it) takes a bases file whose effect names
+    live in another file, or puts that file's content into the reason it reports on /diagnostics (the issue's leak:
+    the decomposition node published /etc/passwd as effect names)."""
+    from hood_decomp.ros.node_common import load_bases_or_reason
+
+    edit, _ = H5_MUTATIONS["external storage (text)"]
+    hostile = mutated_copy(tiny_workspace.bases, tmp_path / "hostile.h5",
+                           lambda h5: edit(h5, "hierarchical/effect_names", tiny_workspace))
+    with watch_opens(tiny_workspace.decoys) as opened:
+        bases, reason = load_bases_or_reason(str(hostile))
+    assert bases is None and "external" in reason and SECRET not in reason and not opened
