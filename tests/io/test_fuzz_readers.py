@@ -298,3 +298,26 @@ def test_fuzzed_hdf5_examples_include_structure_damage(small_files):
     with pytest.raises(BasisError, match="not an HDF5"):
         load_bases(broken)
     assert h5py.is_hdf5(small_files / "bases.h5")
+
+
+def test_fuzz_bag(tmp_path, capsys):
+    """Fails if a mutated MCAP file of a small bag (three std_msgs/String messages, written by io.bags) makes
+    read_bag raise anything but BagError (rosbags' own exceptions included), hang, or yield records without topic
+    and payload."""
+    from hood_decomp.io.bags import Record, read_bag, write_bag
+
+    bag = tmp_path / "bag"
+    cdr = b"\x00\x01\x00\x00" + (6).to_bytes(4, "little") + b"hello\x00"  # CDR little endian std_msgs/String
+    write_bag(bag, [Record("chatter", "std_msgs/msg/String", 10**9 * (i + 1), cdr) for i in range(3)])
+    storage = next(bag.glob("*.mcap"))
+    source = tmp_path / "source.mcap"
+    shutil.copyfile(storage, source)
+
+    def read(path):
+        shutil.copyfile(path, storage)
+        return list(read_bag(bag))
+
+    def check(records):
+        assert all(record.topic and isinstance(record.data, bytes) for record in records)
+
+    fuzz(read, source, check, tmp_path, 64, capsys, "bag (MCAP)")
