@@ -448,7 +448,7 @@ DECOMPOSE = ("decompose", "--bases", "{bases}", "--field", "{field}")
 CLOSE = ("close-loop", "--model", "{model}", "--bases", "{bases}", "--field", "{field}", "--out", "{out}")
 ENSEMBLE = ("ensemble", "--model", "{model}", "--out", "{out}.h5")
 for _value in ("HINGE_X=nan", "HINGE_X=inf", "HINGE_X=-inf", "HINGE_X=abc", "=1", "HINGE_X", "HINGE_X=1e400",
-               "HINGE_X=0.1,LOCK_L=NaN", "NOPE=1", "hinge_R.w=1"):
+               "HINGE_X=0.1,LOCK_L=NaN", "NOPE=1", "hinge_R.w=1", "HINGE_X=1e30"):
     add("option NaN/inf/garbage", f"simulate --set {_value}", _argv(*SIMULATE, "--set", _value))
 add("option NaN/inf/garbage", "scan --set LOCK_L=inf", _argv(*SCAN, "--set", "LOCK_L=inf"))
 for _verb, _option, _values in (

@@ -77,7 +77,10 @@ def add_setting(parser: argparse.ArgumentParser) -> None:
 
 
 def parse_settings(text: str) -> dict[str, float]:
-    """'A=1,B=-0.5' -> {'A': 1.0, 'B': -0.5}; ModelError on a malformed item or a value that is not finite."""
+    """'A=1,B=-0.5' -> {'A': 1.0, 'B': -0.5}; ModelError on a malformed item or a value that is not finite or beyond
+    the plausible field bound (io.fields.MAX_ABS_MM)."""
+    from hood_decomp.io.fields import MAX_ABS_MM
+
     settings: dict[str, float] = {}
     for item in filter(None, (part.strip() for part in text.split(","))):
         label, sep, value = item.partition("=")
@@ -89,6 +92,9 @@ def parse_settings(text: str) -> dict[str, float]:
             raise ModelError(f"--set item {item[:80]!r}: expected LABEL=VALUE with VALUE in mm")
         if not math.isfinite(settings[label.strip()]):
             raise ModelError(f"--set item {item[:80]!r}: the value must be a finite number of mm")
+        if abs(settings[label.strip()]) > MAX_ABS_MM:
+            raise ModelError(f"--set item {item[:80]!r}: at most {MAX_ABS_MM:g} mm (a boundary setting beyond that "
+                             "makes a field no reader accepts)")
     return settings
 
 
