@@ -102,8 +102,9 @@ def read_field(path: str | Path, skin: SkinSurface | None = None) -> tuple[Displ
 
 
 #: largest displacement (mm) a field may hold: the method models sheet-metal deviations of a few millimetres (the
-#: hood's parameter ranges are +-1 mm and its largest simulated response about 5 mm); 100 mm is 20 times that, and
-#: anything beyond is not a deviation of the part but a unit error, a wrong file or a broken registration
+#: hood's parameter ranges are +-1 mm; its largest response over the full factorial, gravity included, is 4.05 mm on
+#: the coarse hood); 100 mm is 25 times that, and anything beyond is not a deviation of the part but a unit error, a
+#: wrong file or a broken registration
 MAX_ABS_MM = 100.0
 
 
