@@ -85,7 +85,8 @@ def test_a_bad_output_is_refused_before_any_work(ws, capsys, monkeypatch):
 
 def test_a_failed_write_leaves_no_half_file_and_keeps_the_old_one(ws, capsys, monkeypatch):
     """Fails if a verb that fails while writing its output leaves a partial file, or destroys the file that was at
-    --out before (outputs go to a temporary file renamed on success)."""
+    --out before (outputs go to a temporary file renamed on success), or if a new output keeps the temporary file's
+    private mode instead of the one a plain write gives."""
     import hood_decomp.io.bases as io_bases
     from hood_decomp.errors import BasisError
 
@@ -106,3 +107,8 @@ def test_a_failed_write_leaves_no_half_file_and_keeps_the_old_one(ws, capsys, mo
     monkeypatch.setattr(io_bases, "save_bases", real)
     assert main(["bases", "--ensemble", str(ws / "ensemble.h5"), "--out", str(out)]) == 0
     assert out.stat().st_size > 10_000
+    fresh = ws / "fresh.h5"
+    assert main(["bases", "--ensemble", str(ws / "ensemble.h5"), "--out", str(fresh)]) == 0
+    umask = os.umask(0)
+    os.umask(umask)
+    assert fresh.stat().st_mode & 0o777 == 0o666 & ~umask  # not the temporary file's 0600
