@@ -486,6 +486,8 @@ add("scheduler", "--scheduler garbage", _argv(*ENSEMBLE, "--solver", "calculix",
     "scheduler")
 add("scheduler", "--scheduler unreachable", _argv(*ENSEMBLE, "--solver", "calculix", "--scheduler",
                                                   "tcp://127.0.0.1:9"), "no scheduler answers")
+add("scheduler", "--scheduler with the embedded solver", _argv(*ENSEMBLE, "--scheduler", "tcp://127.0.0.1:8786"),
+    "only with --solver calculix")
 add("scheduler", "--scheduler inproc://", _argv(*ENSEMBLE, "--solver", "calculix", "--scheduler", "inproc://x/1"),
     "scheduler")
 

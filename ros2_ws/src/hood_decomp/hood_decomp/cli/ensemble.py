@@ -44,7 +44,9 @@ def run(args: argparse.Namespace) -> int:
     if args.model is None:
         raise EnsembleError("--model is required to compute an ensemble")
     out = check_output(args.out, model_inputs(args.model))
-    if args.solver == "calculix" and args.scheduler is not None:
+    if args.scheduler is not None:
+        if args.solver != "calculix":
+            raise EnsembleError("--scheduler is used only with --solver calculix (the embedded solver runs here)")
         _check_scheduler(args.scheduler)
     start = time.perf_counter()
     model = load_model(args.model)
