@@ -77,7 +77,7 @@ def main() -> int:
         seconds, _, result = _child([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", path])
         tail = result.stdout.strip().splitlines()[-1] if result.stdout.strip() else ""
         lines = [line for line in result.stdout.splitlines()
-                 if re.match(r"\s*(fuzz |[a-zA-Z.() /]+\s+\d+ / \d+)", line)]
+                 if re.match(r"\s*(fuzz |[\w.() /-]+\s+\d+ / \d+)", line)]
         results[name] = {"seconds": round(seconds, 1), "summary": tail, "lines": lines}
     (OUT / "hostile.json").write_text(json.dumps(results, indent=2) + "\n")
     bomb = results["bomb"]
