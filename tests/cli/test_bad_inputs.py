@@ -553,6 +553,7 @@ for _name, _argv_out, _fragment in (
     ("model --out a file", ("model", "--out", "{field}"), "is a file"),
     ("bases --plots a file", (*BASES, "--plots", "{scan}"), "is a file"),
     ("simulate --out ending in /", (*SIMULATE[:-1], "{tmp}/new/"), "directory"),
+    ("scan --out its own sidecar", (*SCAN[:-1], "{tmp}/scan.json"), "sidecar"),
     ("replay --record an existing directory", ("replay", "{tmp}/no_bag", "--record", "{tmp}"), "exists"),
 ):
     add("output", _name, _argv(*_argv_out), _fragment)

@@ -69,6 +69,8 @@ def run(args: argparse.Namespace) -> int:
     from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
 
     out = check_output(args.out, model_inputs(args.model))
+    if out.suffix.lower() == ".json":
+        raise ScanError(f"--out {out}: a scan is a .ply file; its truth goes to the .json sidecar beside it")
     sidecar = check_output(out.with_suffix(".json"), model_inputs(args.model), "--out (its .json sidecar)")
     config = ScannerConfig(n_points=args.points, noise_mm=args.noise_mm, fixture=not args.no_fixture,
                            misplacement=_misplacement(args.misplacement))  # fmt: skip
