@@ -73,3 +73,11 @@ def coarse_calculix_columns() -> dict[str, Any]:
     model = build_hood("coarse")
     cases, constrained = load_cases(model, pad_lattice=1)
     return run_cases(model, [c for c in cases if not c.name.startswith("pad_")], constrained)
+
+
+@pytest.fixture(scope="session")
+def tiny_workspace(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    """Valid inputs of every verb on a 20 x 20 hood (tests/bad_inputs.py): what the bad-input tests break."""
+    from tests.bad_inputs import build_workspace
+
+    return build_workspace(tmp_path_factory.mktemp("tiny_workspace"))

@@ -71,7 +71,7 @@ def test_store_round_trip_matches_in_memory_members(store) -> None:
 def test_store_is_plain_hdf5_without_objects(store) -> None:
     _, _, path, _ = store
     with h5py.File(path, "r") as f:
-        assert f.attrs["schema"] == "hood_decomp.ensemble" and int(f.attrs["schema_version"]) == 1
+        assert f.attrs["schema"] == "hood_decomp.ensemble" and int(f.attrs["schema_version"]) == 2
         kinds = []
         f.visititems(lambda name, obj: kinds.append(obj.dtype.kind) if isinstance(obj, h5py.Dataset) else None)
         assert set(kinds) <= {"f", "i", "O"}  # "O" only for the UTF-8 names

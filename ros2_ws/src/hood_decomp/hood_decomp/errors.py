@@ -49,3 +49,9 @@ class PointCloudError(HoodDecompError):
 
 class BagError(HoodDecompError):
     """A bag or its sidecar file is missing or inconsistent."""
+
+
+class OutputError(HoodDecompError):
+    """An output path is unusable: its directory is missing or not writable, it is a directory where a file is
+    wanted (or a file where a directory is), or it is one of the command's inputs."""
+

@@ -7,7 +7,9 @@ uses; what verbs share is in ``cli._common``, and verbs never import each other.
 
 Progress: the package's modules log to ``logging.getLogger(__name__)``; while a verb runs, one handler on the
 ``hood_decomp`` logger prints INFO and above to stderr in the verb's ``LOG_FORMAT``.
-Bad input (any :class:`~hood_decomp.errors.HoodDecompError`) ends in one line on stderr and exit status 2.
+Bad input (any :class:`~hood_decomp.errors.HoodDecompError`, a usage error, or an OSError of a read or write) ends in
+one line on stderr and exit status 2; numeric options are finite and in range (``_common.finite``), and outputs are
+checked before any work and written whole (``_common.check_output``, ``written_whole``).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import sys
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from typing import NoReturn
 
 from hood_decomp import __version__
 from hood_decomp.errors import HoodDecompError
@@ -39,8 +42,16 @@ VERBS: dict[str, str] = {
 }
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with the verbs' error contract: a usage error is one line on stderr and exit status 2 (``--help``
+    shows the usage)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())}\n")
+
+
 def _build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="hood-decomp",
         description="Decompose scanned deviations of a sheet-metal assembly into boundary effects "
         "(Claus & Hamann). Lengths in millimetres.",
@@ -97,7 +108,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         with _progress_to_stderr(args._log_format):
             return int(args._run(args))
     except HoodDecompError as error:
-        print(f"hood-decomp {args.verb}: error: {error}", file=sys.stderr)
+        print(f"hood-decomp {args.verb}: error: {' '.join(str(error).split())}", file=sys.stderr)
+        return 2
+    except OSError as error:  # the machine refused a read or write the checks could not foresee (disk full, ...)
+        where = f": {error.filename}" if error.filename else ""
+        print(f"hood-decomp {args.verb}: error: {error.strerror or error}{where}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"hood-decomp {args.verb}: interrupted", file=sys.stderr)

@@ -7,11 +7,17 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
+import shutil
 import sys
+import tempfile
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from hood_decomp.errors import FieldError, ModelError
+from hood_decomp.errors import FieldError, ModelError, OutputError
 from hood_decomp.io.json_values import json_ready
 
 if TYPE_CHECKING:  # only for annotations: a verb's --help does not load the method
@@ -53,7 +59,7 @@ def add_inputs(parser: argparse.ArgumentParser, repeatable: bool = False) -> Non
                             help="field file (.vtu with point data normal_displacement)")
         source.add_argument("--scan", action=_Input, metavar="SCAN.ply",
                             help="scan point cloud (.ply), converted to a field first")
-    parser.add_argument("--min-coverage", type=float, default=0.2,
+    parser.add_argument("--min-coverage", type=finite(0.0, 1.0), default=0.2,
                         help="smallest fraction of skin nodes the field must cover (default 0.2)")
     parser.set_defaults(inputs=None)
 
@@ -71,7 +77,10 @@ def add_setting(parser: argparse.ArgumentParser) -> None:
 
 
 def parse_settings(text: str) -> dict[str, float]:
-    """'A=1,B=-0.5' -> {'A': 1.0, 'B': -0.5}; ModelError on a malformed item."""
+    """'A=1,B=-0.5' -> {'A': 1.0, 'B': -0.5}; ModelError on a malformed item or a value that is not finite or beyond
+    the plausible field bound (io.fields.MAX_ABS_MM)."""
+    from hood_decomp.io.fields import MAX_ABS_MM
+
     settings: dict[str, float] = {}
     for item in filter(None, (part.strip() for part in text.split(","))):
         label, sep, value = item.partition("=")
@@ -80,8 +89,125 @@ def parse_settings(text: str) -> dict[str, float]:
         except ValueError:
             sep = ""
         if not sep or not label.strip():
-            raise ModelError(f"--set item {item!r}: expected LABEL=VALUE with VALUE in mm")
+            raise ModelError(f"--set item {item[:80]!r}: expected LABEL=VALUE with VALUE in mm")
+        if not math.isfinite(settings[label.strip()]):
+            raise ModelError(f"--set item {item[:80]!r}: the value must be a finite number of mm")
+        if abs(settings[label.strip()]) > MAX_ABS_MM:
+            raise ModelError(f"--set item {item[:80]!r}: at most {MAX_ABS_MM:g} mm (a boundary setting beyond that "
+                             "makes a field no reader accepts)")
     return settings
+
+
+def finite(low: float = -math.inf, high: float = math.inf, *, integer: bool = False, low_open: bool = False,
+           why: str = "") -> Callable[[str], float | int]:
+    """An argparse ``type``: a finite number (``integer``: a whole one, "1e6" allowed) in [low, high] (``low_open``:
+    > low), else a one-line usage error naming the option, before any work; ``why`` says where a bound comes from.
+    NaN and inf never reach a computation through a command-line number."""
+
+    def parse(text: str) -> float | int:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if (math.isfinite(value) and (value > low or (value == low and not low_open)) and value <= high
+                and (not integer or value == int(value))):
+            return int(value) if integer else value
+        bound = f"{'(' if low_open else '['}{low:g}, {high:g}]"
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a finite {'whole number' if integer else 'number'} in {bound}{why}")
+
+    parse.__name__ = "integer" if integer else "number"  # argparse names the type in its message
+    return parse
+
+
+# --- outputs: checked before any work, never an input, written whole or not at all -------------------------------
+def check_output(path: Path | str, inputs: Iterable[Path | str], option: str = "--out", *, directory: bool = False,
+                 writes: Iterable[str] = (), parents: bool = False) -> Path:
+    """Check an output before any work; return it as a Path. OutputError when its directory (for ``directory``
+    outputs: its parent, or itself when it exists) is missing or not writable (tried by creating and removing a file
+    there, so it holds for root and read-only mounts too), when it is a directory where a file is wanted or a file
+    where a directory is, or when it (or a file ``writes`` names inside a directory output) is one of ``inputs``:
+    same resolved path or same file (hard links, ``os.path.samefile``). ``parents``: a directory output whose
+    missing parents the verb creates (then the nearest existing ancestor must be writable)."""
+    wants_directory = str(path).endswith(("/", os.sep))
+    path = Path(path)
+    if directory:
+        if path.exists() and not path.is_dir():
+            raise OutputError(f"{option} {path} is a file; expected a directory")
+        targets = [path / name for name in writes]
+        place = path if path.is_dir() else path.parent
+        while parents and not place.exists() and place != place.parent:
+            place = place.parent
+    else:
+        if path.is_dir() or wants_directory:
+            raise OutputError(f"{option} {path} is a directory; expected a file name")
+        targets, place = [path], path.parent
+    if not place.is_dir():
+        raise OutputError(f"{option} {path}: directory {place} does not exist")
+    try:
+        handle, probe = tempfile.mkstemp(prefix=".hood_decomp_probe_", dir=place)
+        os.close(handle)
+        os.unlink(probe)
+    except OSError as error:
+        raise OutputError(f"{option} {path}: cannot write in {place}: {error.strerror}") from error
+    for source in inputs:
+        source = Path(source)
+        for target in targets:
+            if target.resolve() == source.resolve() or (target.exists() and source.exists()
+                                                         and os.path.samefile(target, source)):
+                raise OutputError(f"{option} {path} would overwrite the input {source}; choose another output")
+    return path
+
+
+@contextmanager
+def written_whole(path: Path) -> Iterator[Path]:
+    """Yield a temporary path beside ``path`` (same suffix) to write to; on success it replaces ``path`` in one
+    rename, on failure it is removed: a failed verb never leaves a half file or a clobbered old one."""
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    os.close(handle)
+    try:
+        yield Path(temporary)
+        os.chmod(temporary, _file_mode(path))  # mkstemp makes 0600; the output gets what a plain write would give
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+
+
+def _file_mode(path: Path) -> int:
+    """The mode of the file at ``path`` if there is one, else what a new file gets under the process's umask."""
+    try:
+        return path.stat().st_mode & 0o7777
+    except OSError:
+        umask = os.umask(0)
+        os.umask(umask)
+        return 0o666 & ~umask
+
+
+@contextmanager
+def written_whole_directory(path: Path) -> Iterator[Path]:
+    """Yield a temporary directory beside ``path`` to write files into; on success each file moves into ``path``
+    (created when missing) by rename, on failure the temporary directory is removed."""
+    parent = path if path.is_dir() else path.parent
+    temporary = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=parent))
+    try:
+        yield temporary
+        path.mkdir(exist_ok=True)
+        for item in sorted(temporary.rglob("*")):
+            target = path / item.relative_to(temporary)
+            if item.is_dir():
+                target.mkdir(exist_ok=True)
+            else:
+                os.replace(item, target)
+    finally:
+        shutil.rmtree(temporary, ignore_errors=True)
+
+
+def model_inputs(model: Path | str) -> list[Path]:
+    """The files a --model argument reads (model.yaml and its mesh), for :func:`check_output`."""
+    from hood_decomp.io.model_files import model_files
+
+    return model_files(model)
 
 
 def read_fields(inputs: Inputs | None, skin: SkinSurface, min_coverage: float) -> list[DisplacementField]:
@@ -104,8 +230,19 @@ def read_bases_and_field(args: argparse.Namespace) -> tuple[Bases, DisplacementF
 
 
 def write_json(path: Path, payload: object) -> None:
-    """``payload`` as indented JSON in ``path``, non-finite numbers as null."""
-    path.write_text(_dumps(payload) + "\n")
+    """``payload`` as indented JSON in ``path`` (whole or not at all), non-finite numbers as null."""
+    text = _dumps(payload) + "\n"
+    with written_whole(Path(path)) as temporary:
+        temporary.write_text(text)
+
+
+def check_json(args: argparse.Namespace) -> list[Path]:
+    """Check --json (when given) against the inputs of --bases, --field and --scan before any work (:func:`add_json`);
+    return those inputs."""
+    inputs = [args.bases, *(path for _, path in args.inputs or [])]
+    if args.json is not None:
+        check_output(args.json, inputs, "--json")
+    return inputs
 
 
 def emit_json(payload: object, path: Path | None = None) -> None:

@@ -7,6 +7,7 @@ import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from hood_decomp.cli._common import check_output, finite, model_inputs, written_whole
 from hood_decomp.errors import EnsembleError
 
 if TYPE_CHECKING:
@@ -21,11 +22,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ensemble", required=True, type=Path, help="ensemble store written by `hood-decomp ensemble`")
     parser.add_argument("--out", required=True, type=Path, help="bases file to write (HDF5, .h5)")
     group = parser.add_mutually_exclusive_group()
-    group.add_argument("--components", type=int, default=None,
+    group.add_argument("--components", type=finite(1, 1000, integer=True), default=None,
                        help="number of PCA components (default 10; fewer when the ensemble supports fewer)")
-    group.add_argument("--explained-variance", type=float, default=None,
+    group.add_argument("--explained-variance", type=finite(0.0, 1.0, low_open=True), default=None,
                        help="choose the PCA components by cumulative explained variance instead, e.g. 0.999999")
-    parser.add_argument("--epsilon", type=float, default=0.1,
+    parser.add_argument("--epsilon", type=finite(0.0, 100.0, low_open=True, why=" mm: the tolerance of a member "
+                        "error; 100 mm is beyond any sheet-metal deviation"), default=0.1,
                         help="hierarchical tolerance: max allowed member error, mm (default 0.1, the paper's)")
     parser.add_argument("--model", type=Path, default=None,
                         help="model directory of the ensemble: its reduced FE model goes into the bases file for the "
@@ -53,11 +55,16 @@ def run(args: argparse.Namespace) -> int:
     from hood_decomp.io.bases import save_bases
     from hood_decomp.io.ensemble_store import load_ensemble, load_skin
 
+    inputs = [args.ensemble, *(model_inputs(args.model) if args.model is not None else ())]
+    out = check_output(args.out, inputs)
+    if args.plots is not None:
+        check_output(args.plots, inputs, "--plots", directory=True, writes=["explained_variance.png"])
     ensemble, skin = load_ensemble(args.ensemble, "training"), load_skin(args.ensemble)
     reduced = _reduced_model(args.model, ensemble.model_id)
     components = 10 if args.components is None and args.explained_variance is None else args.components
     bases = build_bases(ensemble, skin, reduced, components, args.explained_variance, args.epsilon)
-    save_bases(args.out, bases)
+    with written_whole(out) as temporary:
+        save_bases(temporary, bases)
     if args.plots is not None:
         from hood_decomp.plots.method import plot_explained_variance
 

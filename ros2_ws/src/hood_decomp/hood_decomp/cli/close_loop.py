@@ -8,11 +8,22 @@ added, the rebuilt bases DIR/bases_closed_loop.h5 (usable with `estimate` and `d
 from __future__ import annotations
 
 import argparse
-import json
+import math
+import sys
 from pathlib import Path
 
-from hood_decomp.cli._common import add_bases, add_inputs, emit_json, read_fields
+from hood_decomp.cli._common import (
+    add_bases,
+    add_inputs,
+    check_output,
+    finite,
+    model_inputs,
+    read_fields,
+    write_json,
+    written_whole_directory,
+)
 from hood_decomp.errors import FieldError, ModelIdMismatchError
+from hood_decomp.io.json_values import loads_strict
 
 HELP = "find, add and report an effect the model lacks (residual -> candidate effects -> new parameter -> bases)"
 LOG_FORMAT = "close-loop: %(message)s"
@@ -28,11 +39,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "effect) for all fields, or a list of such objects, one per field")
     parser.add_argument("--ensemble", type=Path, default=None, help="ensemble store of the bases: its training "
                         "members are reused (default: solved again from the bases' reduced model)")
-    parser.add_argument("--alpha", type=float, default=0.01, help="significance level of the tests (default 0.01)")
-    parser.add_argument("--noise-mm", type=float, default=None, help="scan noise (mm, one sigma) of fields that do "
-                        "not state their own (default: hood_decomp.core.method.residual.DEFAULT_NOISE_MM)")
-    parser.add_argument("--max-effects", type=int, default=2,
-                        help="effects added at most (default 2: a pair of candidates may explain one missing effect)")
+    parser.add_argument("--alpha", type=finite(0.0, 0.5, low_open=True), default=0.01,
+                        help="significance level of the tests (default 0.01)")
+    parser.add_argument("--noise-mm", type=finite(0.0, 10.0, low_open=True), default=None,
+                        help="scan noise (mm, one sigma) of fields that do not state their own (default: "
+                        "hood_decomp.core.method.residual.DEFAULT_NOISE_MM)")
+    parser.add_argument("--max-effects", type=finite(1, 2, integer=True), default=2,
+                        help="effects added at most: 1 (one candidate) or 2 (default: a pair of candidates may "
+                        "explain one missing effect)")
     parser.add_argument("--method", choices=("contact", "pca"), default="contact",
                         help="estimator of the before/after estimates (tracing is always contact-aware)")
 
@@ -41,16 +55,20 @@ def _read_truth(path: Path | None, n_fields: int) -> list[dict[str, float]] | No
     if path is None:
         return None
     try:
-        document = json.loads(path.read_text())
+        document = loads_strict(path.read_text())
     except (OSError, ValueError) as error:
-        raise FieldError(f"--truth {path}: not a readable JSON file: {error}") from error
+        raise FieldError(f"--truth {path}: not a readable JSON file: {' '.join(str(error).split())[:120]}") from error
     entries = document if isinstance(document, list) else [document] * n_fields
     if len(entries) != n_fields or not all(isinstance(e, dict) for e in entries):
         raise FieldError(f"--truth {path}: expected an object label -> value or a list of {n_fields} such objects")
     try:
-        return [{str(k): float(v) for k, v in e.items()} for e in entries]
+        truth = [{str(k): float(v) for k, v in e.items()} for e in entries]
     except (TypeError, ValueError) as error:
         raise FieldError(f"--truth {path}: values must be numbers: {error}") from error
+    if not all(math.isfinite(v) for e in truth for v in e.values()):
+        raise FieldError(f"--truth {path}: values must be finite numbers")
+    return truth
+
 
 
 def _table(payload: dict) -> str:
@@ -80,6 +98,9 @@ def run(args: argparse.Namespace) -> int:
     from hood_decomp.io.model_files import load_model_with_candidates
     from hood_decomp.plots.close_loop import plot_before_after, plot_residual_maps
 
+    inputs = [*model_inputs(args.model), args.bases, *(p for _, p in args.inputs or []),
+              *(p for p in (args.truth, args.ensemble) if p is not None)]
+    check_output(args.out, inputs, directory=True, writes=["close_loop.json", "bases_closed_loop.h5"])
     model, user_candidates = load_model_with_candidates(args.model)
     bases = load_bases(args.bases)
     if model.model_id != bases.model_id:
@@ -96,17 +117,18 @@ def run(args: argparse.Namespace) -> int:
     result = close_loop(bases, fields, candidates, ensemble=ensemble, alpha=args.alpha,
                         default_noise_mm=DEFAULT_NOISE_MM if args.noise_mm is None else args.noise_mm,
                         max_effects=args.max_effects, method=args.method, min_coverage=args.min_coverage)
-    args.out.mkdir(parents=True, exist_ok=True)
     payload = close_loop_report(result, truth)
     payload["inputs"] = [str(path) for _, path in args.inputs]
     payload["candidates"] = list(candidates.names)
     payload["candidates_without_effect"] = list(candidates.dropped)
-    figures = plot_residual_maps(bases.skin, result, args.out)
-    figures.append(plot_before_after(result, args.out / "before_after.png", truth))
-    payload["figures"] = [str(p.name) for p in figures]
-    if result.bases_after is not None:
-        save_bases(args.out / "bases_closed_loop.h5", result.bases_after)
-        payload["bases_after"] = "bases_closed_loop.h5"
+    with written_whole_directory(args.out) as directory:
+        figures = plot_residual_maps(bases.skin, result, directory)
+        figures.append(plot_before_after(result, directory / "before_after.png", truth))
+        payload["figures"] = [str(p.name) for p in figures]
+        if result.bases_after is not None:
+            save_bases(directory / "bases_closed_loop.h5", result.bases_after)
+            payload["bases_after"] = "bases_closed_loop.h5"
+        write_json(directory / "close_loop.json", payload)
     print(_table(payload))
-    emit_json(payload, args.out / "close_loop.json")
+    print(f"wrote {args.out / 'close_loop.json'}", file=sys.stderr)
     return 0

@@ -5,7 +5,16 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from hood_decomp.cli._common import add_bases, add_inputs, add_json, emit_json, read_bases_and_field
+from hood_decomp.cli._common import (
+    add_bases,
+    add_inputs,
+    add_json,
+    check_json,
+    check_output,
+    emit_json,
+    finite,
+    read_bases_and_field,
+)
 
 HELP = "decompose a field or scan into effects with contribution plots"
 
@@ -17,13 +26,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--plots", type=Path, default=None, help="directory for the PNG contribution plots")
     parser.add_argument("--method", choices=("contact", "pca"), default="contact",
                         help="estimator of step 2 that selects the effect subset (default contact)")
-    parser.add_argument("--min-share", type=float, default=0.02,
+    parser.add_argument("--min-share", type=finite(0.0, 1.0, low_open=False), default=0.02,
                         help="coarsening: drop effects contributing less than this fraction (default 0.02)")
 
 
 def run(args: argparse.Namespace) -> int:
     from hood_decomp.core.method.bases import decompose_field, estimate_field
 
+    inputs = check_json(args)
+    if args.plots is not None:
+        check_output(args.plots, inputs, "--plots", directory=True)
     bases, field = read_bases_and_field(args)
     estimate = estimate_field(bases, field, args.method, args.min_coverage)
     result = decompose_field(bases, field, estimate, min_share=args.min_share, min_coverage=args.min_coverage)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from hood_decomp.cli._common import add_bases, add_inputs, add_json, emit_json, read_bases_and_field
+from hood_decomp.cli._common import add_bases, add_inputs, add_json, check_json, emit_json, read_bases_and_field
 
 HELP = "estimate the parameter states of a field or scan"
 
@@ -36,6 +36,7 @@ def estimate_payload(estimate, n_bilateral: int) -> dict:
 def run(args: argparse.Namespace) -> int:
     from hood_decomp.core.method.bases import estimate_field
 
+    check_json(args)
     bases, field = read_bases_and_field(args)
     estimate = estimate_field(bases, field, args.method, args.min_coverage)
     emit_json(estimate_payload(estimate, bases.pca.n_bilateral_), args.json)

@@ -19,6 +19,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from hood_decomp.io.bases import load_bases
+
+    load_bases(args.bases)  # a bad bases file is refused here, not in three node logs
     processes = start_nodes(args.bases.resolve(), params_file=args.params, nodes=args.nodes)
     print(f"hood-decomp launch: started {', '.join(args.nodes)} (pids "
           f"{', '.join(str(p.pid) for p in processes)}); Ctrl-C stops them", file=sys.stderr)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from hood_decomp.cli._common import check_output, written_whole_directory
+
 HELP = "write a part model (model.yaml + mesh.vtu) from a built-in preset"
 
 
@@ -18,10 +20,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from hood_decomp.core.fe.hood_preset import build_hood
-    from hood_decomp.io.model_files import save_model
+    from hood_decomp.io.model_files import MODEL_FILE, save_model
 
+    out = check_output(args.out, (), directory=True)
     model = build_hood(args.resolution)
-    path = save_model(model, args.out)
+    with written_whole_directory(out) as temporary:
+        save_model(model, temporary)
+    path = out / MODEL_FILE
     print(f"wrote {path}: {len(model.nodes)} nodes, {len(model.cells)} shells, {len(model.skin_nodes)} skin nodes, "
           f"parameters {', '.join(model.names)}; model_id {model.model_id}", file=sys.stderr)
     return 0

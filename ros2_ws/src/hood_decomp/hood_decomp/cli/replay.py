@@ -6,7 +6,8 @@ import argparse
 import pathlib
 import sys
 
-from hood_decomp.cli._common import write_json
+from hood_decomp.cli._common import check_output, finite, write_json
+from hood_decomp.errors import BagError
 
 HELP = "publish a bag's scans into the nodes (started here with --bases) and record what they publish"
 LOG_FORMAT = "hood-decomp replay: %(message)s"
@@ -18,7 +19,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bases", type=pathlib.Path,
                         help="start the three nodes with this bases file (else they must be running already)")
     parser.add_argument("--params", type=pathlib.Path, help="ROS parameter YAML for the nodes started here")
-    parser.add_argument("--timeout", type=float, default=60.0, help="longest wait for one scan's answer, s")
+    parser.add_argument("--timeout", type=finite(0.0, 86400.0, low_open=True), default=60.0,
+                        help="longest wait for one scan's answer, s")
     parser.add_argument("--clock", action="store_true", help="publish each scan's bag time on /clock")
     parser.add_argument("--json", type=pathlib.Path, help="write the replay summary as JSON")
 
@@ -27,6 +29,17 @@ def run(args: argparse.Namespace) -> int:
     from hood_decomp.ros.launcher import start_nodes, stop_nodes
     from hood_decomp.ros.replay import replay_bag
 
+    inputs = [p for p in (args.bag, args.bases, args.params) if p is not None]
+    if args.record is not None:
+        if args.record.exists():
+            raise BagError(f"--record {args.record} exists; a recording goes to a new bag directory")
+        check_output(args.record, inputs, "--record", directory=True)
+    if args.json is not None:
+        check_output(args.json, inputs, "--json")
+    if args.bases is not None:
+        from hood_decomp.io.bases import load_bases
+
+        load_bases(args.bases)  # a bad bases file is refused here, not in three node logs
     processes = start_nodes(args.bases.resolve(), params_file=args.params) if args.bases else []
     try:
         result = replay_bag(args.bag, record=args.record, timeout_s=args.timeout, publish_clock=args.clock)

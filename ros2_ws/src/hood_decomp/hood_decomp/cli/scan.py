@@ -10,26 +10,40 @@ from __future__ import annotations
 
 import argparse
 import logging
-from pathlib import Path
 
 import numpy as np
 
-from hood_decomp.cli._common import add_setting, emit_json, parse_settings, write_json
+from hood_decomp.cli._common import (
+    add_setting,
+    check_output,
+    emit_json,
+    finite,
+    model_inputs,
+    parse_settings,
+    write_json,
+    written_whole,
+)
 from hood_decomp.errors import ScanError
 
 HELP = "synthesise a structured-light scan of a displaced part -> SCAN.ply (+ SCAN.json with the truth)"
 LOG_FORMAT = "hood-decomp scan: %(message)s"
 
 logger = logging.getLogger(__name__)
+#: most points a synthetic scan may have: a real structured-light scan of a hood has 1-20 million; each point costs
+#: about 200 bytes on the way (ray, hit, noise, PLY record), so 50 million is about 10 GB
+MAX_POINTS = 50_000_000
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", required=True, help="model directory or its model.yaml")
     add_setting(parser)
     parser.add_argument("--out", required=True, help="output scan (.ply, points in the scanner frame, mm)")
-    parser.add_argument("--noise-mm", type=float, default=0.02, help="range noise along the ray, mm (default 0.02)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (noise, dropouts, pose error)")
-    parser.add_argument("--points", type=int, default=1_000_000, help="points on the skin (default 1,000,000)")
+    parser.add_argument("--noise-mm", type=finite(0.0, 10.0), default=0.02,
+                        help="range noise along the ray, mm (default 0.02; at most 10)")
+    parser.add_argument("--seed", type=finite(0, 2**32 - 1, integer=True), default=0,
+                        help="random seed (noise, dropouts, pose error)")
+    parser.add_argument("--points", type=finite(1000, MAX_POINTS, integer=True), default=1_000_000,
+                        help=f"points on the skin (default 1,000,000; 1000 to {MAX_POINTS:,})")
     parser.add_argument("--misplacement", default="0,0,0,0,0,0", metavar="RX,RY,RZ,TX,TY,TZ",
                         help="part misplacement in the fixture: rotation vector in degrees, translation in mm "
                         "(default none)")  # fmt: skip
@@ -41,8 +55,8 @@ def _misplacement(text: str) -> tuple[float, float, float, float, float, float]:
         values = tuple(float(v) for v in text.split(","))
     except ValueError:
         values = ()
-    if len(values) != 6:
-        raise ScanError(f"--misplacement {text!r}: expected six numbers RX,RY,RZ (deg),TX,TY,TZ (mm)")
+    if len(values) != 6 or not all(np.isfinite(values)):
+        raise ScanError(f"--misplacement {text[:80]!r}: expected six finite numbers RX,RY,RZ (deg),TX,TY,TZ (mm)")
     return values  # type: ignore[return-value]
 
 
@@ -54,8 +68,10 @@ def run(args: argparse.Namespace) -> int:
     from hood_decomp.io.ply import write_scan
     from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
 
-    if args.noise_mm < 0 or args.points < 1000:
-        raise ScanError(f"--noise-mm must be >= 0 and --points >= 1000; got {args.noise_mm} and {args.points}")
+    out = check_output(args.out, model_inputs(args.model))
+    if out.suffix.lower() == ".json":
+        raise ScanError(f"--out {out}: a scan is a .ply file; its truth goes to the .json sidecar beside it")
+    sidecar = check_output(out.with_suffix(".json"), model_inputs(args.model), "--out (its .json sidecar)")
     config = ScannerConfig(n_points=args.points, noise_mm=args.noise_mm, fixture=not args.no_fixture,
                            misplacement=_misplacement(args.misplacement))  # fmt: skip
     settings = parse_settings(args.settings)
@@ -65,9 +81,10 @@ def run(args: argparse.Namespace) -> int:
     result = simulate_setting(build_solver(model), settings)
     logger.info("scanning about %d points", args.points)
     scan = synthesize_scan(skin, result.displacement, config, seed=args.seed)
-    out = Path(args.out)
-    write_scan(out, scan.points, scanner_pose=scan.scanner_pose, markers=scan.markers, marker_ids=scan.marker_ids,
-               markers_nominal=scan.markers_nominal, comments=(f"hood_decomp model_id {skin.model_id}",))  # fmt: skip
+    with written_whole(out) as temporary:
+        write_scan(temporary, scan.points, scanner_pose=scan.scanner_pose, markers=scan.markers,
+                   marker_ids=scan.marker_ids, markers_nominal=scan.markers_nominal,
+                   comments=(f"hood_decomp model_id {skin.model_id}",))
     truth = {
         "model_id": skin.model_id,
         "settings_mm": settings,
@@ -82,7 +99,6 @@ def run(args: argparse.Namespace) -> int:
         "scanner_pose_nominal": scan.scanner_pose.tolist(),
         "max_abs_normal_displacement_mm": float(np.abs(result.normal_displacement).max()),
     }
-    sidecar = out.with_suffix(".json")
     write_json(sidecar, truth)
     emit_json({"out": str(out), "truth": str(sidecar), "n_points": truth["n_points"], "n_markers": truth["n_markers"]})
     return 0

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from hood_decomp.cli._common import add_setting, emit_json, parse_settings
+from hood_decomp.cli._common import add_setting, check_output, emit_json, model_inputs, parse_settings, written_whole
 
 HELP = "one forward FE solve of a boundary setting (any boundary, declared parameter or not) -> FIELD.vtu"
 
@@ -24,12 +24,14 @@ def run(args: argparse.Namespace) -> int:
     from hood_decomp.io.fields import write_field
     from hood_decomp.io.model_files import load_model
 
-    model = load_model(args.model)
     settings = parse_settings(args.settings)
+    out = check_output(args.out, model_inputs(args.model))
+    model = load_model(args.model)
     result = simulate_setting(build_solver(model), settings)
     field = DisplacementField(model_id=model.model_id, normal_displacement=result.normal_displacement, coverage=1.0,
                               noise_rms=float("nan"))
-    write_field(args.out, skin_surface(model), field, result.displacement)
+    with written_whole(out) as temporary:
+        write_field(temporary, skin_surface(model), field, result.displacement)
     emit_json({"out": args.out, "settings_mm": settings,
                "max_abs_normal_displacement_mm": float(abs(result.normal_displacement).max()),
                "pad_contact_fraction": result.contact_fraction, "pad_reaction_n": result.reactions})

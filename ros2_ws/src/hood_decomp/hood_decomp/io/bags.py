@@ -14,11 +14,13 @@ from dataclasses import dataclass
 from functools import cache
 from typing import Any
 
+import yaml
 from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
 from hood_decomp.errors import BagError
+from hood_decomp.io.json_values import loads_strict
 
 PROJECT_MESSAGES = ("DisplacementField", "BoundaryState", "BoundaryCorrection", "EffectField", "EffectFields")
 
@@ -107,6 +109,7 @@ def read_bag(path: str | pathlib.Path, topics: Iterable[str] | None = None) -> I
     path = pathlib.Path(path)
     if not (path / "metadata.yaml").is_file():
         raise BagError(f"{path} is not a rosbag2 directory (no metadata.yaml)")
+    _check_bag_files(path)
     wanted = set(topics) if topics is not None else None
     try:
         with Reader(path) as reader:
@@ -115,6 +118,26 @@ def read_bag(path: str | pathlib.Path, topics: Iterable[str] | None = None) -> I
                 yield Record(connection.topic, connection.msgtype, timestamp, bytes(data))
     except ReaderError as error:
         raise BagError(f"cannot read bag {path}: {error}") from error
+    except Exception as error:  # a corrupt file makes the foreign reader fail in many ways: all mean a bad bag
+        raise BagError(f"cannot read bag {path}: {type(error).__name__}: {' '.join(str(error).split())[:200]}"
+                       ) from error
+
+
+def _check_bag_files(path: pathlib.Path) -> None:
+    """The files metadata.yaml names must lie in the bag directory: a bag from elsewhere must not make the reader open
+    /etc/passwd or another user's file as a storage file."""
+    try:
+        document = yaml.safe_load((path / "metadata.yaml").read_text(errors="replace"))
+        names = document["rosbag2_bagfile_information"]["relative_file_paths"]
+    except (yaml.YAMLError, KeyError, TypeError) as error:
+        raise BagError(f"{path}/metadata.yaml is not rosbag2 metadata: {type(error).__name__}") from error
+    if not isinstance(names, list):
+        raise BagError(f"{path}/metadata.yaml: relative_file_paths must be a list")
+    directory = path.resolve()
+    for name in names:
+        if not isinstance(name, str) or pathlib.PurePath(name).is_absolute() or not (
+                directory / name).resolve().is_relative_to(directory):
+            raise BagError(f"{path}/metadata.yaml names the file {str(name)[:80]!r} outside the bag directory")
 
 
 def sidecar_path(bag: str | pathlib.Path) -> pathlib.Path:
@@ -126,7 +149,14 @@ def read_sidecar(bag: str | pathlib.Path) -> dict[str, Any]:
     path = sidecar_path(bag)
     if not path.is_file():
         raise BagError(f"bag {bag} has no sidecar file {path}")
-    return json.loads(path.read_text())
+    try:
+        content = loads_strict(path.read_text())
+    except ValueError as error:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
+        raise BagError(f"sidecar {path} is not JSON: {' '.join(str(error).split())[:120]}") from error
+    if not isinstance(content, dict):
+        raise BagError(f"sidecar {path}: expected a JSON object, got {type(content).__name__}")
+    return content
+
 
 
 def write_sidecar(bag: str | pathlib.Path, content: dict[str, Any]) -> pathlib.Path:

@@ -16,13 +16,50 @@ import numpy as np
 from hood_decomp.core.method.bases import Bases
 from hood_decomp.core.method.hierarchical import HIERARCHICAL_FITTED_ARRAYS, HierarchicalBasis
 from hood_decomp.core.method.pca import PCA_FITTED_ARRAYS, PCABasis
-from hood_decomp.core.types import ReducedModel, SkinSurface
+from hood_decomp.core.types import ReducedModel, SkinSurface, fingerprint
 from hood_decomp.errors import BasisError
-from hood_decomp.io.hdf5 import open_hdf5
+from hood_decomp.io.hdf5 import Reader, open_hdf5
 
 FORMAT = "hood_decomp.bases"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: bases_id (content fingerprint) checked on load; version 1 files had none
 _STR = h5py.string_dtype()
+
+# The named dimensions of every array (docs/bases_schema.md): a digit is a fixed size.
+_PCA_DIMS = {
+    "lower_": ("P",), "upper_": ("P",), "mean_field_": ("N",), "mean_field_3d_": ("N", "3"), "mean_state_": ("P",),
+    "mean_reaction_": ("U",), "components_": ("K", "N"), "components_3d_": ("K", "N", "3"),
+    "component_states_": ("K", "P"), "component_reactions_": ("K", "U"), "reaction_scale_": ("U",),
+    "gram_": ("K", "K"), "singular_values_": ("C",), "explained_variance_ratio_": ("C",),
+}  # fmt: skip
+_HIERARCHICAL_DIMS = {
+    "fields_": (("F", "N"), "float"), "fields_3d_": (("F", "N", "3"), "float"), "field_states_": (("F", "P"), "float"),
+    "field_member_": (("F",), "integer"), "independent_": (("F",), "bool"), "effect_mask_": (("E", "P"), "bool"),
+    "effect_fields_": (("E", "2"), "integer"), "effect_rank_": (("E",), "integer"), "trace_": (("T", "3"), "float"),
+    "rank_max_error_": (("R",), "float"), "gram_": (("F", "F"), "float"),
+}  # fmt: skip
+_REDUCED_DIMS = {
+    "w0": ("N",), "R": ("N", "B"), "G": ("N", "S"), "z0": ("S",), "Sa": ("S", "B"), "H": ("S", "S"), "k": ("S",),
+    "preload": ("S",), "pad_of": ("S",), "w0_3d": ("N", "3"), "R_3d": ("N", "3", "B"), "G_3d": ("N", "3", "S"),
+}  # fmt: skip
+
+
+def bases_id(bases: Bases) -> str:
+    """The content fingerprint of ``bases`` (16 hex digits): model_id, parameter names, skin, every fitted array and
+    setting of both bases and the reduced model. Stored as the file's ``bases_id`` and recomputed on load, so a file
+    whose model_id or arrays were rewritten after writing is refused."""
+    pca, hier, reduced = bases.pca, bases.hierarchical, bases.reduced_model
+    items: list[np.ndarray | str] = [
+        bases.model_id, "\x00".join(bases.names), str(pca.n_bilateral_), bases.skin.points, bases.skin.normals,
+        bases.skin.triangles, repr((pca.n_components, pca.explained_variance, float(pca.rtol), pca.n_components_,
+                                     float(pca.training_residual_rms_), list(pca.notes_))),
+        *(np.asarray(getattr(pca, name)) for name in PCA_FITTED_ARRAYS),
+        repr(float(hier.epsilon_)), "\x00".join(hier.effect_names_),
+        *(np.asarray(getattr(hier, name)) for name in HIERARCHICAL_FITTED_ARRAYS),
+    ]
+    if reduced is not None:
+        items += ["reduced", reduced.model_id, "\x00".join(reduced.names), str(reduced.n_bilateral),
+                  *(np.asarray(getattr(reduced, name)) for name in _REDUCED_DIMS)]
+    return fingerprint(*items)
 
 
 # --- writing -----------------------------------------------------------------------------------------------------
@@ -35,7 +72,7 @@ def _write_arrays(group: h5py.Group, obj: object, names: tuple[str, ...]) -> Non
 def save_bases(path: str | Path, bases: Bases) -> None:
     """Write ``bases`` to an HDF5 file (overwrites)."""
     with h5py.File(path, "w") as h5:
-        h5.attrs.update(format=FORMAT, schema_version=SCHEMA_VERSION, model_id=bases.model_id)
+        h5.attrs.update(format=FORMAT, schema_version=SCHEMA_VERSION, model_id=bases.model_id, bases_id=bases_id(bases))
         skin = h5.create_group("skin")
         skin.attrs["model_id"] = bases.skin.model_id
         for name in ("points", "normals", "triangles"):
@@ -74,70 +111,98 @@ def save_bases(path: str | Path, bases: Bases) -> None:
 
 
 # --- reading -----------------------------------------------------------------------------------------------------
-def _strings(dataset: h5py.Dataset) -> tuple[str, ...]:
-    return tuple(s.decode() if isinstance(s, bytes) else str(s) for s in dataset[()])
-
-
-def _read_arrays(group: h5py.Group, obj: object, names: tuple[str, ...]) -> None:
-    for name in names:
-        key = name.rstrip("_")
-        if key not in group:
-            raise BasisError(f"bases file group '{group.name}' lacks dataset '{key}'")
-        setattr(obj, name, group[key][()])
-
-
 def load_bases(path: str | Path) -> Bases:
-    """Read a bases file written by :func:`save_bases`; raises BasisError for a missing or foreign file."""
+    """Read a bases file written by :func:`save_bases`. Raises BasisError for a missing, foreign, altered or malformed
+    file: every dataset and attribute of docs/bases_schema.md present with its kind, its shape consistent with the
+    others (named dimensions), its floats finite, its indices in range, and the content matching ``bases_id``."""
     path = Path(path)
     with open_hdf5(path, "bases file", BasisError) as h5:
-        if h5.attrs.get("format") != FORMAT:
-            raise BasisError(f"{path} is not a hood_decomp bases file (format {h5.attrs.get('format')!r})")
-        version = int(h5.attrs.get("schema_version", -1))
+        read = Reader(h5, path, BasisError)
+        found = h5.attrs.get("format")
+        if found != FORMAT:
+            shown = found if isinstance(found, str) and len(found) < 60 else type(found).__name__
+            raise BasisError(f"{path} is not a hood_decomp bases file (format {shown!r})")
+        version = read.attr("/", "schema_version", "int")
         if version != SCHEMA_VERSION:
-            raise BasisError(f"{path} has bases schema version {version}, this reader knows {SCHEMA_VERSION}")
-        model_id = str(h5.attrs["model_id"])
-        names = _strings(h5["parameters/names"])
-        n_bilateral = int(h5["parameters"].attrs["n_bilateral"])
-        skin = SkinSurface(
-            points=h5["skin/points"][()], normals=h5["skin/normals"][()], triangles=h5["skin/triangles"][()],
-            model_id=str(h5["skin"].attrs["model_id"]),
-        )
+            raise BasisError(f"{path} has bases schema version {version}, this reader knows {SCHEMA_VERSION} "
+                             "(rebuild it with `hood-decomp bases`)")
+        model_id = read.attr("/", "model_id", "str")
+        names = read.strings("parameters/names", "P")
+        n_bilateral = read.attr("parameters", "n_bilateral", "int")
+        if not 0 <= n_bilateral <= len(names):
+            raise BasisError(f"{path}: parameters n_bilateral is {n_bilateral}, expected 0..{len(names)}")
+        read.bind("B", n_bilateral, "parameters n_bilateral")
+        read.bind("U", len(names) - n_bilateral, "parameters names minus n_bilateral")
+        skin = SkinSurface(points=read.array("skin/points", ("N", "3")), normals=read.array("skin/normals", ("N", "3")),
+                           triangles=_indices(read, "skin/triangles", ("T'", "3"), 0, "N"),
+                           model_id=str(read.attr("skin", "model_id", "str")))
 
-        group = h5["pca"]
-        requested = int(group.attrs["n_components_requested"])
-        variance = float(group.attrs["explained_variance_requested"])
+        read.bind("K", read.attr("pca", "n_components", "int"), "pca n_components")
+        requested = read.attr("pca", "n_components_requested", "int")
+        variance = read.attr("pca", "explained_variance_requested", "float_or_nan")
         pca = PCABasis(None if requested < 0 else requested, None if np.isnan(variance) else variance,
-                       float(group.attrs["rtol"]))
-        _read_arrays(group, pca, PCA_FITTED_ARRAYS)
-        pca.model_id_, pca.names_, pca.n_bilateral_ = str(group.attrs["model_id"]), names, n_bilateral
-        pca.n_components_ = int(group.attrs["n_components"])
-        pca.training_residual_rms_ = float(group.attrs["training_residual_rms"])
-        pca.notes_ = tuple(json.loads(group.attrs["notes"]))
+                       read.attr("pca", "rtol", "float"))
+        for name in PCA_FITTED_ARRAYS:
+            setattr(pca, name, read.array(f"pca/{name.rstrip('_')}", _PCA_DIMS[name]))
+        pca.model_id_, pca.names_, pca.n_bilateral_ = read.attr("pca", "model_id", "str"), names, n_bilateral
+        pca.n_components_ = read.dims["K"][0]
+        pca.training_residual_rms_ = read.attr("pca", "training_residual_rms", "float")
+        pca.notes_ = _notes(read)
 
-        group = h5["hierarchical"]
-        hier = HierarchicalBasis(epsilon=float(group.attrs["epsilon"]))
-        _read_arrays(group, hier, HIERARCHICAL_FITTED_ARRAYS)
-        hier.model_id_, hier.names_, hier.n_bilateral_ = str(group.attrs["model_id"]), names, n_bilateral
-        hier.epsilon_ = float(group.attrs["epsilon"])
-        hier.effect_names_ = _strings(group["effect_names"])
+        epsilon = read.attr("hierarchical", "epsilon", "float")
+        hier = HierarchicalBasis(epsilon=epsilon)
+        hier.effect_names_ = read.strings("hierarchical/effect_names", "E")
+        for name in HIERARCHICAL_FITTED_ARRAYS:
+            dims, kind = _HIERARCHICAL_DIMS[name]
+            setattr(hier, name, _indices(read, "hierarchical/effect_fields", dims, -1, "F") if name == "effect_fields_"
+                    else read.array(f"hierarchical/{name.rstrip('_')}", dims, kind))
+        hier.model_id_ = read.attr("hierarchical", "model_id", "str")
+        hier.names_, hier.n_bilateral_ = names, n_bilateral
+        hier.epsilon_ = epsilon
 
         reduced = None
         if "reduced_model" in h5:
-            group = h5["reduced_model"]
-            values = {}
-            for item in fields(ReducedModel):
-                if item.name == "names":
-                    values["names"] = _strings(group["names"])
-                elif item.name in group:
-                    values[item.name] = group[item.name][()]
-                else:
-                    values[item.name] = group.attrs[item.name]
-            values["model_id"] = str(values["model_id"])
-            values["n_bilateral"] = int(values["n_bilateral"])
+            values: dict[str, object] = {
+                "model_id": read.attr("reduced_model", "model_id", "str"),
+                "names": read.strings("reduced_model/names", "P"),
+                "n_bilateral": read.attr("reduced_model", "n_bilateral", "int"),
+            }
+            for name, dims in _REDUCED_DIMS.items():
+                values[name] = (_indices(read, "reduced_model/pad_of", dims, 0, "U") if name == "pad_of"
+                                else read.array(f"reduced_model/{name}", dims))
             reduced = ReducedModel(**values)
+            if reduced.names != names or reduced.n_bilateral != n_bilateral:
+                raise BasisError(f"{path}: reduced_model names {reduced.names} (n_bilateral {reduced.n_bilateral}) "
+                                 f"differ from the parameters {names} (n_bilateral {n_bilateral})")
+        stored_id = read.attr("/", "bases_id", "str")
 
     for what, other in (("skin", skin.model_id), ("PCA basis", pca.model_id_), ("hierarchical basis", hier.model_id_),
                         ("reduced model", None if reduced is None else reduced.model_id)):
         if other is not None and other != model_id:
             raise BasisError(f"{path}: {what} model_id {other!r} differs from the file's {model_id!r}")
-    return Bases(model_id, skin, pca, hier, reduced)
+    bases = Bases(model_id, skin, pca, hier, reduced)
+    if bases_id(bases) != stored_id:
+        raise BasisError(f"{path}: content does not match its bases_id {stored_id!r} (the file was altered after "
+                         "it was written: a rewritten model_id or array); rebuild it with `hood-decomp bases`")
+    return bases
+
+
+def _indices(read: Reader, name: str, dims: tuple[str, ...], lowest: int, dim: str) -> np.ndarray:
+    """An integer index array whose entries must lie in lowest .. size of ``dim`` - 1."""
+    values = read.array(name, dims, "integer")
+    size = read.dims[dim][0] if dim in read.dims else 0
+    if values.size and (values.min() < lowest or values.max() >= size):
+        raise BasisError(f"{read.path}: {name} holds indices {values.min()}..{values.max()}, expected "
+                         f"{lowest}..{size - 1} ({dim} = {size})")
+    return values.astype(np.int64)
+
+
+def _notes(read: Reader) -> tuple[str, ...]:
+    text = read.attr("pca", "notes", "str")
+    try:
+        notes = json.loads(text)
+    except ValueError as error:
+        raise BasisError(f"{read.path}: pca notes is not JSON: {error}") from error
+    if not isinstance(notes, list) or not all(isinstance(n, str) for n in notes):
+        raise BasisError(f"{read.path}: pca notes must be a JSON list of strings")
+    return tuple(notes)

@@ -28,21 +28,24 @@ from __future__ import annotations
 import datetime
 import json
 import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
 import numpy as np
 
 from hood_decomp.core.fe.ensemble import contact_counts, factorial_plan, iter_members, validation_plan
-from hood_decomp.core.types import DisplacementField, Ensemble, ReducedModel, SkinSurface
+from hood_decomp.core.types import DisplacementField, Ensemble, ReducedModel, SkinSurface, fingerprint
 from hood_decomp.errors import EnsembleError
 from hood_decomp.io.fields import write_field
-from hood_decomp.io.hdf5 import open_hdf5
+from hood_decomp.io.hdf5 import Reader, open_hdf5
 
 logger = logging.getLogger(__name__)
 
 SCHEMA = "hood_decomp.ensemble"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: content_id checked on open
 GROUPS = ("training", "validation")
 MEMBER_ARRAYS = ("commanded", "effective", "contact_fraction", "reactions", "rank", "normal_displacement",
                  "displacement")
@@ -71,6 +74,7 @@ class EnsembleWriter:
             "schema": SCHEMA, "schema_version": SCHEMA_VERSION, "model_id": self._skin.model_id,
             "n_bilateral": self._n_bilateral, "solver": self._solver, "solver_backend": self._backend,
             "created_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+            "content_id": content_id(self._skin, self._names, self._n_bilateral, self._lower, self._upper),
         })
         f.create_dataset("names", data=np.array(self._names, dtype=object), dtype=h5py.string_dtype())
         f.create_dataset("lower", data=np.asarray(self._lower, dtype=float))
@@ -145,63 +149,102 @@ def write_ensemble(path: str | Path, reduced: ReducedModel, skin: SkinSurface, l
     return summary
 
 
-def _open(path: str | Path) -> h5py.File:
-    f = open_hdf5(path, "ensemble store", EnsembleError)
-    schema, version = f.attrs.get("schema"), f.attrs.get("schema_version")
-    if schema != SCHEMA or version is None or int(version) != SCHEMA_VERSION:
-        f.close()
-        raise EnsembleError(
-            f"{path}: expected schema {SCHEMA!r} version {SCHEMA_VERSION}, got {schema!r} version {version!r}"
-        )
-    return f
+@dataclass(frozen=True)
+class _Header:
+    """What every member refers to, read and checked on open."""
+
+    skin: SkinSurface
+    names: tuple[str, ...]
+    n_bilateral: int
+    lower: np.ndarray
+    upper: np.ndarray
+
+
+@contextmanager
+def _open(path: str | Path) -> Iterator[tuple[h5py.File, Reader, _Header]]:
+    """For a ``with`` block: the audited store, a Reader with N, P and U bound, and the header; EnsembleError for a
+    foreign schema, a damaged file or a content that does not match its ``content_id``."""
+    with open_hdf5(path, "ensemble store", EnsembleError) as f:
+        read = Reader(f, path, EnsembleError)
+        schema, version = f.attrs.get("schema"), f.attrs.get("schema_version")
+        if schema != SCHEMA or not isinstance(version, int | np.integer) or int(version) != SCHEMA_VERSION:
+            shown = [v if isinstance(v, str | int | np.integer) and len(str(v)) < 60 else type(v).__name__
+                     for v in (schema, version)]
+            raise EnsembleError(f"{path}: expected schema {SCHEMA!r} version {SCHEMA_VERSION}, got {shown[0]!r} "
+                                f"version {shown[1]!r}")
+        names = read.strings("names", "P")
+        n_bilateral = read.attr("/", "n_bilateral", "int")
+        if not 0 <= n_bilateral <= len(names):
+            raise EnsembleError(f"{path}: n_bilateral is {n_bilateral}, expected 0..{len(names)}")
+        read.bind("U", len(names) - n_bilateral, "names minus n_bilateral")
+        skin = SkinSurface(points=read.array("skin/points", ("N", "3")), normals=read.array("skin/normals", ("N", "3")),
+                           triangles=read.array("skin/triangles", ("T", "3"), "integer").astype(np.int64),
+                           model_id=read.attr("/", "model_id", "str"))
+        if skin.triangles.size and (skin.triangles.min() < 0 or skin.triangles.max() >= skin.n_nodes):
+            raise EnsembleError(f"{path}: skin/triangles index nodes {skin.triangles.min()}..{skin.triangles.max()}, "
+                                f"the skin has 0..{skin.n_nodes - 1}")
+        lower, upper = read.array("lower", ("P",)), read.array("upper", ("P",))
+        if content_id(skin, names, n_bilateral, lower, upper) != read.attr("/", "content_id", "str"):
+            raise EnsembleError(f"{path}: content does not match its content_id (the file was altered after it was "
+                                "written: a rewritten model_id, skin or range); compute it again")
+        yield f, read, _Header(skin, names, n_bilateral, lower, upper)
+
+
+def content_id(skin: SkinSurface, names: tuple[str, ...], n_bilateral: int, lower: np.ndarray, upper: np.ndarray
+               ) -> str:
+    """Fingerprint of what the members refer to: model_id, skin, parameter names and ranges (stored as
+    ``content_id``; recomputed on every open, so a rewritten model_id does not pass)."""
+    return fingerprint(skin.model_id, skin.points, skin.normals, np.asarray(skin.triangles, dtype=np.int64),
+                       "\x00".join(names), str(int(n_bilateral)), np.asarray(lower, dtype=float),
+                       np.asarray(upper, dtype=float))
 
 
 def load_ensemble(path: str | Path, group: str = "training", members: slice | None = None) -> Ensemble:
-    """Read one group of a store as a types.Ensemble (float64 arrays). ``members`` selects a row range."""
+    """Read one group of a store as a types.Ensemble (float64 arrays). ``members`` selects a row range. Every array
+    is checked for its kind, its shape against the others and finite values (EnsembleError naming the dataset)."""
     if group not in GROUPS:
         raise EnsembleError(f"group must be one of {GROUPS}, got {group!r}")
     rows = members if members is not None else slice(None)
-    with _open(path) as f:
+    with _open(path) as (f, read, head):
         if group not in f:
             raise EnsembleError(f"{path}: group {group!r} is missing")
-        g = f[group]
-        if not bool(g.attrs.get("complete", False)):
+        if not read.attr(group, "complete", "bool"):
             raise EnsembleError(f"{path}: group {group!r} is incomplete (the run did not finish)")
+        read.bind("M", read.attr(group, "n_members", "int"), f"{group} n_members")
+        arrays = {name: read.array(f"{group}/{name}", dims, kind, rows)
+                  for name, (dims, kind) in _MEMBER_DIMS.items()}
         return Ensemble(
-            model_id=str(f.attrs["model_id"]),
-            names=tuple(n.decode() if isinstance(n, bytes) else str(n) for n in f["names"][()]),
-            n_bilateral=int(f.attrs["n_bilateral"]),
-            lower=f["lower"][()],
-            upper=f["upper"][()],
-            commanded=g["commanded"][rows],
-            effective=g["effective"][rows],
-            contact_fraction=g["contact_fraction"][rows],
-            reactions=g["reactions"][rows],
-            rank=g["rank"][rows],
-            normal_displacement=g["normal_displacement"][rows].astype(np.float64),
-            displacement=g["displacement"][rows].astype(np.float64),
+            model_id=head.skin.model_id, names=head.names, n_bilateral=head.n_bilateral, lower=head.lower,
+            upper=head.upper, commanded=arrays["commanded"], effective=arrays["effective"],
+            contact_fraction=arrays["contact_fraction"], reactions=arrays["reactions"],
+            rank=arrays["rank"].astype(np.int64),
+            normal_displacement=arrays["normal_displacement"].astype(np.float64),
+            displacement=arrays["displacement"].astype(np.float64),
         )
+
+
+#: member arrays: named dimensions (M members, P parameters, U unilateral, N skin nodes) and kind
+_MEMBER_DIMS = {
+    "commanded": (("M", "P"), "float"), "effective": (("M", "P"), "float"), "contact_fraction": (("M", "U"), "float"),
+    "reactions": (("M", "U"), "float"), "rank": (("M",), "integer"), "normal_displacement": (("M", "N"), "float"),
+    "displacement": (("M", "N", "3"), "float"),
+}  # fmt: skip
 
 
 def load_skin(path: str | Path) -> SkinSurface:
     """The visible skin stored with an ensemble."""
-    with _open(path) as f:
-        return SkinSurface(
-            points=f["skin/points"][()],
-            normals=f["skin/normals"][()],
-            triangles=f["skin/triangles"][()],
-            model_id=str(f.attrs["model_id"]),
-        )
+    with _open(path) as (_, _, head):
+        return head.skin
 
 
 def store_info(path: str | Path) -> dict[str, object]:
     """Root attributes and group sizes of a store (JSON-able)."""
-    with _open(path) as f:
-        info: dict[str, object] = {k: (v.item() if hasattr(v, "item") else v) for k, v in f.attrs.items()}
+    with _open(path) as (f, read, _):
+        info: dict[str, object] = {k: read.attr("/", k, "str") for k in ("model_id", "solver", "created_utc")}
         for group in GROUPS:
             if group in f:
-                info[f"{group}_members"] = int(f[group].attrs["n_members"])
-                info[f"{group}_complete"] = bool(f[group].attrs["complete"])
+                info[f"{group}_members"] = read.attr(group, "n_members", "int")
+                info[f"{group}_complete"] = read.attr(group, "complete", "bool")
         return info
 
 

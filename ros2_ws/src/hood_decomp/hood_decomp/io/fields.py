@@ -15,7 +15,7 @@ import meshio
 import numpy as np
 
 from hood_decomp.core.types import DisplacementField, SkinSurface
-from hood_decomp.errors import FieldError
+from hood_decomp.errors import FieldError, HoodDecompError
 
 
 def _field_data_xml(model_id: str, coverage: float, noise_rms: float) -> str:
@@ -66,15 +66,17 @@ def read_field(path: str | Path, skin: SkinSurface | None = None) -> tuple[Displ
     path = Path(path)
     if not path.is_file():
         raise FieldError(f"field file {path} does not exist")
-    try:
-        mesh = meshio.read(path, file_format="vtu")
-    except Exception as error:  # meshio raises many types for a corrupt file
-        raise FieldError(f"cannot read field file {path}: {error}") from error
+    mesh = read_vtu(path, FieldError)
     if "normal_displacement" not in mesh.point_data:
-        raise FieldError(f"{path} has no point data 'normal_displacement' (found {sorted(mesh.point_data)})")
-    values = np.asarray(mesh.point_data["normal_displacement"], dtype=float).reshape(-1)
+        raise FieldError(f"{path} has no point data 'normal_displacement' (found {sorted(mesh.point_data)[:10]})")
+    values = _plausible(mesh.point_data["normal_displacement"], path, "normal_displacement").reshape(-1)
+    if len(values) != len(mesh.points):
+        raise FieldError(f"{path}: normal_displacement has {len(values)} values for {len(mesh.points)} points")
     if "model_id" in mesh.field_data:
-        model_id = bytes(np.asarray(mesh.field_data["model_id"], dtype=np.uint8).reshape(-1)).decode("ascii")
+        codes = np.asarray(mesh.field_data["model_id"]).reshape(-1)
+        if codes.dtype.kind not in "iu" or codes.size > 64 or np.any((codes < 32) | (codes > 126)):
+            raise FieldError(f"{path}: field data model_id is not a short ASCII text")
+        model_id = bytes(codes.astype(np.uint8)).decode("ascii")
     elif skin is not None and mesh.points.shape == skin.points.shape and np.allclose(
         mesh.points, skin.points, rtol=0.0, atol=1e-6
     ):
@@ -83,8 +85,50 @@ def read_field(path: str | Path, skin: SkinSurface | None = None) -> tuple[Displ
         raise FieldError(f"{path} has no field data 'model_id' and its points are not the bases' skin nodes; "
                          "write fields with hood_decomp.io.fields.write_field")
     noise = mesh.field_data.get("noise_rms")
-    noise_rms = float(np.asarray(noise).reshape(-1)[0]) if noise is not None else float("nan")
+    noise_rms = float("nan")
+    if noise is not None:
+        noise = np.asarray(noise).reshape(-1)
+        if noise.size != 1 or noise.dtype.kind not in "fiu" or np.isinf(noise[0]) or noise[0] < 0:
+            raise FieldError(f"{path}: field data noise_rms must be one number >= 0 mm (or NaN: unknown)")
+        noise_rms = float(noise[0])
     coverage = float(np.isfinite(values).mean()) if values.size else 0.0
     vectors = mesh.point_data.get("displacement")
+    if vectors is not None:
+        vectors = _plausible(vectors, path, "displacement")
+        if vectors.shape != (len(values), 3):
+            raise FieldError(f"{path}: displacement has shape {vectors.shape}, expected ({len(values)}, 3)")
     field = DisplacementField(model_id=model_id, normal_displacement=values, coverage=coverage, noise_rms=noise_rms)
-    return field, None if vectors is None else np.asarray(vectors, dtype=float)
+    return field, vectors
+
+
+#: largest displacement (mm) a field may hold: the method models sheet-metal deviations of a few millimetres (the
+#: hood's parameter ranges are +-1 mm; its largest response over the full factorial, gravity included, is 4.05 mm on
+#: the coarse hood); 100 mm is 25 times that, and anything beyond is not a deviation of the part but a unit error, a
+#: wrong file or a broken registration
+MAX_ABS_MM = 100.0
+
+
+def _plausible(values: object, path: Path, name: str) -> np.ndarray:
+    """Point data ``name`` as floats: numbers, finite or NaN (unknown), at most :data:`MAX_ABS_MM` in magnitude."""
+    array = np.asarray(values)
+    if array.dtype.kind not in "fiu":
+        raise FieldError(f"{path}: point data {name!r} holds {array.dtype}, expected numbers")
+    array = array.astype(float)
+    if np.any(np.isinf(array)):
+        raise FieldError(f"{path}: point data {name!r} holds infinite values (NaN marks unknown nodes)")
+    largest = float(np.nanmax(np.abs(array))) if np.any(np.isfinite(array)) else 0.0
+    if largest > MAX_ABS_MM:
+        raise FieldError(f"{path}: point data {name!r} reaches {largest:.3g} mm; a field beyond {MAX_ABS_MM:g} mm is "
+                         "not a deviation of the part (unit error, wrong file?)")
+    return array
+
+
+def read_vtu(path: Path, error: type[HoodDecompError]) -> meshio.Mesh:
+    """meshio's .vtu reader with every failure as ``error`` naming the file. Its format reader is called directly:
+    ``meshio.read`` prints the reader's error on stdout and ends the process with ``sys.exit(1)`` for a file it
+    cannot read, which would bypass the command line's one-line errors."""
+    try:
+        return meshio.vtu.read(str(path))
+    except (Exception, SystemExit) as failure:  # any failure of a foreign reader means a bad file
+        text = " ".join(str(failure).split())[:200] or type(failure).__name__
+        raise error(f"cannot read {path} as a .vtu file: {text}") from failure

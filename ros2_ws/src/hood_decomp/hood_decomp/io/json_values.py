@@ -1,7 +1,9 @@
-"""JSON has no NaN or infinity: the one rule that turns results into JSON-ready values (non-finite numbers -> null)."""
+"""JSON has no NaN or infinity: the one rule that turns results into JSON-ready values (non-finite numbers -> null),
+and the one reader that holds files to it (:func:`loads_strict`)."""
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping
 from typing import Any
@@ -26,3 +28,16 @@ def json_ready(value: object) -> Any:
         number = float(value)
         return number if math.isfinite(number) else None
     return value
+
+
+def loads_strict(text: str) -> Any:
+    """``json.loads`` that refuses NaN, Infinity and -Infinity (Python's reader accepts them; JSON has none) and
+    nesting deep enough to exhaust the stack; ValueError (with the reason) for both."""
+    try:
+        return json.loads(text, parse_constant=_no_constant)
+    except RecursionError as error:
+        raise ValueError("JSON nested too deeply") from error
+
+
+def _no_constant(name: str) -> float:
+    raise ValueError(f"{name} is not a JSON number")

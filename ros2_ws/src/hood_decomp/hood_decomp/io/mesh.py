@@ -12,6 +12,7 @@ import meshio
 import numpy as np
 
 from hood_decomp.errors import MeshError
+from hood_decomp.io.fields import read_vtu
 
 #: shell element types of an .inp deck and their node counts; the first 4 nodes are the corners
 INP_SHELLS = {"S4": 4, "S4R": 4, "S4R5": 4, "M3D4": 4, "S8": 8, "S8R": 8, "M3D8": 8, "M3D8R": 8}
@@ -32,10 +33,9 @@ def read_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     path = Path(path)
     if not path.is_file():
         raise MeshError(f"mesh file {path} does not exist")
-    try:
-        mesh = meshio.read(str(path))
-    except Exception as error:  # meshio raises many kinds; the user needs the file name and the reason
-        raise MeshError(f"cannot read mesh {path}: {error}") from error
+    if path.suffix.lower() != ".vtu":
+        raise MeshError(f"mesh {path}: expected a .vtu mesh (or an .inp deck), found {path.suffix or 'no suffix'!r}")
+    mesh = read_vtu(path, MeshError)
     blocks = [block for block in mesh.cells if block.type == "quad"]
     others = sorted({block.type for block in mesh.cells} - {"quad"})
     if not blocks or others:
@@ -64,9 +64,13 @@ def read_inp_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     path = Path(path)
     if not path.is_file():
         raise MeshError(f"mesh file {path} does not exist")
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise MeshError(f"{path}: not a text deck (byte {error.start} is not UTF-8)") from error
     node_ids, coords, elements, midside = [], [], [], set()
     block, elset, size = None, "", 0
-    for number, raw in enumerate(path.read_text().splitlines(), start=1):
+    for number, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()
         if not line or line.startswith("**"):
             continue

@@ -33,11 +33,15 @@ model.yaml (format hood_decomp.model, version 1)::
     candidates:                    # optional: user candidate effects of close-loop (core.loop.candidates)
       - {boundary: lock_L, kind: force, direction: y}
 
-Every problem is a ModelError naming the entry, what was expected and what was found.
+Every problem is a ModelError naming the entry, what was expected and what was found: unknown keys (with the nearest
+known key: "did you mean 'force'?"), wrong types, non-finite numbers, names with control characters; YAML aliases are
+refused (an alias bomb cannot expand) and messages never print more than 80 characters of an entry.
 """
 
 from __future__ import annotations
 
+import difflib
+import math
 from dataclasses import fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -115,6 +119,20 @@ def model_path(path: str | Path) -> Path:
     return path / MODEL_FILE if path.is_dir() else path
 
 
+def model_files(path: str | Path) -> list[Path]:
+    """The files a model reads: its model.yaml and, when the document names one, its mesh file (so a command can
+    check that no output overwrites them). Never raises for a bad model: loading it reports that."""
+    path = model_path(path)
+    try:
+        mesh = _document(path).get("mesh")
+    except ModelError:
+        return [path]
+    try:
+        return [path, _mesh_file(path, mesh)] if isinstance(mesh, str) and mesh else [path]
+    except ModelError:
+        return [path]
+
+
 def load_model(path: str | Path) -> PartModel:
     """Read and validate a model (directory or model.yaml). Raises ModelError."""
     return _read(path)[0]
@@ -129,23 +147,65 @@ def load_model_with_candidates(path: str | Path) -> tuple[PartModel, tuple[Candi
     return model, candidates_from_document(document.get("candidates"))
 
 
-def _read(path: str | Path) -> tuple[PartModel, dict]:
-    """The validated model and the parsed model.yaml document."""
-    path = model_path(path)
+# --- the schema: every key a model.yaml may hold (unknown keys are refused with the nearest known one) ------------
+TOP_KEYS = ("format", "version", "name", "mesh", "skin_part", "material", "gravity", "parts", "boundaries",
+            "parameters", "candidates")
+MATERIAL_KEYS = tuple(f.name for f in fields(Material))
+PART_KEYS = ("name", "thickness")
+BOUNDARY_KEYS = ("name", "kind", "dofs", "patch", "axis", "stiffness", "preload", "force")
+PATCH_KEYS = ("center", "radius", "nodes", "parts", "exclude_parts")
+PARAMETER_KEYS = ("label", "boundary", "direction", "range")
+#: largest model.yaml read (a patch may list many nodes; a hood's file is ~3 kB)
+MAX_BYTES = 16 * 2**20
+#: a name is printable text without control characters, at most this long
+MAX_NAME = 200
+
+
+class _NoAliasLoader(yaml.SafeLoader):
+    """yaml.SafeLoader that refuses aliases: a few hundred bytes of nested aliases (a "billion laughs" file) expand
+    to gigabytes once anything walks the document; model.yaml never needs them."""
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.check_event(yaml.AliasEvent):
+            mark = self.peek_event().start_mark
+            raise yaml.YAMLError(f"line {mark.line + 1}: YAML aliases (*name) are not accepted in model.yaml")
+        return super().compose_node(parent, index)
+
+
+def _show(value: object) -> str:
+    """A short repr for messages: never the whole of a large entry."""
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _document(path: Path) -> dict:
+    """The parsed model.yaml: a mapping of the known format and version. ModelError otherwise."""
     if not path.is_file():
         raise ModelError(f"model file {path} does not exist (expected a model directory or its model.yaml)")
+    size = path.stat().st_size
+    if size > MAX_BYTES:
+        raise ModelError(f"{path}: {size} bytes, more than the {MAX_BYTES} a model.yaml may have")
     try:
-        document = yaml.safe_load(path.read_text())
+        text = path.read_bytes().decode("utf-8")
+        document = yaml.load(text, Loader=_NoAliasLoader)  # a SafeLoader: no Python objects either
+    except UnicodeDecodeError as error:
+        raise ModelError(f"{path}: not UTF-8 text (byte {error.start})") from error
     except yaml.YAMLError as error:
-        raise ModelError(f"{path}: not valid YAML: {error}") from error
+        raise ModelError(f"{path}: not valid YAML: {' '.join(str(error).split())[:200]}") from error
     if not isinstance(document, dict):
         raise ModelError(f"{path}: expected a mapping at the top level, got {type(document).__name__}")
     if document.get("format") != FORMAT or document.get("version") != VERSION:
-        raise ModelError(
-            f"{path}: expected format {FORMAT!r} version {VERSION}, got {document.get('format')!r} "
-            f"version {document.get('version')!r}"
-        )
-    mesh_file = path.parent / _required(document, "mesh", "model")
+        raise ModelError(f"{path}: expected format {FORMAT!r} version {VERSION}, got {_show(document.get('format'))} "
+                         f"version {_show(document.get('version'))}")
+    _keys(document, TOP_KEYS, "model.yaml")
+    return document
+
+
+def _read(path: str | Path) -> tuple[PartModel, dict]:
+    """The validated model and the parsed model.yaml document."""
+    path = model_path(path)
+    document = _document(path)
+    mesh_file = _mesh_file(path, _name(_required(document, "mesh", "model"), "model mesh"))
     parts = tuple(_part(entry, i) for i, entry in enumerate(_list(document, "parts")))
     try:
         if mesh_file.suffix.lower() == ".inp":
@@ -153,100 +213,162 @@ def _read(path: str | Path) -> tuple[PartModel, dict]:
             by_name = {part.name.upper(): i for i, part in enumerate(parts)}
             unknown = sorted({e for e in elsets if e.upper() not in by_name})
             if unknown:
-                raise ModelError(f"{mesh_file}: ELSETs {unknown} are not parts of {path.name} "
-                                 f"({[p.name for p in parts]})")
+                raise ModelError(f"{mesh_file}: ELSETs {_show(unknown)} are not parts of {path.name} "
+                                 f"({_show([p.name for p in parts])})")
             cell_part = np.array([by_name[e.upper()] for e in elsets], dtype=np.int64)
         else:
             nodes, cells, cell_part = read_mesh(mesh_file)
     except MeshError as error:
         raise ModelError(str(error)) from error
-    material_doc = document.get("material", {})
-    material = Material(**{f.name: float(material_doc[f.name]) for f in fields(Material) if f.name in material_doc})
+    material_doc = document.get("material") or {}
+    _keys(material_doc, MATERIAL_KEYS, "material")
+    material = Material(**{key: _number(material_doc, key, "material") for key in MATERIAL_KEYS
+                           if key in material_doc})
+    gravity = _numbers(document["gravity"], 3, "gravity") if document.get("gravity") is not None else GRAVITY
     model = PartModel(
-        name=str(document.get("name", path.parent.name)),
+        name=_name(document.get("name", path.parent.name), "model name"),
         nodes=nodes,
         cells=cells,
         cell_part=cell_part,
         parts=parts,
         material=material,
-        boundaries=tuple(_boundary(entry) for entry in _list(document, "boundaries")),
-        parameters=tuple(_parameter(entry) for entry in document.get("parameters") or []),
-        skin_part=str(_required(document, "skin_part", "model")),
-        gravity=np.asarray(document.get("gravity", GRAVITY), dtype=float),
+        boundaries=tuple(_boundary(entry, i) for i, entry in enumerate(_list(document, "boundaries"))),
+        parameters=tuple(_parameter(entry, i) for i, entry in enumerate(_optional_list(document, "parameters"))),
+        skin_part=_name(_required(document, "skin_part", "model"), "skin_part"),
+        gravity=np.asarray(gravity, dtype=float),
     )
     validate_model(model)
     return model, document
 
 
+def _mesh_file(path: Path, name: str) -> Path:
+    """The mesh named in model.yaml: a file in the model's directory tree (a model.yaml from elsewhere must not make
+    the program read /etc/passwd or another user's file as a mesh)."""
+    directory = path.parent.resolve()
+    mesh = (path.parent / name).resolve()
+    if Path(name).is_absolute() or not mesh.is_relative_to(directory):
+        raise ModelError(f"{path}: mesh {_show(name)} must be a file in the model's directory ({directory})")
+    return path.parent / name
+
+
+def _keys(entry: object, known: tuple[str, ...], what: str) -> None:
+    """Refuse a non-mapping or an unknown key, naming the nearest known key ("did you mean 'force'?")."""
+    if not isinstance(entry, dict):
+        raise ModelError(f"{what}: expected a mapping with keys among {list(known)}, got {type(entry).__name__}")
+    for key in entry:
+        if key not in known:
+            nearest = difflib.get_close_matches(str(key), known, n=1, cutoff=0.5)
+            hint = f"did you mean {nearest[0]!r}?" if nearest else f"known keys: {list(known)}"
+            raise ModelError(f"{what}: unknown key {_show(key)}; {hint}")
+
+
 def _required(entry: dict, key: str, what: str) -> Any:
     if not isinstance(entry, dict) or key not in entry or entry[key] is None:
-        raise ModelError(f"{what} entry {entry!r}: missing {key!r}")
+        raise ModelError(f"{what}: missing {key!r}")
     return entry[key]
+
+
+def _name(value: object, what: str) -> str:
+    """A name: text of 1..MAX_NAME printable characters (numbers are accepted as their text)."""
+    if isinstance(value, bool) or not isinstance(value, str | int):
+        raise ModelError(f"{what} must be text, got {type(value).__name__} {_show(value)}")
+    text = str(value)
+    if not text or len(text) > MAX_NAME or not text.isprintable():
+        raise ModelError(f"{what} must be 1..{MAX_NAME} printable characters (no newline or control character), "
+                         f"got {_show(text)}")
+    return text
+
+
+def _number(entry: dict, key: str, what: str, default: float | None = None) -> float:
+    """entry[key] as a finite number (ModelError naming ``what`` and the key otherwise); ``default`` when absent."""
+    if key not in entry and default is not None:
+        return default
+    return _finite(entry.get(key), f"{what} {key}")
+
+
+def _finite(value: object, what: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ModelError(f"{what} must be a number, got {type(value).__name__} {_show(value)}")
+    if not math.isfinite(value):
+        raise ModelError(f"{what} must be a finite number, got {value}")
+    return float(value)
+
+
+def _numbers(value: object, n: int, what: str) -> tuple[float, ...]:
+    if not isinstance(value, list) or len(value) != n:
+        raise ModelError(f"{what}: expected a list of {n} numbers, got {_show(value)}")
+    return tuple(_finite(v, what) for v in value)
+
+
+def _names(value: object, what: str) -> tuple[str, ...]:
+    if not isinstance(value, list):
+        raise ModelError(f"{what}: expected a list of names, got {_show(value)}")
+    return tuple(_name(v, what) for v in value)
 
 
 def _list(document: dict, key: str) -> list:
     value = document.get(key)
     if not isinstance(value, list) or not value:
-        raise ModelError(f"model.yaml: {key!r} must be a non-empty list, got {value!r}")
+        raise ModelError(f"model.yaml: {key!r} must be a non-empty list, got {_show(value)}")
     return value
 
 
+def _optional_list(document: dict, key: str) -> list:
+    value = document.get(key)
+    if value is not None and not isinstance(value, list):
+        raise ModelError(f"model.yaml: {key!r} must be a list, got {_show(value)}")
+    return value or []
+
+
 def _part(entry: dict, index: int) -> Part:
-    name = str(_required(entry, "name", f"part #{index}"))
-    if "thickness" not in entry or entry["thickness"] is None:
+    _keys(entry, PART_KEYS, f"part #{index}")
+    name = _name(_required(entry, "name", f"part #{index}"), f"part #{index} name")
+    if entry.get("thickness") is None:
         raise ModelError(f"part {name!r}: missing thickness (mm)")
-    try:
-        thickness = float(entry["thickness"])
-    except (TypeError, ValueError) as error:
-        raise ModelError(f"part {name!r}: thickness must be a number of mm, got {entry['thickness']!r}") from error
-    return Part(name=name, thickness=thickness)
+    return Part(name=name, thickness=_number(entry, "thickness", f"part {name!r}"))
 
 
-def _floats(value: Any, n: int, what: str) -> tuple[float, ...]:
-    try:
-        out = tuple(float(v) for v in value)
-    except (TypeError, ValueError) as error:
-        raise ModelError(f"{what}: expected {n} numbers, got {value!r}") from error
-    if len(out) != n:
-        raise ModelError(f"{what}: expected {n} numbers, got {len(out)}")
-    return out
-
-
-def _boundary(entry: dict) -> Boundary:
-    name = str(_required(entry, "name", "boundary"))
-    kind = str(_required(entry, "kind", f"boundary {name!r}"))
-    patch_doc = _required(entry, "patch", f"boundary {name!r}")
-    known = {"center", "radius", "nodes", "parts", "exclude_parts"}
-    if not isinstance(patch_doc, dict) or set(patch_doc) - known:
-        raise ModelError(f"boundary {name!r}: patch keys must be among {sorted(known)}, got {patch_doc!r}")
+def _boundary(entry: dict, index: int) -> Boundary:
+    _keys(entry, BOUNDARY_KEYS, f"boundary #{index}")
+    name = _name(_required(entry, "name", f"boundary #{index}"), f"boundary #{index} name")
+    what = f"boundary {name!r}"
+    kind = _name(_required(entry, "kind", what), f"{what} kind")
+    patch_doc = _required(entry, "patch", what)
+    _keys(patch_doc, PATCH_KEYS, f"{what} patch")
+    nodes = patch_doc.get("nodes", [])
+    if not isinstance(nodes, list) or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0
+                                              for n in nodes):
+        raise ModelError(f"{what} patch nodes: expected a list of node indices (whole numbers >= 0), got "
+                         f"{_show(nodes)}")
     center = patch_doc.get("center")
     patch = Patch(
-        center=_floats(center, 3, f"boundary {name!r} patch center") if center is not None else None,
-        radius=float(patch_doc.get("radius", 0.0)),
-        nodes=tuple(int(n) for n in patch_doc.get("nodes", [])),
-        parts=tuple(str(p) for p in patch_doc.get("parts", [])),
-        exclude_parts=tuple(str(p) for p in patch_doc.get("exclude_parts", [])),
+        center=_numbers(center, 3, f"{what} patch center") if center is not None else None,
+        radius=_number(patch_doc, "radius", f"{what} patch", 0.0),
+        nodes=tuple(nodes),
+        parts=_names(patch_doc.get("parts", []), f"{what} patch parts"),
+        exclude_parts=_names(patch_doc.get("exclude_parts", []), f"{what} patch exclude_parts"),
     )
-    axis = _floats(entry.get("axis", [0.0, 0.0, 1.0]), 3, f"boundary {name!r} axis")
     return Boundary(
         name=name,
         kind=kind,
         patch=patch,
-        dofs=tuple(str(d).lower() for d in entry.get("dofs", [])),
-        axis=axis,
-        force=float(entry.get("force", 0.0)),
-        stiffness=float(entry.get("stiffness", 0.0)),
-        preload=float(entry.get("preload", 0.0)),
+        dofs=tuple(d.lower() for d in _names(entry.get("dofs", []), f"{what} dofs")),
+        axis=_numbers(entry.get("axis", [0.0, 0.0, 1.0]), 3, f"{what} axis"),
+        force=_number(entry, "force", what, 0.0),
+        stiffness=_number(entry, "stiffness", what, 0.0),
+        preload=_number(entry, "preload", what, 0.0),
     )
 
 
-def _parameter(entry: dict) -> Parameter:
-    label = str(_required(entry, "label", "parameter"))
-    lower, upper = _floats(_required(entry, "range", f"parameter {label!r}"), 2, f"parameter {label!r} range")
+def _parameter(entry: dict, index: int) -> Parameter:
+    _keys(entry, PARAMETER_KEYS, f"parameter #{index}")
+    label = _name(_required(entry, "label", f"parameter #{index}"), f"parameter #{index} label")
+    lower, upper = _numbers(_required(entry, "range", f"parameter {label!r}"), 2, f"parameter {label!r} range")
     return Parameter(
         label=label,
-        boundary=str(_required(entry, "boundary", f"parameter {label!r}")),
-        direction=str(_required(entry, "direction", f"parameter {label!r}")).lower(),
+        boundary=_name(_required(entry, "boundary", f"parameter {label!r}"), f"parameter {label!r} boundary"),
+        direction=_name(_required(entry, "direction", f"parameter {label!r}"),
+                        f"parameter {label!r} direction").lower(),
         lower=lower,
         upper=upper,
     )

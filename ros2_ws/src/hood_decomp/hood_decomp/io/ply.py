@@ -110,47 +110,122 @@ def write_ply(
             handle.write(record.tobytes())
 
 
-def _parse_header(handle) -> tuple[str, list[tuple[str, int, list[tuple[str, str, str | None]]]], list[str]]:
-    if handle.readline().strip() != b"ply":
-        raise ScanError(f"{handle.name}: not a PLY file (first line is not 'ply')")
+#: a PLY header is a few hundred bytes; a line or header longer than this is not one
+_MAX_HEADER_LINE = 4096
+_MAX_HEADER_LINES = 10_000
+
+
+def _parse_header(handle, path) -> tuple[str, list[tuple[str, int, list[tuple[str, str, str | None]]]], list[str]]:
+    """Format, elements (name, count, properties (name, type, list count type or None)) and comments of a PLY
+    header; ScanError naming the line for anything else (unknown type, a count that is not a whole number >= 0, a
+    missing word, no end_header)."""
+    if handle.readline(_MAX_HEADER_LINE).strip() != b"ply":
+        raise ScanError(f"{path}: not a PLY file (first line is not 'ply')")
     fmt, elements, comments = "", [], []
-    while True:
-        line = handle.readline()
+    for number in range(2, _MAX_HEADER_LINES):
+        line = handle.readline(_MAX_HEADER_LINE)
         if not line:
-            raise ScanError(f"{handle.name}: PLY header has no end_header")
-        words = line.decode("ascii", errors="replace").split()
+            raise ScanError(f"{path}: PLY header has no end_header")
+        if not line.endswith(b"\n") and len(line) == _MAX_HEADER_LINE:
+            raise ScanError(f"{path}: PLY header line {number} is longer than {_MAX_HEADER_LINE} bytes")
+        text = line.decode("ascii", errors="replace").strip()
+        words = text.split()
         if not words:
             continue
         if words[0] == "end_header":
             break
-        if words[0] == "format":
+        if words[0] in ("comment", "obj_info"):
+            comments.append(text.split(" ", 1)[-1] if len(words) > 1 else "")
+            continue
+        if words[0] == "format" and len(words) >= 2:
             fmt = words[1]
-        elif words[0] in ("comment", "obj_info"):
-            comments.append(line.decode("ascii", errors="replace").strip().split(" ", 1)[-1])
-        elif words[0] == "element":
+        elif words[0] == "element" and len(words) == 3:
+            if not words[2].isdigit():
+                raise ScanError(f"{path}: PLY header line {number}: element {words[1][:40]!r} count "
+                                f"{words[2][:40]!r} is not a whole number >= 0")
             elements.append((words[1], int(words[2]), []))
-        elif words[0] == "property":
-            if not elements:
-                raise ScanError(f"{handle.name}: PLY property before any element")
-            if words[1] == "list":
-                elements[-1][2].append((words[4], _TYPES[words[3]], _TYPES[words[2]]))
+        elif words[0] == "property" and elements:
+            names = [words[-1]]
+            if len(words) == 5 and words[1] == "list":
+                types = [words[2], words[3]]
+            elif len(words) == 3:
+                types = [words[1]]
             else:
-                elements[-1][2].append((words[2], _TYPES[words[1]], None))
+                raise ScanError(f"{path}: PLY header line {number}: expected 'property TYPE NAME' or 'property list "
+                                f"COUNT_TYPE TYPE NAME', got {text[:80]!r}")
+            unknown = [t for t in types if t not in _TYPES]
+            if unknown:
+                raise ScanError(f"{path}: PLY header line {number}: unknown property type {unknown[0][:40]!r} "
+                                f"(known: {sorted(_TYPES)})")
+            if names[0] in {p[0] for p in elements[-1][2]}:
+                raise ScanError(f"{path}: PLY header line {number}: property {names[0][:40]!r} declared twice")
+            if len(types) == 2:
+                elements[-1][2].append((names[0], _TYPES[types[1]], _TYPES[types[0]]))
+            else:
+                elements[-1][2].append((names[0], _TYPES[types[0]], None))
+        else:
+            raise ScanError(f"{path}: PLY header line {number}: cannot read {text[:80]!r}")
+    else:
+        raise ScanError(f"{path}: PLY header has no end_header within {_MAX_HEADER_LINES} lines")
     if fmt not in ("binary_little_endian", "binary_big_endian", "ascii"):
-        raise ScanError(f"{handle.name}: unsupported PLY format {fmt!r}")
+        raise ScanError(f"{path}: unsupported PLY format {fmt[:40]!r}")
+    if len({name for name, _, _ in elements}) != len(elements):
+        raise ScanError(f"{path}: PLY header declares an element twice")
+    empty = [name for name, _, props in elements if not props]
+    if empty:
+        raise ScanError(f"{path}: PLY element {empty[0][:40]!r} has no properties")
     return fmt, elements, comments
 
 
+def _record_dtype(props: list[tuple[str, str, str | None]], endian: str) -> np.dtype:
+    """One binary record of an element: its properties in order, or a triangle list (count, 3 indices)."""
+    listed = [p for p in props if p[2] is not None]
+    if listed:
+        return np.dtype([("n", endian + listed[0][2]), ("i", endian + listed[0][1], (3,))])
+    return np.dtype([(p[0], endian + p[1]) for p in props])
+
+
+def _ascii_numbers(tokens: list[bytes], start: int, count: int, path, name: str) -> np.ndarray:
+    """``count`` numbers of an ASCII PLY body from token ``start``; ScanError when fewer are left or one is text."""
+    if start + count > len(tokens):
+        raise ScanError(f"{path}: PLY file is truncated in element {name!r} (the header promises "
+                        f"{count} more numbers, {len(tokens) - start} are left)")
+    try:
+        return np.array(tokens[start : start + count], dtype=np.float64)
+    except ValueError:
+        bad = next(t for t in tokens[start : start + count] if not _is_number(t))
+        raise ScanError(f"{path}: PLY element {name!r} holds the text {bad[:40].decode(errors='replace')!r} where a "
+                        "number belongs") from None
+
+
+def _is_number(token: bytes) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
 def read_ply(path: str | os.PathLike) -> PlyData:
-    """Read a PLY file (binary or ASCII). Faces must be triangles (a polygon list of 3 indices each)."""
+    """Read a PLY file (binary or ASCII). Faces must be triangles (a polygon list of 3 indices each). Raises
+    ScanError naming the problem for anything a PLY file should not hold; sizes the header claims are checked
+    against the file's size before anything is allocated."""
     try:
         handle = open(path, "rb")
     except OSError as error:
         raise ScanError(f"cannot open PLY file {path}: {error.strerror}") from error
     with handle:
-        fmt, elements, comments = _parse_header(handle)
+        fmt, elements, comments = _parse_header(handle, path)
+        body_size = os.fstat(handle.fileno()).st_size - handle.tell()
+        endian = ">" if fmt == "binary_big_endian" else "<"
+        if fmt != "ascii":  # the header's promise against the file's size, before reading or allocating
+            needed = sum(_record_dtype(props, endian).itemsize * count for _, count, props in elements)
+            if needed > body_size:
+                raise ScanError(f"{path}: the PLY header promises {needed} bytes of data, the file holds "
+                                f"{body_size} (truncated, or a count that lies)")
+        elif sum(count * max(len(props), 1) for _, count, props in elements) > body_size:
+            raise ScanError(f"{path}: the PLY header promises more numbers than the {body_size}-byte body can hold")
         body = handle.read()
-    endian = ">" if fmt == "binary_big_endian" else "<"
     tokens = body.split() if fmt == "ascii" else None
     offset, data = 0, {}
     for name, count, props in elements:
@@ -158,29 +233,29 @@ def read_ply(path: str | os.PathLike) -> PlyData:
         if lists and (len(props) != 1 or name != "face"):
             raise ScanError(f"{path}: only a face element may hold a list property (element {name!r})")
         if lists:
-            _, index_type, count_type = lists[0]
-            dtype = np.dtype([("n", endian + count_type), ("i", endian + index_type, (3,))])
+            dtype = _record_dtype(props, endian)
             if tokens is not None:
-                rows = np.array(tokens[offset : offset + 4 * count], dtype=np.float64).reshape(count, 4)
+                rows = _ascii_numbers(tokens, offset, 4 * count, path, name).reshape(count, 4)
                 offset += 4 * count
-                counts, indices = rows[:, 0], rows[:, 1:].astype(np.int64)
+                counts, indices = rows[:, 0], rows[:, 1:]
             else:
                 record = np.frombuffer(body, dtype=dtype, count=count, offset=offset)
                 offset += dtype.itemsize * count
-                counts, indices = record["n"], record["i"].astype(np.int64)
+                counts, indices = record["n"], record["i"]
             if count and np.any(counts != 3):
-                raise ScanError(f"{path}: faces must be triangles; found polygons of {sorted(set(counts.tolist()))}")
-            data[name] = {"vertex_indices": indices}
+                shown = sorted(set(counts.tolist()))[:5]
+                raise ScanError(f"{path}: faces must be triangles; found polygons of {shown}")
+            if count and not np.all(np.isfinite(indices) & (indices == np.round(indices))):
+                raise ScanError(f"{path}: face vertex indices must be whole numbers")
+            data[name] = {"vertex_indices": indices.astype(np.int64)}
             continue
         if tokens is not None:
             width = len(props)
-            rows = np.array(tokens[offset : offset + width * count], dtype=np.float64).reshape(count, width)
+            rows = _ascii_numbers(tokens, offset, width * count, path, name).reshape(count, width)
             offset += width * count
             data[name] = {p[0]: rows[:, k] for k, p in enumerate(props)}
         else:
-            dtype = np.dtype([(p[0], endian + p[1]) for p in props])
-            if offset + dtype.itemsize * count > len(body):
-                raise ScanError(f"{path}: PLY file is truncated in element {name!r}")
+            dtype = _record_dtype(props, endian)
             record = np.frombuffer(body, dtype=dtype, count=count, offset=offset)
             offset += dtype.itemsize * count
             data[name] = {p[0]: record[p[0]] for p in props}
@@ -190,6 +265,9 @@ def read_ply(path: str | os.PathLike) -> PlyData:
     points = np.column_stack([vertex.pop(k).astype(np.float64) for k in ("x", "y", "z")])
     face = data.pop("face", None)
     triangles = face["vertex_indices"] if face is not None else None
+    if triangles is not None and triangles.size and (triangles.min() < 0 or triangles.max() >= len(points)):
+        raise ScanError(f"{path}: faces index vertices {triangles.min()}..{triangles.max()}, the file has "
+                        f"0..{len(points) - 1}")
     fields = {k: np.asarray(v, dtype=np.float64) for k, v in vertex.items()}
     return PlyData(points, triangles, fields, data, tuple(comments))
 
@@ -228,11 +306,15 @@ def read_scan(path: str | os.PathLike) -> ScanFile:
     pose = None
     for comment in ply.comments:
         if comment.startswith(_POSE_TAG):
-            values = np.array(comment[len(_POSE_TAG) :].split(), dtype=np.float64)
-            if values.size != 16:
-                raise ScanError(f"{path}: scanner_pose comment must hold 16 numbers; found {values.size}")
+            words = comment[len(_POSE_TAG) :].split()
+            values = np.array([float(w) if _is_number(w.encode()) else np.nan for w in words], dtype=np.float64)
+            if values.size != 16 or not np.all(np.isfinite(values)):
+                raise ScanError(f"{path}: scanner_pose comment must hold 16 finite numbers; found "
+                                f"{comment[len(_POSE_TAG):][:80].strip()!r}")
             pose = values.reshape(4, 4)
     marker = ply.elements.get("marker")
+    if marker is not None and not {"id", "x", "y", "z", "fx", "fy", "fz"} <= marker.keys():
+        raise ScanError(f"{path}: element marker needs id, x, y, z, fx, fy, fz; found {sorted(marker)[:10]}")
     if marker is None:
         return ScanFile(ply.points, pose, np.zeros((0, 3)), np.zeros(0, dtype=np.int64), np.zeros((0, 3)))
     measured = np.column_stack([marker[k] for k in ("x", "y", "z")]).astype(np.float64)

@@ -20,6 +20,7 @@ numpy data; nothing in the core imports it.
 from __future__ import annotations
 
 import logging
+import re
 import shutil
 import subprocess
 import tempfile
@@ -91,14 +92,35 @@ def _quad_edges(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return edges, side.reshape(len(cells), 4)
 
 
+#: a name ccx reads as one token on a keyword line: a letter, then letters, digits, "_" or "-"; ccx keeps 80 characters
+CCX_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,79}")
+
+
+def ccx_names(names: list[str] | tuple[str, ...], prefix: str) -> list[str]:
+    """The names to write for ``names`` on ccx keyword lines (``ELSET=``): each name itself when it follows
+    :data:`CCX_NAME` and is unique ignoring case (ccx upper-cases names), else the generated ``{prefix}{index}``.
+    User text (a model.yaml part name holding a newline and ``*INCLUDE, INPUT=...``) so never reaches a deck line."""
+    upper = [n.upper() for n in names]
+    generated = {f"{prefix}{i}".upper() for i in range(len(names))}
+    return [n if CCX_NAME.fullmatch(n) and upper.count(n.upper()) == 1 and n.upper() not in generated
+            else f"{prefix}{i}" for i, n in enumerate(names)]
+
+
+def _heading_text(text: str) -> str:
+    """Free text for the *HEADING data line: only letters, digits and ``_.-``, at most 80 characters."""
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", text)[:80]
+
+
 def write_deck(model: PartModel, case: LoadCase, constrained: np.ndarray, path: str | Path) -> Path:
     """Write one linear static job as a CalculiX .inp deck.
 
     Nodes and elements are numbered from 1 in model order; S8R elements (4 corners, then the mid-side nodes of sides
-    1-2, 2-3, 3-4, 4-1) come in one ELSET per part, named like the part, so the deck is also a mesh file that
-    model.yaml can name (io.mesh reads the corners of .inp meshes). The mid-side nodes (straight-edge midpoints) are
-    numbered n+1.. in a set of their own; one whose two end nodes are both held in a translation is held there too,
-    at the mean of the two values, so a moved patch moves as a whole. Forces stay on the model's nodes.
+    1-2, 2-3, 3-4, 4-1) come in one ELSET per part, named like the part (``PART_<index>`` when the name is not a
+    ccx name, :func:`ccx_names`; the heading's text is reduced to ``[A-Za-z0-9_.-]``: no user text reaches a keyword
+    line), so the deck is also a mesh file that model.yaml can name (io.mesh reads the corners of .inp meshes). The
+    mid-side nodes (straight-edge midpoints) are numbered n+1.. in a set of their own; one whose two end nodes are
+    both held in a translation is held there too, at the mean of the two values, so a moved patch moves as a whole.
+    Forces stay on the model's nodes.
     """
     if not (np.all(np.isfinite(case.forces)) and np.all(np.isfinite(case.prescribed))):
         raise SolverError(f"load case {case.name}: forces and prescribed values must be finite")
@@ -107,22 +129,23 @@ def write_deck(model: PartModel, case: LoadCase, constrained: np.ndarray, path: 
                           f"{case.prescribed.shape}")
     n = len(model.nodes)
     edges, side = _quad_edges(model.cells)
-    lines = ["*HEADING", f"hood_decomp {model.name} {case.name}", "*NODE, NSET=NALL"]
+    elsets = ccx_names([part.name for part in model.parts], "PART_")
+    lines = ["*HEADING", f"hood_decomp {_heading_text(model.name)} {_heading_text(case.name)}", "*NODE, NSET=NALL"]
     lines += [f"{i + 1}," + ",".join(map(_real, xyz)) for i, xyz in enumerate(model.nodes)]
     lines.append("*NODE, NSET=NMID")
     lines += [f"{n + m + 1}," + ",".join(map(_real, xyz)) for m, xyz in enumerate(model.nodes[edges].mean(axis=1))]
-    for p, part in enumerate(model.parts):
+    for p in range(len(model.parts)):
         members = np.flatnonzero(model.cell_part == p)
         if not len(members):
             continue
-        lines.append(f"*ELEMENT, TYPE=S8R, ELSET={part.name}")
+        lines.append(f"*ELEMENT, TYPE=S8R, ELSET={elsets[p]}")
         connectivity = np.hstack([model.cells[members], n + side[members]]) + 1
         lines += [f"{e + 1}," + ",".join(map(str, row)) for e, row in zip(members, connectivity, strict=True)]
     lines += ["*MATERIAL, NAME=STEEL", "*ELASTIC", f"{model.material.E:.9g},{model.material.nu:.9g}",
               "*DENSITY", f"{model.material.density:.9g}"]
     for p, part in enumerate(model.parts):
         if np.any(model.cell_part == p):
-            lines += [f"*SHELL SECTION, ELSET={part.name}, MATERIAL=STEEL", f"{part.thickness:.9g}"]
+            lines += [f"*SHELL SECTION, ELSET={elsets[p]}, MATERIAL=STEEL", f"{part.thickness:.9g}"]
     lines += ["*STEP", "*STATIC", "*BOUNDARY"]
     node, axis = np.divmod(constrained, 6)
     lines += [f"{a + 1},{b + 1},{b + 1},{v:.12g}" for a, b, v in zip(node, axis, case.prescribed, strict=True)]
@@ -169,6 +192,7 @@ def run_job(deck: str, name: str, n_nodes: int, workdir: str | None = None, time
     executable = executable or ccx_executable()
     if executable is None:
         raise SolverError("ccx not found: install the Debian package calculix-ccx")
+    name = _heading_text(name)  # the job's file name: no path separator or shell-special character from a label
     with tempfile.TemporaryDirectory(prefix=f"ccx_{name}_", dir=workdir) as directory:
         job = Path(directory) / name
         job.with_suffix(".inp").write_text(deck)
