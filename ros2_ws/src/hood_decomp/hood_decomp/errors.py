@@ -49,3 +49,7 @@ class PointCloudError(HoodDecompError):
 
 class BagError(HoodDecompError):
     """A bag or its sidecar file is missing or inconsistent."""
+
+
+class HistoryError(HoodDecompError):
+    """A results history database is unreadable, of an unknown schema version, or inconsistent."""
