@@ -53,3 +53,7 @@ class BagError(HoodDecompError):
 
 class HistoryError(HoodDecompError):
     """A results history database is unreadable, of an unknown schema version, or inconsistent."""
+
+
+class ShiftError(HoodDecompError):
+    """A shift cannot be analysed: no input part, too few parts for a control chart, a baseline without spread."""
