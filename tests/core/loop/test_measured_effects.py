@@ -86,6 +86,6 @@ def test_hinge_is_traced_and_bump_offered_as_measured_effect():
 def test_no_measured_effect_without_one(candidate_share):
     """Fails if a measured effect is offered on a shift whose parts carry none (noise alone, or only an effect an FE
     candidate explains)."""
-    _, _, _, found = _shift(candidate_share, 0.0, 300, seed=5)
+    _, _, _, found = _shift(candidate_share, 0.0, 200, seed=5)
     assert not found.measured, found.message
     assert [m.name for m in found.modes] == (["hinge_R.z"] if candidate_share else [])

@@ -39,6 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from hood_decomp.errors import FieldError, HistoryError
+    from hood_decomp.io.bases import load_bases
     from hood_decomp.io.history import History
     from hood_decomp.shift.part import Options
     from hood_decomp.shift.report import analyse_and_report
@@ -47,8 +48,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.workers < 1:
         raise FieldError(f"--workers must be >= 1, got {args.workers}")
-    if not args.bases.is_file():
-        raise FieldError(f"bases file {args.bases} does not exist")
+    bases = load_bases(args.bases)  # refused here, before a cluster starts, when it is no bases file
     sources = find_sources(args.inputs)
     total = sum(s.count for s in sources)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     with History(history_path) as history:
         with dask_client(args.scheduler, args.workers) as client:
             summary = run_batch(client, iter_tasks(sources), total, str(args.bases.resolve()), history, options)
-        report = analyse_and_report(history, [str(s.path) for s in sources], args.bases, args.out, summary,
+        report = analyse_and_report(history, [str(s.path) for s in sources], bases, args.out, summary,
                                     baseline=args.baseline, alpha=args.alpha, model_path=args.model)
     print(f"hood-decomp shift: {summary.total} parts, {summary.processed} processed, {summary.skipped} already in "
           f"the history, {len(summary.failed)} failed; report written to {report.resolve()}", file=sys.stderr)

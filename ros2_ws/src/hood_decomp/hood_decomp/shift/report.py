@@ -107,12 +107,10 @@ def build_report(analysis: ShiftAnalysis, bases: Any, summary: Any, out: Path) -
     return report
 
 
-def analyse_and_report(history: History, sources: list[str], bases_path: Path, out: Path, summary: Any,
+def analyse_and_report(history: History, sources: list[str], bases: Any, out: Path, summary: Any,
                        baseline: int, alpha: float = 0.01, model_path: Path | None = None) -> Path:
-    """Analyse the history's parts from ``sources`` and write the report, shift.json and history.csv into ``out``."""
-    from hood_decomp.io.bases import load_bases
-
-    bases = load_bases(bases_path)
+    """Analyse the history's parts from ``sources`` with the shift's ``bases`` and write the report, shift.json and
+    history.csv into ``out``."""
     candidates = None
     if model_path is not None:
         from hood_decomp.core.fe.solver import build_solver
