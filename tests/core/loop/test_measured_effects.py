@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from hood_decomp.core.loop.candidates import candidate_fields, enumerate_candidates
-from hood_decomp.core.loop.measured_effects import analyse_recurring
+from hood_decomp.core.loop.measured_effects import analyse_recurring, augmented_bases, correction_without_effects
 from hood_decomp.core.method.bases import estimate_field
+from hood_decomp.core.method.correction import plan_correction
 from hood_decomp.core.types import DisplacementField
 from hood_decomp.shift.part import within_model_test
 from hood_decomp.synthetic.shift import ProcessModel, bump_field, make_part, plan_shift
@@ -31,6 +32,7 @@ def _estimate(field):
     return estimate, within_model_test(case.bases, estimate, field.noise_rms, 0.01).within_model
 
 
+@functools.cache
 def _shift(candidate_share, bump_share, n, seed):
     case = hood20()
     process = ProcessModel(candidate_share=candidate_share, bump_share=bump_share, drift_label=None, step_label=None)
@@ -89,3 +91,27 @@ def test_no_measured_effect_without_one(candidate_share):
     _, _, _, found = _shift(candidate_share, 0.0, 200, seed=5)
     assert not found.measured, found.message
     assert [m.name for m in found.modes] == (["hinge_R.z"] if candidate_share else [])
+
+
+def test_bases_rebuilt_with_the_measured_effect():
+    """Fails if bases rebuilt with the measured effect do not estimate its amplitude as a parameter (within 3 std of
+    the true bump), leave the bump parts outside the model, keep the bump's bias in the declared estimates, or let
+    the correction move something for the effect."""
+    case = hood20()
+    plan, parts, outside, found = _shift(0.1, 0.1, 600, seed=1)
+    measured = found.measured
+    rebuilt = augmented_bases(case.bases, case.ensemble, measured)
+    name = measured[0].name
+    column = rebuilt.names.index(name)
+    assert rebuilt.names[:column] == case.bases.names[:column] and name in rebuilt.hierarchical.effect_names_
+    truth = bump_field(case.skin, plan.process.bump_center, plan.process.bump_radius_mm)
+    rows = [i for i in outside[measured[0].parts]][:12]
+    for i in rows:
+        estimate = estimate_field(rebuilt, parts[i].field)
+        assert abs(estimate.values[column] - plan.amplitude[i]) <= 3 * estimate.std[column] + 0.005, i
+        assert within_model_test(rebuilt, estimate, 0.02, 0.01).within_model, i
+        without = _estimate(DisplacementField(case.skin.model_id, parts[i].field.normal_displacement
+                                              - plan.amplitude[i] * truth, 1.0, 0.02))[0].values
+        assert np.abs(np.delete(estimate.values, column) - without).max() <= 0.03, i
+    correction = correction_without_effects(plan_correction(estimate), (name,))
+    assert correction.corrections[column] == 0.0 and f"{name} is a measured effect" in correction.reason
