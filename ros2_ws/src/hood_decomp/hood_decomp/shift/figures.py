@@ -36,7 +36,7 @@ def plot_control_chart(chart: ControlChart, path: str | Path) -> Path:
             top.plot(hits, chart.values[hits], _MARKERS[rule], mfc="none", mec="tab:red", ms=7,
                      label=f"{rule} ({hits.size})")
     top.set_ylabel(f"{chart.name} (mm)")
-    top.set_title(f"{chart.name}: individuals chart, limits from the first {chart.baseline_end} parts (shaded)")
+    top.set_title(f"{chart.name}: individuals chart, limits from the baseline (shaded)")
     if any(chart.alarms[r].size for r in RULES[:-1]):
         top.legend(fontsize=7, loc="upper left")
     bottom.plot(index, chart.ewma, color="tab:purple", lw=1.0)

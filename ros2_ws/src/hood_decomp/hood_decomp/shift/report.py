@@ -37,7 +37,7 @@ def build_report(analysis: ShiftAnalysis, bases: Any, summary: Any, out: Path) -
         ("parts in the inputs", summary.total), ("processed in this run", summary.processed),
         ("already in the history (not processed again)", summary.skipped), ("failed", len(summary.failed)),
         ("outside the model (chi-square test at alpha)", int(analysis.outside.sum())),
-        ("Dask workers", summary.workers), ("wall time (s)", round(summary.seconds, 1)),
+        ("Dask workers", summary.workers), ("wall time (s)", _f(summary.seconds, 1)),
         ("parts per second", _f(summary.rate, 2))])
     failed = [r for r in records if r.status != "ok"]
     if failed:
@@ -57,7 +57,7 @@ def build_report(analysis: ShiftAnalysis, bases: Any, summary: Any, out: Path) -
         rows.append((chart.name, _f(chart.centre), _f(chart.sigma), _f(chart.lcl), _f(chart.ucl), chart.baseline_end,
                      *[int(chart.alarms[rule].size) for rule in RULES],
                      "-" if first is None else f"{records[first[0]].part_id} ({first[1]})"))
-    section.table(["boundary", "centre", "sigma", "LCL", "UCL", "baseline parts", *RULES, "first alarm"], rows)
+    section.table(["boundary", "centre", "sigma", "LCL", "UCL", "monitored from part", *RULES, "first alarm"], rows)
     section.figures([(figures.plot_control_chart(chart, fig_dir / f"chart_{chart.name}.png"), f"{chart.name}")
                      for chart in analysis.charts], out)
 
@@ -107,6 +107,17 @@ def build_report(analysis: ShiftAnalysis, bases: Any, summary: Any, out: Path) -
     return report
 
 
+def write_measured_bases(bases: Any, measured: tuple, path: Path) -> Path:
+    """Bases rebuilt with the measured effects (core/loop/measured_effects.augmented_bases), saved to ``path``."""
+    from hood_decomp.core.loop.close_loop import training_ensemble
+    from hood_decomp.core.loop.measured_effects import augmented_bases
+    from hood_decomp.io.bases import save_bases
+
+    logger.info("shift: rebuilding the bases with %s", ", ".join(mode.name for mode in measured))
+    save_bases(path, augmented_bases(bases, training_ensemble(bases), measured))
+    return path
+
+
 def analyse_and_report(history: History, sources: list[str], bases: Any, out: Path, summary: Any,
                        baseline: int, alpha: float = 0.01, model_path: Path | None = None) -> Path:
     """Analyse the history's parts from ``sources`` with the shift's ``bases`` and write the report, shift.json and
@@ -120,9 +131,19 @@ def analyse_and_report(history: History, sources: list[str], bases: Any, out: Pa
         model, user = load_model_with_candidates(model_path)
         candidates = candidate_fields(build_solver(model), enumerate_candidates(model, user))
     analysis = analyse_shift(history, sources, bases, baseline, alpha, candidates)
-    (out / "shift.json").write_text(json.dumps(json_ready(analysis_json(analysis, summary)), indent=2,
-                                               allow_nan=False) + "\n")
+    numbers = analysis_json(analysis, summary)
+    rebuilt = None
+    if analysis.recurring is not None and analysis.recurring.measured:
+        rebuilt = write_measured_bases(bases, analysis.recurring.measured, out / "bases_measured.h5")
+        numbers["recurring"]["bases_measured"] = str(rebuilt)
+    (out / "shift.json").write_text(json.dumps(json_ready(numbers), indent=2, allow_nan=False) + "\n")
     history.export_csv(out / "history.csv")
-    path = build_report(analysis, bases, summary, out).write(out / "index.html")
+    report = build_report(analysis, bases, summary, out)
+    if rebuilt is not None:
+        report.sections[-1].text(f"Bases rebuilt with the measured effects as parameters without a boundary (the "
+                                 f"estimator reports their amplitudes; corrections never move a boundary for them): "
+                                 f"{rebuilt.name}. Candidate effects found above are not in them: add those with "
+                                 "hood-decomp close-loop.")
+    path = report.write(out / "index.html")
     logger.info("shift: report written to %s", path)
     return path
