@@ -195,10 +195,12 @@ def recurring(n: int) -> dict:
                     "rms_after_over_expected_max": float(np.max(mode.rms_after / mode.expected_rms))
                     if mode.rms_after.size else None}
             if mode.kind == "candidate":
-                z = (mode.amplitude[mode.parts] - plan.amplitude[carrying]) / mode.std[mode.parts]
+                # parts whose true effect is another one are counted in true_effects; z over the candidate's parts
+                mine = np.array([plan.effect_of(i) == "candidate" for i in carrying])
+                z = ((mode.amplitude[mode.parts] - plan.amplitude[carrying]) / mode.std[mode.parts])[mine]
                 info.update(z_abs_max=float(np.max(np.abs(z))), within_3_std=float(np.mean(np.abs(z) <= 3)),
-                            mean_amplitude=float(np.mean(mode.amplitude[mode.parts])),
-                            mean_truth=float(np.mean(plan.amplitude[carrying])))
+                            mean_amplitude=float(np.mean(mode.amplitude[mode.parts][mine])),
+                            mean_truth=float(np.mean(plan.amplitude[carrying][mine])))
             else:
                 without = np.array([estimate_field(hood.bases, DisplacementField(
                     hood.skin.model_id, parts[i].field.normal_displacement - plan.amplitude[i] * bump, 1.0,

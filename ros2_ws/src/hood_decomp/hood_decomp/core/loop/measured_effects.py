@@ -53,8 +53,11 @@ logger = logging.getLogger(__name__)
 
 #: a candidate explains a mode when its template removes at least this fraction of what the free mode removes
 TRACE_MIN = 0.9
-#: support of a measured effect: smoothed |u| above this fraction of its peak (then grown by two rings)
+#: support of a measured effect: smoothed |u| above this fraction of its peak (then grown by two rings) ...
 SUPPORT_FRACTION = 0.25
+#: ... then grown to where the restored effect's smoothed magnitude exceeds this fraction of its peak
+TAIL_FRACTION = 0.03
+RESTORE_ITERATIONS = 4
 #: template step (mm of a candidate or effect), small enough for the contact state not to change
 TEMPLATE_STEP_MM = 0.1
 #: |a_i| / std_i above which a part carries a mode
@@ -199,12 +202,12 @@ def leading_mode(y: np.ndarray, seen: np.ndarray, iterations: int = 60) -> np.nd
     return u * np.sign(u[np.argmax(np.abs(u))])
 
 
-def _support(bases: Bases, mode: np.ndarray) -> np.ndarray:
-    """Nodes where the one-ring mean of |mode| exceeds SUPPORT_FRACTION of its peak, grown by two rings."""
+def _support(bases: Bases, values: np.ndarray, fraction: float) -> np.ndarray:
+    """Nodes where the one-ring mean of |values| exceeds ``fraction`` of its peak, grown by two rings."""
     ring = skin_adjacency(bases.skin) + sp.identity(bases.skin.n_nodes, format="csr")
     count = np.asarray(ring.sum(axis=1)).ravel()
-    smooth = (ring @ np.abs(mode)) / count
-    support = smooth >= SUPPORT_FRACTION * smooth.max()
+    smooth = (ring @ np.abs(values)) / count
+    support = smooth >= fraction * smooth.max()
     for _ in range(2):
         support = (ring @ support.astype(float)) > 0
     return support
@@ -223,12 +226,29 @@ def declared_jacobian(bases: Bases, state: np.ndarray) -> np.ndarray:
 
 def restore_field(bases: Bases, mode: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The effect v (N,) (peak 1) whose non-absorbed part is ``mode``, assuming it vanishes off its support (module
-    docstring, step 4); and the support (N,) bool."""
-    support = _support(bases, mode)
+    docstring, step 4); and the support (N,) bool.
+
+    The support starts where the mode is large and grows to where the restored effect is (its tail above
+    :data:`TAIL_FRACTION` of its peak), a few times, never beyond half the skin (the rest must pin the fit)."""
     jacobian = declared_jacobian(bases, state)
+    support = _support(bases, mode, SUPPORT_FRACTION)
+    for _ in range(RESTORE_ITERATIONS):
+        beta = np.linalg.lstsq(jacobian[:, ~support].T, -mode[~support], rcond=None)[0]
+        full = mode + beta @ jacobian
+        grown = support | _support(bases, full, TAIL_FRACTION)
+        if grown.sum() > 0.5 * grown.size or np.array_equal(grown, support):
+            break
+        support = grown
     beta = np.linalg.lstsq(jacobian[:, ~support].T, -mode[~support], rcond=None)[0]
     field = np.where(support, mode + beta @ jacobian, 0.0)
     return field / field[np.argmax(np.abs(field))], support
+
+
+def _carrying(z: np.ndarray, y: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """Parts that carry a mode: its amplitude is significant (|z| > PRESENT_Z) and it removes at least half of the
+    part's residual energy beyond noise (a part with another effect projects on any mode at high resolution)."""
+    excess = np.sum(y**2, axis=1) - seen.sum(axis=1)
+    return (np.abs(z) > PRESENT_Z) & (z**2 >= 0.5 * excess)
 
 
 def _halves(index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -280,7 +300,7 @@ def analyse_recurring(
             break
         u_all = leading_mode(y[active], seen[active])
         a_u, s_u = _fit(y[active], seen[active], u_all)
-        carrying = np.abs(a_u / s_u) > PRESENT_Z
+        carrying = _carrying(a_u / s_u, y[active], seen[active])
         free_energy = float(np.nansum((a_u / s_u)[carrying] ** 2))
         scores = []
         for index, template in enumerate(cand_templates):
@@ -298,7 +318,7 @@ def analyse_recurring(
             learned = restore_field(bases, u, state)[0]
         # cross-validated before/after on the judging half's carrying parts, with the shape of the learning half
         a_j, s_j = _fit(y[judge], seen[judge], u)
-        rows = judge[np.abs(a_j / s_j) > PRESENT_Z]
+        rows = judge[_carrying(a_j / s_j, y[judge], seen[judge])]
         fit = part_fits(bases, state, learned, residuals[rows], noise[rows])
         rms_before = np.sqrt(np.nanmean(residuals[rows] ** 2, axis=1))
         rms_after = np.sqrt(np.nanmean(fit.after**2, axis=1))
