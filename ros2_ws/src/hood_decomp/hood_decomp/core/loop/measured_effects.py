@@ -10,7 +10,8 @@ sigma_i and their declared-parameter estimates. Steps, repeated for up to ``max_
 2. **Judged against noise, cross-validated**: u is learned on one half of the parts (every other part in time order)
    and judged on the other, whose noise it has never seen: under "no recurring mode" z_i = a_i / std_i are standard
    normal, so sum z_i^2 over the judging half is chi-square with one degree of freedom per part. The mode is real
-   when its p-value is below ``alpha`` and it is present (|z| > 3) in at least ``min_parts`` parts.
+   when its p-value is below ``alpha`` and it is present (|z| > 3) in at least ``min_parts`` parts. A part carries a
+   mode when its |z| > 3 and the mode removes at least half of the part's residual energy beyond noise.
 3. **Traced to the FE candidates first**: each candidate's unit response c_k becomes a *template* t_k, what the
    contact-aware estimator leaves of it in the residual (the residual of a typical part's field plus 0.1 mm c_k,
    minus that of the part, per mm), with its leak g_k (P,) into the declared estimates. Jointly over the parts, the
@@ -19,7 +20,8 @@ sigma_i and their declared-parameter estimates. Steps, repeated for up to ``max_
 4. Otherwise the mode is offered as a **measured effect**. The residual shows only the part of the effect the declared
    fields cannot absorb (u = P_perp v); the absorbed part is unobservable from residuals alone. It is restored by the
    one assumption a local defect allows: the effect vanishes away from its support (nodes where the smoothed |u|
-   exceeds :data:`SUPPORT_FRACTION` of its peak, grown by two rings), so v = u + J^T beta with beta fitting -u on the
+   exceeds :data:`SUPPORT_FRACTION` of its peak, grown by two rings, then grown to where the restored effect's tail
+   exceeds :data:`TAIL_FRACTION` of its peak, at most half the skin), so v = u + J^T beta with beta fitting -u on the
    other nodes (J: d field / d state of the declared parameters at a typical state, contact included), and v = 0
    off the support. The effect's template and leak come from the estimator as in step 3 (per part, with the part's
    own seen nodes), so its per-part amplitude also corrects the declared estimates (their bias by the effect).
