@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 from hood_decomp.io.history import History, PartRecord
 from hood_decomp.shift.part import Options, PartTask, process_task
@@ -59,7 +60,14 @@ def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[obje
 
 
 def _peak_rss_mb() -> float:
-    """Peak resident memory of this process, MB (ru_maxrss is in kB on Linux)."""
+    """Peak resident memory of this process, MB: VmHWM of /proc/self/status on Linux (ru_maxrss survives exec, so a
+    spawned worker would report its parent's peak), else ru_maxrss."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
