@@ -25,8 +25,6 @@ from hood_decomp.io.history import PartRecord
 
 logger = logging.getLogger(__name__)
 
-KINDS = ("cloud", "field", "scan")
-
 
 @dataclass(frozen=True)
 class PartTask:
