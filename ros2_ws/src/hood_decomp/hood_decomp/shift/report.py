@@ -57,18 +57,25 @@ def build_report(analysis: ShiftAnalysis, bases: Any, summary: Any, out: Path) -
         rows.append((chart.name, _f(chart.centre), _f(chart.sigma), _f(chart.lcl), _f(chart.ucl), chart.baseline_end,
                      *[int(chart.alarms[rule].size) for rule in RULES],
                      "-" if first is None else f"{records[first[0]].part_id} ({first[1]})"))
-    section.table(["boundary", "centre", "sigma", "LCL", "UCL", "monitored from part", *RULES, "first alarm"], rows)
+    if rows:
+        section.table(["boundary", "centre", "sigma", "LCL", "UCL", "monitored from part", *RULES, "first alarm"],
+                      rows)
+    else:
+        section.text("Too few parts within the model for a control chart (at least 20 charted parts per boundary).",
+                     "note")
     section.figures([(figures.plot_control_chart(chart, fig_dir / f"chart_{chart.name}.png"), f"{chart.name}")
                      for chart in analysis.charts], out)
 
     section = report.section("Capability against the parameter ranges")
-    section.table(["boundary", "range (mm)", "mean", "sigma within", "sigma overall", "Cp", "Cpk", "Pp", "Ppk",
-                   "outside range (%)"],
-                  [(c.name, f"[{c.lower:g}, {c.upper:g}]", _f(c.mean), _f(c.sigma_within), _f(c.sigma_overall),
-                    _f(c.cp, 2), _f(c.cpk, 2), _f(c.pp, 2), _f(c.ppk, 2), _f(100 * c.share_outside, 1))
-                   for c in analysis.capabilities])
     images = []
-    if analysis.capabilities:
+    if not analysis.capabilities:
+        section.text("No capability without a control chart.", "note")
+    else:
+        section.table(["boundary", "range (mm)", "mean", "sigma within", "sigma overall", "Cp", "Cpk", "Pp", "Ppk",
+                       "outside range (%)"],
+                      [(c.name, f"[{c.lower:g}, {c.upper:g}]", _f(c.mean), _f(c.sigma_within), _f(c.sigma_overall),
+                        _f(c.cp, 2), _f(c.cpk, 2), _f(c.pp, 2), _f(c.ppk, 2), _f(100 * c.share_outside, 1))
+                       for c in analysis.capabilities])
         images.append((figures.plot_capability(analysis.capabilities, fig_dir / "capability.png"), "Cpk and Ppk"))
     images.append((figures.plot_correlation(analysis.table.names, analysis.correlation, fig_dir / "correlation.png"),
                    "correlation between boundaries"))
