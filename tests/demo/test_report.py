@@ -5,19 +5,14 @@ report agree with the truth the scans were made from."""
 from __future__ import annotations
 
 import json
-import re
-import shutil
 import subprocess
 import sys
 
 import pytest
 
-from tests.required import missing
+from tests.browser import check_rendered_report
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
-
-CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 
 
 @pytest.fixture(scope="module")
@@ -32,25 +27,8 @@ def demo_dir(tmp_path_factory):
 
 
 def test_report_renders_completely(demo_dir, tmp_path):
-    chromium = shutil.which("chromium")
-    if chromium is None:
-        missing("browser", "Debian chromium is not installed (scripts/setup.sh installs it when run as root)")
-    dom = subprocess.run([chromium, *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'profile'}",
-                          "--virtual-time-budget=10000", "--dump-dom", (demo_dir / "index.html").as_uri()],
-                         capture_output=True, text=True, timeout=120).stdout
-    body = re.search(r"<body([^>]*)>", dom)
-    assert body, "Chromium returned no page"
-    images = re.search(r'data-images="(\d+)"', body.group(1))
-    broken = re.search(r'data-broken="([^"]*)"', body.group(1))
-    assert images and int(images.group(1)) >= 20, "the page's image check did not run or found too few images"
-    assert broken is not None and broken.group(1) == "", f"images that did not load: {broken and broken.group(1)}"
-    tables = re.findall(r"<table>(.*?)</table>", dom, flags=re.S)
-    assert len(tables) >= 10
-    for table in tables:
-        assert table.count("<tr>") >= 2, f"an empty table: {table[:200]}"
-    text = re.sub(r"<[^>]+>", " ", dom)
-    for bad in ("Traceback", "Error", "NaN", " nan ", "Not run"):
-        assert bad not in text, f"'{bad}' in the report"
+    check_rendered_report(demo_dir / "index.html", tmp_path / "profile", 20, 10,
+                          ("Traceback", "Error", "NaN", " nan ", "Not run"))
 
 
 def test_report_numbers_agree_with_truth(demo_dir):

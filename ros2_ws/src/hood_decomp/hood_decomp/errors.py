@@ -55,3 +55,10 @@ class OutputError(HoodDecompError):
     """An output path is unusable: its directory is missing or not writable, it is a directory where a file is
     wanted (or a file where a directory is), or it is one of the command's inputs."""
 
+
+class HistoryError(HoodDecompError):
+    """A results history database is unreadable, of an unknown schema version, or inconsistent."""
+
+
+class ShiftError(HoodDecompError):
+    """A shift cannot be analysed: no input part, too few parts for a control chart, a baseline without spread."""

@@ -37,6 +37,7 @@ VERBS: dict[str, str] = {
     "close-loop": "close_loop",
     "scan": "scan",
     "replay": "replay",
+    "shift": "shift",
     "launch": "launch",
     "demo": "demo",
 }

@@ -1,0 +1,326 @@
+"""The results history: one row per inspected part in an embedded SQLite database (stdlib ``sqlite3``), appendable
+across shifts, with CSV export for the plant's own tools. The schema is in docs/history_schema.md.
+
+Writing is idempotent per (source, part_id): a part already recorded as processed is never written twice, so a
+batch that crashed is rerun with the same database and continues where it stopped (:meth:`History.done` lists what
+is there). A part recorded as failed is replaced when a later run processes it. Each part is one transaction: a crash
+leaves either the whole part or none of it.
+
+The file states its ``schema_version`` (table ``meta``). Opening a database of another version migrates it when a
+migration is known (:data:`MIGRATIONS`, none yet: version 1 is the first) and otherwise refuses it, naming the version
+found and the ones this reader reads. A file that is no SQLite database or no hood_decomp history is refused by name.
+"""
+
+from __future__ import annotations
+
+import csv
+import sqlite3
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from hood_decomp.errors import HistoryError
+
+SCHEMA_VERSION = 1
+#: version found -> function upgrading an open connection by one version (none yet)
+MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {}
+STATUSES = ("ok", "failed")
+
+_SCHEMA = """
+CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE parts (
+    id INTEGER PRIMARY KEY,
+    source TEXT NOT NULL, part_id TEXT NOT NULL, message INTEGER NOT NULL, stamp_ns INTEGER NOT NULL,
+    shift TEXT NOT NULL, status TEXT NOT NULL CHECK (status IN ('ok', 'failed')), error TEXT NOT NULL,
+    model_id TEXT NOT NULL, bases_id TEXT NOT NULL, method TEXT NOT NULL,
+    coverage REAL, noise_mm REAL, residual_rms_mm REAL, residual_max_mm REAL, residual_mean_mm REAL,
+    chi2 REAL, dof INTEGER, p_value REAL, within_model INTEGER, safe_to_apply INTEGER, reason TEXT NOT NULL,
+    UNIQUE (source, part_id)
+);
+CREATE INDEX parts_time ON parts (stamp_ns, source, message);
+CREATE TABLE parameters (
+    part INTEGER NOT NULL REFERENCES parts (id) ON DELETE CASCADE, name TEXT NOT NULL,
+    value_mm REAL, std_mm REAL, lifted INTEGER NOT NULL, correction_mm REAL, PRIMARY KEY (part, name)
+);
+CREATE TABLE effects (
+    part INTEGER NOT NULL REFERENCES parts (id) ON DELETE CASCADE, name TEXT NOT NULL, share REAL NOT NULL,
+    PRIMARY KEY (part, name)
+);
+CREATE TABLE residuals (
+    part INTEGER PRIMARY KEY REFERENCES parts (id) ON DELETE CASCADE, n INTEGER NOT NULL, data BLOB NOT NULL
+);
+"""
+_PART_COLUMNS = ("source", "part_id", "message", "stamp_ns", "shift", "status", "error", "model_id", "bases_id",
+                 "method", "coverage", "noise_mm", "residual_rms_mm", "residual_max_mm", "residual_mean_mm", "chi2",
+                 "dof", "p_value", "within_model", "safe_to_apply", "reason")
+
+
+@dataclass(frozen=True)
+class PartRecord:
+    """What the history keeps of one part (mm throughout).
+
+    source: the bag or file it came from; part_id; message: index of the message in the bag (0 for a file);
+    stamp_ns: the scan's stamp (ns since the epoch); shift: a label of the run that wrote it. status: "ok" or
+    "failed" (then ``error`` says why and the numbers are NaN). names, values, std, lifted, corrections: (P,) per
+    parameter. safe_to_apply, reason: the correction's decision. coverage, noise_mm, residual statistics, chi2, dof,
+    p_value, within_model: the one within-model test. effects: (name, share) of the decomposition.
+    residual: (N,) float32 mm, NaN where unseen, or None (not kept).
+    """
+
+    source: str
+    part_id: str
+    message: int
+    stamp_ns: int
+    shift: str = ""
+    status: str = "ok"
+    error: str = ""
+    model_id: str = ""
+    bases_id: str = ""
+    method: str = ""
+    coverage: float = float("nan")
+    noise_mm: float = float("nan")
+    residual_rms_mm: float = float("nan")
+    residual_max_mm: float = float("nan")
+    residual_mean_mm: float = float("nan")
+    chi2: float = float("nan")
+    dof: int = 0
+    p_value: float = float("nan")
+    within_model: bool = False
+    safe_to_apply: bool = False
+    reason: str = ""
+    names: tuple[str, ...] = ()
+    values: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    std: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    lifted: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    corrections: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    effects: tuple[tuple[str, float], ...] = ()
+    residual: np.ndarray | None = None
+
+    @property
+    def key(self) -> tuple[str, str]:
+        return (self.source, self.part_id)
+
+
+@dataclass(frozen=True)
+class HistoryTable:
+    """Parts of a history in time order (stamp, source, message), M rows, for analysis.
+
+    records: (M,) PartRecord without residuals. names: the parameter labels (union, in first-seen order);
+    values, std: (M, P) mm (NaN where a part has no such parameter or failed); lifted: (M, P) bool.
+    """
+
+    records: tuple[PartRecord, ...]
+    names: tuple[str, ...]
+    values: np.ndarray
+    std: np.ndarray
+    lifted: np.ndarray
+
+
+def _none_if_nan(value: float) -> float | None:
+    return None if value is None or not np.isfinite(value) else float(value)
+
+
+class History:
+    """An open results history (``with History(path) as history: ...``); creates the file when it does not exist."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._db: sqlite3.Connection | None = None
+
+    def __enter__(self) -> History:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def open(self) -> History:
+        new = not self.path.exists() or self.path.stat().st_size == 0
+        if not new and not self.path.is_file():
+            raise HistoryError(f"history {self.path} is not a file")
+        try:
+            self._db = sqlite3.connect(self.path, timeout=30.0)
+            self._db.execute("PRAGMA foreign_keys = ON")
+            if new:
+                with self._db:
+                    self._db.executescript(_SCHEMA)
+                    self._db.execute("INSERT INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+                    self._db.execute("INSERT INTO meta VALUES ('application', 'hood_decomp results history')")
+            self._check_version()
+        except sqlite3.DatabaseError as error:
+            self.close()
+            raise HistoryError(f"history {self.path} is not a hood_decomp results history: {error}") from error
+        except HistoryError:
+            self.close()
+            raise
+        return self
+
+    def _check_version(self) -> None:
+        assert self._db is not None
+        tables = {row[0] for row in self._db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        if "meta" not in tables:
+            raise HistoryError(f"history {self.path} is an SQLite database without a 'meta' table: not a hood_decomp "
+                               "results history")
+        row = self._db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
+        try:
+            version = int(row[0])
+        except (TypeError, ValueError):
+            raise HistoryError(f"history {self.path} states no valid schema_version ({row!r})") from None
+        while version != SCHEMA_VERSION:
+            if version not in MIGRATIONS:
+                raise HistoryError(f"history {self.path} has schema_version {version}; this hood_decomp reads version "
+                                   f"{SCHEMA_VERSION} and migrates {sorted(MIGRATIONS) or 'no older one'}")
+            with self._db:
+                MIGRATIONS[version](self._db)
+                version += 1
+                self._db.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (str(version),))
+
+    def close(self) -> None:
+        if self._db is not None:
+            self._db.close()
+            self._db = None
+
+    @property
+    def db(self) -> sqlite3.Connection:
+        if self._db is None:
+            raise HistoryError(f"history {self.path} is not open")
+        return self._db
+
+    def done(self) -> set[tuple[str, str]]:
+        """(source, part_id) of every part recorded as processed ("ok")."""
+        return {(s, p) for s, p in self.db.execute("SELECT source, part_id FROM parts WHERE status = 'ok'")}
+
+    def add(self, record: PartRecord) -> bool:
+        """Record one part in one transaction; False (nothing written) when it is recorded as processed already."""
+        if record.status not in STATUSES:
+            raise HistoryError(f"part status must be one of {STATUSES}, got {record.status!r}")
+        n = len(record.names)
+        if not (len(record.values) == len(record.std) == len(record.lifted) == len(record.corrections) == n):
+            raise HistoryError(f"part {record.part_id}: {n} names but {len(record.values)} values, {len(record.std)} "
+                               f"std, {len(record.lifted)} lifted flags, {len(record.corrections)} corrections")
+        db = self.db
+        with db:
+            row = db.execute("SELECT id, status FROM parts WHERE source = ? AND part_id = ?", record.key).fetchone()
+            if row is not None:
+                if row[1] == "ok":
+                    return False
+                db.execute("DELETE FROM parts WHERE id = ?", (row[0],))
+            values = [getattr(record, c) for c in _PART_COLUMNS]
+            values = [_none_if_nan(v) if isinstance(v, float) else (int(v) if isinstance(v, bool | np.bool_) else v)
+                      for v in values]
+            cursor = db.execute(f"INSERT INTO parts ({', '.join(_PART_COLUMNS)}) VALUES "
+                                f"({', '.join('?' * len(_PART_COLUMNS))})", values)
+            part = cursor.lastrowid
+            db.executemany("INSERT INTO parameters VALUES (?, ?, ?, ?, ?, ?)", [
+                (part, name, _none_if_nan(v), _none_if_nan(s), int(lifted), _none_if_nan(c))
+                for name, v, s, lifted, c in zip(record.names, record.values, record.std, record.lifted,
+                                                 record.corrections, strict=True)])
+            db.executemany("INSERT INTO effects VALUES (?, ?, ?)", [(part, n_, float(s)) for n_, s in record.effects])
+            if record.residual is not None:
+                data = np.asarray(record.residual, dtype="<f4")
+                db.execute("INSERT INTO residuals VALUES (?, ?, ?)", (part, int(data.size), data.tobytes()))
+        return True
+
+    def extend(self, records: Iterable[PartRecord]) -> int:
+        """Record several parts (each its own transaction); the number newly written."""
+        return sum(self.add(record) for record in records)
+
+    def _records(self, where: str = "", args: Sequence[object] = ()) -> list[tuple[int, PartRecord]]:
+        db = self.db
+        rows = db.execute(f"SELECT id, {', '.join(_PART_COLUMNS)} FROM parts {where} "
+                          "ORDER BY stamp_ns, source, message, part_id", args).fetchall()
+        parameters: dict[int, list[tuple]] = {}
+        for part, *rest in db.execute("SELECT part, name, value_mm, std_mm, lifted, correction_mm FROM parameters "
+                                      "ORDER BY part, rowid"):
+            parameters.setdefault(part, []).append(tuple(rest))
+        effects: dict[int, list[tuple[str, float]]] = {}
+        for part, name, share in db.execute("SELECT part, name, share FROM effects ORDER BY part, rowid"):
+            effects.setdefault(part, []).append((name, share))
+        out = []
+        for row in rows:
+            part = row[0]
+            raw = dict(zip(_PART_COLUMNS, row[1:], strict=True))
+            for key in ("coverage", "noise_mm", "residual_rms_mm", "residual_max_mm", "residual_mean_mm", "chi2",
+                        "p_value"):
+                raw[key] = float("nan") if raw[key] is None else float(raw[key])
+            raw["dof"] = int(raw["dof"] or 0)
+            raw["within_model"], raw["safe_to_apply"] = bool(raw["within_model"]), bool(raw["safe_to_apply"])
+            params = parameters.get(part, [])
+            numbers = np.array([[np.nan if x is None else x for x in (p[1], p[2], p[4])] for p in params],
+                               dtype=float).reshape(-1, 3)
+            out.append((part, PartRecord(
+                **raw, names=tuple(p[0] for p in params), values=numbers[:, 0], std=numbers[:, 1],
+                lifted=np.array([bool(p[3]) for p in params], dtype=bool), corrections=numbers[:, 2],
+                effects=tuple(effects.get(part, [])))))
+        return out
+
+    def records(self) -> list[PartRecord]:
+        """Every part in time order (stamp, source, message), without residuals."""
+        return [record for _, record in self._records()]
+
+    def table(self) -> HistoryTable:
+        """Every part in time order as arrays (:class:`HistoryTable`)."""
+        records = self.records()
+        names: list[str] = []
+        for record in records:
+            names.extend(n for n in record.names if n not in names)
+        values = np.full((len(records), len(names)), np.nan)
+        std = np.full_like(values, np.nan)
+        lifted = np.zeros(values.shape, dtype=bool)
+        for i, record in enumerate(records):
+            columns = [names.index(n) for n in record.names]
+            values[i, columns], std[i, columns], lifted[i, columns] = record.values, record.std, record.lifted
+        return HistoryTable(tuple(records), tuple(names), values, std, lifted)
+
+    def residuals(self, keys: Sequence[tuple[str, str]]) -> np.ndarray:
+        """Residual fields (len(keys), N) mm of the given (source, part_id), NaN where unseen; HistoryError for a part
+        without a stored residual or residuals of different lengths."""
+        out = []
+        for key in keys:
+            row = self.db.execute("SELECT r.n, r.data FROM residuals r JOIN parts p ON p.id = r.part "
+                                  "WHERE p.source = ? AND p.part_id = ?", key).fetchone()
+            if row is None:
+                raise HistoryError(f"history {self.path} holds no residual of part {key[1]!r} from {key[0]}")
+            data = np.frombuffer(row[1], dtype="<f4")
+            if data.size != row[0]:
+                raise HistoryError(f"residual of part {key[1]!r} has {data.size} values, its row states {row[0]}")
+            out.append(data.astype(float))
+        if len({r.size for r in out}) > 1:
+            raise HistoryError("the residuals have different lengths: the parts come from different models")
+        return np.array(out).reshape(len(out), -1)
+
+    def export_csv(self, path: str | Path) -> Path:
+        """All parts as one CSV table (one row per part, time order): the part columns, then per parameter
+        ``<name>_mm``, ``<name>_std_mm``, ``<name>_lifted``, ``<name>_correction_mm``, then ``share_<effect>``."""
+        records = self.records()
+        names: list[str] = []
+        effects: list[str] = []
+        for record in records:
+            names.extend(n for n in record.names if n not in names)
+            effects.extend(n for n, _ in record.effects if n not in effects)
+        header = [*_PART_COLUMNS, *[f"{n}{s}" for n in names for s in ("_mm", "_std_mm", "_lifted", "_correction_mm")],
+                  *[f"share_{e}" for e in effects]]
+        path = Path(path)
+        with path.open("w", newline="") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(header)
+            for record in records:
+                by_name = {n: (v, s, int(lifted), c) for n, v, s, lifted, c in
+                           zip(record.names, record.values, record.std, record.lifted, record.corrections, strict=True)}
+                shares = dict(record.effects)
+                row = [_csv_value(getattr(record, c)) for c in _PART_COLUMNS]
+                for name in names:
+                    row.extend(_csv_value(x) for x in by_name.get(name, ("", "", "", "")))
+                row.extend(_csv_value(shares.get(e, "")) for e in effects)
+                writer.writerow(row)
+        return path
+
+
+def _csv_value(value: object) -> object:
+    if isinstance(value, bool | np.bool_):
+        return int(value)
+    if isinstance(value, float | np.floating):
+        return "" if not np.isfinite(value) else repr(float(value))
+    return value

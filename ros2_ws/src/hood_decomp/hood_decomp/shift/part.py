@@ -1,0 +1,159 @@
+"""One part through the same core path as the nodes: field (from a bag's PointCloud2, a scan file or a field file)
+-> estimate -> correction -> decomposition -> the within-model test, as one :class:`~hood_decomp.io.history.PartRecord`.
+
+:func:`process_task` is what a Dask worker runs. It never raises for a bad part: any error becomes a record with
+status "failed" naming it, so one bad part never stops a batch. Each worker process loads a bases file once
+(:func:`worker_bases`) and keeps it with its fitted estimators.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hood_decomp.core.method.bases import Bases, decompose_field, estimate_field
+from hood_decomp.core.method.correction import CorrectionPolicy, plan_correction
+from hood_decomp.core.method.residual import DEFAULT_ALPHA, ResidualAnalysis, analyse_residual
+from hood_decomp.core.types import DisplacementField, ParameterEstimate
+from hood_decomp.io.history import PartRecord
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PartTask:
+    """One part to process. kind: "cloud" (``data``: a serialised sensor_msgs/PointCloud2 from a bag, with the cell
+    calibration ``scanner_pose_mm`` (4x4) and ``markers_mm`` (id -> (3,) mm) of its sidecar), "field" (a .vtu at
+    ``path``) or "scan" (a .ply at ``path``). source, part_id, message, stamp_ns: as the history keeps them."""
+
+    source: str
+    part_id: str
+    message: int
+    stamp_ns: int
+    kind: str
+    path: str
+    data: bytes | None = None
+    scanner_pose_mm: tuple[float, ...] | None = None
+    markers_mm: tuple[tuple[int, float, float, float], ...] = ()
+
+    @property
+    def key(self) -> tuple[str, str]:
+        return (self.source, self.part_id)
+
+
+@dataclass(frozen=True)
+class Options:
+    """How every part is processed: estimator ``method``, ``min_coverage`` of a field, the correction ``policy``,
+    the within-model test's ``alpha``, ``shift`` label, ``keep_residual`` (store the residual field in the history)."""
+
+    method: str = "contact"
+    min_coverage: float = 0.2
+    policy: CorrectionPolicy = dataclasses.field(default_factory=CorrectionPolicy)
+    alpha: float = DEFAULT_ALPHA
+    shift: str = ""
+    keep_residual: bool = True
+
+
+def bases_id(path: str | Path) -> str:
+    """Fingerprint of a bases file's bytes (16 hex digits): which bases a result came from."""
+    digest = hashlib.sha256()
+    with Path(path).open("rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()[:16]
+
+
+_BASES: dict[tuple[str, int, int], tuple[Bases, str]] = {}
+
+
+def worker_bases(path: str) -> tuple[Bases, str]:
+    """The bases at ``path`` and their id, loaded once per process (keyed by path, size and modification time)."""
+    from hood_decomp.io.bases import load_bases
+
+    stat = Path(path).stat()
+    key = (str(Path(path).resolve()), stat.st_size, stat.st_mtime_ns)
+    if key not in _BASES:
+        _BASES.clear()
+        _BASES[key] = (load_bases(path), bases_id(path))
+    return _BASES[key]
+
+
+def within_model_test(bases: Bases, estimate: ParameterEstimate, noise_mm: float, alpha: float) -> ResidualAnalysis:
+    """The within-model decision of one estimate: the one chi-square test of core/method/residual.py (the shift's
+    only call of it, so it follows that test when it changes). Unknowns: a contact-aware estimate fits the bilateral
+    states and the touching pads; the paper's estimator its PCA pre-factors, with its training error as model floor."""
+    if estimate.method == "pca":
+        n_params, model_mm = bases.pca.n_components_, bases.pca.training_residual_rms_
+    else:
+        n_params, model_mm = int(np.count_nonzero(~np.asarray(estimate.lifted, bool))), 0.0
+    return analyse_residual(bases.skin, estimate.residual, n_params, noise_mm, model_mm, alpha)
+
+
+def read_task_field(bases: Bases, task: PartTask, min_coverage: float) -> DisplacementField:
+    """The displacement field of a task's part, by the path the scan node (clouds) or the CLI (files) takes."""
+    if task.kind == "field":
+        from hood_decomp.io.fields import read_field
+
+        return read_field(task.path, bases.skin)[0]
+    if task.kind == "scan":
+        from hood_decomp.io.scans import field_from_scan_file
+
+        return field_from_scan_file(bases.skin, task.path, min_coverage)
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import PointCloud2
+
+    from hood_decomp.core.scan.scan_field import field_from_scan, prepared_estimator
+    from hood_decomp.ros import messages
+
+    cloud = deserialize_message(task.data, PointCloud2)
+    markers = {int(m[0]): np.array(m[1:], dtype=float) for m in task.markers_mm}
+    points, measured, nominal = messages.scan_to_mm(cloud, "marker_id", markers)
+    pose = None if task.scanner_pose_mm is None else np.asarray(task.scanner_pose_mm, float).reshape(4, 4)
+    field, _ = field_from_scan(bases.skin, points, scanner_pose=pose, markers_mm=measured,
+                               markers_nominal_mm=nominal, min_coverage=min_coverage,
+                               estimator=prepared_estimator(bases.skin))
+    return field
+
+
+def inspect_field(bases: Bases, field: DisplacementField, options: Options
+                  ) -> tuple[ParameterEstimate, ResidualAnalysis, Any, Any]:
+    """Estimate, within-model test, correction and decomposition of one field (the nodes' path). The correction's
+    safety follows the within-model test's verdict."""
+    from hood_decomp.core.method.residual import noise_level
+
+    estimate = estimate_field(bases, field, options.method, options.min_coverage)
+    analysis = within_model_test(bases, estimate, noise_level(field.noise_rms)[0], options.alpha)
+    estimate = dataclasses.replace(estimate, within_model=analysis.within_model)
+    correction = plan_correction(estimate, options.policy)
+    decomposition = decompose_field(bases, field, estimate)
+    return estimate, analysis, correction, decomposition
+
+
+def process_task(task: PartTask, bases_path: str, options: Options) -> PartRecord:
+    """Process one part; a failure of the part (bad file, bad cloud, too little coverage, ...) becomes a "failed"
+    record naming the error. Runs in a Dask worker."""
+    base = PartRecord(source=task.source, part_id=task.part_id, message=task.message, stamp_ns=task.stamp_ns,
+                      shift=options.shift, method=options.method)
+    try:
+        bases, identity = worker_bases(bases_path)
+        field = read_task_field(bases, task, options.min_coverage)
+        estimate, analysis, correction, decomposition = inspect_field(bases, field, options)
+    except Exception as error:  # a bad part is recorded, never fatal to the batch
+        logger.warning("part %s of %s failed: %s", task.part_id, task.source, error)
+        return dataclasses.replace(base, status="failed", error=f"{type(error).__name__}: {error}".splitlines()[0])
+    return dataclasses.replace(
+        base, model_id=bases.model_id, bases_id=identity, coverage=field.coverage, noise_mm=analysis.noise_mm,
+        residual_rms_mm=analysis.rms_mm, residual_max_mm=analysis.max_mm, residual_mean_mm=analysis.mean_mm,
+        chi2=analysis.chi2, dof=analysis.dof, p_value=analysis.p_value, within_model=analysis.within_model,
+        safe_to_apply=correction.safe_to_apply, reason=correction.reason, names=tuple(estimate.names),
+        values=np.asarray(estimate.values, float), std=np.asarray(estimate.std, float),
+        lifted=np.asarray(estimate.lifted, bool), corrections=np.asarray(correction.corrections, float),
+        effects=tuple((e.name, float(e.share)) for e in decomposition.effects),
+        residual=np.asarray(estimate.residual, np.float32) if options.keep_residual else None,
+    )

@@ -1,0 +1,99 @@
+"""The results history (hood_decomp.io.history) on real SQLite files: round trip, idempotent writes, schema version,
+refusal of foreign files, CSV export read back with the csv module."""
+
+from __future__ import annotations
+
+import csv
+import sqlite3
+
+import numpy as np
+import pytest
+
+from hood_decomp.errors import HistoryError
+from hood_decomp.io.history import History, PartRecord
+
+
+def _record(i: int, source: str = "bag_a", status: str = "ok", n: int = 5) -> PartRecord:
+    rng = np.random.default_rng(i)
+    residual = rng.normal(0, 0.02, n)
+    residual[0] = np.nan
+    return PartRecord(
+        source=source, part_id=f"p{i}", message=i, stamp_ns=1_000 + 10 * i, shift="s1", status=status,
+        error="" if status == "ok" else "boom", model_id="m", bases_id="b", method="contact", coverage=0.9,
+        noise_mm=0.02, residual_rms_mm=0.02 + i, residual_max_mm=0.05, residual_mean_mm=0.0, chi2=12.0, dof=7,
+        p_value=0.1, within_model=i % 2 == 0, safe_to_apply=i % 3 == 0, reason="r",
+        names=("A", "B"), values=np.array([0.1 * i, -0.2]), std=np.array([0.01, np.nan]),
+        lifted=np.array([False, True]), corrections=np.array([-0.1 * i, 0.0]), effects=(("A", 0.7), ("B", 0.3)),
+        residual=residual.astype(np.float32),
+    )
+
+
+def test_round_trip_in_time_order(tmp_path):
+    """Fails if a stored value (numbers, NaN std, flags, effects, residual with NaN) does not come back as written, or
+    if parts are not returned in time order."""
+    path = tmp_path / "h.sqlite"
+    with History(path) as history:
+        assert history.extend([_record(3), _record(1), _record(2)]) == 3
+    with History(path) as history:
+        records = history.records()
+        table = history.table()
+        residuals = history.residuals([("bag_a", "p3"), ("bag_a", "p1")])
+    assert [r.part_id for r in records] == ["p1", "p2", "p3"]
+    third = records[2]
+    assert third.values[0] == pytest.approx(0.3) and np.isnan(third.std[1]) and third.lifted.tolist() == [False, True]
+    assert third.effects == (("A", 0.7), ("B", 0.3)) and third.residual_rms_mm == pytest.approx(3.02)
+    assert third.within_model is False and third.safe_to_apply is True
+    assert table.names == ("A", "B") and table.values[:, 0] == pytest.approx([0.1, 0.2, 0.3])
+    np.testing.assert_allclose(residuals[0], _record(3).residual, rtol=1e-7)
+    assert np.isnan(residuals[1, 0])
+
+
+def test_writes_are_idempotent_and_failed_parts_are_replaced(tmp_path):
+    """Fails if writing a processed part again adds a row, or if a part recorded as failed cannot be replaced by a
+    later successful run."""
+    path = tmp_path / "h.sqlite"
+    with History(path) as history:
+        assert history.add(_record(1)) and history.add(_record(2, status="failed"))
+        assert not history.add(_record(1))
+        assert history.done() == {("bag_a", "p1")}
+        assert history.add(_record(2))
+        assert history.done() == {("bag_a", "p1"), ("bag_a", "p2")}
+        assert history.add(_record(1, source="bag_b"))
+    db = sqlite3.connect(path)
+    assert db.execute("SELECT COUNT(*) FROM parts").fetchone()[0] == 3
+    assert db.execute("SELECT COUNT(*) FROM parameters").fetchone()[0] == 6
+    assert db.execute("SELECT COUNT(*) FROM residuals").fetchone()[0] == 3
+
+
+def test_unknown_schema_and_foreign_files_are_refused(tmp_path):
+    """Fails if a history of another schema version, an SQLite file of another application or a non-database file is
+    opened instead of refused by name."""
+    path = tmp_path / "h.sqlite"
+    History(path).open().close()
+    db = sqlite3.connect(path)
+    with db:
+        db.execute("UPDATE meta SET value = '7' WHERE key = 'schema_version'")
+    db.close()
+    with pytest.raises(HistoryError, match="schema_version 7"):
+        History(path).open()
+    other = tmp_path / "other.sqlite"
+    sqlite3.connect(other).execute("CREATE TABLE t (x)").connection.close()
+    with pytest.raises(HistoryError, match="not a hood_decomp results history"):
+        History(other).open()
+    text = tmp_path / "notes.sqlite"
+    text.write_text("this is not a database\n" * 50)
+    with pytest.raises(HistoryError, match="not a hood_decomp results history"):
+        History(text).open()
+
+
+def test_csv_export(tmp_path):
+    """Fails if the CSV lacks a part, a parameter column or an effect share, or writes NaN instead of an empty cell."""
+    path = tmp_path / "h.sqlite"
+    with History(path) as history:
+        history.extend([_record(1), _record(2)])
+        out = history.export_csv(tmp_path / "h.csv")
+    rows = list(csv.DictReader(out.open()))
+    assert [r["part_id"] for r in rows] == ["p1", "p2"]
+    assert float(rows[1]["A_mm"]) == pytest.approx(0.2) and rows[1]["B_std_mm"] == ""
+    assert rows[0]["B_lifted"] == "1" and float(rows[0]["share_A"]) == pytest.approx(0.7)
+    assert rows[0]["within_model"] == "0" and rows[1]["within_model"] == "1"
