@@ -170,8 +170,14 @@ def analyse_residual(
     model_mm: float = 0.0,
     alpha: float = DEFAULT_ALPHA,
     default_noise_mm: float = DEFAULT_NOISE_MM,
+    check: ModelCheck | None = None,
 ) -> ResidualAnalysis:
-    """Statistics, chi-square within-model test and exceeding regions of one residual field.
+    """Statistics, within-model decision and exceeding regions of one residual field.
+
+    check: the estimate's one within-model test (:func:`check_residual`); when given, ``p_value`` and
+    ``within_model`` are its own (so a report never shows two tests that disagree) and ``alpha`` is its alpha; the
+    chi-square of the residual against ``noise_mm`` then only describes the residual. Without it (a residual alone)
+    the chi-square decides, as described in the module docstring.
 
     skin: the visible skin (N nodes). residual: (N,) mm, measured - reconstruction, NaN where unseen.
     n_params: number of unknowns the estimate fitted (degrees of freedom = seen nodes - n_params).
@@ -196,6 +202,8 @@ def analyse_residual(
     dof = max(n_seen - int(n_params), 1)
     statistic = float(r @ r) / total**2
     p_value, within = chi2_within(statistic, dof, alpha)
+    if check is not None:
+        p_value, within, alpha = check.p_value, check.within_model, check.alpha
     z = float(norm.isf(alpha / (2.0 * n_seen)))
     return ResidualAnalysis(
         residual=residual, rms_mm=float(np.sqrt(np.mean(r**2))), max_mm=float(np.max(np.abs(r))),
@@ -293,8 +301,13 @@ def check_residual(
     n_removed = n_fitted + smooth.shape[1]
     expected = float(v.sum()) - fitted_weight - float(np.einsum("nk,n,nk->", smooth, weight, smooth))
     model2 = float(model_mm) ** 2
-    scale = max((float(rough @ rough) - model2 * max(n_seen - n_removed, 0)) / max(expected, 1e-300),
-                VARIANCE_FLOOR_MM2 / float(v.max()))
+    # the registration error is not all rigid on the fitted and smooth directions: its rough part is known energy
+    moved = registration[seen] if registration is not None else np.zeros((n_seen, 0))
+    rough_registration = float(np.sum(moved**2))
+    if moved.size and modes is not None:
+        rough_registration -= float(np.sum((fitted.T @ moved) ** 2) + np.sum((smooth.T @ moved) ** 2))
+    scale = max((float(rough @ rough) - model2 * max(n_seen - n_removed, 0) - rough_registration)
+                / max(expected, 1e-300), VARIANCE_FLOOR_MM2 / float(v.max()))
     n_effective = float(np.sum(1.0 / g))
     nu = max(n_effective * (n_seen - n_removed) / n_seen, 1.0)
     source = "residual" if errors.kind == "none" else "error model"
@@ -306,8 +319,8 @@ def check_residual(
         return ModelCheck(scale * nu, 0, nu, p_value, float(alpha), p_value >= alpha, scale, source, n_effective,
                           bias)
     covariance = noise * (smooth.T * weight) @ smooth + (model2 + bias) * np.eye(smooth.shape[1])
-    if registration is not None:
-        projected = smooth.T @ registration[seen]
+    if moved.size:
+        projected = smooth.T @ moved
         covariance += projected @ projected.T
     statistic = float(c @ np.linalg.solve(covariance, c))
     m = smooth.shape[1]
