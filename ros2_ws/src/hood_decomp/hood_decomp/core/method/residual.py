@@ -22,7 +22,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.linalg import qr
 from scipy.sparse.csgraph import connected_components
 from scipy.stats import chi2, f, norm
 
@@ -162,6 +161,19 @@ def find_regions(skin: SkinSurface, residual: np.ndarray, sigma: float, z: float
     return tuple(sorted(regions, key=lambda region: -region.energy_mm2))
 
 
+def _seen(residual: np.ndarray, alpha: float) -> tuple[np.ndarray, int]:
+    """Seen nodes (N,) bool of a residual and their number; FieldError for inf values, no seen node or a bad alpha."""
+    if np.any(np.isinf(residual)):
+        raise FieldError("residual holds inf values; unseen nodes must be NaN")
+    if not 0.0 < alpha < 1.0:
+        raise FieldError(f"alpha must lie in (0, 1), got {alpha}")
+    seen = np.isfinite(residual)
+    n_seen = int(seen.sum())
+    if n_seen == 0:
+        raise FieldError("residual has no finite value (all NaN)")
+    return seen, n_seen
+
+
 def analyse_residual(
     skin: SkinSurface,
     residual: np.ndarray,
@@ -188,14 +200,7 @@ def analyse_residual(
     residual = np.asarray(residual, dtype=float)
     if residual.shape != (skin.n_nodes,):
         raise FieldError(f"residual has shape {residual.shape}, expected ({skin.n_nodes},) (one per skin node)")
-    if np.any(np.isinf(residual)):
-        raise FieldError("residual holds inf values; unseen nodes must be NaN")
-    if not 0.0 < alpha < 1.0:
-        raise FieldError(f"alpha must lie in (0, 1), got {alpha}")
-    seen = np.isfinite(residual)
-    n_seen = int(seen.sum())
-    if n_seen == 0:
-        raise FieldError("residual has no finite value (all NaN)")
+    seen, n_seen = _seen(residual, alpha)
     sigma, source = noise_level(noise_mm, default_noise_mm)
     total = float(np.hypot(sigma, model_mm))
     r = residual[seen]
@@ -229,14 +234,41 @@ def smooth_modes(points: np.ndarray, degree: int = DEFAULT_SMOOTH_DEGREE) -> np.
     return np.linalg.qr(np.column_stack(columns))[0]
 
 
-def _orthonormal(columns: np.ndarray) -> np.ndarray:
-    """An orthonormal basis (n, r) of the span of ``columns`` (n, k), dropping directions below RANK_RTOL."""
-    if columns.shape[1] == 0:
-        return columns
-    q, r, _ = qr(columns, mode="economic", pivoting=True)
-    diag = np.abs(np.diag(r))
-    keep = diag > RANK_RTOL * max(float(diag.max(initial=0.0)), 1e-300)
-    return q[:, keep]
+def _whiten(gram: np.ndarray) -> np.ndarray:
+    """W (k, r) with W^T gram W = I_r over the directions of a Gram matrix (k, k) above RANK_RTOL of its largest."""
+    if gram.shape[0] == 0:
+        return np.zeros((0, 0))
+    values, vectors = np.linalg.eigh(gram)
+    keep = values > RANK_RTOL**2 * max(float(values.max()), 1e-300)
+    return vectors[:, keep] / np.sqrt(values[keep])
+
+
+def _smooth_split(r: np.ndarray, design: np.ndarray, modes: np.ndarray, weight: np.ndarray, moved: np.ndarray
+                  ) -> tuple[int, np.ndarray, np.ndarray, float, float, float, np.ndarray]:
+    """The residual r (n,) on the seen nodes split by the fitted directions Z (orthonormal span of ``design`` (n, p))
+    and the smooth ones S (orthonormal span of ``modes`` (n, M) outside Z), from Gram matrices only (k x k products,
+    never an n x k factorisation). weight (n,): node variance x correlation; moved (n, 6) registration modes.
+
+    Returns (rank of Z, c = S^T r, S^T diag(weight) S, rough energy |r|^2 - |Z^T r|^2 - |c|^2, tr Z^T diag(weight) Z,
+    the registration's rough energy, S^T moved).
+    """
+    to_z = _whiten(design.T @ design)  # Z = design @ to_z
+    zq = to_z.T @ (design.T @ modes)
+    zr = to_z.T @ (design.T @ r)
+    to_s = _whiten(modes.T @ modes - zq.T @ zq)  # S = (modes - Z zq) @ to_s
+    c = to_s.T @ (modes.T @ r - zq.T @ zr)
+    if np.ptp(weight) <= 1e-12 * weight.max():  # Z and S are orthonormal: their weighted Grams are weight x I
+        fitted_weight, smooth_cov = float(weight[0]) * to_z.shape[1], float(weight[0]) * np.eye(to_s.shape[1])
+    else:
+        weighted = weight[:, None]
+        zwz = to_z.T @ (design.T @ (weighted * design)) @ to_z
+        zwq = to_z.T @ (design.T @ (weighted * modes))
+        inner_q = modes.T @ (weighted * modes) - zq.T @ zwq - zwq.T @ zq + zq.T @ zwz @ zq
+        fitted_weight, smooth_cov = float(np.trace(zwz)), to_s.T @ inner_q @ to_s
+    zm = to_z.T @ (design.T @ moved)
+    projected = to_s.T @ (modes.T @ moved - zq.T @ zm)
+    rough_registration = float(np.sum(moved**2) - np.sum(zm**2) - np.sum(projected**2))
+    return to_z.shape[1], c, smooth_cov, float(r @ r - zr @ zr - c @ c), fitted_weight, rough_registration, projected
 
 
 def node_variance(errors: FieldErrorModel, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
@@ -276,54 +308,39 @@ def check_residual(
     (chi-square, nu dof); a field that states no level is then not testable and is reported within (p = 1, dof 0).
     """
     residual = np.asarray(residual, dtype=float)
-    if not 0.0 < alpha < 1.0:
-        raise FieldError(f"alpha must lie in (0, 1), got {alpha}")
-    seen = np.isfinite(residual)
-    n_seen = int(seen.sum())
-    if n_seen == 0:
-        raise FieldError("residual has no finite value (all NaN)")
+    seen, n_seen = _seen(residual, alpha)
     variance, correlation = node_variance(errors, residual.size)
     v, g, r = variance[seen], correlation[seen], residual[seen]
     weight = v * g
-    n_fitted = 0 if design is None else int(np.shape(design)[1])
+    model2 = float(model_mm) ** 2
+    moved = registration[seen] if registration is not None else np.zeros((n_seen, 0))
     if modes is not None:
-        fitted = _orthonormal(np.asarray(design, float)[seen]) if design is not None else np.zeros((n_seen, 0))
-        smooth = _orthonormal(modes[seen] - fitted @ (fitted.T @ modes[seen]))
-        n_fitted = fitted.shape[1]
-        fitted_weight = float(np.einsum("nk,n,nk->", fitted, weight, fitted))
+        parts = _smooth_split(r, np.asarray(design, float)[seen] if design is not None else np.zeros((n_seen, 0)),
+                              modes[seen], weight, moved)
+        n_fitted, c, smooth_cov, rough_energy, fitted_weight, rough_registration, projected = parts
     else:
         # the residual of a least-squares fit is orthogonal to the design: no projection needed, and the fitted
         # directions' expected energy is taken at the mean node weight (exact for a uniform error model)
-        smooth = np.zeros((n_seen, 0))
-        fitted_weight = n_fitted * float(weight.mean())
-    c = smooth.T @ r
-    rough = r - smooth @ c
-    n_removed = n_fitted + smooth.shape[1]
-    expected = float(v.sum()) - fitted_weight - float(np.einsum("nk,n,nk->", smooth, weight, smooth))
-    model2 = float(model_mm) ** 2
-    # the registration error is not all rigid on the fitted and smooth directions: its rough part is known energy
-    moved = registration[seen] if registration is not None else np.zeros((n_seen, 0))
-    rough_registration = float(np.sum(moved**2))
-    if moved.size and modes is not None:
-        rough_registration -= float(np.sum((fitted.T @ moved) ** 2) + np.sum((smooth.T @ moved) ** 2))
-    scale = max((float(rough @ rough) - model2 * max(n_seen - n_removed, 0) - rough_registration)
+        n_fitted = 0 if design is None else int(np.shape(design)[1])
+        c, smooth_cov, projected = np.zeros(0), np.zeros((0, 0)), np.zeros((0, moved.shape[1]))
+        rough_energy, fitted_weight, rough_registration = float(r @ r), n_fitted * float(weight.mean()), 0.0
+    n_removed = n_fitted + c.size
+    expected = float(v.sum()) - fitted_weight - float(np.trace(smooth_cov))
+    scale = max((rough_energy - model2 * max(n_seen - n_removed, 0) - rough_registration)
                 / max(expected, 1e-300), VARIANCE_FLOOR_MM2 / float(v.max()))
     n_effective = float(np.sum(1.0 / g))
     nu = max(n_effective * (n_seen - n_removed) / n_seen, 1.0)
     source = "residual" if errors.kind == "none" else "error model"
     noise, bias = split_level(scale, errors, float(v.mean()))
-    if smooth.shape[1] == 0:
+    if c.size == 0:
         if errors.kind == "none":
             return ModelCheck(0.0, 0, nu, 1.0, float(alpha), True, scale, source, n_effective, bias)
         p_value = float(chi2.sf(scale * nu, nu))
         return ModelCheck(scale * nu, 0, nu, p_value, float(alpha), p_value >= alpha, scale, source, n_effective,
                           bias)
-    covariance = noise * (smooth.T * weight) @ smooth + (model2 + bias) * np.eye(smooth.shape[1])
-    if moved.size:
-        projected = smooth.T @ moved
-        covariance += projected @ projected.T
+    covariance = noise * smooth_cov + (model2 + bias) * np.eye(c.size) + projected @ projected.T
     statistic = float(c @ np.linalg.solve(covariance, c))
-    m = smooth.shape[1]
+    m = c.size
     p_value = float(f.sf(statistic / m, m, nu))
     return ModelCheck(statistic, m, nu, p_value, float(alpha), p_value >= alpha, scale, source, n_effective, bias)
 
