@@ -41,7 +41,7 @@ from hood_decomp.core.types import DisplacementField, FieldErrorModel  # noqa: E
 from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan  # noqa: E402
 from tests.conftest import _hood_case  # noqa: E402
 
-OUT = ROOT / "benchmarks" / "out" / "uncertainty.json"
+OUT = ROOT / "benchmarks" / "out" / "uncertainty.json"  # --out to change
 LEVELS_MM = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3)
 Z95 = 1.959964
 
@@ -98,6 +98,7 @@ def main() -> int:
     parser.add_argument("--per-level", type=int, default=20, help="undeclared-effect scans per hinge_R.z level")
     parser.add_argument("--points", type=int, default=500_000, help="scan points on the skin")
     parser.add_argument("--seed", type=int, default=15)
+    parser.add_argument("--out", type=Path, default=OUT, help="JSON written as the run goes")
     args = parser.parse_args()
     rng = np.random.default_rng(args.seed)
     log("building the default hood, its ensemble and bases")
@@ -109,8 +110,8 @@ def main() -> int:
     results: dict = {"date": time.strftime("%Y-%m-%d"), "names": list(names), "args": vars(args)}
 
     def save() -> None:
-        OUT.parent.mkdir(parents=True, exist_ok=True)
-        OUT.write_text(json.dumps(results, indent=1))
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(results, indent=1, default=str))
 
     def member_of(state):
         return solve_members(reduced, state[None])
@@ -181,6 +182,8 @@ def main() -> int:
 
     print(f"{'set':<8} {'param':<10} {'n':>5} {'in 95%':>7} {'max|z|':>7}")
     for key in ("noise", "scan"):
+        if not results[key].get("n"):
+            continue
         for name, row in results[key].get("per_parameter", {}).items():
             print(f"{key:<8} {name:<10} {row['n']:>5} {row['inside_95'] or float('nan'):>7.3f} "
                   f"{row['max_abs_z'] or float('nan'):>7.2f}")
