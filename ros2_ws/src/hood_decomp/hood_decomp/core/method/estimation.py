@@ -90,12 +90,12 @@ def judge(
 ) -> tuple[ModelCheck, np.ndarray | None]:
     """The within-model test of a fit on ``design`` (N, p) (``test``'s when given, else the level test without
     smooth modes) and the field's registration modes (N, 6) (None without a registration). span: (N, q) all the
-    fields the model can make, whose directions the smooth test leaves out (default: the design). Raises FieldError
-    for a field whose error model carries a registration covariance when no ``test`` (hence no skin) is given."""
+    fields the model can make, whose directions the smooth test leaves out (default: the design).
+
+    Without a ``test`` the estimator has no skin, so a registration covariance cannot reach the nodes and is left
+    out (the covariance is then that of the field given its registration); the verbs and nodes always estimate
+    through the bases (estimate_field), which pass the skin's test. Close-loop's tracing estimates are made so."""
     if test is None:
-        if errors.has_pose:
-            raise FieldError("a field with a registration pose covariance needs the skin to carry it to the nodes: "
-                             "estimate it through the bases (estimate_field) or pass a fitted ResidualTest")
         return check_residual(residual, design, errors, model_mm=model_mm), None
     return test.check(residual, design if span is None else span, errors, model_mm), test.registration(errors)
 
