@@ -40,7 +40,8 @@ def test_every_reason_is_named():
     )
     assert not correction.safe_to_apply
     for fragment in ("coverage 0.30 below minimum 0.60", "model does not explain this part",
-                     "HINGE_X = 1.500 mm outside", "BUFFER_R = nan mm outside", "LOCK_L uncertainty 0.200 mm above 0.05 mm"):
+                     "HINGE_X = 1.500 mm outside", "BUFFER_R = nan mm outside",
+                     "LOCK_L uncertainty 0.200 mm above 0.05 mm"):
         assert fragment in correction.reason
 
 

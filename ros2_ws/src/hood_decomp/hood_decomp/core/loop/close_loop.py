@@ -169,16 +169,22 @@ def _n_unknowns(estimate: ParameterEstimate) -> int:
 
 def _analyse(bases: Bases, estimates: Sequence[ParameterEstimate], noise: Sequence[float], alpha: float
              ) -> tuple[tuple[ResidualAnalysis, ...], float, bool]:
-    """Residual analyses of the estimates and the combined chi-square decision over all fields."""
+    """Residual analyses of the estimates and the decision over all fields by the one within-model test
+    (:func:`hood_decomp.core.method.residual.check_residual`, run by the estimator on each field): the smallest
+    p-value, Bonferroni-adjusted over the F fields, against alpha. The analyses carry each field's test result
+    and the regions where the residual exceeds ``noise``."""
+    from dataclasses import replace  # local: this function is the only part of the module issue 15 changes
+
     analyses = []
     for estimate, sigma in zip(estimates, noise, strict=True):
         if estimate.method == "pca":
             n_params, model_mm = bases.pca.n_components_, bases.pca.training_residual_rms_
         else:
             n_params, model_mm = _n_unknowns(estimate), 0.0
-        analyses.append(analyse_residual(bases.skin, estimate.residual, n_params, sigma, model_mm, alpha))
-    p_value, within = chi2_within(sum(a.chi2 for a in analyses), sum(a.dof for a in analyses), alpha)
-    return tuple(analyses), p_value, within
+        check = replace(estimate.check, alpha=alpha, within_model=estimate.check.p_value >= alpha)
+        analyses.append(analyse_residual(bases.skin, estimate.residual, n_params, sigma, model_mm, alpha, check=check))
+    p_value = min(1.0, len(analyses) * min(a.p_value for a in analyses))
+    return tuple(analyses), p_value, p_value >= alpha
 
 
 # --- tracing -----------------------------------------------------------------------------------------------------
