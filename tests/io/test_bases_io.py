@@ -115,6 +115,15 @@ def test_cli_estimate_and_decompose(saved, tmp_path, capsys):
     assert result["lifted"]["BUFFER_L"] == bool(member.contact_fraction[0, 1] == 0)
     for i, name in enumerate(model.names):
         assert result["parameters_mm"][name] == pytest.approx(member.effective[0, i], abs=1e-9)
+    # issue 15: the full covariance (symmetric, its diagonal the std^2) and the one test behind within_model; a
+    # simulated field states no error model, so its noise level is estimated from the residual and says so
+    cov = result["covariance_mm2"]
+    for a in model.names:
+        assert cov[a][a] == pytest.approx(result["std_mm"][a] ** 2, rel=1e-9, abs=1e-30)
+        for b in model.names:
+            assert cov[a][b] == pytest.approx(cov[b][a], rel=1e-9, abs=1e-30)
+    assert result["within_model_test"]["noise_source"] == "residual"
+    assert result["within_model"] == (result["within_model_test"]["p_value"] >= result["within_model_test"]["alpha"])
     plots = tmp_path / "plots"
     out = tmp_path / "d.json"
     assert main(["decompose", "--bases", str(path), "--field", str(field_path), "--json", str(out),

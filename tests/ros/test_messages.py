@@ -21,6 +21,8 @@ from hood_decomp.core.types import (
     Decomposition,
     DisplacementField,
     EffectContribution,
+    FieldErrorModel,
+    ModelCheck,
     ParameterEstimate,
 )
 from hood_decomp.ros import messages
@@ -66,12 +68,38 @@ def test_displacement_field_mm_to_m(typestore):
     assert back.coverage == 0.75 and back.noise_rms == pytest.approx(0.02)
 
 
+def test_field_error_model_travels_in_metres(typestore):
+    """Fails if the error model (node std, correlation, pose covariance with its mixed rad/length units, pose centre,
+    lengths) is not converted mm <-> m on the way through the message, or a field without one does not come back as
+    "none"."""
+    cov = np.diag([1e-8, 2e-8, 3e-8, 0.01, 0.02, 0.03])  # rad^2 and mm^2
+    cov[0, 3] = cov[3, 0] = 1e-5  # rad mm
+    errors = FieldErrorModel("scan", np.array([0.002, np.nan, 0.003, 0.001]), np.array([11.0, 1.0, 12.0, 10.0]),
+                             12.5, cov, np.array([100.0, 200.0, 300.0]), 300.0)
+    field = DisplacementField("abc", np.array([1.5, np.nan, 0.0, 0.2]), 0.75, 0.02, errors)
+    msg = messages.field_to_msg(field, Header())
+    decoded = rosbags_decode(typestore, msg)
+    assert decoded.error_model == "scan" and decoded.correlation_length == pytest.approx(0.0125)
+    np.testing.assert_allclose(decoded.node_std, [2e-6, np.nan, 3e-6, 1e-6], rtol=1e-6)
+    np.testing.assert_allclose(np.reshape(decoded.pose_covariance, (6, 6))[3, 3], 0.01e-6)
+    np.testing.assert_allclose(np.reshape(decoded.pose_covariance, (6, 6))[0, 3], 1e-8)
+    np.testing.assert_allclose(decoded.pose_center, [0.1, 0.2, 0.3])
+    back = messages.msg_to_field(msg).error_model
+    np.testing.assert_allclose(back.pose_covariance, cov, rtol=1e-12)
+    np.testing.assert_allclose(back.node_std, errors.node_std, rtol=1e-6)
+    np.testing.assert_allclose(back.correlation, errors.correlation, rtol=1e-6)
+    assert back.bias_correlation == 300.0 and back.correlation_length_mm == pytest.approx(12.5)
+    plain = messages.msg_to_field(messages.field_to_msg(DisplacementField("abc", np.zeros(4), 1.0, np.nan), Header()))
+    assert plain.error_model.kind == "none"
+
+
 def _estimate() -> ParameterEstimate:
     return ParameterEstimate(
         model_id="m1", names=("HINGE_X", "BUFFER_L"), values=np.array([0.5, -0.2]), std=np.array([0.001, 0.002]),
         lower=np.array([-1.0, -1.0]), upper=np.array([1.0, 1.0]), lifted=np.array([False, True]),
         reconstruction=np.zeros(3), residual=np.zeros(3), residual_rms=0.01, residual_max=0.05, coverage=0.9,
-        within_model=True, method="contact",
+        within_model=True, method="contact", covariance=np.array([[1e-6, -5e-7], [-5e-7, 4e-6]]),
+        check=ModelCheck(3.0, 5, 800.0, 0.4, 0.01, True, 1.1, "error model", 900.0),
     )
 
 
@@ -85,15 +113,23 @@ def test_boundary_state_mm_to_m(typestore):
     np.testing.assert_allclose(back.values, [0.5, -0.2])
     np.testing.assert_allclose(back.upper, [1.0, 1.0])
     assert back.names == ("HINGE_X", "BUFFER_L") and back.reconstruction.shape == (0,)
+    # the full covariance in m^2 and back, and the within-model test's p-value, alpha and noise level
+    np.testing.assert_allclose(decoded.covariance, [1e-12, -5e-13, -5e-13, 4e-12])
+    np.testing.assert_allclose(back.covariance, [[1e-6, -5e-7], [-5e-7, 4e-6]])
+    assert back.check.p_value == 0.4 and back.check.alpha == 0.01 and back.check.noise_source == "error model"
 
 
 def test_boundary_correction_mm_to_m(typestore):
-    correction = BoundaryCorrection(model_id="m1", names=("LOCK_L",), corrections=np.array([-0.8]),
-                                    safe_to_apply=False, reason="coverage 0.30 below 0.60")
+    correction = BoundaryCorrection(model_id="m1", names=("LOCK_L", "HINGE_X"), corrections=np.array([-0.8, 0.1]),
+                                    safe_to_apply=False, reason="coverage 0.30 below 0.60",
+                                    std=np.array([0.002, 0.07]), applicable=np.array([True, False]))
     decoded = rosbags_decode(typestore, messages.correction_to_msg(correction, Header()))
-    assert list(decoded.corrections) == pytest.approx([-0.0008]) and decoded.reason == "coverage 0.30 below 0.60"
+    assert list(decoded.corrections) == pytest.approx([-0.0008, 0.0001])
+    assert decoded.reason == "coverage 0.30 below 0.60"
+    assert list(decoded.std_dev) == pytest.approx([2e-6, 7e-5]) and list(decoded.applicable) == [True, False]
     back = messages.msg_to_correction(messages.correction_to_msg(correction, Header()))
-    assert back.corrections == pytest.approx([-0.8]) and not back.safe_to_apply
+    assert back.corrections == pytest.approx([-0.8, 0.1]) and not back.safe_to_apply
+    assert back.std == pytest.approx([0.002, 0.07]) and list(back.applicable) == [True, False]
 
 
 def test_effect_fields_mm_to_m(typestore):

@@ -155,7 +155,9 @@ def test_effects_follow_the_boundary_state_of_their_field(coarse_hood, running):
     names = [e.name for e in answer.effects]
     assert {"LOADS", "HINGE_X", "LOCK_L"} <= set(names) and not {"HINGE_Y", "LOCK_R"} & set(names), names
     assert paired() == ["True"]
-    core = decompose_field(coarse_hood.bases, CoreField(coarse_hood.bases.model_id, values, 1.0, 0.0),
+    # the node decomposes the field it received: float32 metres (the message's type), so the core does the same
+    received_values = np.asarray(values * 1e-3, dtype=np.float32).astype(float) * 1e3
+    core = decompose_field(coarse_hood.bases, CoreField(coarse_hood.bases.model_id, received_values, 1.0, 0.0),
                            messages.msg_to_estimate(state))
     assert names == [e.name for e in core.effects]
     for sent, expected in zip(answer.effects, core.effects, strict=True):

@@ -39,8 +39,9 @@ def test_every_reason_is_named():
         CorrectionPolicy(min_coverage=0.6, max_std_mm=0.05),
     )
     assert not correction.safe_to_apply
-    for fragment in ("coverage 0.30 below minimum 0.60", "model lacks an effect", "HINGE_X = 1.500 mm outside",
-                     "BUFFER_R = nan mm outside", "LOCK_L uncertainty 0.200 mm above 0.05 mm"):
+    for fragment in ("coverage 0.30 below minimum 0.60", "model does not explain this part",
+                     "HINGE_X = 1.500 mm outside", "BUFFER_R = nan mm outside",
+                     "LOCK_L uncertainty 0.200 mm above 0.05 mm"):
         assert fragment in correction.reason
 
 
@@ -48,3 +49,19 @@ def test_range_tolerance():
     inside = plan_correction(estimate(values=np.array([1.01, 0.0, 0.0])), CorrectionPolicy(range_tolerance_mm=0.02))
     outside = plan_correction(estimate(values=np.array([1.03, 0.0, 0.0])), CorrectionPolicy(range_tolerance_mm=0.02))
     assert inside.safe_to_apply and not outside.safe_to_apply
+
+
+def test_applicability_is_stated_per_boundary():
+    """Fails if one boundary's large std or out-of-range estimate blocks the others' per-boundary applicability, if
+    a lifted boundary is called applicable, or if any boundary is applicable when the model does not explain the
+    part (a missing effect moves every estimate, so none may be applied)."""
+    policy = CorrectionPolicy(max_std_mm=0.05)
+    mixed = plan_correction(estimate(values=np.array([0.3, 1.5, 0.2]), std=np.array([0.001, 0.002, 0.08])), policy)
+    assert not mixed.safe_to_apply
+    np.testing.assert_array_equal(mixed.applicable, [True, False, False])
+    np.testing.assert_array_equal(mixed.std, [0.001, 0.002, 0.08])
+    lifted = plan_correction(estimate(lifted=np.array([False, False, True])), policy)
+    np.testing.assert_array_equal(lifted.applicable, [True, True, False])
+    outside = plan_correction(estimate(within_model=False), policy)
+    assert not outside.applicable.any() and "differs from the part" in outside.reason
+    assert "HINGE_X" not in outside.reason

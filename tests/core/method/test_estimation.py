@@ -7,6 +7,7 @@ import pytest
 
 from hood_decomp.core.method.estimation import estimate_pca
 from hood_decomp.core.method.pca import PCABasis
+from hood_decomp.core.method.residual import ResidualTest
 from hood_decomp.errors import FieldError, ModelIdMismatchError
 from tests.toy_models import field_of, full_factorial, make_ensemble, make_reduced_model, make_skin, random_states
 
@@ -70,6 +71,8 @@ def test_residual_statistics_and_within_model(setup):
     assert estimate.within_model
     # An effect the model lacks: a 0.3 mm bump the basis cannot produce.
     bump = 0.3 * np.exp(-np.sum((skin.points[:, :2] - [700.0, 500.0]) ** 2, axis=1) / 150.0**2)
-    lacking = estimate_pca(basis, field_of(skin, model.w0 + model.R @ truth + noise + bump, NOISE_MM))
+    test = ResidualTest().fit(skin)  # the one within-model test needs the skin's smooth modes
+    assert estimate_pca(basis, field_of(skin, model.w0 + model.R @ truth + noise, NOISE_MM), test=test).within_model
+    lacking = estimate_pca(basis, field_of(skin, model.w0 + model.R @ truth + noise + bump, NOISE_MM), test=test)
     assert not lacking.within_model
     assert lacking.method == "pca"

@@ -25,9 +25,10 @@ def estimate(**changes) -> ParameterEstimate:
 
 
 def test_default_policy_is_the_documented_one():
-    """Fails if the defaults drift from coverage 0.6, std 0.05 mm, range tolerance 0.02 mm (the documented policy)."""
+    """Fails if the defaults drift from coverage 0.6, std 0.0045 mm, range tolerance 0.02 mm (the documented policy;
+    issue 15: an applied correction wrong by more than 0.02 mm must be a 4.5-std event)."""
     policy = CorrectionPolicy()
-    assert (policy.min_coverage, policy.max_std_mm, policy.range_tolerance_mm) == (0.6, 0.05, 0.02)
+    assert (policy.min_coverage, policy.max_std_mm, policy.range_tolerance_mm) == (0.6, 0.0045, 0.02)
 
 
 def test_policy_is_immutable():
@@ -37,11 +38,11 @@ def test_policy_is_immutable():
 
 
 def test_default_policy_blocks_low_coverage_and_large_std():
-    """Fails if the default policy acts on 59 % coverage or on a 0.06 mm std (both beyond its documented limits)."""
+    """Fails if the default policy acts on 59 % coverage or on a 0.0047 mm std (both beyond its documented limits)."""
     assert plan_correction(estimate(coverage=0.625)).safe_to_apply
     assert not plan_correction(estimate(coverage=0.59)).safe_to_apply
-    assert plan_correction(estimate(std=np.array([0.046875, 0.0, 0.0]))).safe_to_apply
-    blocked = plan_correction(estimate(std=np.array([0.0625, 0.0, 0.0])))
+    assert plan_correction(estimate(std=np.array([0.0044, 0.0, 0.0]))).safe_to_apply
+    blocked = plan_correction(estimate(std=np.array([0.0047, 0.0, 0.0])))
     assert not blocked.safe_to_apply and "HINGE_X uncertainty" in blocked.reason
 
 

@@ -42,6 +42,10 @@ def run(args: argparse.Namespace) -> int:
     payload = {
         "effects": [{"name": e.name, "parameters": list(e.parameters), "share": e.share} for e in result.effects],
         "reconstruction_rms_mm": result.reconstruction_rms,
+        # the one within-model test, on the estimate that chose the effects: a part the model does not explain
+        # has no trustworthy decomposition either
+        "within_model": estimate.within_model,
+        "within_model_p_value": estimate.check.p_value,
     }
     if args.plots is not None:
         from hood_decomp.plots.method import plot_contributions

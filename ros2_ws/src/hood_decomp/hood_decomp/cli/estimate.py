@@ -18,12 +18,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def estimate_payload(estimate, n_bilateral: int) -> dict:
-    """What `estimate` writes: per parameter the state and its std (mm, null when unknown), ``lifted`` for the
-    unilateral boundaries, residual RMS and max (mm), coverage, within_model and method."""
+    """What `estimate` writes: per parameter the state and its std (mm, null when unknown), the full covariance
+    (``covariance_mm2``: label -> label -> mm^2), ``lifted`` for the unilateral boundaries, residual RMS and max
+    (mm), coverage, within_model with the one test behind it (``within_model_test``: p_value, alpha, statistic,
+    dof, noise_scale, noise_source: "residual" when the field states no error model and the noise level is
+    estimated from the residual with ``denominator_dof`` degrees of freedom) and method."""
     names = estimate.names
+    covariance = estimate.covariance
+    check = estimate.check
     return {
         "parameters_mm": dict(zip(names, estimate.values, strict=True)),
         "std_mm": dict(zip(names, estimate.std, strict=True)),
+        "covariance_mm2": None if covariance is None else {
+            row: dict(zip(names, covariance[i], strict=True)) for i, row in enumerate(names)},
+        "within_model_test": None if check is None else {
+            "p_value": check.p_value, "alpha": check.alpha, "statistic": check.statistic, "dof": check.dof,
+            "denominator_dof": check.denominator_dof, "noise_scale": check.noise_scale,
+            "noise_source": check.noise_source, "effective_samples": check.n_effective},
         "lifted": dict(zip(names[n_bilateral:], estimate.lifted[n_bilateral:], strict=True)),
         "residual_rms_mm": estimate.residual_rms,
         "residual_max_mm": estimate.residual_max,

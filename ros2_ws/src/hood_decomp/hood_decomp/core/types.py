@@ -9,9 +9,11 @@ per-node array is in the model's visible-skin node order (N nodes).
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+
+from hood_decomp.errors import FieldError
 
 
 def fingerprint(*arrays: np.ndarray | str) -> str:
@@ -50,19 +52,128 @@ class SkinSurface:
         return int(self.points.shape[0])
 
 
+#: kinds of field error model: made by the scan step, stated by a user (``--noise-mm``), or none (a simulated field)
+ERROR_MODEL_KINDS = ("scan", "stated", "none")
+
+
+@dataclass(frozen=True)
+class FieldErrorModel:
+    """How wrong each node value of a field may be (DESIGN.md: "a field carries its error model").
+
+    The node errors are e = s * x + U z: x a zero-mean unit-variance field correlated over the smoothing radius, z ~
+    N(0, I_6) the registration error, U (N, 6) the pose covariance carried to the field through the rigid-body modes
+    of the skin (:meth:`registration_modes`).
+
+    kind: "scan" (made by the scan step), "stated" (a user's ``--noise-mm``: white, uniform) or "none" (a simulated
+        field: no statement; the within-model test and the covariance then take the level from the residual).
+    node_std: (N,) mm, one standard deviation per node (NaN where the field is NaN); empty (0,) for "none".
+    correlation: (N,) >= 1, the sum of node i's correlation coefficients with all nodes, sum_k rho_ik: how many nodes
+        one independent sample spans (1 for white noise). For a field that is smooth on the correlation scale, x's
+        projection variance is sum_i x_i^2 s_i^2 correlation_i; the effective number of independent samples of the
+        field is sum_i 1 / correlation_i.
+    correlation_length_mm: the smoothing radius that makes the correlation (0 for white noise).
+    pose_covariance: (6, 6) covariance of the registration twist [omega (rad, 3), t (mm, 3)] about ``pose_center``
+        (part frame), symmetric positive semi-definite; zeros when the field has no registration.
+    pose_center: (3,) mm, the point the twist's rotation is about.
+    bias_correlation: the correlation sum (nodes, as ``correlation``) of the making's own bias, 0 for none. The scan
+        step's smoothing biases node values where the displacement is curved below the smoothing radius (at pads,
+        hinges, free edges); that bias is not noise: it shows as rough residual in excess of ``node_std`` and it is
+        correlated over a wider area. Its level is not stated (it depends on the part's state) but measured on each
+        residual as that excess; this number says how far it is correlated.
+    """
+
+    kind: str
+    node_std: np.ndarray
+    correlation: np.ndarray
+    correlation_length_mm: float = 0.0
+    pose_covariance: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
+    pose_center: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    bias_correlation: float = 0.0
+
+    @staticmethod
+    def none() -> FieldErrorModel:
+        """The error model of a field that states none (a simulated field)."""
+        return FieldErrorModel("none", np.zeros(0), np.zeros(0))
+
+    @staticmethod
+    def stated(noise_mm: float, n_nodes: int) -> FieldErrorModel:
+        """White noise of ``noise_mm`` (mm, one sigma) on every node, as a user states it (``--noise-mm``)."""
+        if not (np.isfinite(noise_mm) and noise_mm > 0):
+            raise FieldError(f"a stated noise must be a finite number > 0 mm, got {noise_mm}")
+        return FieldErrorModel("stated", np.full(n_nodes, float(noise_mm)), np.ones(n_nodes))
+
+    @property
+    def has_pose(self) -> bool:
+        return bool(np.any(self.pose_covariance != 0.0))
+
+    def validate(self, n_nodes: int) -> None:
+        """Raise FieldError naming the problem: an unknown kind, arrays of the wrong shape, negative, infinite or NaN
+        variances on seen nodes, correlation below 1, a pose covariance that is not symmetric positive semi-definite.
+        """
+        if self.kind not in ERROR_MODEL_KINDS:
+            raise FieldError(f"error model kind {self.kind!r} is not one of {ERROR_MODEL_KINDS}")
+        expected = (0,) if self.kind == "none" else (n_nodes,)
+        for name in ("node_std", "correlation"):
+            shape = np.shape(getattr(self, name))
+            if shape != expected:
+                raise FieldError(f"error model {name} has shape {shape}, expected {expected} ({self.kind!r} model)")
+        std, corr = np.asarray(self.node_std, float), np.asarray(self.correlation, float)
+        known = ~np.isnan(std)
+        if np.any(np.isinf(std)) or np.any(std[known] < 0):
+            raise FieldError("error model node_std must be finite and >= 0 (NaN only on unseen nodes); found "
+                             f"{int(np.sum(np.isinf(std) | (std < 0)))} negative or infinite values")
+        if np.any(~(corr[known] >= 1.0 - 1e-9)) or np.any(np.isinf(corr)):
+            raise FieldError("error model correlation (sum of correlation coefficients per node) must be a finite "
+                             "number >= 1 on every node with a std")
+        for name in ("correlation_length_mm", "bias_correlation"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise FieldError(f"error model {name} must be a finite number >= 0, got {value}")
+        pose = np.asarray(self.pose_covariance, float)
+        if pose.shape != (6, 6) or not np.all(np.isfinite(pose)):
+            raise FieldError(f"error model pose_covariance must be a finite (6, 6) matrix, got shape {pose.shape}")
+        scale = max(float(np.abs(pose).max()), 1e-300)
+        if not np.allclose(pose, pose.T, rtol=0.0, atol=1e-9 * scale):
+            raise FieldError("error model pose_covariance is not symmetric")
+        if np.linalg.eigvalsh(pose)[0] < -1e-9 * scale:
+            raise FieldError("error model pose_covariance is not positive semi-definite "
+                             f"(smallest eigenvalue {np.linalg.eigvalsh(pose)[0]:.3g})")
+        if np.shape(self.pose_center) != (3,) or not np.all(np.isfinite(self.pose_center)):
+            raise FieldError(f"error model pose_center must be a finite (3,) point, got {np.shape(self.pose_center)}")
+
+    def registration_modes(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """U (N, 6) mm: the normal field error of the pose error, e_reg = U z with z ~ N(0, I_6).
+
+        points, normals: (N, 3) skin nodes (mm) and unit normals. A twist (omega, t) about c moves x by
+        omega x (x - c) + t, whose normal part is omega . ((x - c) x n) + t . n: the rigid-body modes J (N, 6);
+        U = J L with L L^T the pose covariance.
+        """
+        modes = np.hstack([np.cross(points - self.pose_center, normals), normals])
+        values, vectors = np.linalg.eigh(np.asarray(self.pose_covariance, float))
+        return modes @ (vectors * np.sqrt(np.clip(values, 0.0, None)))
+
+
 @dataclass(frozen=True)
 class DisplacementField:
     """A signed normal displacement per visible skin node (paper: the condensed scalar field).
 
     normal_displacement: (N,) float64, mm, NaN where the scan gave no support.
     coverage: fraction of skin nodes with a finite value, 0..1.
-    noise_rms: estimated scan noise, mm (NaN when unknown, e.g. a simulated field).
+    noise_rms: estimated scan noise per scan point, mm (NaN when unknown, e.g. a simulated field); informative only:
+        the within-model test and the covariance use ``error_model``, with its level checked against the residual.
+    error_model: the field's :class:`FieldErrorModel`; None means :meth:`FieldErrorModel.none`.
     """
 
     model_id: str
     normal_displacement: np.ndarray
     coverage: float
     noise_rms: float
+    error_model: FieldErrorModel | None = None
+
+    @property
+    def errors(self) -> FieldErrorModel:
+        """The error model, "none" when the field states none."""
+        return self.error_model if self.error_model is not None else FieldErrorModel.none()
 
     def vectors(self, normals: np.ndarray) -> np.ndarray:
         """The 3D displacement (N, 3) mm as normal times value, as the paper does."""
@@ -106,14 +217,45 @@ class ReducedModel:
 
 
 @dataclass(frozen=True)
+class ModelCheck:
+    """The one within-model test of a residual (:mod:`hood_decomp.core.method.residual`), as every result reports it.
+
+    statistic: the test statistic (chi-square-like, in units of the smooth part's own covariance); dof: its degrees of
+    freedom (smooth modes tested); denominator_dof: degrees of freedom of the noise level estimated from the rough
+    part of the residual (inf when the level is not estimated). p_value, alpha (false-alarm rate), within_model
+    (p_value >= alpha). noise_scale: residual-supported node variance over the error model's (1 when they agree;
+    a stated noise that is too large gives < 1 and is not used). noise_source: "error model" (the field's level was
+    supported by the residual), "residual" (the field states none, or the stated one is larger than the residual
+    supports, and the level comes from the residual). n_effective: effective number of independent samples.
+    bias_mm2: variance (mm^2) the making's bias adds to a smooth unit-norm field's coefficient (0 without a bias term:
+    :func:`hood_decomp.core.method.residual.split_level`).
+    """
+
+    statistic: float
+    dof: int
+    denominator_dof: float
+    p_value: float
+    alpha: float
+    within_model: bool
+    noise_scale: float
+    noise_source: str
+    n_effective: float
+    bias_mm2: float = 0.0
+
+
+@dataclass(frozen=True)
 class ParameterEstimate:
     """Estimated parameter state of one field (paper eqs. 4-5, plus the contact-aware estimator).
 
     names: (P,) parameter labels. values, std, lower, upper: (P,) mm. For a lifted unilateral boundary ``values`` is
     the part's position there (the commanded position lies at or below it) and ``lifted`` is True.
     reconstruction: (N,) mm. residual: (N,) mm, measured minus reconstruction, NaN where unseen.
-    within_model: False when the residual is larger than the scan noise explains.
+    within_model: False when the one within-model test says the model lacks an effect (``check``).
     method: "pca" (the paper's) or "contact" (contact-aware).
+    covariance: (P, P) mm^2, full covariance of ``values`` (the field's error model, the basis' approximation error
+        and, for a light-touch pad, the range its commanded position may take); std = sqrt(diag). None when unknown
+        (an estimate decoded from a message without it).
+    check: the :class:`ModelCheck` behind ``within_model`` (None when unknown).
     """
 
     model_id: str
@@ -130,6 +272,8 @@ class ParameterEstimate:
     coverage: float
     within_model: bool
     method: str
+    covariance: np.ndarray | None = None
+    check: ModelCheck | None = None
 
 
 @dataclass(frozen=True)
@@ -206,6 +350,9 @@ class BoundaryCorrection:
     names: (P,) labels. corrections: (P,) mm (the negated estimate; 0 for a lifted unilateral boundary, whose commanded
     position is not observable). safe_to_apply: False with a reason when coverage is low, the field is not within the
     model, an estimate lies outside its range, or an uncertainty is too large to act on.
+    std: (P,) mm, one standard deviation of each correction. applicable: (P,) bool, whether this boundary's correction
+    may be applied on its own (its std below the limit, its estimate in range, not lifted, and the field within the
+    model with enough coverage); None when unknown (decoded from a message without it).
     """
 
     model_id: str
@@ -213,3 +360,5 @@ class BoundaryCorrection:
     corrections: np.ndarray
     safe_to_apply: bool
     reason: str
+    std: np.ndarray | None = None
+    applicable: np.ndarray | None = None

@@ -2,8 +2,12 @@
 
 Layout: points = skin node positions (N, 3) mm, triangle cells = skin triangles, point data ``normal_displacement``
 (N,) mm (NaN where unknown) and, when known, ``displacement`` (N, 3) mm. VTK FieldData carries ``model_id`` (UInt8
-ASCII codes), ``coverage`` and ``noise_rms`` (mm, NaN when unknown). meshio reads FieldData but does not write it,
-so the writer adds the FieldData element to the XML meshio wrote; ParaView shows it as field data.
+ASCII codes), ``coverage`` and ``noise_rms`` (mm, NaN when unknown), and the field's error model (FieldData
+``error_model`` (kind, ASCII codes; "none" for a simulated field), ``error_correlation_length_mm``,
+``error_pose_covariance`` (36, row-major 6 x 6, [rad, mm]^2 about ``error_pose_center_mm`` (3)),
+``error_bias_correlation``; point data ``error_std`` (N,) mm and ``error_correlation`` (N,)). meshio reads FieldData
+but does not write it, so the writer adds the FieldData element to the XML meshio wrote; ParaView shows it as field
+data.
 """
 
 from __future__ import annotations
@@ -14,19 +18,69 @@ from xml.sax.saxutils import escape
 import meshio
 import numpy as np
 
-from hood_decomp.core.types import DisplacementField, SkinSurface
+from hood_decomp.core.types import DisplacementField, FieldErrorModel, SkinSurface
 from hood_decomp.errors import FieldError, HoodDecompError
 
 
-def _field_data_xml(model_id: str, coverage: float, noise_rms: float) -> str:
-    codes = " ".join(str(b) for b in model_id.encode("ascii"))
-    return (
-        "<FieldData>\n"
-        f'<DataArray type="UInt8" Name="model_id" NumberOfTuples="{len(model_id)}" format="ascii">{codes}</DataArray>\n'
-        f'<DataArray type="Float64" Name="coverage" NumberOfTuples="1" format="ascii">{coverage!r}</DataArray>\n'
-        f'<DataArray type="Float64" Name="noise_rms" NumberOfTuples="1" format="ascii">{noise_rms!r}</DataArray>\n'
-        "</FieldData>\n"
+def _ascii_codes(text: str) -> np.ndarray:
+    return np.frombuffer(text.encode("ascii"), dtype=np.uint8)
+
+
+def _field_data_xml(items: dict[str, np.ndarray]) -> str:
+    """VTK FieldData with one DataArray per item (uint8 arrays as UInt8 ASCII codes, the rest as Float64)."""
+    rows = []
+    for name, values in items.items():
+        kind = "UInt8" if values.dtype == np.uint8 else "Float64"
+        text = " ".join(str(int(v)) if kind == "UInt8" else repr(float(v)) for v in values.ravel())
+        rows.append(f'<DataArray type="{kind}" Name="{name}" NumberOfTuples="{values.size}" format="ascii">{text}'
+                    "</DataArray>\n")
+    return "<FieldData>\n" + "".join(rows) + "</FieldData>\n"
+
+
+def _error_model_items(errors: FieldErrorModel) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """(point data, field data) that carry an error model; the kind "none" is written too, so it is stated."""
+    field_data = {"error_model": _ascii_codes(errors.kind)}
+    if errors.kind == "none":
+        return {}, field_data
+    field_data.update(
+        error_correlation_length_mm=np.array([errors.correlation_length_mm]),
+        error_pose_covariance=np.asarray(errors.pose_covariance, float).ravel(),
+        error_pose_center_mm=np.asarray(errors.pose_center, float),
+        error_bias_correlation=np.array([errors.bias_correlation]),
     )
+    return {"error_std": np.asarray(errors.node_std, float),
+            "error_correlation": np.asarray(errors.correlation, float)}, field_data
+
+
+def _read_error_model(mesh: meshio.Mesh, path: Path, n_nodes: int) -> FieldErrorModel | None:
+    """The error model a field file carries (None for a file written before error models); validated."""
+    data = mesh.field_data
+    if "error_model" not in data:
+        return None
+    kind = bytes(np.asarray(data["error_model"], dtype=np.uint8).reshape(-1)).decode("ascii", errors="replace")
+    if kind == "none":
+        return FieldErrorModel.none()
+
+    def item(name: str, where: dict, size: int | None = None) -> np.ndarray:
+        if name not in where:
+            raise FieldError(f"{path} states an error model {kind!r} but has no {name!r}")
+        values = np.asarray(where[name], dtype=float).reshape(-1)
+        if size is not None and values.size != size:
+            raise FieldError(f"{path}: {name} has {values.size} values, expected {size}")
+        return values
+
+    errors = FieldErrorModel(
+        kind=kind, node_std=item("error_std", mesh.point_data), correlation=item("error_correlation", mesh.point_data),
+        correlation_length_mm=float(item("error_correlation_length_mm", data, 1)[0]),
+        pose_covariance=item("error_pose_covariance", data, 36).reshape(6, 6),
+        pose_center=item("error_pose_center_mm", data, 3),
+        bias_correlation=float(item("error_bias_correlation", data, 1)[0]),
+    )
+    try:
+        errors.validate(n_nodes)
+    except FieldError as error:
+        raise FieldError(f"{path}: {error}") from None
+    return errors
 
 
 def write_field(
@@ -41,16 +95,20 @@ def write_field(
     vectors = field.vectors(skin.normals) if displacement is None else np.asarray(displacement, dtype=float)
     if vectors.shape != (skin.n_nodes, 3):
         raise FieldError(f"displacement has shape {vectors.shape}, expected ({skin.n_nodes}, 3)")
+    field.errors.validate(skin.n_nodes)
+    error_points, error_data = _error_model_items(field.errors)
     mesh = meshio.Mesh(
         skin.points,
         [("triangle", np.asarray(skin.triangles))],
-        point_data={"normal_displacement": values, "displacement": vectors},
+        point_data={"normal_displacement": values, "displacement": vectors, **error_points},
     )
     path = Path(path)
     meshio.write(path, mesh, file_format="vtu")
     text = path.read_text()
     marker = "<UnstructuredGrid>\n"
-    extra = _field_data_xml(escape(field.model_id), float(field.coverage), float(field.noise_rms))
+    extra = _field_data_xml({"model_id": _ascii_codes(escape(field.model_id)),
+                             "coverage": np.array([float(field.coverage)]),
+                             "noise_rms": np.array([float(field.noise_rms)]), **error_data})
     path.write_text(text.replace(marker, marker + extra, 1))
 
 
@@ -97,7 +155,8 @@ def read_field(path: str | Path, skin: SkinSurface | None = None) -> tuple[Displ
         vectors = _plausible(vectors, path, "displacement")
         if vectors.shape != (len(values), 3):
             raise FieldError(f"{path}: displacement has shape {vectors.shape}, expected ({len(values)}, 3)")
-    field = DisplacementField(model_id=model_id, normal_displacement=values, coverage=coverage, noise_rms=noise_rms)
+    field = DisplacementField(model_id=model_id, normal_displacement=values, coverage=coverage, noise_rms=noise_rms,
+                              error_model=_read_error_model(mesh, path, values.size))
     return field, vectors
 
 

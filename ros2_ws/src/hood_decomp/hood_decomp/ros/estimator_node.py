@@ -20,7 +20,8 @@ class EstimatorNode(HoodNode):
                               "(the paper's eqs. 4-5)")
         self.policy = CorrectionPolicy(
             min_coverage=declare(self, "min_coverage", 0.6, "smallest seen fraction of the skin to act on", 0.0, 1.0),
-            max_std_mm=declare(self, "max_std_mm", 0.05, "largest uncertainty (mm, 1 sigma) to act on", 0.0, 100.0),
+            max_std_mm=declare(self, "max_std_mm", CorrectionPolicy.max_std_mm,
+                               "largest uncertainty (mm, 1 sigma) to act on", 0.0, 100.0),
             range_tolerance_mm=declare(self, "range_tolerance_mm", 0.02,
                                        "tolerance (mm) on the declared parameter ranges", 0.0, 10.0),
         )

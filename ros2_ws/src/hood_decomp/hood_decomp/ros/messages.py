@@ -19,6 +19,8 @@ from hood_decomp.core.types import (
     Decomposition,
     DisplacementField,
     EffectContribution,
+    FieldErrorModel,
+    ModelCheck,
     ParameterEstimate,
     SkinSurface,
 )
@@ -44,22 +46,46 @@ def field_to_msg(field: DisplacementField, header: Any) -> Any:
     """core DisplacementField (mm) -> hood_decomp_msgs/DisplacementField (m)."""
     from hood_decomp_msgs.msg import DisplacementField as Msg
 
+    errors = field.errors
+    # the twist covariance [omega rad, t mm] in metres: the translation rows/columns scale by 1e-3
+    unit = np.array([1.0, 1.0, 1.0, M_PER_MM, M_PER_MM, M_PER_MM])
     return Msg(
         header=header,
         model_id=field.model_id,
         normal_displacement=_float32_array(field.normal_displacement, M_PER_MM),
         coverage=float(field.coverage),
         noise_rms=float(field.noise_rms) * M_PER_MM,
+        error_model=errors.kind,
+        node_std=_float32_array(np.asarray(errors.node_std, float), M_PER_MM),
+        node_correlation=_float32_array(np.asarray(errors.correlation, float)),
+        correlation_length=float(errors.correlation_length_mm) * M_PER_MM,
+        pose_covariance=(np.asarray(errors.pose_covariance, float) * np.outer(unit, unit)).ravel().tolist(),
+        pose_center=(np.asarray(errors.pose_center, float) * M_PER_MM).tolist(),
+        bias_correlation=float(errors.bias_correlation),
     )
 
 
 def msg_to_field(msg: Any) -> DisplacementField:
-    """hood_decomp_msgs/DisplacementField (m) -> core DisplacementField (mm)."""
+    """hood_decomp_msgs/DisplacementField (m) -> core DisplacementField (mm), with its error model (an empty
+    ``error_model`` string, from a sender that predates it, is "none"). The error model is checked where the field
+    is used (a bad one is a FieldError naming the problem)."""
+    unit = np.array([1.0, 1.0, 1.0, MM_PER_M, MM_PER_M, MM_PER_M])
+    kind = msg.error_model or "none"
+    errors = FieldErrorModel.none() if kind == "none" else FieldErrorModel(
+        kind=kind,
+        node_std=_numpy(msg.node_std, MM_PER_M),
+        correlation=_numpy(msg.node_correlation),
+        correlation_length_mm=float(msg.correlation_length) * MM_PER_M,
+        pose_covariance=_numpy(msg.pose_covariance).reshape(6, 6) * np.outer(unit, unit),
+        pose_center=_numpy(msg.pose_center, MM_PER_M),
+        bias_correlation=float(msg.bias_correlation),
+    )
     return DisplacementField(
         model_id=msg.model_id,
         normal_displacement=_numpy(msg.normal_displacement, MM_PER_M),
         coverage=float(msg.coverage),
         noise_rms=float(msg.noise_rms) * MM_PER_M,
+        error_model=errors,
     )
 
 
@@ -80,6 +106,11 @@ def estimate_to_msg(estimate: ParameterEstimate, header: Any) -> Any:
         residual_max=float(estimate.residual_max) * M_PER_MM,
         coverage=float(estimate.coverage),
         within_model=bool(estimate.within_model),
+        covariance=[] if estimate.covariance is None else (estimate.covariance * M_PER_MM**2).ravel().tolist(),
+        p_value=float("nan") if estimate.check is None else estimate.check.p_value,
+        alpha=float("nan") if estimate.check is None else estimate.check.alpha,
+        noise_scale=float("nan") if estimate.check is None else estimate.check.noise_scale,
+        noise_source="" if estimate.check is None else estimate.check.noise_source,
     )
 
 
@@ -87,9 +118,15 @@ def msg_to_estimate(msg: Any) -> ParameterEstimate:
     """hood_decomp_msgs/BoundaryState (m) -> core ParameterEstimate (mm).
 
     The message carries no per-node arrays, so ``reconstruction`` and ``residual`` are empty (shape (0,)), and the
-    estimator is unknown (``method`` is "message").
+    estimator is unknown (``method`` is "message"). The test's p-value, alpha and noise level come back in a
+    :class:`ModelCheck` whose statistic and degrees of freedom are unknown (NaN, 0).
     """
     empty = np.empty(0)
+    n = len(msg.names)
+    covariance = _numpy(msg.covariance, MM_PER_M**2).reshape(n, n) if len(msg.covariance) == n * n else None
+    check = None if not msg.noise_source else ModelCheck(
+        float("nan"), 0, float("nan"), float(msg.p_value), float(msg.alpha), bool(msg.within_model),
+        float(msg.noise_scale), msg.noise_source, float("nan"))
     return ParameterEstimate(
         model_id=msg.model_id,
         names=tuple(msg.names),
@@ -105,6 +142,8 @@ def msg_to_estimate(msg: Any) -> ParameterEstimate:
         coverage=float(msg.coverage),
         within_model=bool(msg.within_model),
         method="message",
+        covariance=covariance,
+        check=check,
     )
 
 
@@ -119,6 +158,8 @@ def correction_to_msg(correction: BoundaryCorrection, header: Any) -> Any:
         corrections=(correction.corrections * M_PER_MM).tolist(),
         safe_to_apply=bool(correction.safe_to_apply),
         reason=correction.reason,
+        std_dev=[] if correction.std is None else (np.asarray(correction.std) * M_PER_MM).tolist(),
+        applicable=[] if correction.applicable is None else [bool(v) for v in correction.applicable],
     )
 
 
@@ -130,6 +171,8 @@ def msg_to_correction(msg: Any) -> BoundaryCorrection:
         corrections=_numpy(msg.corrections, MM_PER_M),
         safe_to_apply=bool(msg.safe_to_apply),
         reason=msg.reason,
+        std=_numpy(msg.std_dev, MM_PER_M) if len(msg.std_dev) else None,
+        applicable=np.asarray(msg.applicable, dtype=bool) if len(msg.applicable) else None,
     )
 
 

@@ -51,7 +51,7 @@ import itertools
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.stats import chi2, f
@@ -217,16 +217,20 @@ def _n_unknowns(estimate: ParameterEstimate) -> int:
 
 def _analyse(bases: Bases, estimates: Sequence[ParameterEstimate], noise: Sequence[float], alpha: float
              ) -> tuple[tuple[ResidualAnalysis, ...], float, bool]:
-    """Residual analyses of the estimates and the combined chi-square decision over all fields."""
+    """Residual analyses of the estimates and the decision over all fields by the one within-model test
+    (:func:`hood_decomp.core.method.residual.check_residual`, run by the estimator on each field): the smallest
+    p-value, Bonferroni-adjusted over the F fields, against alpha. The analyses carry each field's test result
+    and the regions where the residual exceeds ``noise``."""
     analyses = []
     for estimate, sigma in zip(estimates, noise, strict=True):
         if estimate.method == "pca":
             n_params, model_mm = bases.pca.n_components_, bases.pca.training_residual_rms_
         else:
             n_params, model_mm = _n_unknowns(estimate), 0.0
-        analyses.append(analyse_residual(bases.skin, estimate.residual, n_params, sigma, model_mm, alpha))
-    p_value, within = chi2_within(sum(a.chi2 for a in analyses), sum(a.dof for a in analyses), alpha)
-    return tuple(analyses), p_value, within
+        check = replace(estimate.check, alpha=alpha, within_model=estimate.check.p_value >= alpha)
+        analyses.append(analyse_residual(bases.skin, estimate.residual, n_params, sigma, model_mm, alpha, check=check))
+    p_value = min(1.0, len(analyses) * min(a.p_value for a in analyses))
+    return tuple(analyses), p_value, p_value >= alpha
 
 
 def _declared_shifts(bases: Bases, before: Sequence[ParameterEstimate], named: Sequence[ParameterEstimate]) -> float:

@@ -15,6 +15,7 @@ from hood_decomp.core.method.decomposition import decompose
 from hood_decomp.core.method.estimation import DEFAULT_MIN_COVERAGE, estimate_pca
 from hood_decomp.core.method.hierarchical import HierarchicalBasis
 from hood_decomp.core.method.pca import PCABasis
+from hood_decomp.core.method.residual import ResidualTest
 from hood_decomp.core.types import (
     Decomposition,
     DisplacementField,
@@ -43,10 +44,18 @@ class Bases:
     # min_coverage -> fitted ContactEstimator; filled on first use, not part of the bases' value
     _contact_estimators: dict[float, ContactEstimator] = dataclasses.field(default_factory=dict, init=False,
                                                                            repr=False, compare=False)
+    # the skin's within-model test (its smooth modes), prepared on first use
+    _tests: dict[str, ResidualTest] = dataclasses.field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def names(self) -> tuple[str, ...]:
         return self.pca.names_
+
+    def residual_test(self) -> ResidualTest:
+        """The one within-model test on this skin (:class:`~.residual.ResidualTest`), prepared once."""
+        if "test" not in self._tests:
+            self._tests.setdefault("test", ResidualTest().fit(self.skin))
+        return self._tests["test"]
 
     def contact_estimator(self, min_coverage: float = DEFAULT_MIN_COVERAGE) -> ContactEstimator:
         """The contact-aware estimator on these bases, fitted on first use and kept (one per ``min_coverage``).
@@ -58,7 +67,8 @@ class Bases:
             raise BasisError("the bases file holds no reduced model: the contact-aware estimator needs one (use 'pca')")
         estimator = self._contact_estimators.get(min_coverage)
         if estimator is None:
-            estimator = ContactEstimator(min_coverage).fit(self.reduced_model, self.pca.lower_, self.pca.upper_)
+            estimator = ContactEstimator(min_coverage).fit(self.reduced_model, self.pca.lower_, self.pca.upper_,
+                                                           self.residual_test())
             estimator = self._contact_estimators.setdefault(min_coverage, estimator)
         return estimator
 
@@ -93,7 +103,7 @@ def estimate_field(
     if method not in METHODS:
         raise BasisError(f"unknown estimation method {method!r}, expected one of {METHODS}")
     if method == "pca":
-        return estimate_pca(bases.pca, field, min_coverage)
+        return estimate_pca(bases.pca, field, min_coverage, bases.residual_test())
     return bases.contact_estimator(min_coverage).estimate(field)
 
 

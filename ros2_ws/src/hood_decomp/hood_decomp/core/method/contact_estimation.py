@@ -26,10 +26,12 @@ import numpy as np
 from hood_decomp.core.method.estimation import (
     DEFAULT_MIN_COVERAGE,
     check_field,
-    is_within_model,
+    judge,
+    parameter_covariance,
     residual_stats,
     valid_normal_matrix,
 )
+from hood_decomp.core.method.residual import ResidualTest
 from hood_decomp.core.types import DisplacementField, ParameterEstimate, ReducedModel
 from hood_decomp.errors import FieldError, ModelError
 
@@ -69,8 +71,9 @@ class ContactEstimator:
     """Estimate parameter states with the contact conditions of the unilateral boundaries.
 
     Parameters: min_coverage (fraction of skin nodes that must be seen).
-    ``fit(model, lower, upper)``: model is the :class:`ReducedModel`; lower, upper (B + U,) mm declared ranges.
-    Fitted: model_, lower_, upper_, fields_ (B + S, N) = [R G]^T, gram_ (B + S, B + S), touching_pads_ (starts).
+    ``fit(model, lower, upper, test=None)``: model is the :class:`ReducedModel`; lower, upper (B + U,) mm declared
+    ranges; test: the skin's fitted :class:`ResidualTest` (the one within-model test; None: level test only).
+    Fitted: model_, lower_, upper_, test_, fields_ (B + S, N) = [R G]^T, gram_ (B + S, B + S), touching_pads_.
     """
 
     def __init__(self, min_coverage: float = DEFAULT_MIN_COVERAGE,
@@ -78,7 +81,8 @@ class ContactEstimator:
         self.min_coverage = min_coverage
         self.measured_min_pad_force_n = measured_min_pad_force_n
 
-    def fit(self, model: ReducedModel, lower: np.ndarray, upper: np.ndarray) -> ContactEstimator:
+    def fit(self, model: ReducedModel, lower: np.ndarray, upper: np.ndarray,
+            test: ResidualTest | None = None) -> ContactEstimator:
         n_params = len(model.names)
         n_pads = n_params - model.n_bilateral
         if np.shape(lower) != (n_params,) or np.shape(upper) != (n_params,):
@@ -86,6 +90,7 @@ class ContactEstimator:
         if model.pad_of.size and (model.pad_of.min() < 0 or model.pad_of.max() >= n_pads):
             raise ModelError(f"pad_of must index the {n_pads} unilateral parameters, got {model.pad_of}")
         self.model_ = model
+        self.test_ = test
         self.lower_ = np.asarray(lower, dtype=float)
         self.upper_ = np.asarray(upper, dtype=float)
         self.fields_ = np.vstack([model.R.T, model.G.T])
@@ -210,15 +215,22 @@ class ContactEstimator:
         u = best.lift @ theta + best.offset
         reconstruction = model.w0 + u @ self.fields_
         residual, rms, worst = residual_stats(values, reconstruction, valid)
-        sigma2 = float(np.nansum(residual**2)) / max(n_valid - theta.size, 1)
+        # theta is linear least squares on the design F^T lift (N, n_theta) for the chosen contact state; the test
+        # watches smooth fields outside everything the model can make (any pad force pattern, [R G]): the scan
+        # step's bias is largest at the pads' kinks
+        design = self.fields_.T @ best.lift
+        errors = field.errors
+        check, registration = judge(residual, design, errors, self.test_, 0.0, span=self.fields_.T)
+        theta_cov = parameter_covariance(design, best.normal_inverse, valid, errors, check.noise_scale, 0.0,
+                                         registration)
         measured = bool(np.isfinite(field.noise_rms) and field.noise_rms > 0)
-        out_values, out_std, lifted = self._report(best, theta, sigma2 * best.normal_inverse,
-                                                   self.measured_min_pad_force_n if measured else 0.0)
+        out_values, covariance, lifted = self._report(best, theta, theta_cov,
+                                                      self.measured_min_pad_force_n if measured else 0.0)
         return ParameterEstimate(
             model_id=model.model_id,
             names=tuple(model.names),
             values=out_values,
-            std=out_std,
+            std=np.sqrt(np.clip(np.diag(covariance), 0.0, None)),
             lower=self.lower_.copy(),
             upper=self.upper_.copy(),
             lifted=lifted,
@@ -227,8 +239,10 @@ class ContactEstimator:
             residual_rms=rms,
             residual_max=worst,
             coverage=n_valid / n_nodes,
-            within_model=is_within_model(rms, field.noise_rms, 0.0),
+            within_model=check.within_model,
             method="contact",
+            covariance=covariance,
+            check=check,
         )
 
     def _margins(self, cand: _Candidate) -> np.ndarray:
@@ -273,20 +287,25 @@ class ContactEstimator:
     def _report(
         self, cand: _Candidate, theta: np.ndarray, cov: np.ndarray, min_force_n: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Values, std (B + U,) mm and lifted flags from a solved candidate; a touching pad with a total force below
-        ``min_force_n`` (N) is reported lifted."""
+        """Values (B + U,) mm, their covariance (B + U, B + U) mm^2 and lifted flags from a solved candidate; a
+        touching pad with a total force below ``min_force_n`` (N) is reported lifted.
+
+        Every value is affine in theta (a state, a touching pad's position, or a lifted pad's lowest spring height),
+        so the covariance is jac cov jac^T; a light-touch pad's variance is raised to cover the range its commanded
+        position may take (its correlations scaled alike)."""
         model = self.model_
         n_b = model.n_bilateral
         n_pads = self.touching_pads_.shape[1]
         values = np.empty(n_b + n_pads)
-        std = np.empty(n_b + n_pads)
+        jac = np.zeros((n_b + n_pads, theta.size))
+        floor = np.zeros(n_b + n_pads)  # smallest std a value may state (light touch)
         values[:n_b] = theta[:n_b]
-        std[:n_b] = np.sqrt(np.clip(np.diag(cov)[:n_b], 0.0, None))
+        jac[:n_b, :n_b] = np.eye(n_b)
         lifted = np.zeros(n_b + n_pads, dtype=bool)
         u = cand.lift @ theta + cand.offset
         f = u[n_b:]
         z = model.z0 + model.Sa @ u[:n_b] + model.H @ f
-        # dz/dtheta, for the std of a lifted pad's position.
+        # dz/dtheta, for a lifted pad's position.
         dz = model.Sa @ cand.lift[:n_b] + model.H @ cand.lift[n_b:]
         touching = list(np.unique(model.pad_of[cand.active]))
         for pad in range(n_pads):
@@ -297,21 +316,33 @@ class ContactEstimator:
             if pad in touching and compression > max(LIFTED_COMPRESSION_MM, LIFTED_SIGMAS * compression_std):
                 col = n_b + touching.index(pad)
                 values[n_b + pad] = theta[col]
-                std[n_b + pad] = np.sqrt(max(cov[col, col], 0.0))
+                jac[n_b + pad, col] = 1.0
                 if float(f[springs].sum()) < min_force_n:
                     # Too light a touch to tell from lifted on a measured field: the commanded position is at most
                     # the one at which the pad just carries this force (the value, flagged lifted) and may be as low
                     # as the part's position there (the std covers that range).
                     lifted[n_b + pad] = True
-                    position = float(np.min(z[springs] - model.preload[springs]))
-                    std[n_b + pad] = max(std[n_b + pad], values[n_b + pad] - position)
+                    floor[n_b + pad] = values[n_b + pad] - float(np.min(z[springs] - model.preload[springs]))
                 continue
             lifted[n_b + pad] = True
             if springs.size == 0:
-                values[n_b + pad], std[n_b + pad] = np.nan, np.nan
+                values[n_b + pad] = np.nan
+                floor[n_b + pad] = np.nan
                 continue
             position = z[springs] - model.preload[springs]
             k = springs[int(np.argmin(position))]
             values[n_b + pad] = position.min()
-            std[n_b + pad] = np.sqrt(max(float(dz[k] @ cov @ dz[k]), 0.0))
-        return values, std, lifted
+            jac[n_b + pad] = dz[k]
+        covariance = jac @ cov @ jac.T
+        std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            factor = np.where(floor > std, floor / np.where(std > 0, std, 1.0), 1.0)
+        raise_only = np.isfinite(factor) & (std > 0)
+        factor = np.where(raise_only, factor, 1.0)
+        covariance = covariance * np.outer(factor, factor)
+        bare = (std == 0) & (floor > 0)
+        covariance[bare, bare] = floor[bare] ** 2
+        nan = np.isnan(floor)
+        covariance[nan, :] = np.nan
+        covariance[:, nan] = np.nan
+        return values, covariance, lifted

@@ -1,8 +1,10 @@
 """From an estimated parameter state to the correction the fixture adjustment robot may apply.
 
 The correction brings every boundary back to nominal (the negated estimate). It is marked unsafe, with every reason
-named, when acting on it could make things worse: too little of the part was seen, the residual says the model lacks
-an effect, an estimate lies outside its declared range, or an uncertainty is too large to act on. A lifted unilateral
+named, when acting on it could make things worse: too little of the part was seen, the one within-model test says the
+model does not explain the part, an estimate lies outside its declared range, or an uncertainty (the full error
+model's, :mod:`hood_decomp.core.method.estimation`) is too large to act on. Which boundaries may still be applied is
+stated per boundary. A lifted unilateral
 boundary (a buffer that lost contact) has no observable commanded position: it gets no correction, and the reason
 says so.
 """
@@ -26,7 +28,9 @@ class CorrectionPolicy:
     """
 
     min_coverage: float = 0.6
-    max_std_mm: float = 0.05
+    # 4.5 std of 0.0045 mm is 0.02 mm: a correction the gate lets through is then wrong by more than 0.02 mm only
+    # beyond 4.5 std (issue 15: no applied correction wrong by more than 0.02 mm)
+    max_std_mm: float = 0.0045
     range_tolerance_mm: float = 0.02
 
 
@@ -34,6 +38,10 @@ def plan_correction(estimate: ParameterEstimate, policy: CorrectionPolicy = Corr
     """The move (mm, one per parameter of ``estimate``) that brings each boundary to nominal, and whether it is safe.
 
     Every failed condition is listed in ``reason`` ("; "-separated); notes on lifted boundaries are appended.
+    Per boundary, ``applicable`` says whether its own correction may be applied when the whole is not safe: only
+    when the field is within the model with enough coverage (otherwise no number can be trusted), and its estimate
+    is in range, its std below ``max_std_mm`` and it is not lifted. When the model does not explain the field the
+    reason says that the model differs from the part and names no boundary: a missing effect moves every estimate.
     """
     values, std = np.asarray(estimate.values, float), np.asarray(estimate.std, float)
     lifted = np.asarray(estimate.lifted, bool)
@@ -41,15 +49,22 @@ def plan_correction(estimate: ParameterEstimate, policy: CorrectionPolicy = Corr
     if not estimate.coverage >= policy.min_coverage:
         problems.append(f"coverage {estimate.coverage:.2f} below minimum {policy.min_coverage:.2f}")
     if not estimate.within_model:
-        problems.append(f"residual {estimate.residual_rms:.3f} mm RMS is more than the scan noise explains: "
-                        "the model lacks an effect")
-    for name, value, low, high, is_lifted in zip(estimate.names, values, estimate.lower, estimate.upper, lifted,
-                                                 strict=True):
-        if not is_lifted and not (low - policy.range_tolerance_mm <= value <= high + policy.range_tolerance_mm):
+        test = "" if estimate.check is None else (f" (within-model test p = {estimate.check.p_value:.2g} < "
+                                                   f"{estimate.check.alpha:g})")
+        problems.append(f"the model does not explain this part{test}: it lacks an effect or differs from the part, "
+                        "so no boundary can be named and no estimate trusted")
+    trusted = not problems
+    applicable = np.zeros(len(estimate.names), dtype=bool)
+    for i, (name, value, sigma, low, high, is_lifted) in enumerate(zip(
+            estimate.names, values, std, estimate.lower, estimate.upper, lifted, strict=True)):
+        if is_lifted:
+            continue
+        in_range = low - policy.range_tolerance_mm <= value <= high + policy.range_tolerance_mm
+        if not in_range:
             problems.append(f"{name} = {value:.3f} mm outside its range [{low:g}, {high:g}] mm")
-    for name, sigma, is_lifted in zip(estimate.names, std, lifted, strict=True):
-        if not is_lifted and not sigma <= policy.max_std_mm:
+        if not sigma <= policy.max_std_mm:
             problems.append(f"{name} uncertainty {sigma:.3f} mm above {policy.max_std_mm:g} mm")
+        applicable[i] = trusted and in_range and sigma <= policy.max_std_mm
     notes = [f"{name} lifted: commanded position not observable, not corrected"
              for name, is_lifted in zip(estimate.names, lifted, strict=True) if is_lifted]
     corrections = np.where(lifted, 0.0, -values)
@@ -59,4 +74,6 @@ def plan_correction(estimate: ParameterEstimate, policy: CorrectionPolicy = Corr
         corrections=corrections,
         safe_to_apply=not problems,
         reason="; ".join(problems + notes),
+        std=np.where(lifted, 0.0, std),
+        applicable=applicable,
     )

@@ -10,15 +10,12 @@ from __future__ import annotations
 import numpy as np
 
 from hood_decomp.core.method.pca import PCABasis
-from hood_decomp.core.types import DisplacementField, ParameterEstimate
+from hood_decomp.core.method.residual import ResidualTest, check_residual, node_variance, split_level
+from hood_decomp.core.types import DisplacementField, FieldErrorModel, ModelCheck, ParameterEstimate
 from hood_decomp.errors import FieldError, ModelIdMismatchError
 
 # A field must show at least this fraction of the skin nodes; below it the fit extrapolates from a patch.
 DEFAULT_MIN_COVERAGE = 0.2
-# within_model is False when the residual RMS exceeds this factor times what noise and basis truncation explain.
-WITHIN_MODEL_FACTOR = 1.5
-# Absolute floor (mm) of the explained residual: round-off of a noise-free field must not count as a model defect.
-WITHIN_MODEL_FLOOR_MM = 1e-6
 # A unilateral boundary whose estimated reaction is below this fraction of its largest ensemble reaction is lifted.
 LIFTED_REACTION_FRACTION = 0.01
 
@@ -28,8 +25,8 @@ def check_field(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Validate a field against a basis; return ``(values (N,) mm, valid (N,) bool)``.
 
-    Raises ModelIdMismatchError for another model's field, FieldError for a wrong length, inf values, no finite value
-    or a coverage below ``min_coverage``.
+    Raises ModelIdMismatchError for another model's field, FieldError for a wrong length, inf values, no finite value,
+    a coverage below ``min_coverage`` or a bad error model (:meth:`FieldErrorModel.validate`).
     """
     if field.model_id != model_id:
         raise ModelIdMismatchError(f"field model_id {field.model_id!r} does not match the bases' model_id {model_id!r}")
@@ -38,6 +35,7 @@ def check_field(
         raise FieldError(f"field has shape {values.shape}, expected ({n_nodes},) (one value per visible skin node)")
     if np.any(np.isinf(values)):
         raise FieldError(f"field holds {int(np.isinf(values).sum())} inf values; unseen nodes must be NaN")
+    field.errors.validate(n_nodes)
     valid = np.isfinite(values)
     n_valid = int(valid.sum())
     if n_valid == 0:
@@ -86,20 +84,59 @@ def residual_stats(
     return residual, float(np.sqrt(np.mean(seen**2))), float(np.max(np.abs(seen)))
 
 
-def is_within_model(residual_rms: float, noise_rms: float, model_rms: float) -> bool:
-    """True when the residual RMS is what scan noise plus the basis' own error explain (NaN noise counts as 0)."""
-    noise = 0.0 if not np.isfinite(noise_rms) else float(noise_rms)
-    explained = np.hypot(noise, model_rms)
-    return bool(residual_rms <= WITHIN_MODEL_FACTOR * explained + WITHIN_MODEL_FLOOR_MM)
+def judge(
+    residual: np.ndarray, design: np.ndarray, errors: FieldErrorModel, test: ResidualTest | None, model_mm: float,
+    span: np.ndarray | None = None,
+) -> tuple[ModelCheck, np.ndarray | None]:
+    """The within-model test of a fit on ``design`` (N, p) (``test``'s when given, else the level test without
+    smooth modes) and the field's registration modes (N, 6) (None without a registration). span: (N, q) all the
+    fields the model can make, whose directions the smooth test leaves out (default: the design).
+
+    Without a ``test`` the estimator has no skin, so a registration covariance cannot reach the nodes and is left
+    out (the covariance is then that of the field given its registration); the verbs and nodes always estimate
+    through the bases (estimate_field), which pass the skin's test. Close-loop's tracing estimates are made so."""
+    if test is None:
+        return check_residual(residual, design, errors, model_mm=model_mm), None
+    return test.check(residual, design if span is None else span, errors, model_mm), test.registration(errors)
+
+
+def parameter_covariance(
+    design: np.ndarray, inverse: np.ndarray, valid: np.ndarray, errors: FieldErrorModel, scale: float,
+    model_mm: float, registration: np.ndarray | None,
+) -> np.ndarray:
+    """Covariance (q, q) of least-squares coefficients theta = inverse @ design[valid].T @ y (design (N, q)).
+
+    The sandwich G Sigma G^T with G = inverse X^T over the valid nodes and the node covariance Sigma = noise *
+    diag(v g) + (model^2 + bias) I + U U^T (error model variances v, correlation sums g, the level ``scale`` split
+    into noise and the making's bias by :func:`split_level`, registration modes U (N, 6)): the correlation enters
+    through g (exact for coefficients whose gain is smooth on the correlation scale). A uniform error model costs
+    nothing beyond the normal matrix' inverse.
+    """
+    variance, correlation = node_variance(errors, valid.size)
+    weight = (variance * correlation)[valid]
+    scale, bias = split_level(scale, errors, float(variance[valid].mean()))
+    model2 = float(model_mm) ** 2 + bias
+    if np.ptp(weight) <= 1e-12 * weight.max():
+        covariance = inverse * (scale * float(weight[0]) + model2)
+    else:
+        gain = inverse @ design[valid].T
+        covariance = scale * (gain * weight) @ gain.T + model2 * inverse
+    if registration is not None:
+        moved = inverse @ (design[valid].T @ registration[valid])
+        covariance = covariance + moved @ moved.T
+    return 0.5 * (covariance + covariance.T)
 
 
 def estimate_pca(
-    basis: PCABasis, field: DisplacementField, min_coverage: float = DEFAULT_MIN_COVERAGE
+    basis: PCABasis, field: DisplacementField, min_coverage: float = DEFAULT_MIN_COVERAGE,
+    test: ResidualTest | None = None,
 ) -> ParameterEstimate:
     """The paper's estimator: fit the field with the PCA basis (eq. 4) and combine the states alike (eq. 5).
 
     field: N normal displacements (mm), NaN where unseen. Returns values = mean_state + c @ component_states (P,),
-    std from the residual variance and the normal matrix, reconstruction (N,) = mean_field + c @ components.
+    their full covariance from the field's error model and the basis' training residual (:func:`parameter_covariance`,
+    level checked against the residual), reconstruction (N,) = mean_field + c @ components, and the within-model test
+    (``test``: the skin's one test; None: the level test only, see :func:`judge`).
     A unilateral boundary is reported lifted when its reaction, carried through the same combination, is about zero.
     """
     n_nodes = basis.components_.shape[1]
@@ -111,10 +148,13 @@ def estimate_pca(
     residual, rms, worst = residual_stats(values, reconstruction, valid)
 
     n_valid = int(valid.sum())
-    dof = max(n_valid - coeff.size, 1)
-    sigma2 = float(np.nansum(residual**2)) / dof
+    errors = field.errors
+    design = basis.components_.T
+    model_mm = basis.training_residual_rms_
+    check, registration = judge(residual, design, errors, test, model_mm)
     states = basis.component_states_
-    std = np.sqrt(np.clip(np.einsum("kp,kl,lp->p", states, sigma2 * inverse, states), 0.0, None))
+    coeff_cov = parameter_covariance(design, inverse, valid, errors, check.noise_scale, model_mm, registration)
+    covariance = states.T @ coeff_cov @ states
 
     n_bilateral = basis.n_bilateral_
     reaction = basis.mean_reaction_ + coeff @ basis.component_reactions_
@@ -124,7 +164,7 @@ def estimate_pca(
         model_id=basis.model_id_,
         names=basis.names_,
         values=basis.mean_state_ + coeff @ states,
-        std=std,
+        std=np.sqrt(np.clip(np.diag(covariance), 0.0, None)),
         lower=basis.lower_.copy(),
         upper=basis.upper_.copy(),
         lifted=lifted,
@@ -133,6 +173,8 @@ def estimate_pca(
         residual_rms=rms,
         residual_max=worst,
         coverage=n_valid / n_nodes,
-        within_model=is_within_model(rms, field.noise_rms, basis.training_residual_rms_),
+        within_model=check.within_model,
         method="pca",
+        covariance=covariance,
+        check=check,
     )

@@ -23,16 +23,23 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
-from scipy.stats import chi2, norm
+from scipy.stats import chi2, f, norm
 
-from hood_decomp.core.types import SkinSurface
+from hood_decomp.core.types import FieldErrorModel, ModelCheck, SkinSurface
 from hood_decomp.errors import FieldError
 
 #: scan noise (mm, one standard deviation per node) assumed when a field does not state its own (NaN noise_rms):
 #: a smoothed structured-light field; the paper's repeatability scans stay within +-0.1 mm (Fig. 14), i.e. ~0.02 mm rms
 DEFAULT_NOISE_MM = 0.02
-#: significance level of the chi-square test and of the region detection
+#: significance level (false-alarm rate) of the within-model test and of the region detection
 DEFAULT_ALPHA = 0.01
+#: total degree of the smooth modes (Legendre polynomials over the skin's two principal directions) the test watches
+DEFAULT_SMOOTH_DEGREE = 2
+#: node variance floor, mm^2: round-off of a noise-free field must not count as a model defect
+VARIANCE_FLOOR_MM2 = 1e-16
+#: a column of the fitted design or of the smooth modes whose part outside the others is below this fraction of its
+#: norm is left out (the modes and the basis fields may share directions, e.g. a rigid tilt)
+RANK_RTOL = 1e-6
 
 
 @dataclass(frozen=True)
@@ -154,6 +161,19 @@ def find_regions(skin: SkinSurface, residual: np.ndarray, sigma: float, z: float
     return tuple(sorted(regions, key=lambda region: -region.energy_mm2))
 
 
+def _seen(residual: np.ndarray, alpha: float) -> tuple[np.ndarray, int]:
+    """Seen nodes (N,) bool of a residual and their number; FieldError for inf values, no seen node or a bad alpha."""
+    if np.any(np.isinf(residual)):
+        raise FieldError("residual holds inf values; unseen nodes must be NaN")
+    if not 0.0 < alpha < 1.0:
+        raise FieldError(f"alpha must lie in (0, 1), got {alpha}")
+    seen = np.isfinite(residual)
+    n_seen = int(seen.sum())
+    if n_seen == 0:
+        raise FieldError("residual has no finite value (all NaN)")
+    return seen, n_seen
+
+
 def analyse_residual(
     skin: SkinSurface,
     residual: np.ndarray,
@@ -162,8 +182,14 @@ def analyse_residual(
     model_mm: float = 0.0,
     alpha: float = DEFAULT_ALPHA,
     default_noise_mm: float = DEFAULT_NOISE_MM,
+    check: ModelCheck | None = None,
 ) -> ResidualAnalysis:
-    """Statistics, chi-square within-model test and exceeding regions of one residual field.
+    """Statistics, within-model decision and exceeding regions of one residual field.
+
+    check: the estimate's one within-model test (:func:`check_residual`); when given, ``p_value`` and
+    ``within_model`` are its own (so a report never shows two tests that disagree) and ``alpha`` is its alpha; the
+    chi-square of the residual against ``noise_mm`` then only describes the residual. Without it (a residual alone)
+    the chi-square decides, as described in the module docstring.
 
     skin: the visible skin (N nodes). residual: (N,) mm, measured - reconstruction, NaN where unseen.
     n_params: number of unknowns the estimate fitted (degrees of freedom = seen nodes - n_params).
@@ -174,20 +200,15 @@ def analyse_residual(
     residual = np.asarray(residual, dtype=float)
     if residual.shape != (skin.n_nodes,):
         raise FieldError(f"residual has shape {residual.shape}, expected ({skin.n_nodes},) (one per skin node)")
-    if np.any(np.isinf(residual)):
-        raise FieldError("residual holds inf values; unseen nodes must be NaN")
-    if not 0.0 < alpha < 1.0:
-        raise FieldError(f"alpha must lie in (0, 1), got {alpha}")
-    seen = np.isfinite(residual)
-    n_seen = int(seen.sum())
-    if n_seen == 0:
-        raise FieldError("residual has no finite value (all NaN)")
+    seen, n_seen = _seen(residual, alpha)
     sigma, source = noise_level(noise_mm, default_noise_mm)
     total = float(np.hypot(sigma, model_mm))
     r = residual[seen]
     dof = max(n_seen - int(n_params), 1)
     statistic = float(r @ r) / total**2
     p_value, within = chi2_within(statistic, dof, alpha)
+    if check is not None:
+        p_value, within, alpha = check.p_value, check.within_model, check.alpha
     z = float(norm.isf(alpha / (2.0 * n_seen)))
     return ResidualAnalysis(
         residual=residual, rms_mm=float(np.sqrt(np.mean(r**2))), max_mm=float(np.max(np.abs(r))),
@@ -195,3 +216,170 @@ def analyse_residual(
         model_mm=float(model_mm), chi2=statistic, dof=dof, p_value=p_value, alpha=float(alpha), within_model=within,
         threshold_sigmas=z, regions=find_regions(skin, residual, total, z),
     )
+
+
+# --- the one within-model test ---------------------------------------------------------------------------------
+def smooth_modes(points: np.ndarray, degree: int = DEFAULT_SMOOTH_DEGREE) -> np.ndarray:
+    """(N, M) orthonormal smooth fields over the skin nodes (N, 3) mm: products of Legendre polynomials of total
+    degree <= ``degree`` in the two principal in-plane coordinates (scaled to [-1, 1]), orthonormalised over the
+    nodes; M = (degree + 1)(degree + 2) / 2."""
+    centred = np.asarray(points, float) - np.mean(points, axis=0)
+    axes = np.linalg.svd(centred, full_matrices=False)[2][:2]
+    coords = centred @ axes.T
+    lo, hi = coords.min(axis=0), coords.max(axis=0)
+    scaled = 2.0 * (coords - lo) / np.maximum(hi - lo, 1e-12) - 1.0
+    vu = np.polynomial.legendre.legvander(scaled[:, 0], degree)
+    vv = np.polynomial.legendre.legvander(scaled[:, 1], degree)
+    columns = [vu[:, a] * vv[:, b] for a in range(degree + 1) for b in range(degree + 1 - a)]
+    return np.linalg.qr(np.column_stack(columns))[0]
+
+
+def _whiten(gram: np.ndarray) -> np.ndarray:
+    """W (k, r) with W^T gram W = I_r over the directions of a Gram matrix (k, k) above RANK_RTOL of its largest."""
+    if gram.shape[0] == 0:
+        return np.zeros((0, 0))
+    values, vectors = np.linalg.eigh(gram)
+    keep = values > RANK_RTOL**2 * max(float(values.max()), 1e-300)
+    return vectors[:, keep] / np.sqrt(values[keep])
+
+
+def _smooth_split(r: np.ndarray, design: np.ndarray, modes: np.ndarray, weight: np.ndarray, moved: np.ndarray
+                  ) -> tuple[int, np.ndarray, np.ndarray, float, float, float, np.ndarray]:
+    """The residual r (n,) on the seen nodes split by the fitted directions Z (orthonormal span of ``design`` (n, p))
+    and the smooth ones S (orthonormal span of ``modes`` (n, M) outside Z), from Gram matrices only (k x k products,
+    never an n x k factorisation). weight (n,): node variance x correlation; moved (n, 6) registration modes.
+
+    Returns (rank of Z, c = S^T r, S^T diag(weight) S, rough energy |r|^2 - |Z^T r|^2 - |c|^2, tr Z^T diag(weight) Z,
+    the registration's rough energy, S^T moved).
+    """
+    to_z = _whiten(design.T @ design)  # Z = design @ to_z
+    zq = to_z.T @ (design.T @ modes)
+    zr = to_z.T @ (design.T @ r)
+    to_s = _whiten(modes.T @ modes - zq.T @ zq)  # S = (modes - Z zq) @ to_s
+    c = to_s.T @ (modes.T @ r - zq.T @ zr)
+    if np.ptp(weight) <= 1e-12 * weight.max():  # Z and S are orthonormal: their weighted Grams are weight x I
+        fitted_weight, smooth_cov = float(weight[0]) * to_z.shape[1], float(weight[0]) * np.eye(to_s.shape[1])
+    else:
+        weighted = weight[:, None]
+        zwz = to_z.T @ (design.T @ (weighted * design)) @ to_z
+        zwq = to_z.T @ (design.T @ (weighted * modes))
+        inner_q = modes.T @ (weighted * modes) - zq.T @ zwq - zwq.T @ zq + zq.T @ zwz @ zq
+        fitted_weight, smooth_cov = float(np.trace(zwz)), to_s.T @ inner_q @ to_s
+    zm = to_z.T @ (design.T @ moved)
+    projected = to_s.T @ (modes.T @ moved - zq.T @ zm)
+    rough_registration = float(np.sum(moved**2) - np.sum(zm**2) - np.sum(projected**2))
+    return to_z.shape[1], c, smooth_cov, float(r @ r - zr @ zr - c @ c), fitted_weight, rough_registration, projected
+
+
+def node_variance(errors: FieldErrorModel, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
+    """(variance (N,) mm^2, correlation (N,)) the test and the covariance use: the error model's, or unit white
+    noise (level unknown, taken from the residual) for a field that states none."""
+    if errors.kind == "none":
+        return np.ones(n_nodes), np.ones(n_nodes)
+    errors.validate(n_nodes)
+    std = np.asarray(errors.node_std, float)
+    return np.maximum(np.nan_to_num(std) ** 2, VARIANCE_FLOOR_MM2), np.asarray(errors.correlation, float)
+
+
+def check_residual(
+    residual: np.ndarray,
+    design: np.ndarray | None,
+    errors: FieldErrorModel,
+    modes: np.ndarray | None = None,
+    registration: np.ndarray | None = None,
+    model_mm: float = 0.0,
+    alpha: float = DEFAULT_ALPHA,
+) -> ModelCheck:
+    """The one within-model test: is the residual what the field's error model explains?
+
+    residual: (N,) mm, measured - reconstruction, NaN where unseen. design: (N, p) the columns the estimate fitted
+    (the residual is orthogonal to them), None for none. errors: the field's error model (its *shape*: relative node
+    variances and correlation; its registration covariance in absolute terms). modes: (N, M) smooth fields of the
+    skin (:func:`smooth_modes`); registration: (N, 6) the field error per unit pose error (U of
+    :meth:`FieldErrorModel.registration_modes`), None without one. model_mm: the basis' own error (white, mm).
+
+    A missing effect is smooth, noise is not (module docstring). The residual is split into its smooth part c (its
+    coordinates in the modes after the fitted directions are taken out, M' of them) and the rough rest. The rough rest
+    sets the noise level: lambda = rough energy / the energy the error model expects there, so a stated noise that is
+    too large (or too small) does not decide anything. Then q = c^T Cov(c)^-1 c with Cov(c) = lambda Q^T diag(v g) Q
+    + (Q^T U)(Q^T U)^T + model^2 I follows F(M', nu) x M' under the model (nu: effective independent samples of the
+    rough part), and the field is within the model when the upper-tail probability is at least ``alpha``.
+    Without modes (the skin unknown) the rough level itself is tested against the error model's stated level
+    (chi-square, nu dof); a field that states no level is then not testable and is reported within (p = 1, dof 0).
+    """
+    residual = np.asarray(residual, dtype=float)
+    seen, n_seen = _seen(residual, alpha)
+    variance, correlation = node_variance(errors, residual.size)
+    v, g, r = variance[seen], correlation[seen], residual[seen]
+    weight = v * g
+    model2 = float(model_mm) ** 2
+    moved = registration[seen] if registration is not None else np.zeros((n_seen, 0))
+    if modes is not None:
+        parts = _smooth_split(r, np.asarray(design, float)[seen] if design is not None else np.zeros((n_seen, 0)),
+                              modes[seen], weight, moved)
+        n_fitted, c, smooth_cov, rough_energy, fitted_weight, rough_registration, projected = parts
+    else:
+        # the residual of a least-squares fit is orthogonal to the design: no projection needed, and the fitted
+        # directions' expected energy is taken at the mean node weight (exact for a uniform error model)
+        n_fitted = 0 if design is None else int(np.shape(design)[1])
+        c, smooth_cov, projected = np.zeros(0), np.zeros((0, 0)), np.zeros((0, moved.shape[1]))
+        rough_energy, fitted_weight, rough_registration = float(r @ r), n_fitted * float(weight.mean()), 0.0
+    n_removed = n_fitted + c.size
+    expected = float(v.sum()) - fitted_weight - float(np.trace(smooth_cov))
+    scale = max((rough_energy - model2 * max(n_seen - n_removed, 0) - rough_registration)
+                / max(expected, 1e-300), VARIANCE_FLOOR_MM2 / float(v.max()))
+    n_effective = float(np.sum(1.0 / g))
+    nu = max(n_effective * (n_seen - n_removed) / n_seen, 1.0)
+    source = "residual" if errors.kind == "none" else "error model"
+    noise, bias = split_level(scale, errors, float(v.mean()))
+    if c.size == 0:
+        if errors.kind == "none":
+            return ModelCheck(0.0, 0, nu, 1.0, float(alpha), True, scale, source, n_effective, bias)
+        p_value = float(chi2.sf(scale * nu, nu))
+        return ModelCheck(scale * nu, 0, nu, p_value, float(alpha), p_value >= alpha, scale, source, n_effective,
+                          bias)
+    covariance = noise * smooth_cov + (model2 + bias) * np.eye(c.size) + projected @ projected.T
+    statistic = float(c @ np.linalg.solve(covariance, c))
+    m = c.size
+    p_value = float(f.sf(statistic / m, m, nu))
+    return ModelCheck(statistic, m, nu, p_value, float(alpha), p_value >= alpha, scale, source, n_effective, bias)
+
+
+def split_level(scale: float, errors: FieldErrorModel, mean_variance: float) -> tuple[float, float]:
+    """Split the residual-supported level ``scale`` (rough residual variance over the error model's) into the noise
+    scale on the error model's node variances and the bias variance (mm^2 per node, times the bias correlation sum):
+    (noise scale, bias variance x bias_correlation).
+
+    Without a bias term the whole level is noise. With one, noise is at most what the error model states (a level
+    below it is used as it is: a stated noise the residual does not support never hides anything) and the excess
+    is the making's bias, spread over ``bias_correlation`` nodes."""
+    if errors.bias_correlation <= 0:
+        return scale, 0.0
+    return min(scale, 1.0), max(scale - 1.0, 0.0) * mean_variance * errors.bias_correlation
+
+
+class ResidualTest:
+    """The within-model test of :func:`check_residual` on one skin, prepared once (its smooth modes).
+
+    alpha: false-alarm rate; degree: total degree of the smooth modes. ``fit(skin)`` -> self; fitted: modes_ (N, M),
+    points_, normals_ (N, 3). ``check(...)`` judges one residual.
+    """
+
+    def __init__(self, alpha: float = DEFAULT_ALPHA, degree: int = DEFAULT_SMOOTH_DEGREE):
+        self.alpha = alpha
+        self.degree = degree
+
+    def fit(self, skin: SkinSurface) -> ResidualTest:
+        self.points_ = np.asarray(skin.points, float)
+        self.normals_ = np.asarray(skin.normals, float)
+        self.modes_ = smooth_modes(self.points_, self.degree)
+        return self
+
+    def registration(self, errors: FieldErrorModel) -> np.ndarray | None:
+        """(N, 6) field error per unit pose error of ``errors`` on this skin, None without a registration."""
+        return errors.registration_modes(self.points_, self.normals_) if errors.has_pose else None
+
+    def check(self, residual: np.ndarray, design: np.ndarray | None, errors: FieldErrorModel,
+              model_mm: float = 0.0) -> ModelCheck:
+        """:func:`check_residual` with this skin's modes and registration modes and this test's alpha."""
+        return check_residual(residual, design, errors, self.modes_, self.registration(errors), model_mm, self.alpha)

@@ -63,6 +63,10 @@ class RegistrationResult:
     alignment_std_mm: RMS over the skin of the displacement error the corrected directions may carry (noise).
     overlap: fraction of finite scan points (on a subsample) within ``max_distance_mm`` of the nominal skin.
     iterations, converged: of the fine alignment.
+    pose_covariance: (6, 6) covariance of the coarse transform's error as a twist [omega rad (3), t mm (3)] about
+        ``pose_center`` (3,) mm, part frame: sigma_m^2 (sum_k J_k^T J_k)^-1 over the markers (J_k = [-[q_k]x, I],
+        q_k the nominal marker about its centroid), sigma_m the marker noise per coordinate (stated, or from the
+        marker residual with 3K - 6 degrees of freedom); zeros without markers (a nominal pose states none).
     """
 
     transform: np.ndarray
@@ -80,6 +84,20 @@ class RegistrationResult:
     converged: bool
     n_aligned: int
     alignment_std_mm: float
+    pose_covariance: np.ndarray
+    pose_center: np.ndarray
+
+
+def marker_pose_covariance(nominal_mm: np.ndarray, marker_std_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Covariance (6, 6) of a least-squares rigid fit to markers (K, 3) mm with ``marker_std_mm`` noise per
+    coordinate, as a twist [omega rad, t mm] about the markers' centroid; returns (covariance, centroid (3,))."""
+    nominal = np.asarray(nominal_mm, dtype=np.float64)
+    center = nominal.mean(axis=0)
+    q = nominal - center
+    information = np.zeros((6, 6))
+    information[:3, :3] = np.sum(np.sum(q * q, axis=1)) * np.eye(3) - q.T @ q
+    information[3:, 3:] = q.shape[0] * np.eye(3)
+    return marker_std_mm**2 * np.linalg.inv(information), center
 
 
 def _homogeneous(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
@@ -149,16 +167,20 @@ def register_scan(
     tolerance_mm: float = 0.005,
     max_marker_rms_mm: float = 0.5,
     max_iterations: int = 10,
+    marker_std_mm: float | None = None,
 ) -> RegistrationResult:
     """Register finite scan points (M, 3), mm, scanner frame, to the nominal skin; see the module docstring.
 
     tolerance_mm: the fine alignment corrects a rigid-motion direction only if the datum determines it to this RMS
         displacement over the skin.
+    marker_std_mm: the scanner's marker-centre noise per coordinate (mm) for the pose covariance; None: estimated
+        from the marker residual (3K - 6 degrees of freedom).
     Raises ScanError when the markers do not fit each other (RMS above ``max_marker_rms_mm``: wrong matching or a
     moved marker) or a datum mask does not match the skin.
     """
     points = np.asarray(points_mm, dtype=np.float64)
     n_markers, marker_rms = 0, float("nan")
+    pose_covariance, pose_center = np.zeros((6, 6)), np.zeros(3)
     if markers_mm is not None and markers_nominal_mm is not None:
         coarse, marker_rms = rigid_from_markers(markers_mm, markers_nominal_mm)
         n_markers = int(np.asarray(markers_mm).shape[0])
@@ -168,6 +190,10 @@ def register_scan(
                 f"(expected below {max_marker_rms_mm} mm); a marker is mismatched or has moved"
             )
         method = "markers"
+        # K markers (K >= 3) leave 3K - 6 >= 3 degrees of freedom for their noise; marker_rms^2 is sum / K
+        sigma_m = float(marker_std_mm) if marker_std_mm is not None else marker_rms * np.sqrt(
+            n_markers / (3 * n_markers - 6))
+        pose_covariance, pose_center = marker_pose_covariance(markers_nominal_mm, sigma_m)
     elif scanner_pose is not None:
         coarse = np.asarray(scanner_pose, dtype=np.float64)
         if coarse.shape != (4, 4):
@@ -209,6 +235,8 @@ def register_scan(
         converged=fine.converged,
         n_aligned=fine.n_aligned,
         alignment_std_mm=fine.field_std,
+        pose_covariance=pose_covariance,
+        pose_center=pose_center,
     )
 
 

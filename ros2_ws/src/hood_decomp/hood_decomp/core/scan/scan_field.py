@@ -27,6 +27,7 @@ Units: mm throughout. Node order: the skin's.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from concurrent.futures import ThreadPoolExecutor
@@ -38,7 +39,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from hood_decomp.core.scan.registration import RegistrationResult, register_scan
-from hood_decomp.core.types import DisplacementField, SkinSurface
+from hood_decomp.core.types import DisplacementField, FieldErrorModel, SkinSurface
 from hood_decomp.errors import ScanError
 
 logger = logging.getLogger(__name__)
@@ -49,6 +50,10 @@ _MAX_GRID_CELLS = 12_000_000
 _CHUNK_POINTS = 200_000
 # Nominal nodes used for each node's quadric (the node itself included).
 _QUADRIC_NEIGHBOURS = 13
+# How far the smoothing bias is correlated (sum of correlation coefficients, in nodes): measured on the default hood
+# against the FE truth (the bias of noise-free scans projected on smooth fields: 70-260 nodes in one state), and set
+# where the within-model test's false-alarm rate on 120 scans came down (300: 12.5 %; benchmarks/RESULTS.md).
+SMOOTHING_BIAS_CORRELATION = 1000.0
 # Upper triangle of a symmetric 3x3 matrix: xx xy xz yy yz zz.
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
@@ -187,6 +192,7 @@ class ScanFieldEstimator:
         near.eliminate_zeros()
         self.near_kernel_ = near
         self.kernel_columns_ = self.kernel_.tocsc()  # for taking a few cells' outliers back out
+        self.kernel_squared_ = self.kernel_.multiply(self.kernel_).tocsr()  # for the node variances
         return self
 
     def _prepare_moment_maps(self, x: np.ndarray, t1: np.ndarray, t2: np.ndarray) -> None:
@@ -452,7 +458,27 @@ class ScanFieldEstimator:
         inlier[drop] = False
         noise = float(np.sqrt(np.mean(residual[inlier] ** 2))) if inlier.any() else float("nan")
         logger.info("second pass: %d inliers, %d of %d nodes seen", j.size - drop.size, supported.sum(), n)
-        return DisplacementField(self.skin_.model_id, value, float(supported.mean()), noise)
+        errors = self._error_model(cells[:, 0], weight, inflation, supported, noise)
+        return DisplacementField(self.skin_.model_id, value, float(supported.mean()), noise, errors)
+
+    def _error_model(self, counts: np.ndarray, weight: np.ndarray, inflation: np.ndarray, supported: np.ndarray,
+                     noise_mm: float) -> FieldErrorModel:
+        """The node errors this smoothing makes of independent point noise (``noise_mm`` per point, along the normal).
+
+        Node i's value is about sum_p k_i(p) d_p / W_i over the points p of the cells j (n_j points each, kernel
+        weight K_ij, W_i = sum_j K_ij n_j), so Cov(a_i, a_k) = noise^2 sum_j K_ij K_kj n_j / (W_i W_k): the node std
+        is noise sqrt(sum_j K_ij^2 n_j) / W_i, times the square root of the plane fit's intercept inflation (one-sided
+        support), and the correlation sum g_i = sum_k Cov_ik / (s_i s_k) takes two sparse products (no N x N matrix).
+        """
+        if not np.isfinite(noise_mm):
+            return FieldErrorModel.none()
+        with np.errstate(invalid="ignore", divide="ignore"):
+            spread = np.sqrt(self.kernel_squared_ @ counts) / weight  # std per unit point noise, before inflation
+            t = np.where(supported, 1.0 / (weight * spread), 0.0)  # 1 / (W_k s_k)
+            correlation = t * (self.kernel_ @ (counts * (self.kernel_.T @ t)))
+        std = np.where(supported, noise_mm * spread * np.sqrt(np.maximum(inflation, 1.0)), np.nan)
+        return FieldErrorModel("scan", std, np.where(supported, np.maximum(correlation, 1.0), 1.0),
+                               float(self.radius_mm_), bias_correlation=SMOOTHING_BIAS_CORRELATION)
 
 
 _PREPARED: dict[tuple, ScanFieldEstimator] = {}
@@ -514,6 +540,7 @@ def field_from_scan(
     min_coverage: float = 0.2,
     min_overlap: float = 0.02,
     estimator: ScanFieldEstimator | None = None,
+    marker_std_mm: float | None = None,
 ) -> tuple[DisplacementField, RegistrationResult]:
     """A raw scan (M, 3) mm in the scanner frame -> registered -> signed normal displacement per skin node.
 
@@ -527,7 +554,10 @@ def field_from_scan(
         motion over the skin (see register_scan).
     min_coverage: minimum fraction of skin nodes with a value; min_overlap: minimum fraction of scan points on the skin.
     estimator: a fitted ScanFieldEstimator (else one is prepared and cached for this skin).
-    Returns the DisplacementField (paper: the condensed signed distance field) and the RegistrationResult.
+    marker_std_mm: the scanner's marker-centre noise (mm per coordinate), for the registration's pose covariance;
+        None: estimated from the marker residual.
+    Returns the DisplacementField with its error model (node std and correlation of the smoothing, the marker
+    registration's pose covariance) (paper: the condensed signed distance field) and the RegistrationResult.
     Raises ScanError for an empty or all-NaN scan, a scan in metres, no overlap with the part or too little coverage.
     """
     points = _check_points(points_mm, skin)
@@ -540,6 +570,7 @@ def field_from_scan(
         markers_nominal_mm=markers_nominal_mm,
         datum_mask=datum_mask,
         tolerance_mm=datum_tolerance_mm,
+        marker_std_mm=marker_std_mm,
     )
     logger.info("registered by %s: overlap %.1f%%", registration.method, 100.0 * registration.overlap)
     if registration.overlap < min_overlap:
@@ -548,6 +579,10 @@ def field_from_scan(
             f"{est.max_distance_mm} mm of the nominal skin after registration (expected at least {min_overlap:.0%})"
         )
     field = est.field(points, registration.transform)
+    if registration.n_markers and field.error_model is not None and field.error_model.kind == "scan":
+        # the registration error moves the whole part: its covariance travels with the field (FieldErrorModel)
+        field = dataclasses.replace(field, error_model=dataclasses.replace(
+            field.error_model, pose_covariance=registration.pose_covariance, pose_center=registration.pose_center))
     if field.coverage < min_coverage:
         raise ScanError(
             f"scan coverage too low: {field.coverage:.1%} of {skin.n_nodes} skin nodes have support "

@@ -1,0 +1,199 @@
+"""Calibration of the stated uncertainty and of the one within-model test, on data the estimator's path did not make.
+
+Harness (i), measurement, on the default hood (issue 15). Truth: random states in the declared ranges, solved exactly
+by the bases' own FE model (contact included); then
+- ``noise``: the true field plus white node noise 0.01-0.05 mm, the noise stated as the field's error model;
+- ``scan``: the synthetic structured-light scanner (Phong-smooth displaced skin, range noise 0.01-0.05 mm, outliers,
+  dropouts and 0-8 holes, the scanner 0.5 deg / 5 mm off its calibration) registered by 8 fixture markers whose
+  centres carry 0.02-0.05 mm noise, turned into a field by the scan step with its error model;
+- ``undeclared``: scans (0.02 mm point noise, 0.02 mm marker noise) with the fixed right hinge moved in Z by 0.01-0.3
+  mm on top (superposed 3D response of the same FE model), for the detection curve, once with the field's own error
+  model and once with its node noise stated 3 times too large.
+Per parameter: the fraction of |error| / std inside the 95 % interval (|z| <= 1.96) and max |z|, over the parameters
+whose contact state the estimate got right (a lifted pad's value is the part's position, compared with the true
+part position); the false-alarm rate of the test (alpha 1 %); the gate-open rate and the largest error of an
+applied correction when the gate is open.
+
+Prints a table and writes benchmarks/out/uncertainty.json (rewritten as it goes). Run from the repository root:
+    scripts/with-env nice python benchmarks/bench_uncertainty.py [--noise N] [--scans N] [--per-level N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from hood_decomp.core.fe.ensemble import simulate_setting, solve_members  # noqa: E402
+from hood_decomp.core.method.bases import estimate_field  # noqa: E402
+from hood_decomp.core.method.correction import CorrectionPolicy, plan_correction  # noqa: E402
+from hood_decomp.core.scan.scan_field import field_from_scan, prepared_estimator  # noqa: E402
+from hood_decomp.core.types import DisplacementField, FieldErrorModel  # noqa: E402
+from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan  # noqa: E402
+from tests.conftest import _hood_case  # noqa: E402
+
+OUT = ROOT / "benchmarks" / "out" / "uncertainty.json"  # --out to change
+LEVELS_MM = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3)
+Z95 = 1.959964
+
+
+def log(line: str) -> None:
+    print(f"[bench_uncertainty {time.strftime('%H:%M:%S')}] {line}", file=sys.stderr, flush=True)
+
+
+def judge(estimate, member, names) -> dict:
+    """z per parameter where the estimate's contact state matches the truth; the gate; the largest applied error."""
+    n_b = len(names) - member.contact_fraction.shape[1]
+    true_lifted = np.zeros(len(names), bool)
+    true_lifted[n_b:] = member.contact_fraction[0] == 0.0
+    truth = member.effective[0]
+    same = estimate.lifted == true_lifted
+    error = estimate.values - truth
+    z = np.where(same, error / estimate.std, np.nan)
+    correction = plan_correction(estimate, CorrectionPolicy())
+    applied = (~estimate.lifted) & correction.applicable
+    # a correction is -estimate; applying it is wrong by the estimate's error on the commanded state
+    applied_error = float(np.max(np.abs(error[applied]), initial=0.0)) if correction.safe_to_apply else 0.0
+    kinds = sorted({part.split(" = ")[0].split(" uncertainty")[0] + (" range" if " = " in part else " std")
+                    if (" = " in part or " uncertainty" in part) else part.split(" ")[0]
+                    for part in correction.reason.split("; ") if part and "lifted" not in part})
+    return {"z": [None if not np.isfinite(v) else float(v) for v in z], "within": bool(estimate.within_model),
+            "reasons": kinds,
+            "p": estimate.check.p_value, "safe": bool(correction.safe_to_apply), "applied_error_mm": applied_error,
+            "noise_scale": estimate.check.noise_scale}
+
+
+def summary(rows: list[dict], names: tuple[str, ...]) -> dict:
+    out: dict = {"n": len(rows)}
+    if not rows:
+        return out
+    z = np.array([[np.nan if v is None else v for v in row["z"]] for row in rows])
+    per = {}
+    for i, name in enumerate(names):
+        col = z[:, i][np.isfinite(z[:, i])]
+        per[name] = {"n": int(col.size), "inside_95": float(np.mean(np.abs(col) <= Z95)) if col.size else None,
+                     "max_abs_z": float(np.max(np.abs(col))) if col.size else None}
+    out["per_parameter"] = per
+    out["false_alarm_rate"] = float(np.mean([not r["within"] for r in rows]))
+    out["gate_open_rate"] = float(np.mean([r["safe"] for r in rows]))
+    out["max_applied_error_mm"] = float(max(r["applied_error_mm"] for r in rows))
+    kinds = [kind for r in rows for kind in r["reasons"]]
+    out["gate_closed_by"] = {kind: kinds.count(kind) for kind in sorted(set(kinds))}
+    return out
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--noise", type=int, default=1000, help="noise-only fields")
+    parser.add_argument("--scans", type=int, default=200, help="scans of harness (i)")
+    parser.add_argument("--per-level", type=int, default=20, help="undeclared-effect scans per hinge_R.z level")
+    parser.add_argument("--points", type=int, default=500_000, help="scan points on the skin")
+    parser.add_argument("--seed", type=int, default=15)
+    parser.add_argument("--out", type=Path, default=OUT, help="JSON written as the run goes")
+    args = parser.parse_args()
+    rng = np.random.default_rng(args.seed)
+    log("building the default hood, its ensemble and bases")
+    with tempfile.TemporaryDirectory() as tmp:
+        case = _hood_case("default", Path(tmp))
+    bases, reduced, skin = case.bases, case.reduced, case.skin
+    names = bases.names
+    lo, hi = bases.pca.lower_, bases.pca.upper_
+    results: dict = {"date": time.strftime("%Y-%m-%d"), "names": list(names), "args": vars(args)}
+
+    def save() -> None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(results, indent=1, default=str))
+
+    def member_of(state):
+        return solve_members(reduced, state[None])
+
+    log(f"{args.noise} noise-only fields")
+    rows = []
+    for _ in range(args.noise):
+        member = member_of(rng.uniform(lo, hi))
+        sigma = rng.uniform(0.01, 0.05)
+        values = member.normal_displacement[0] + rng.normal(0.0, sigma, skin.n_nodes)
+        field = DisplacementField(skin.model_id, values, 1.0, float("nan"), FieldErrorModel.stated(sigma, skin.n_nodes))
+        rows.append(judge(estimate_field(bases, field), member, names))
+    results["noise"] = summary(rows, names)
+    save()
+
+    est = prepared_estimator(skin)
+
+    def scan(state, noise, marker_noise, extra_3d=None, holes=None):
+        member = member_of(state)
+        displacement = member.displacement[0] + (0.0 if extra_3d is None else extra_3d)
+        n_holes = int(rng.integers(0, 9)) if holes is None else holes
+        config = ScannerConfig(n_points=args.points, noise_mm=noise, marker_noise_mm=marker_noise, n_holes=n_holes)
+        synthetic = synthesize_scan(skin, displacement, config, seed=int(rng.integers(1 << 30)))
+        field, _ = field_from_scan(skin, synthetic.points, markers_mm=synthetic.markers,
+                                   markers_nominal_mm=synthetic.markers_nominal, estimator=est)
+        return member, field
+
+    log(f"{args.scans} scans of harness (i)")
+    rows, start = [], time.time()
+    for k in range(args.scans):
+        member, field = scan(rng.uniform(lo, hi), rng.uniform(0.01, 0.05), rng.uniform(0.02, 0.05))
+        rows.append(judge(estimate_field(bases, field), member, names))
+        if (k + 1) % 10 == 0:
+            results["scan"] = summary(rows, names)
+            save()
+            done = results["scan"]
+            log(f"scan {k + 1}: {(time.time() - start) / (k + 1):.1f} s per scan, "
+                f"false alarms {done['false_alarm_rate']:.3f}, gate open {done['gate_open_rate']:.3f}")
+    results["scan"] = summary(rows, names)
+    save()
+
+    log("undeclared hinge_R.z: the FE response to a unit move")
+    solver = case.solver
+    unit = simulate_setting(solver, {"hinge_R.z": 1.0}).displacement - simulate_setting(solver, {}).displacement
+    curve = []
+    for level in LEVELS_MM:
+        detected = detected_inflated = safe = 0
+        worst = 0.0
+        for _ in range(args.per_level):
+            member, field = scan(rng.uniform(lo, hi), 0.02, 0.02, extra_3d=level * unit, holes=3)
+            estimate = estimate_field(bases, field)
+            detected += not estimate.within_model
+            correction = plan_correction(estimate)
+            safe += correction.safe_to_apply
+            if correction.safe_to_apply:
+                applied = ~estimate.lifted
+                worst = max(worst, float(np.max(np.abs((estimate.values - member.effective[0])[applied]))))
+            inflated = dataclasses.replace(field, noise_rms=3 * field.noise_rms, error_model=dataclasses.replace(
+                field.error_model, node_std=3 * field.error_model.node_std))
+            detected_inflated += not estimate_field(bases, inflated).within_model
+        curve.append({"hinge_R.z_mm": level, "n": args.per_level, "detected": detected / args.per_level,
+                      "detected_with_noise_stated_3x": detected_inflated / args.per_level,
+                      "gate_open": safe / args.per_level, "max_error_when_open_mm": worst})
+        results["detection"] = curve
+        save()
+        log(f"hinge_R.z {level} mm: detected {detected}/{args.per_level}, with 3x stated noise "
+            f"{detected_inflated}/{args.per_level}, gate open {safe}")
+
+    print(f"{'set':<8} {'param':<10} {'n':>5} {'in 95%':>7} {'max|z|':>7}")
+    for key in ("noise", "scan"):
+        if not results[key].get("n"):
+            continue
+        for name, row in results[key].get("per_parameter", {}).items():
+            print(f"{key:<8} {name:<10} {row['n']:>5} {row['inside_95'] or float('nan'):>7.3f} "
+                  f"{row['max_abs_z'] or float('nan'):>7.2f}")
+        print(f"{key:<8} false alarms {results[key]['false_alarm_rate']:.3f}, gate open "
+              f"{results[key]['gate_open_rate']:.3f}, max applied error {results[key]['max_applied_error_mm']:.4f} mm")
+    for row in curve:
+        print(f"hinge_R.z {row['hinge_R.z_mm']:>5} mm: detected {row['detected']:.2f} "
+              f"(3x stated noise {row['detected_with_noise_stated_3x']:.2f}), gate open {row['gate_open']:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
