@@ -9,7 +9,9 @@ HELP = "write a part model (model.yaml + mesh.vtu) from a built-in preset"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--preset", choices=["hood"], default="hood", help="built-in model (default: hood)")
+    parser.add_argument("--preset", choices=["hood", "hood-paper"], default="hood",
+                        help="built-in model: hood (default; preloaded rubber-pad buffers, effective states) or "
+                        "hood-paper (the paper's boundary physics: rigid unilateral buffers, commanded states)")
     parser.add_argument("--resolution", choices=["coarse", "default", "paper"], default="default",
                         help="mesh resolution: coarse (~1.4k nodes, tests), default (~30k skin nodes), "
                         "paper (>= 188,559 skin nodes)")
@@ -17,10 +19,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hood_decomp.core.fe.hood_preset import build_hood
+    from hood_decomp.core.fe.hood_preset import build_preset
     from hood_decomp.io.model_files import save_model
 
-    model = build_hood(args.resolution)
+    model = build_preset(args.preset, args.resolution)
     path = save_model(model, args.out)
     print(f"wrote {path}: {len(model.nodes)} nodes, {len(model.cells)} shells, {len(model.skin_nodes)} skin nodes, "
           f"parameters {', '.join(model.names)}; model_id {model.model_id}", file=sys.stderr)

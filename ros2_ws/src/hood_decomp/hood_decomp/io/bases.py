@@ -130,6 +130,8 @@ def load_bases(path: str | Path) -> Bases:
                     values["names"] = _strings(group["names"])
                 elif item.name in group:
                     values[item.name] = group[item.name][()]
+                elif item.name == "parameter_states":  # files written before hood-paper: the only convention then
+                    values[item.name] = str(group.attrs.get(item.name, "effective"))
                 else:
                     values[item.name] = group.attrs[item.name]
             values["model_id"] = str(values["model_id"])

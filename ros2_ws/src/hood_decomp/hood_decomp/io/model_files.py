@@ -10,6 +10,8 @@ model.yaml (format hood_decomp.model, version 1)::
     skin_part: outer_skin          # the visible outer skin
     material: {E: 210000.0, nu: 0.3, density: 7.85e-9}    # MPa, -, t/mm^3; optional, default core.fe.model.Material
     gravity: [0.0, 0.0, -9810.0]   # mm/s^2; optional, default core.fe.model.GRAVITY
+    parameter_states: effective    # optional: effective (default; a lifted buffer's state is the part's position
+                                   # there) or commanded (the paper's convention, preset hood-paper)
     parts:                         # order = the mesh's 'part' index
       - {name: outer_skin, thickness: 0.7}                 # mm
     boundaries:
@@ -71,6 +73,7 @@ def save_model(model: PartModel, directory: str | Path) -> Path:
         "skin_part": model.skin_part,
         "material": {"E": model.material.E, "nu": model.material.nu, "density": model.material.density},
         "gravity": [float(g) for g in model.gravity],
+        "parameter_states": model.parameter_states,
         "parts": [{"name": p.name, "thickness": float(p.thickness)} for p in model.parts],
         "boundaries": [_boundary_dict(b) for b in model.boundaries],
         "parameters": [
@@ -173,6 +176,7 @@ def _read(path: str | Path) -> tuple[PartModel, dict]:
         parameters=tuple(_parameter(entry) for entry in document.get("parameters") or []),
         skin_part=str(_required(document, "skin_part", "model")),
         gravity=np.asarray(document.get("gravity", GRAVITY), dtype=float),
+        parameter_states=str(document.get("parameter_states", "effective")),
     )
     validate_model(model)
     return model, document

@@ -374,6 +374,7 @@ def condense(model: PartModel, pads: PadSprings, columns: np.ndarray, pad_column
         w0_3d=w3[:, :, 0].copy(),
         R_3d=w3[:, :, 1:].copy(),
         G_3d=g3.copy(),
+        parameter_states=model.parameter_states,
     )
 
 
