@@ -13,6 +13,8 @@ import yaml
 from hood_decomp.cli import main
 from hood_decomp.core.fe.ensemble import factorial_plan, solve_members
 from hood_decomp.core.fe.hood_preset import RIGID_PAD_STIFFNESS, build_hood, build_hood_paper
+from hood_decomp.core.fe.solver import retarget_pads
+from hood_decomp.errors import ModelError
 from hood_decomp.io.bases import load_bases
 from hood_decomp.io.model_files import load_model
 
@@ -77,6 +79,17 @@ def test_contact_solution_against_a_direct_solve(coarse_hood_paper) -> None:
     # response with no buffer at all
     assert np.allclose(case.ensemble.normal_displacement[0], reduced.w0, atol=1e-12)
     assert case.ensemble.contact_fraction[0].tolist() == [0.0, 0.0]
+
+
+def test_retargeted_pads_equal_a_fresh_reduction(coarse_hood, coarse_hood_paper) -> None:
+    """Fails if retarget_pads (hood-paper's reduced model from the default hood's, no solve) differs from a full
+    reduction of hood-paper, or accepts a model whose pads are laid out otherwise."""
+    retargeted = retarget_pads(coarse_hood.reduced, coarse_hood_paper.model)
+    fresh = coarse_hood_paper.reduced
+    assert retargeted.parameter_states == "commanded" and np.array_equal(retargeted.k, fresh.k)
+    assert np.array_equal(retargeted.preload, fresh.preload) and np.allclose(retargeted.G, fresh.G, atol=1e-12)
+    with pytest.raises(ModelError, match="another layout"):
+        retarget_pads(coarse_hood.reduced, coarse_hood_paper.model, pad_lattice=3)
 
 
 def test_states_are_commanded_with_the_lifted_flag_kept(coarse_hood_paper, coarse_hood) -> None:

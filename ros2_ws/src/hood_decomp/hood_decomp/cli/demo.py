@@ -12,6 +12,8 @@ LOG_FORMAT = "[demo %(asctime)s] %(message)s"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("out/demo"), help="report directory")
+    parser.add_argument("--preset", choices=("hood", "hood-paper"), default="hood",
+                        help="built-in model (default: hood; hood-paper: the paper's boundary physics)")
     parser.add_argument("--resolution", choices=("coarse", "default", "paper"), default="default",
                         help="hood mesh resolution (default: default)")
     parser.add_argument("--validation", type=int, default=1400, help="validation members (default 1400)")
@@ -21,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from hood_decomp.demo.run import DemoConfig, run_demo
 
-    path = run_demo(DemoConfig(out=args.out, resolution=args.resolution, n_validation=args.validation,
-                               scan_points=args.scan_points))
+    path = run_demo(DemoConfig(out=args.out, preset=args.preset, resolution=args.resolution,
+                               n_validation=args.validation, scan_points=args.scan_points))
     print(f"hood-decomp demo: report written to {path.resolve()}", file=sys.stderr)
     return 0
