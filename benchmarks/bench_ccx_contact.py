@@ -31,7 +31,7 @@ OUT = Path(__file__).resolve().parent / "out"
 
 
 def main() -> None:
-    from hood_decomp.core.fe.calculix import run_member_job, write_member_deck
+    from hood_decomp.core.fe.calculix import check_contact_set, run_member_job, write_member_deck
     from hood_decomp.core.fe.ensemble import factorial_plan, solve_members
     from hood_decomp.core.fe.hood_preset import build_preset
     from hood_decomp.core.fe.model import patch_nodes, skin_surface
@@ -52,14 +52,12 @@ def main() -> None:
     reduced = reduce_model(solver)
     skin = skin_surface(model)
     names = model.names
-    B = reduced.n_bilateral
     commanded, rank = factorial_plan(model.lower, model.upper)
     rng = np.random.default_rng(0)
     pick = np.concatenate([np.flatnonzero(rank <= 1),
                            rng.choice(np.flatnonzero((rank == 2) | (rank == 3)), args.rank23, replace=False)])
     patches = [patch_nodes(model, model.boundary(p.boundary)) for p in model.unilateral]
-    spring_nodes = [np.unique(solver.pads.loads[:, k].indices // 6) for k in range(len(reduced.k))]
-    if any(len(n) != 1 for n in spring_nodes):
+    if any(len(solver.pads.loads[:, k].indices) != 3 for k in range(len(reduced.k))):
         raise SystemExit("a pad spring holds several nodes: the node-wise comparison needs the coarse hood")
 
     def ccx_member(state: np.ndarray, **options) -> tuple[np.ndarray, dict[int, np.ndarray], np.ndarray, float]:
@@ -75,40 +73,28 @@ def main() -> None:
     reference = None
     for index, member in enumerate(pick):
         state = commanded[member]
-        forces = ours_all.pad_forces[index]
-        touching = []
-        for u, nodes in enumerate(patches):
-            pushed = [spring_nodes[k][0] for k in np.flatnonzero((reduced.pad_of == u) & (forces > 0))]
-            touching.append(np.isin(nodes, pushed))
-        normal, reactions, displacement, seconds = ccx_member(state, buffers="held", nlgeom=False, touching=touching)
+        start = time.perf_counter()
+        check = check_contact_set(model, state, ours_all.pad_forces[index], skin.normals)
+        seconds = time.perf_counter() - start
         ours = ours_all.normal_displacement[index]
         if reference is None:
             assert rank[member] == 0
-            reference = (ours, normal)
+            reference = (ours, check.normal)
         row = {"member": int(member), "rank": int(rank[member]),
                "setting": {n: float(v) for n, v in zip(names, state, strict=True) if v != 0}, "ccx_s": seconds}
-        response_ours, response_ccx = ours - reference[0], normal - reference[1]
+        response_ours, response_ccx = ours - reference[0], check.normal - reference[1]
         peak = float(np.abs(response_ours).max())
         row["response_peak_mm"] = peak
         row["response_max_diff_mm"] = float(np.abs(response_ccx - response_ours).max())
         row["response_diff_of_peak"] = row["response_max_diff_mm"] / peak if peak > 0 else float("nan")
-        row["member_max_diff_of_peak"] = float(np.abs(normal - ours).max() / np.abs(ours).max())
-        lifted_ours, held_reaction_min, free_gap_min, reaction_sum = [], [], [], []
-        for u, nodes in enumerate(patches):
-            position = state[B + u]
-            rz = np.array([reactions[n][2] for n in nodes[touching[u]]])
-            gap = displacement[nodes[~touching[u]], 2] - position
-            lifted_ours.append(not touching[u].any())
-            held_reaction_min.append(float(rz.min()) if rz.size else float("nan"))
-            free_gap_min.append(float(gap.min()) if gap.size else float("nan"))
-            reaction_sum.append((float(rz.sum()) if rz.size else 0.0, float(ours_all.reactions[index, u])))
-        row.update(lifted=lifted_ours, held_reaction_min_N=held_reaction_min, free_gap_min_mm=free_gap_min,
-                   reaction_ccx_vs_ours_N=reaction_sum)
-        # the contact state is certified when held nodes push (a pull below 2 % of the pad's load is the node-wise
-        # discretisation of a contact edge) and free nodes stay above the buffer (1e-3 mm)
-        row["contact_certified"] = bool(all(
-            (np.isnan(r) or r >= -0.02 * max(s[1], 1.0)) and (np.isnan(g) or g >= -1e-3)
-            for r, g, s in zip(held_reaction_min, free_gap_min, reaction_sum, strict=True)))
+        row["member_max_diff_of_peak"] = float(np.abs(check.normal - ours).max() / np.abs(ours).max())
+        row.update(lifted=[not t.any() for t in check.touching],
+                   held_reaction_min_N=check.held_reaction_min.tolist(), free_gap_min_mm=check.free_gap_min.tolist(),
+                   reaction_ccx_vs_ours_N=list(zip(check.reaction.tolist(), ours_all.reactions[index].tolist(),
+                                                   strict=True)))
+        # certified: no held node pulls by more than 2 % of the largest buffer load (a contact edge, node-wise) and
+        # no free node sinks below its buffer by 1e-3 mm
+        row["contact_certified"] = check.certified(0.02 * max(float(ours_all.reactions[index].max()), 1.0))
         rows.append(row)
         log.info("member %d (rank %d) %s: response diff %.2f %% of %.3f mm, certified %s, %.0f s", member,
                  rank[member], row["setting"], 100 * row["response_diff_of_peak"], peak, row["contact_certified"],

@@ -348,3 +348,60 @@ def run_member_job(deck: str, n_nodes: int, workdir: str | None = None, timeout:
     with tempfile.TemporaryDirectory(prefix="ccx_member_", dir=workdir) as directory:
         job = _run_ccx(deck, "member", directory, timeout, None)
         return read_dat_displacements(job.with_suffix(".dat"), n_nodes), read_dat_reactions(job.with_suffix(".dat"))
+
+
+@dataclass(frozen=True)
+class ContactCheck:
+    """A member solved by CalculiX with the contact set of an LCP solution held (:func:`check_contact_set`).
+
+    normal: (N,) mm skin normal displacement. touching: per unilateral boundary, (patch nodes,) bool, the held nodes.
+    reaction: (U,) N, CalculiX's total reaction of each buffer along its axis. held_reaction_min: (U,) N, the
+    smallest reaction of a held node (NaN: none held). free_gap_min: (U,) mm, the smallest clearance of a free pad
+    node above its buffer (NaN: none free). The contact set is CalculiX's solution too when held nodes push and free
+    nodes clear (Signorini); ``certified(tolerance_n, tolerance_mm)`` says whether they do.
+    """
+
+    normal: np.ndarray
+    touching: tuple[np.ndarray, ...]
+    reaction: np.ndarray
+    held_reaction_min: np.ndarray
+    free_gap_min: np.ndarray
+
+    def certified(self, tolerance_n: float, tolerance_mm: float = 1e-3) -> bool:
+        """True when no held node pulls by more than ``tolerance_n`` N and no free node sinks by ``tolerance_mm``."""
+        pulls = np.nan_to_num(self.held_reaction_min, nan=0.0) >= -tolerance_n
+        sinks = np.nan_to_num(self.free_gap_min, nan=0.0) >= -tolerance_mm
+        return bool(np.all(pulls & sinks))
+
+
+def check_contact_set(model: PartModel, state: np.ndarray, pad_forces: np.ndarray, normals: np.ndarray,
+                      pad_lattice: int = PAD_LATTICE, workdir: str | None = None) -> ContactCheck:
+    """Solve member ``state`` (P,) mm with CalculiX (linear, S8R) holding the nodes of every pad spring that pushes
+    in ``pad_forces`` (S,) N (an LCP solution of the embedded solver) at the commanded buffer position, the other pad
+    nodes free. ``normals`` (N, 3): the skin's unit normals. Exact like for like where each spring holds one node (the
+    coarse hood); where a spring averages several, holding all of them is stiffer. Raises SolverError."""
+    pads = pad_springs(model, pad_lattice)
+    pad_forces = np.asarray(pad_forces, dtype=float)
+    if pad_forces.shape != pads.k.shape:
+        raise SolverError(f"expected {len(pads.k)} pad spring forces, got {pad_forces.shape}")
+    patches = [patch_nodes(model, model.boundary(p.boundary)) for p in model.unilateral]
+    touching = []
+    for u, nodes in enumerate(patches):
+        pushing = [pads.loads[:, k].indices // 6 for k in np.flatnonzero((pads.pad_of == u) & (pad_forces > 0))]
+        touching.append(np.isin(nodes, np.concatenate(pushing)) if pushing else np.zeros(len(nodes), dtype=bool))
+    with tempfile.TemporaryDirectory(dir=workdir) as directory:
+        deck = write_member_deck(model, state, Path(directory) / "deck.inp", "held", nlgeom=False,
+                                 touching=touching).read_text()
+    u, reactions = run_member_job(deck, len(model.nodes), workdir)
+    n_bilateral = len(model.bilateral)
+    reaction, held_min, gap_min = [], [], []
+    for index, (parameter, nodes) in enumerate(zip(model.unilateral, patches, strict=True)):
+        axis = np.asarray(model.boundary(parameter.boundary).axis, dtype=float)
+        held = touching[index]
+        rz = np.array([reactions[n] @ axis for n in nodes[held]])
+        gap = u[nodes[~held]] @ axis - state[n_bilateral + index]
+        reaction.append(rz.sum() if rz.size else 0.0)
+        held_min.append(rz.min() if rz.size else np.nan)
+        gap_min.append(gap.min() if gap.size else np.nan)
+    normal = np.einsum("na,na->n", u[model.skin_nodes], normals)
+    return ContactCheck(normal, tuple(touching), np.array(reaction), np.array(held_min), np.array(gap_min))
