@@ -135,5 +135,6 @@ def plot_interaction_map(interactions: InteractionMap, path: str | Path, title: 
         ax.axhline(2 * k - 0.5, color="white", linewidth=1.5)
         ax.axvline(2 * k - 0.5, color="white", linewidth=1.5)
     fig.colorbar(image, ax=ax, label="max |interaction| over the skin (mm)")
-    ax.set_title(f"{title}\n(red: at or above epsilon = {epsilon:g} mm)", fontsize=10)
+    ax.set_title(f"{title}\n(red: at or above epsilon = {epsilon:g} mm; an effect only where the single effects "
+                 "cannot carry it)", fontsize=9)
     return save_figure(fig, path)
