@@ -29,15 +29,15 @@ class HoodCase:
     bases_path: pathlib.Path
 
 
-def _hood_case(resolution: str, directory: pathlib.Path) -> HoodCase:
+def _hood_case(resolution: str, directory: pathlib.Path, preset: str = "hood") -> HoodCase:
     from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble
-    from hood_decomp.core.fe.hood_preset import build_hood
+    from hood_decomp.core.fe.hood_preset import build_preset
     from hood_decomp.core.fe.model import skin_surface
     from hood_decomp.core.fe.solver import build_solver, reduce_model
     from hood_decomp.core.method.bases import build_bases
     from hood_decomp.io.bases import save_bases
 
-    model = build_hood(resolution)
+    model = build_preset(preset, resolution)
     skin = skin_surface(model)
     solver = build_solver(model)
     reduced = reduce_model(solver)
@@ -53,6 +53,12 @@ def _hood_case(resolution: str, directory: pathlib.Path) -> HoodCase:
 def coarse_hood(tmp_path_factory: pytest.TempPathFactory) -> HoodCase:
     """Coarse hood (4,736 skin nodes): FE, method and node tests on fields."""
     return _hood_case("coarse", tmp_path_factory.mktemp("coarse_hood"))
+
+
+@pytest.fixture(scope="session")
+def coarse_hood_paper(tmp_path_factory: pytest.TempPathFactory) -> HoodCase:
+    """Coarse hood-paper (the paper's boundary physics: rigid unilateral buffers, commanded states)."""
+    return _hood_case("coarse", tmp_path_factory.mktemp("coarse_hood_paper"), preset="hood-paper")
 
 
 @pytest.fixture(scope="session")

@@ -14,6 +14,8 @@ LOG_FORMAT = "[demo %(asctime)s] %(message)s"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("out/demo"), help="report directory")
+    parser.add_argument("--preset", choices=("hood", "hood-paper"), default="hood",
+                        help="built-in model (default: hood; hood-paper: the paper's boundary physics)")
     parser.add_argument("--resolution", choices=("coarse", "default", "paper"), default="default",
                         help="hood mesh resolution (default: default)")
     parser.add_argument("--validation", type=finite(0, 100_000, integer=True), default=1400,
@@ -27,7 +29,7 @@ def run(args: argparse.Namespace) -> int:
 
     check_output(args.out, (), directory=True, parents=True)
 
-    path = run_demo(DemoConfig(out=args.out, resolution=args.resolution, n_validation=args.validation,
-                               scan_points=args.scan_points))
+    path = run_demo(DemoConfig(out=args.out, preset=args.preset, resolution=args.resolution,
+                               n_validation=args.validation, scan_points=args.scan_points))
     print(f"hood-decomp demo: report written to {path.resolve()}", file=sys.stderr)
     return 0

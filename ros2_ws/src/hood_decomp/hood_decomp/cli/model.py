@@ -11,7 +11,9 @@ HELP = "write a part model (model.yaml + mesh.vtu) from a built-in preset"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--preset", choices=["hood"], default="hood", help="built-in model (default: hood)")
+    parser.add_argument("--preset", choices=["hood", "hood-paper"], default="hood",
+                        help="built-in model: hood (default; preloaded rubber-pad buffers, effective states) or "
+                        "hood-paper (the paper's boundary physics: rigid unilateral buffers, commanded states)")
     parser.add_argument("--resolution", choices=["coarse", "default", "paper"], default="default",
                         help="mesh resolution: coarse (~1.4k nodes, tests), default (~30k skin nodes), "
                         "paper (>= 188,559 skin nodes)")
@@ -19,11 +21,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hood_decomp.core.fe.hood_preset import build_hood
+    from hood_decomp.core.fe.hood_preset import build_preset
     from hood_decomp.io.model_files import MODEL_FILE, save_model
 
     out = check_output(args.out, (), directory=True)
-    model = build_hood(args.resolution)
+    model = build_preset(args.preset, args.resolution)
     with written_whole_directory(out) as temporary:
         save_model(model, temporary)
     path = out / MODEL_FILE

@@ -197,6 +197,8 @@ class ReducedModel:
     z0: (S,), Sa: (S, B), H: (S, S) symmetric positive semi-definite pad compliance, mm/N.
     k: (S,) pad spring stiffness, N/mm. preload: (S,) mm. pad_of: (S,) int, index into the unilateral parameters.
     w0_3d, R_3d, G_3d: the same responses as 3D vectors, shapes (N, 3), (N, 3, B), (N, 3, S).
+    parameter_states: "effective" or "commanded", the state an ensemble records for a lifted unilateral boundary
+    (Ensemble.effective; the part model's ``parameter_states``).
     """
 
     model_id: str
@@ -214,6 +216,7 @@ class ReducedModel:
     w0_3d: np.ndarray
     R_3d: np.ndarray
     G_3d: np.ndarray
+    parameter_states: str = "effective"
 
 
 @dataclass(frozen=True)
@@ -317,7 +320,9 @@ class Ensemble:
     commanded: (M, P) commanded parameter states, mm.
     effective: (M, P) effective states, mm: equal to ``commanded`` except for a lifted unilateral boundary (no pad
         spring in contact), where it is the part's position there, min_k(z_k - preload_k) over that pad's springs,
-        i.e. the commanded position at which the pad would just touch; commanded <= effective then.
+        i.e. the commanded position at which the pad would just touch; commanded <= effective then. A model with
+        ``parameter_states: commanded`` (the paper's convention, preset hood-paper) records the commanded state
+        there too: effective == commanded, and contact_fraction == 0 keeps the lifted flag.
     contact_fraction: (M, U) fraction of each pad's springs in contact, 0 = lifted, 1 = full contact.
     reactions: (M, U) total pad force per unilateral boundary, N (>= 0).
     rank: (M,) number of non-zero commanded parameters (Table 1); -1 for random validation members.

@@ -26,9 +26,11 @@ PAPER_TABLE3_S = {
 
 @dataclass(frozen=True)
 class DemoConfig:
-    """out: report directory; resolution: hood mesh; n_validation: validation members; scan_points: per scan."""
+    """out: report directory; preset: built-in model (hood | hood-paper); resolution: hood mesh; n_validation:
+    validation members; scan_points: per scan."""
 
     out: pathlib.Path
+    preset: str = "hood"
     resolution: str = "default"
     n_validation: int = 1400
     scan_points: int = 1_000_000

@@ -19,7 +19,8 @@ def build_report(state: Any, paper_seconds: dict[str, float]) -> Report:
     model, bases = data["model"], data["bases"]
     report = Report(
         "hood_decomp: scanned deviations of the hood, decomposed",
-        f"Built-in hood at '{config.resolution}' resolution, {len(model.skin_nodes):,} visible skin nodes; "
+        f"Built-in preset '{config.preset}' at '{config.resolution}' resolution, {len(model.skin_nodes):,} visible "
+        "skin nodes; "
         f"generated {state.timer.seconds and 'in ' + format(sum(state.timer.seconds.values()), '.0f') + ' s'} "
         "by hood-decomp demo. Lengths in mm.",
     )
@@ -60,6 +61,20 @@ def build_report(state: Any, paper_seconds: dict[str, float]) -> Report:
                    for name, mask, rank in zip(hierarchical.effect_names_, hierarchical.effect_mask_,
                                                hierarchical.effect_rank_, strict=True)],
                   "Effects of the hierarchical basis, in the order the greedy algorithm found them")
+
+    section = report.section("Where the parameters interact")
+    section.text("For every pair of parameters and every sign: the largest |u(a_i + a_j) - u(a_i) - u(a_j) + u0| "
+                 "over the skin, from the rank 0-2 members (zero for a part that responds additively). The "
+                 "hierarchical basis adds an interaction effect only where a rank-2 member is farther than epsilon "
+                 "from the span of the effects found so far; a large interaction whose shape the single effects "
+                 "already carry (a buffer's reaction, for instance) adds none.")
+    section.figures(state.figures.get("interactions", []), state.out)
+    maps = data["interaction_maps"]
+    top = {preset: m.rows()[:8] for preset, m in maps.items()}
+    section.table(["preset", "pair (sign: + max, - min)", "max |interaction| (mm)"],
+                  [(preset, f"{a}{sa} & {b}{sb}", _fmt(peak)) for preset, rows in top.items()
+                   for a, sa, b, sb, peak in rows],
+                  "The eight largest interactions of each preset")
 
     section = report.section("How accurate the estimates are (validation set)")
     rows = []

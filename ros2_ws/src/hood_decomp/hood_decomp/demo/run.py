@@ -1,10 +1,11 @@
 """The main job: the whole system on the built-in hood, ending in ``DIR/index.html``.
 
-Steps (each timed and shown on the terminal): hood model -> solver and ensemble (729 training + validation members)
--> PCA and hierarchical bases, validated on the validation set -> synthetic scans with known truth (clean, noisy,
-occluded, one with an undeclared effect) written as a bag -> bag replayed through the three ROS nodes running as
-separate processes, their output recorded -> close the loop on the undeclared scan -> the report. Progress goes to
-the ``hood_decomp`` loggers (``hood-decomp demo`` prints it).
+Steps (each timed and shown on the terminal): hood model (preset hood or hood-paper) -> solver and ensemble (729
+training + validation members) -> PCA and hierarchical bases -> the interaction maps of both presets -> validation on
+the validation set -> synthetic scans with known truth (clean, noisy, occluded, one with an undeclared effect)
+written as a bag -> bag replayed through the three ROS nodes running as separate processes, their output recorded ->
+close the loop on the undeclared scan -> the report. Progress goes to the ``hood_decomp`` loggers (``hood-decomp
+demo`` prints it).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ def run_demo(config: DemoConfig) -> pathlib.Path:
         ("solver: assembly and one factorisation", steps.build_solver_and_reduce),
         ("ensemble: 729 training + validation members", steps.build_ensemble),
         ("bases: PCA and hierarchical", steps.build_bases_step),
+        ("interaction maps of both presets", steps.interaction_maps),
         ("validation of the estimators on the validation set", steps.validate),
         ("synthetic scans and scenario bag", steps.make_scans),
         ("replay through the three ROS nodes", steps.replay),

@@ -36,11 +36,11 @@ class DemoState:
 
 
 def build_model(state: DemoState) -> None:
-    from hood_decomp.core.fe.hood_preset import build_hood
+    from hood_decomp.core.fe.hood_preset import build_preset
     from hood_decomp.core.fe.model import skin_surface
     from hood_decomp.io.model_files import save_model
 
-    model = build_hood(state.config.resolution)
+    model = build_preset(state.config.preset, state.config.resolution)
     state.data.update(model=model, skin=skin_surface(model))
     save_model(model, state.out / "model")
     state.figure("model", report_plots.plot_model(model, state.out / "figures" / "model.png"),
@@ -78,6 +78,33 @@ def build_bases_step(state: DemoState) -> None:
     state.figure("bases", plots.plot_explained_variance(bases.pca.explained_variance_ratio_,
                                                         state.out / "figures" / "explained_variance.png"),
                  "Explained variance of the first ten principal components (paper Fig. 8)")
+
+
+def interaction_maps(state: DemoState) -> None:
+    """The interaction map of both presets (the demo's from its training ensemble; the other's from the same solver
+    with its buffers retargeted, rank 0-2 members only: no second factorisation)."""
+    from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble
+    from hood_decomp.core.fe.hood_preset import PRESETS, build_preset
+    from hood_decomp.core.fe.solver import retarget_pads
+    from hood_decomp.core.method.interactions import interaction_map
+
+    data, config = state.data, state.config
+    maps = {config.preset: interaction_map(data["training"])}
+    for preset in PRESETS:
+        if preset not in maps:
+            model = build_preset(preset, config.resolution)
+            reduced = retarget_pads(data["reduced"], model)
+            commanded, rank = factorial_plan(model.lower, model.upper)
+            keep = rank <= 2
+            maps[preset] = interaction_map(simulate_ensemble(reduced, commanded[keep], rank[keep], model.lower,
+                                                             model.upper))
+    epsilon = data["bases"].hierarchical.epsilon_
+    for preset, interactions in maps.items():
+        state.figure("interactions", plots.plot_interaction_map(
+            interactions, state.out / "figures" / f"interactions_{preset}.png",
+            f"{preset}: max |u(a_i + a_j) - u(a_i) - u(a_j) + u0| (mm)", epsilon),
+            f"Interaction map of preset {preset} at '{config.resolution}' resolution: every pair and sign")
+    data["interaction_maps"] = maps
 
 
 def validate(state: DemoState) -> None:
@@ -336,7 +363,10 @@ def write_report(state: DemoState) -> pathlib.Path:
                   for label, errors in data["validation_errors"].items()}
     results = {"resolution": state.config.resolution, "parameters": list(data["reduced"].names),
                "validation_max_abs_error_mm": validation, "lifted_reported_ok": data["lifted_ok"],
+               "preset": state.config.preset,
                "hierarchical_effects": list(data["bases"].hierarchical.effect_names_),
+               "interaction_peak_mm": {preset: {f"{a}{sa} & {b}{sb}": peak for a, sa, b, sb, peak in m.rows()}
+                                       for preset, m in data["interaction_maps"].items()},
                "hierarchical_max_error_mm": float(np.max(data["hierarchical_max_error"])),
                "scans": scans, "close_loop": data.get("close_loop_summary"),
                "timings_s": state.timer.seconds}

@@ -58,6 +58,7 @@ def bases_id(bases: Bases) -> str:
     ]
     if reduced is not None:
         items += ["reduced", reduced.model_id, "\x00".join(reduced.names), str(reduced.n_bilateral),
+                  reduced.parameter_states,
                   *(np.asarray(getattr(reduced, name)) for name in _REDUCED_DIMS)]
     return fingerprint(*items)
 
@@ -166,11 +167,15 @@ def load_bases(path: str | Path) -> Bases:
                 "model_id": read.attr("reduced_model", "model_id", "str"),
                 "names": read.strings("reduced_model/names", "P"),
                 "n_bilateral": read.attr("reduced_model", "n_bilateral", "int"),
+                "parameter_states": read.attr("reduced_model", "parameter_states", "str"),
             }
             for name, dims in _REDUCED_DIMS.items():
                 values[name] = (_indices(read, "reduced_model/pad_of", dims, 0, "U") if name == "pad_of"
                                 else read.array(f"reduced_model/{name}", dims))
             reduced = ReducedModel(**values)
+            if reduced.parameter_states not in ("effective", "commanded"):
+                raise BasisError(f"{path}: reduced_model parameter_states is {reduced.parameter_states!r}, expected "
+                                 "'effective' or 'commanded'")
             if reduced.names != names or reduced.n_bilateral != n_bilateral:
                 raise BasisError(f"{path}: reduced_model names {reduced.names} (n_bilateral {reduced.n_bilateral}) "
                                  f"differ from the parameters {names} (n_bilateral {n_bilateral})")

@@ -10,6 +10,8 @@ model.yaml (format hood_decomp.model, version 1)::
     skin_part: outer_skin          # the visible outer skin
     material: {E: 210000.0, nu: 0.3, density: 7.85e-9}    # MPa, -, t/mm^3; optional, default core.fe.model.Material
     gravity: [0.0, 0.0, -9810.0]   # mm/s^2; optional, default core.fe.model.GRAVITY
+    parameter_states: effective    # optional: effective (default; a lifted buffer's state is the part's position
+                                   # there) or commanded (the paper's convention, preset hood-paper)
     parts:                         # order = the mesh's 'part' index
       - {name: outer_skin, thickness: 0.7}                 # mm
     boundaries:
@@ -75,6 +77,7 @@ def save_model(model: PartModel, directory: str | Path) -> Path:
         "skin_part": model.skin_part,
         "material": {"E": model.material.E, "nu": model.material.nu, "density": model.material.density},
         "gravity": [float(g) for g in model.gravity],
+        "parameter_states": model.parameter_states,
         "parts": [{"name": p.name, "thickness": float(p.thickness)} for p in model.parts],
         "boundaries": [_boundary_dict(b) for b in model.boundaries],
         "parameters": [
@@ -149,7 +152,7 @@ def load_model_with_candidates(path: str | Path) -> tuple[PartModel, tuple[Candi
 
 # --- the schema: every key a model.yaml may hold (unknown keys are refused with the nearest known one) ------------
 TOP_KEYS = ("format", "version", "name", "mesh", "skin_part", "material", "gravity", "parts", "boundaries",
-            "parameters", "candidates")
+            "parameters", "candidates", "parameter_states")
 MATERIAL_KEYS = tuple(f.name for f in fields(Material))
 PART_KEYS = ("name", "thickness")
 BOUNDARY_KEYS = ("name", "kind", "dofs", "patch", "axis", "stiffness", "preload", "force")
@@ -236,6 +239,7 @@ def _read(path: str | Path) -> tuple[PartModel, dict]:
         parameters=tuple(_parameter(entry, i) for i, entry in enumerate(_optional_list(document, "parameters"))),
         skin_part=_name(_required(document, "skin_part", "model"), "skin_part"),
         gravity=np.asarray(gravity, dtype=float),
+        parameter_states=_name(document.get("parameter_states", "effective"), "parameter_states"),
     )
     validate_model(model)
     return model, document

@@ -7,6 +7,7 @@ May import: ``hood_decomp.core`` and ``hood_decomp.errors``.
 
 from hood_decomp.plots.close_loop import plot_before_after, plot_residual_maps
 from hood_decomp.plots.figure import save_figure
-from hood_decomp.plots.method import plot_contributions, plot_skin_field
+from hood_decomp.plots.method import plot_contributions, plot_interaction_map, plot_skin_field
 
-__all__ = ["plot_before_after", "plot_contributions", "plot_residual_maps", "plot_skin_field", "save_figure"]
+__all__ = ["plot_before_after", "plot_contributions", "plot_interaction_map", "plot_residual_maps", "plot_skin_field",
+           "save_figure"]

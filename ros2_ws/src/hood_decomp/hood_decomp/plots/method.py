@@ -2,7 +2,7 @@
 
 Skin fields are drawn on the skin triangles in plan view (x, y), mm. Contribution plots (Fig. 11): discrete colour
 map 0-100 % in 10 % bands with iso-lines. Explained variance (Fig. 8), estimation-error box plots (Fig. 9) and
-maximum-error histograms (Fig. 10).
+maximum-error histograms (Fig. 10), the interaction map of every parameter pair and sign as a heat map.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import matplotlib.pyplot as plt
 import matplotlib.tri as mtri
 import numpy as np
 
+from hood_decomp.core.method.interactions import InteractionMap
 from hood_decomp.core.types import Decomposition, SkinSurface
 from hood_decomp.plots.figure import save_figure
 
@@ -107,4 +108,33 @@ def plot_error_histogram(values: np.ndarray, path: str | Path, title: str, xlabe
     ax.set_xlabel(xlabel)
     ax.set_ylabel("members")
     ax.set_title(title)
+    return save_figure(fig, path)
+
+
+def plot_interaction_map(interactions: InteractionMap, path: str | Path, title: str, epsilon: float = 0.1) -> Path:
+    """Heat map of an interaction map (core.method.interactions): one row and column per parameter and sign
+    (``LOCK_L+`` = its max, ``LOCK_L-`` = its min), the peak |u(a_i + a_j) - u(a_i) - u(a_j) + u0| in mm over the
+    skin in each cell (log colour scale from 1e-4 mm), cells at or above ``epsilon`` mm outlined."""
+    names = interactions.names
+    P = len(names)
+    grid = interactions.peak_mm.transpose(0, 2, 1, 3).reshape(2 * P, 2 * P)  # (i, s_i) x (j, s_j)
+    labels = [f"{n}{sign}" for n in names for sign in "+-"]
+    fig, ax = plt.subplots(figsize=(1.0 + 0.62 * 2 * P, 0.6 + 0.55 * 2 * P))
+    shown = np.ma.masked_invalid(np.maximum(grid, 1e-4))
+    image = ax.imshow(shown, cmap="viridis", norm=matplotlib.colors.LogNorm(vmin=1e-4, vmax=max(1.0, grid[
+        np.isfinite(grid)].max(initial=1.0))))
+    for (r, c), value in np.ndenumerate(grid):
+        if np.isfinite(value):
+            ax.text(c, r, f"{value:.3f}" if value < 1 else f"{value:.2f}", ha="center", va="center", fontsize=6.5,
+                    color="white" if value < 0.05 else "black")
+            if value >= epsilon:
+                ax.add_patch(plt.Rectangle((c - 0.5, r - 0.5), 1, 1, fill=False, edgecolor="red", linewidth=1.2))
+    ax.set_xticks(range(2 * P), labels, rotation=60, ha="right", fontsize=8)
+    ax.set_yticks(range(2 * P), labels, fontsize=8)
+    for k in range(1, P):
+        ax.axhline(2 * k - 0.5, color="white", linewidth=1.5)
+        ax.axvline(2 * k - 0.5, color="white", linewidth=1.5)
+    fig.colorbar(image, ax=ax, label="max |interaction| over the skin (mm)")
+    ax.set_title(f"{title}\n(red: at or above epsilon = {epsilon:g} mm; an effect only where the single effects "
+                 "cannot carry it)", fontsize=9)
     return save_figure(fig, path)

@@ -189,19 +189,25 @@ def read_dat_displacements(path: str | Path, n_nodes: int) -> np.ndarray:
 def run_job(deck: str, name: str, n_nodes: int, workdir: str | None = None, timeout: float = 3600.0,
             executable: str | None = None) -> np.ndarray:
     """Run one ccx job from deck text in a fresh directory; returns translations (n, 3). Raises SolverError."""
+    with tempfile.TemporaryDirectory(prefix=f"ccx_{_heading_text(name)}_", dir=workdir) as directory:
+        job = _run_ccx(deck, name, directory, timeout, executable)
+        return read_dat_displacements(job.with_suffix(".dat"), n_nodes)
+
+
+def _run_ccx(deck: str, name: str, directory: str, timeout: float, executable: str | None) -> Path:
+    """Write ``deck`` as ``directory/name.inp`` and run ccx on it; returns the job path (without suffix)."""
     executable = executable or ccx_executable()
     if executable is None:
         raise SolverError("ccx not found: install the Debian package calculix-ccx")
     name = _heading_text(name)  # the job's file name: no path separator or shell-special character from a label
-    with tempfile.TemporaryDirectory(prefix=f"ccx_{name}_", dir=workdir) as directory:
-        job = Path(directory) / name
-        job.with_suffix(".inp").write_text(deck)
-        result = subprocess.run([executable, "-i", name], cwd=directory, capture_output=True, text=True,
-                                timeout=timeout, env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})
-        if result.returncode != 0 or "*ERROR" in result.stdout:
-            errors = [line for line in result.stdout.splitlines() if "ERROR" in line][:3]
-            raise SolverError(f"ccx job {name} failed (exit {result.returncode}): {' | '.join(errors)}")
-        return read_dat_displacements(job.with_suffix(".dat"), n_nodes)
+    job = Path(directory) / name
+    job.with_suffix(".inp").write_text(deck)
+    result = subprocess.run([executable, "-i", name], cwd=directory, capture_output=True, text=True,
+                            timeout=timeout, env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})
+    if result.returncode != 0 or "*ERROR" in result.stdout:
+        errors = [line for line in result.stdout.splitlines() if "ERROR" in line][:3]
+        raise SolverError(f"ccx job {name} failed (exit {result.returncode}): {' | '.join(errors)}")
+    return job
 
 
 def _deck_text(model: PartModel, case: LoadCase, constrained: np.ndarray) -> str:
@@ -256,3 +262,170 @@ def reduce_model_calculix(model: PartModel, scheduler: str | None = None, pad_la
         c.name.startswith("pad_") for c in cases) else np.zeros((len(model.nodes), 3, 0))
     names = tuple(p.label for p in model.bilateral) + tuple(p.label for p in model.unilateral)
     return condense(model, pad_springs(model, pad_lattice), columns, pad_columns, names, len(model.bilateral))
+
+
+def write_member_deck(model: PartModel, state: np.ndarray, path: str | Path, buffers: str = "unilateral",
+                      nlgeom: bool = True, gap_stiffness: float = 1.0e7,
+                      touching: list[np.ndarray] | None = None) -> Path:
+    """One ensemble member as a CalculiX deck with the buffers as ccx sees them: the load case with the bilateral
+    parameters at ``state`` (P,) mm (model.names order) and each unilateral boundary either
+
+    - ``"unilateral"``: one GAPUNI element per patch node (gap stiffness ``gap_stiffness`` N/mm) between the node and
+      a ground node held at the commanded position along the pad axis, so the node may lift off but not sink below it
+      (ccx's gap elements act only with NLGEOM, so ``nlgeom`` must be True); or
+    - ``"held"``: patch nodes held at the commanded position along the axis (bilateral, no contact): all of them,
+      or where ``touching`` (one bool array per unilateral boundary, over its patch nodes) is True. Holding the
+      nodes an LCP solution says touch gives a linear job whose reactions and free nodes certify that contact state
+      (Signorini: reactions push, free nodes do not sink below the buffer); holding all measures geometric
+      nonlinearity alone (``nlgeom`` True or False).
+    The deck prints the translations of every node and the reactions of the pad nodes (``NPAD``).
+
+    Like-for-like with the embedded solver where each pad spring holds one node (the coarse hood: 14 springs on 14
+    nodes per buffer); on finer meshes a spring averages several nodes and ccx's node-wise gaps are stiffer.
+    """
+    if buffers not in ("unilateral", "held"):
+        raise SolverError(f"buffers must be 'unilateral' or 'held', got {buffers!r}")
+    if buffers == "unilateral" and not nlgeom:
+        raise SolverError("ccx gap elements act only with NLGEOM: unilateral buffers need nlgeom=True")
+    state = np.asarray(state, dtype=float)
+    if state.shape != (len(model.names),) or not np.all(np.isfinite(state)):
+        raise SolverError(f"expected {len(model.names)} finite parameter values {model.names}, got {state.shape}")
+    constrained = constrained_dofs(model)
+    constrained = constrained[constrained % 6 < 3]
+    prescribed = np.zeros(len(constrained))
+    for parameter, value in zip(model.bilateral, state, strict=False):
+        dofs = 6 * patch_nodes(model, model.boundary(parameter.boundary)) + AXES[parameter.direction]
+        prescribed[np.isin(constrained, dofs)] = value
+    n = len(model.nodes)
+    case = LoadCase("member", load_vector(model).reshape(n, 6)[:, :3], prescribed)
+    text = _deck_text(model, case, constrained)
+    pads = []  # (nodes, axis, commanded position)
+    for u, parameter in enumerate(model.unilateral):
+        boundary = model.boundary(parameter.boundary)
+        axis = np.asarray(boundary.axis, dtype=float)
+        if np.count_nonzero(axis) != 1:
+            raise SolverError(f"buffer {boundary.name!r}: ccx decks need a pad axis along X, Y or Z, got {axis}")
+        pads.append((patch_nodes(model, boundary), axis, state[len(model.bilateral) + u]))
+    n_mid = len(_quad_edges(model.cells)[0])
+    nodes_lines, element_lines, boundary_lines = [], [], []
+    first_ground = n + n_mid + 1
+    count = 0
+    for u, (nodes, axis, position) in enumerate(pads):
+        a = int(np.flatnonzero(axis)[0])
+        sign = float(axis[a])
+        held = np.ones(len(nodes), dtype=bool) if touching is None else np.asarray(touching[u], dtype=bool)
+        if held.shape != nodes.shape:
+            raise SolverError(f"touching[{u}] must hold {len(nodes)} flags (the patch nodes), got {held.shape}")
+        for node, hold in zip(nodes, held, strict=True):
+            if buffers == "held" and not hold:
+                continue
+            if buffers == "held":
+                boundary_lines.append(f"{node + 1},{a + 1},{a + 1},{sign * position:.12g}")
+                continue
+            ground = first_ground + count
+            nodes_lines.append(f"{ground}," + ",".join(map(_real, model.nodes[node])))
+            element_lines.append(f"{len(model.cells) + count + 1},{node + 1},{ground}")
+            boundary_lines += [f"{ground},{b + 1},{b + 1},{(sign * position if b == a else 0.0):.12g}"
+                               for b in range(3)]
+            count += 1
+    if element_lines:
+        direction = ",".join(f"{-c:.12g}" for c in pads[0][1])  # ccx: the gap closes when (u2 - u1) . n < -d
+        nodes_block = "\n".join(["*NODE, NSET=NGROUND", *nodes_lines])
+        gap_block = "\n".join(["*ELEMENT, TYPE=GAPUNI, ELSET=EGAP", *element_lines, "*GAP, ELSET=EGAP",
+                               f"0.0,{direction},,{gap_stiffness:.6g}"])
+        text = text.replace("*MATERIAL, NAME=STEEL", f"{nodes_block}\n{gap_block}\n*MATERIAL, NAME=STEEL", 1)
+    step = "*STEP, NLGEOM, INC=1000\n*STATIC\n0.05,1.0,1e-6,0.1" if nlgeom else "*STEP\n*STATIC"
+    text = text.replace("*STEP\n*STATIC", step, 1).replace("*BOUNDARY\n", "*BOUNDARY\n" + "".join(
+        line + "\n" for line in boundary_lines), 1)
+    pad_nodes = np.concatenate([nodes for nodes, _, _ in pads]) if pads else np.zeros(0, dtype=np.int64)
+    if len(pad_nodes):
+        pad_set = "\n".join(["*NSET, NSET=NPAD", *(f"{node + 1}," for node in pad_nodes)])
+        text = text.replace("*MATERIAL, NAME=STEEL", f"{pad_set}\n*MATERIAL, NAME=STEEL", 1)
+        text = text.replace("*END STEP", "*NODE PRINT, NSET=NPAD\nRF\n*END STEP", 1)
+    path = Path(path)
+    path.write_text(text)
+    return path
+
+
+def read_dat_reactions(path: str | Path) -> dict[int, np.ndarray]:
+    """Reaction forces (3,) N by node index (0-based) from the last 'forces' block of a ccx .dat file."""
+    text = Path(path).read_text().splitlines()
+    starts = [i for i, line in enumerate(text) if line.strip().startswith("forces")]
+    if not starts:
+        raise SolverError(f"{path}: no reaction force block")
+    out: dict[int, np.ndarray] = {}
+    for line in text[starts[-1] + 1:]:
+        fields = line.split()
+        if not fields:
+            if out:
+                break
+            continue
+        if len(fields) != 4:
+            break
+        out[int(fields[0]) - 1] = np.array([float(v) for v in fields[1:]])
+    return out
+
+
+def run_member_job(deck: str, n_nodes: int, workdir: str | None = None, timeout: float = 7200.0
+                   ) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+    """Run a :func:`write_member_deck` deck: translations (n, 3) mm and the pad nodes' reactions (node -> (3,) N)."""
+    with tempfile.TemporaryDirectory(prefix="ccx_member_", dir=workdir) as directory:
+        job = _run_ccx(deck, "member", directory, timeout, None)
+        return read_dat_displacements(job.with_suffix(".dat"), n_nodes), read_dat_reactions(job.with_suffix(".dat"))
+
+
+@dataclass(frozen=True)
+class ContactCheck:
+    """A member solved by CalculiX with the contact set of an LCP solution held (:func:`check_contact_set`).
+
+    normal: (N,) mm skin normal displacement. touching: per unilateral boundary, (patch nodes,) bool, the held nodes.
+    reaction: (U,) N, CalculiX's total reaction of each buffer along its axis. held_reaction_min: (U,) N, the
+    smallest reaction of a held node (NaN: none held). free_gap_min: (U,) mm, the smallest clearance of a free pad
+    node above its buffer (NaN: none free). The contact set is CalculiX's solution too when held nodes push and free
+    nodes clear (Signorini); ``certified(tolerance_n, tolerance_mm)`` says whether they do.
+    """
+
+    normal: np.ndarray
+    touching: tuple[np.ndarray, ...]
+    reaction: np.ndarray
+    held_reaction_min: np.ndarray
+    free_gap_min: np.ndarray
+
+    def certified(self, tolerance_n: float, tolerance_mm: float = 1e-3) -> bool:
+        """True when no held node pulls by more than ``tolerance_n`` N and no free node sinks by ``tolerance_mm``."""
+        pulls = np.nan_to_num(self.held_reaction_min, nan=0.0) >= -tolerance_n
+        sinks = np.nan_to_num(self.free_gap_min, nan=0.0) >= -tolerance_mm
+        return bool(np.all(pulls & sinks))
+
+
+def check_contact_set(model: PartModel, state: np.ndarray, pad_forces: np.ndarray, normals: np.ndarray,
+                      pad_lattice: int = PAD_LATTICE, workdir: str | None = None) -> ContactCheck:
+    """Solve member ``state`` (P,) mm with CalculiX (linear, S8R) holding the nodes of every pad spring that pushes
+    in ``pad_forces`` (S,) N (an LCP solution of the embedded solver) at the commanded buffer position, the other pad
+    nodes free. ``normals`` (N, 3): the skin's unit normals. Exact like for like where each spring holds one node (the
+    coarse hood); where a spring averages several, holding all of them is stiffer. Raises SolverError."""
+    pads = pad_springs(model, pad_lattice)
+    pad_forces = np.asarray(pad_forces, dtype=float)
+    if pad_forces.shape != pads.k.shape:
+        raise SolverError(f"expected {len(pads.k)} pad spring forces, got {pad_forces.shape}")
+    patches = [patch_nodes(model, model.boundary(p.boundary)) for p in model.unilateral]
+    touching = []
+    for u, nodes in enumerate(patches):
+        pushing = [pads.loads[:, k].indices // 6 for k in np.flatnonzero((pads.pad_of == u) & (pad_forces > 0))]
+        touching.append(np.isin(nodes, np.concatenate(pushing)) if pushing else np.zeros(len(nodes), dtype=bool))
+    with tempfile.TemporaryDirectory(dir=workdir) as directory:
+        deck = write_member_deck(model, state, Path(directory) / "deck.inp", "held", nlgeom=False,
+                                 touching=touching).read_text()
+    u, reactions = run_member_job(deck, len(model.nodes), workdir)
+    n_bilateral = len(model.bilateral)
+    reaction, held_min, gap_min = [], [], []
+    for index, (parameter, nodes) in enumerate(zip(model.unilateral, patches, strict=True)):
+        axis = np.asarray(model.boundary(parameter.boundary).axis, dtype=float)
+        held = touching[index]
+        rz = np.array([reactions[n] @ axis for n in nodes[held]])
+        gap = u[nodes[~held]] @ axis - state[n_bilateral + index]
+        reaction.append(rz.sum() if rz.size else 0.0)
+        held_min.append(rz.min() if rz.size else np.nan)
+        gap_min.append(gap.min() if gap.size else np.nan)
+    normal = np.einsum("na,na->n", u[model.skin_nodes], normals)
+    return ContactCheck(normal, tuple(touching), np.array(reaction), np.array(held_min), np.array(gap_min))

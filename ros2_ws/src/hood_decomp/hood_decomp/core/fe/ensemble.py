@@ -85,7 +85,7 @@ def solve_members(reduced: ReducedModel, commanded: np.ndarray) -> MemberBlock:
             touching = contact.f[springs] > 0
             contact_fraction[i, u] = touching.mean()
             reactions[i, u] = contact.f[springs].sum()
-            if not touching.any():
+            if not touching.any() and reduced.parameter_states == "effective":
                 # lifted: the part's position at the pad, where the pad would just touch (types.Ensemble)
                 effective[i, B + u] = np.min(contact.z[springs] - reduced.preload[springs])
     a = commanded[:, :B]

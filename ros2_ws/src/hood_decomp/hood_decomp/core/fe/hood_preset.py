@@ -12,6 +12,15 @@ Boundaries (all on the inner structure, never on skin nodes): hinge R fixed in X
 (HINGE_X, HINGE_Y adjustable, Z held); locks L/R prescribed in Z (LOCK_L, LOCK_R, push and pull); buffers L/R rubber
 pads in Z (BUFFER_L, BUFFER_R: compression-only, preloaded, may lift off partly or entirely); gas springs L/R pushing
 580 N rearward-up in the X-Z plane near the hinges; gravity -Z. All six ranges [-1, 1] mm.
+
+Two presets share this geometry (same mesh, same ``model_id``) and differ in the buffers' physics and the state
+convention (:data:`PRESETS`):
+- ``hood`` (the default): preloaded rubber pads (600 N/mm, 0.15 mm) and effective states (a lifted buffer's state is
+  the part's position there);
+- ``hood-paper``: the paper's boundary physics (section 4.1, Table 2): buffers are rigid unilateral displacement
+  boundaries without preload (the hood rests on them or lifts off), states are the commanded ones (the lifted flag is
+  kept beside them). "Rigid" is a pad of :data:`RIGID_PAD_STIFFNESS`; the member fields move by less than
+  1e-5 mm when it is made 10 times stiffer (tests/core/fe/test_hood_paper.py).
 """
 
 from __future__ import annotations
@@ -43,6 +52,10 @@ GAS_SPRING_AXIS = (np.cos(np.radians(30.0)), 0.0, np.sin(np.radians(30.0)))  # r
 #: and the pad pressure distribution adds fields beyond the 7 that point buffers would give (~0.01 mm, coarse)
 PAD_STIFFNESS = 600.0
 PAD_PRELOAD = 0.15
+#: hood-paper: total stiffness of a rigid buffer, N/mm. The fields converge as 1/k (edge contact concentrates the
+#: reaction on a few of the 36 springs): on the coarse hood's 729 members 1e7 differs from 1e13 by 1.5e-3 mm, 1e10 by
+#: 1.5e-6 mm; the pad compliance 1/k stays 1e-6 of the structure's (cond(H) ~ 400), so the LCP is as well posed.
+RIGID_PAD_STIFFNESS = 1.0e10
 PATCH_RADIUS = 30.0  # hinges, locks, gas springs, mm
 PAD_RADIUS = 40.0  # buffers, mm
 
@@ -75,10 +88,12 @@ def _graded_axis(n: int, breaks: list[float]) -> np.ndarray:
 
 
 def build_hood(resolution: str = "default", pad_stiffness: float = PAD_STIFFNESS,
-               pad_preload: float = PAD_PRELOAD, grid: tuple[int, int] | None = None) -> PartModel:
+               pad_preload: float = PAD_PRELOAD, grid: tuple[int, int] | None = None,
+               parameter_states: str = "effective", stem: str = "hood") -> PartModel:
     """Generate the built-in hood model at ``resolution`` (coarse | default | paper); validated.
 
     grid: (nodes along X, nodes along Y) of the skin, overriding the resolution's (mesh convergence studies).
+    parameter_states: "effective" or "commanded" (PartModel.parameter_states). stem: the model name's first part.
     """
     if resolution not in RESOLUTIONS:
         raise ModelError(f"resolution must be one of {sorted(RESOLUTIONS)}, got {resolution!r}")
@@ -182,7 +197,7 @@ def build_hood(resolution: str = "default", pad_stiffness: float = PAD_STIFFNESS
         Parameter("BUFFER_R", "buffer_R", "z", -1.0, 1.0),
     )
     model = PartModel(
-        name=f"hood-{resolution}" if grid is None else f"hood-{nx}x{ny}",
+        name=f"{stem}-{resolution}" if grid is None else f"{stem}-{nx}x{ny}",
         nodes=nodes,
         cells=cells.astype(np.int64),
         cell_part=cell_part,
@@ -191,6 +206,26 @@ def build_hood(resolution: str = "default", pad_stiffness: float = PAD_STIFFNESS
         boundaries=boundaries,
         parameters=parameters,
         skin_part="outer_skin",
+        parameter_states=parameter_states,
     )
     validate_model(model)
     return model
+
+
+def build_hood_paper(resolution: str = "default", pad_stiffness: float = RIGID_PAD_STIFFNESS,
+                     grid: tuple[int, int] | None = None) -> PartModel:
+    """The hood with the paper's boundary physics (preset ``hood-paper``): rigid unilateral buffers (stiffness
+    ``pad_stiffness`` N/mm, no preload), commanded parameter states. Same mesh and model_id as :func:`build_hood`."""
+    return build_hood(resolution, pad_stiffness=pad_stiffness, pad_preload=0.0, grid=grid,
+                      parameter_states="commanded", stem="hood-paper")
+
+
+#: the built-in presets by name (``hood-decomp model --preset NAME``): resolution -> validated model
+PRESETS = {"hood": build_hood, "hood-paper": build_hood_paper}
+
+
+def build_preset(preset: str, resolution: str = "default") -> PartModel:
+    """The built-in model ``preset`` (a key of :data:`PRESETS`) at ``resolution``. Raises ModelError."""
+    if preset not in PRESETS:
+        raise ModelError(f"preset must be one of {sorted(PRESETS)}, got {preset!r}")
+    return PRESETS[preset](resolution)

@@ -23,6 +23,9 @@ from hood_decomp.core.types import SkinSurface, fingerprint
 from hood_decomp.errors import ModelError
 
 BOUNDARY_KINDS = ("fixed", "prescribed", "unilateral", "force")
+#: how a lifted unilateral boundary's parameter state is reported (types.Ensemble.effective): "effective" (the part's
+#: position there, this project's default) or "commanded" (the commanded position, the paper's convention, section 4)
+PARAMETER_STATES = ("effective", "commanded")
 AXES = {"x": 0, "y": 1, "z": 2}
 #: gravity of a model that states none, mm/s^2 (-Z)
 GRAVITY = (0.0, 0.0, -9810.0)
@@ -99,7 +102,9 @@ class PartModel:
 
     nodes: (n, 3) float64 mm. cells: (E, 4) int64 quads (counter-clockwise seen from the skin's outside for the skin).
     cell_part: (E,) int64 index into ``parts``. gravity: (3,) mm/s^2. skin_part: name of the visible outer skin part.
-    Parameters are stored bilateral (prescribed boundaries) first, then unilateral ones.
+    Parameters are stored bilateral (prescribed boundaries) first, then unilateral ones. parameter_states: one of
+    ``PARAMETER_STATES``, the state an ensemble records for a lifted unilateral boundary (its lifted flag is kept
+    either way).
     """
 
     name: str
@@ -112,6 +117,7 @@ class PartModel:
     parameters: tuple[Parameter, ...]
     skin_part: str
     gravity: np.ndarray = field(default_factory=lambda: np.array(GRAVITY))
+    parameter_states: str = "effective"
 
     def part_index(self, name: str) -> int:
         for index, part in enumerate(self.parts):
@@ -244,6 +250,8 @@ def validate_model(model: PartModel) -> None:
         if part.thickness is None or not np.isfinite(part.thickness) or part.thickness <= 0:
             raise ModelError(f"part {part.name!r}: thickness must be a positive number of mm, got {part.thickness}")
     model.part_index(model.skin_part)
+    if model.parameter_states not in PARAMETER_STATES:
+        raise ModelError(f"parameter_states must be one of {PARAMETER_STATES}, got {model.parameter_states!r}")
     material = model.material
     if not (material.E > 0 and -1.0 < material.nu < 0.5 and material.density >= 0):
         raise ModelError(f"material must have E > 0, -1 < nu < 0.5, density >= 0, got {material}")

@@ -19,7 +19,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -374,6 +374,7 @@ def condense(model: PartModel, pads: PadSprings, columns: np.ndarray, pad_column
         w0_3d=w3[:, :, 0].copy(),
         R_3d=w3[:, :, 1:].copy(),
         G_3d=g3.copy(),
+        parameter_states=model.parameter_states,
     )
 
 
@@ -398,3 +399,18 @@ def reduce_model(solver: ShellSolver, extra: Sequence[tuple[str, str]] = ()) -> 
         p.label for p in model.unilateral
     )
     return condense(model, solver.pads, U, P, names, len(model.bilateral) + len(extra))
+
+
+def retarget_pads(reduced: ReducedModel, model: PartModel, pad_lattice: int = PAD_LATTICE) -> ReducedModel:
+    """The reduced model of ``model`` from that of a model that differs from it only in its pads' stiffness and
+    preload and in ``parameter_states`` (e.g. preset hood-paper from hood): the responses w0, R, G, z0, Sa, H do not
+    depend on those, so no solve is needed. The mesh (model_id), parameters and pad spring layout must match; the
+    patches themselves are not compared (a moved pad patch needs :func:`reduce_model`). Raises ModelError."""
+    if model.model_id != reduced.model_id or model.names != tuple(reduced.names):
+        raise ModelError(f"model {model.name!r} (model_id {model.model_id}, parameters {model.names}) is not the mesh "
+                         f"and parameters of the reduced model ({reduced.model_id}, {reduced.names})")
+    pads = pad_springs(model, pad_lattice)
+    if not np.array_equal(pads.pad_of, reduced.pad_of):
+        raise ModelError(f"model {model.name!r} has {len(pads.k)} pad springs, the reduced model {len(reduced.k)} "
+                         "with another layout: use reduce_model")
+    return replace(reduced, k=pads.k, preload=pads.preload, parameter_states=model.parameter_states)
