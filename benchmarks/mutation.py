@@ -371,6 +371,11 @@ NOTES += (
          'if within_before or trace.outcome is not "found":', "equivalent",
          "a trace's outcome is always one of this module's string constants, and CPython interns identifier-like "
          "constants: \"found\" is one object, so `is not` agrees with `!=`"),
+    Note("close_loop", "core/ReplaceComparisonOperator_Eq_Lt", 'current = before if method == "contact" else tuple(',
+         'current = before if method < "contact" else tuple(', "equivalent",
+         "method is \"contact\" or \"pca\" (estimate_field checks it first): with the mutant a contact run takes "
+         "the else branch, which estimates the same fields with the same contact estimator of the same reduced model "
+         "and ranges, so the same estimates, computed twice"),
 )
 
 

@@ -735,6 +735,11 @@ def test_extend_ensemble_refuses_what_it_cannot_extend(hood):
     swapped = dataclasses.replace(small, names=(*small.names[:B], small.names[B + 1], small.names[B]))
     with pytest.raises(EnsembleError, match="unilateral parameters differ"):
         extend_ensemble(swapped, augmented, lower, upper)
+    # and the other way round (the model's unilateral names sort after the ensemble's): any difference is refused
+    names = augmented.names
+    flipped = dataclasses.replace(augmented, names=(*names[:-2], names[-1], names[-2]))
+    with pytest.raises(EnsembleError, match="unilateral parameters differ"):
+        extend_ensemble(small, flipped, lower, upper)
     with pytest.raises(EnsembleError, match="random members"):
         extend_ensemble(dataclasses.replace(small, rank=np.where(small.rank == 1, -1, small.rank)), augmented, lower,
                         upper)
