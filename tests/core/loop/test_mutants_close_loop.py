@@ -453,7 +453,11 @@ def test_found_effect_is_added_with_its_range_and_rebuilt(hood, joint, found):
         "motion", "mm", "hinge_R", "hinge_R moves along z (held)")
     after = [refit(hood, ("hinge_R.z",), fd, half) for fd in fields]
     np.testing.assert_allclose(added.values, [e.values[B] for e in after], rtol=1e-9)
-    np.testing.assert_allclose(added.std, [e.std[B] for e in after], rtol=1e-9)
+    # the rebuilt bases' std adds the basis' own error to the contact estimator's (issue 15's sandwich): never
+    # smaller, and within 2 % here
+    reference_std = np.array([e.std[B] for e in after])
+    assert np.all(added.std >= reference_std * (1 - 1e-9))
+    np.testing.assert_allclose(added.std, reference_std, rtol=0.02)
     np.testing.assert_allclose(added.values, 0.5, atol=3 * added.std.max() + 1e-3)
     for estimate, reference in zip(result.after, after, strict=True):
         np.testing.assert_allclose(estimate.values, reference.values, rtol=1e-9, atol=1e-12)
@@ -466,9 +470,10 @@ def test_found_effect_is_added_with_its_range_and_rebuilt(hood, joint, found):
     members = np.concatenate([hood.small.normal_displacement,
                               *(solve_members(reference, c).normal_displacement for c in layers)])
     np.testing.assert_allclose(bases.pca.mean_field_, members.mean(axis=0), atol=1e-9)
-    noise = [fd.noise_rms for fd in fields]
-    assert result.p_value_before == pytest.approx(independent_p(result.before, noise), rel=1e-9, abs=1e-300)
-    assert result.p_value_after == pytest.approx(independent_p(after, noise), rel=1e-9)
+    # the one within-model test of each field (issue 15), Bonferroni over the fields
+    for estimates, p_value in ((result.before, result.p_value_before), (result.after, result.p_value_after)):
+        assert p_value == pytest.approx(min(1.0, len(fields) * min(e.check.p_value for e in estimates)), rel=1e-12,
+                                        abs=1e-300)
     assert result.within_model_after == (result.p_value_after >= ALPHA) and result.within_model_after
     assert [a.n_params for a in result.analyses_after] == [np.count_nonzero(~e.lifted) for e in after]
     assert result.message == (
@@ -531,7 +536,7 @@ def test_a_pair_is_added_to_a_model_with_an_odd_number_of_bilateral_inputs(hood)
     for j, added in enumerate(result.added):
         assert (added.lower, added.upper) == (pytest.approx(-half[j]), pytest.approx(half[j]))
         assert added.values[0] == pytest.approx(after.values[B + 1 + j], rel=1e-9)
-        assert added.std[0] == pytest.approx(after.std[B + 1 + j], rel=1e-9)
+        assert after.std[B + 1 + j] * (1 - 1e-9) <= added.std[0] <= after.std[B + 1 + j] * 1.02  # + basis error
     np.testing.assert_allclose([a.values[0] for a in result.added], [0.5, 0.03],
                                atol=3 * max(a.std[0] for a in result.added) + 1e-3)
 
@@ -547,7 +552,10 @@ def test_within_model_adds_nothing(hood, monkeypatch):
     assert result.status == "within_model" and result.within_model_before
     assert result.message == "the residual is what the scan noise explains: nothing added"
     assert [a.noise_mm for a in result.analyses_before] == [0.01, 0.015]
-    assert result.p_value_before == pytest.approx(independent_p(result.before, [0.01, 0.015]), rel=1e-9)
+    # the one within-model test of each field (issue 15), Bonferroni over the two fields
+    checks = [e.check.p_value for e in result.before]
+    assert [a.p_value for a in result.analyses_before] == pytest.approx(checks, rel=1e-12)
+    assert result.p_value_before == pytest.approx(min(1.0, 2 * min(checks)), rel=1e-12)
     assert result.p_value_before >= ALPHA
     assert (result.added, result.bases_after, result.after, result.analyses_after) == ((), None, (), ())
     assert result.within_model_after is None and result.p_value_after is None
@@ -564,10 +572,7 @@ def test_pca_before_is_tested_with_its_model_error(hood):
     assert result.before[0].method == "pca"
     analysis = result.analyses_before[0]
     assert analysis.n_params == pca.n_components_ and analysis.model_mm == pca.training_residual_rms_
-    r = result.before[0].residual
-    statistic = float(np.nansum(r**2)) / (0.01**2 + pca.training_residual_rms_**2)
-    assert result.p_value_before == pytest.approx(chi2.sf(statistic, np.isfinite(r).sum() - pca.n_components_),
-                                                  rel=1e-9)
+    assert result.p_value_before == pytest.approx(result.before[0].check.p_value, rel=1e-12)  # the one test
     contact = trace(hood, fields)
     assert [s.name for s in result.traces[0].scores] == [s.name for s in contact.scores]
     np.testing.assert_allclose(result.traces[0].rss_before_mm2, contact.rss_before_mm2, rtol=1e-12)
