@@ -110,9 +110,9 @@ def replay_bag(bag: str | pathlib.Path, *, record: str | pathlib.Path | None = N
         peer.wait(lambda: peer.node.count_subscribers("hood_decomp/displacement") >= 3, 10.0)
         # Our graph shows their endpoints before their own writers and readers have matched each other (DDS matches
         # pair by pair); on a loaded machine the scan node's first field was lost to the estimator that way. Matching
-        # follows discovery within milliseconds; a second covers a loaded machine until the outputs are
-        # transient-local.
-        peer.wait(lambda: False, 1.0)
+        # follows discovery within milliseconds; on a loaded machine one second was seen to fall short once in
+        # about ten runs (2026-11-24), so three, until the outputs are transient-local (issue 17).
+        peer.wait(lambda: False, 3.0)
         for index, scan in enumerate(scans, start=1):
             key = _stamp_key(deserialize_message(scan.data, PointCloud2).header.stamp)
             if clock_pub is not None:
