@@ -170,7 +170,7 @@ def test_undeclared_effect_is_found_added_and_closes_the_gap(default_hood, defau
     result = close_loop(bases, fields, default_candidates, ensemble=default_hood.ensemble)
     for i, field in enumerate(fields):
         alone = trace_effect(bases.reduced_model, lower, upper, [field], default_candidates, [result.before[i]],
-                             [field.noise_rms])
+                             [field.noise_rms], bases.residual_test())
         assert alone.best.name == effect, alone.reason
         assert alone.conclusive, alone.reason
     # together: found, added, rebuilt, and the residual is back to the scan noise

@@ -12,10 +12,9 @@ import pytest
 
 from hood_decomp.core.loop.candidates import candidate_fields, enumerate_candidates
 from hood_decomp.core.loop.measured_effects import analyse_recurring, augmented_bases, correction_without_effects
-from hood_decomp.core.method.bases import estimate_field
+from hood_decomp.core.method.bases import analyse_estimate, estimate_field
 from hood_decomp.core.method.correction import plan_correction
 from hood_decomp.core.types import DisplacementField
-from hood_decomp.shift.part import within_model_test
 from hood_decomp.synthetic.shift import ProcessModel, bump_field, make_part, plan_shift
 from tests.hood20 import hood20
 
@@ -29,7 +28,7 @@ def _candidates():
 def _estimate(field):
     case = hood20()
     estimate = estimate_field(case.bases, field)
-    return estimate, within_model_test(case.bases, estimate, field.noise_rms, 0.01).within_model
+    return estimate, analyse_estimate(case.bases, estimate, field.noise_rms, 0.01).within_model
 
 
 @functools.cache
@@ -58,14 +57,21 @@ def test_hinge_is_traced_and_bump_offered_as_measured_effect():
     hinge, bump = found.modes
     assert hinge.name == "hinge_R.z"
     rows = outside[hinge.parts]
-    assert {plan.effect_of(i) for i in rows} == {"candidate"} and len(rows) >= 0.95 * np.sum(plan.effect[outside] == 1)
+    effects = [plan.effect_of(i) for i in rows]
+    # a noise-only part the within-model test flags (its 1 % false alarms, by design) may carry the mode by chance
+    # (|z| > 3 along it): one such part at most, never a bump part
+    assert "bump" not in effects and effects.count("none") <= 1, effects
+    assert effects.count("candidate") >= 0.95 * np.sum(plan.effect[outside] == 1)
     z = (hinge.amplitude[hinge.parts] - plan.amplitude[rows]) / hinge.std[hinge.parts]
     assert np.mean(np.abs(z) <= 3.0) >= 0.95, np.round(z, 2)
     assert abs(np.mean(hinge.amplitude[hinge.parts]) - np.mean(plan.amplitude[rows])) <= 3 * np.sqrt(
         np.sum(hinge.std[hinge.parts] ** 2)) / len(rows)
 
     rows = outside[bump.parts]
-    assert {plan.effect_of(i) for i in rows} == {"bump"} and len(rows) >= 0.95 * np.sum(plan.effect[outside] == 2)
+    assert {plan.effect_of(i) for i in rows} == {"bump"}
+    # every bump part the test flags whose bump stands out of its own noise (4 std) carries the mode
+    clear = (plan.effect[outside] == 2) & (np.abs(plan.amplitude[outside]) > 4 * bump.std)
+    assert np.mean(bump.parts[clear]) >= 0.95 and clear.sum() >= 0.8 * np.sum(plan.effect == 2)
     truth = bump_field(case.skin, plan.process.bump_center, plan.process.bump_radius_mm)
     assert bump.field @ truth / np.linalg.norm(bump.field) / np.linalg.norm(truth) > 0.98
     assert bump.n_judge >= 20 and bump.rms_after.size >= 10
@@ -109,7 +115,7 @@ def test_bases_rebuilt_with_the_measured_effect():
     for i in rows:
         estimate = estimate_field(rebuilt, parts[i].field)
         assert abs(estimate.values[column] - plan.amplitude[i]) <= 3 * estimate.std[column] + 0.005, i
-        assert within_model_test(rebuilt, estimate, 0.02, 0.01).within_model, i
+        assert analyse_estimate(rebuilt, estimate, 0.02, 0.01).within_model, i
         without = _estimate(DisplacementField(case.skin.model_id, parts[i].field.normal_displacement
                                               - plan.amplitude[i] * truth, 1.0, 0.02))[0].values
         assert np.abs(np.delete(estimate.values, column) - without).max() <= 0.03, i

@@ -75,7 +75,7 @@ def trace(hood, candidates, field):
     bases = hood.bases
     before = estimate_field(bases, field)
     return before, trace_effect(bases.reduced_model, bases.pca.lower_, bases.pca.upper_, [field], candidates,
-                                [before], [field.noise_rms])
+                                [before], [field.noise_rms], bases.residual_test())
 
 
 def test_oblique_hinge_move_names_both_candidates(coarse_hood, candidates):

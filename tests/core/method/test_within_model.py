@@ -12,7 +12,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from hood_decomp.core.method.estimation import parameter_covariance
-from hood_decomp.core.method.residual import ResidualTest
+from hood_decomp.core.method.residual import ResidualTest, check_residual
 from hood_decomp.core.types import FieldErrorModel
 from tests.toy_models import make_skin, smooth_fields
 
@@ -94,3 +94,29 @@ def test_a_smooth_effect_is_found_and_an_inflated_stated_noise_does_not_hide_it(
         missed_inflated += check.within_model
         assert check.noise_scale < 0.5  # the residual does not support the stated level (1/9 without the effect)
     assert missed <= 5 and missed_inflated <= missed
+
+
+def test_a_local_dent_is_found_by_the_one_ring_part_of_the_test():
+    """Fails if the one-ring part of the test is missing or mis-scaled: a Gaussian dent (40 mm radius, 0.03 mm deep,
+    3 x the node noise, 12 nodes beyond half depth; an analytic field, not a basis' making) that the smooth modes
+    alone pass in at least 35 of 40 white-noise draws must alarm in at least 34 of 40, while noise alone alarms in at
+    most 6 of 200 draws at alpha 1 % (the Bonferroni combination of the two parts keeps the rate at alpha)."""
+    rng = np.random.default_rng(1)
+    design = smooth_fields(SKIN.points, 5, rng).T
+    test = ResidualTest().fit(SKIN)
+    errors = FieldErrorModel.stated(0.01, SKIN.n_nodes)
+    centre = SKIN.points.mean(axis=0) + np.array([200.0, 100.0, 0.0])
+    dent = -0.03 * np.exp(-0.5 * np.sum((SKIN.points - centre) ** 2, axis=1) / 40.0**2)
+
+    def alarms(effect, draws: int) -> tuple[int, int]:
+        combined = smooth_only = 0
+        for _ in range(draws):
+            field = design @ rng.normal(size=5) + rng.normal(0.0, 0.01, SKIN.n_nodes) + effect
+            residual = field - design @ np.linalg.lstsq(design, field, rcond=None)[0]
+            combined += not test.check(residual, design, errors).within_model
+            smooth_only += not check_residual(residual, design, errors, test.modes_, None, 0.0, 0.01).within_model
+        return combined, smooth_only
+
+    found, smooth_found = alarms(dent, 40)
+    assert smooth_found <= 5 and found >= 34, (found, smooth_found)
+    assert alarms(0.0, 200)[0] <= 6

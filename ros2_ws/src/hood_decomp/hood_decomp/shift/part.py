@@ -17,9 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from hood_decomp.core.method.bases import Bases, decompose_field, estimate_field
+from hood_decomp.core.method.bases import Bases, analyse_estimate, decompose_field, estimate_field
 from hood_decomp.core.method.correction import CorrectionPolicy, plan_correction
-from hood_decomp.core.method.residual import DEFAULT_ALPHA, ResidualAnalysis, analyse_residual
+from hood_decomp.core.method.residual import DEFAULT_ALPHA, ResidualAnalysis
 from hood_decomp.core.types import DisplacementField, ParameterEstimate
 from hood_decomp.io.history import PartRecord
 
@@ -84,17 +84,6 @@ def worker_bases(path: str) -> tuple[Bases, str]:
     return _BASES[key]
 
 
-def within_model_test(bases: Bases, estimate: ParameterEstimate, noise_mm: float, alpha: float) -> ResidualAnalysis:
-    """The within-model decision of one estimate: the one chi-square test of core/method/residual.py (the shift's
-    only call of it, so it follows that test when it changes). Unknowns: a contact-aware estimate fits the bilateral
-    states and the touching pads; the paper's estimator its PCA pre-factors, with its training error as model floor."""
-    if estimate.method == "pca":
-        n_params, model_mm = bases.pca.n_components_, bases.pca.training_residual_rms_
-    else:
-        n_params, model_mm = int(np.count_nonzero(~np.asarray(estimate.lifted, bool))), 0.0
-    return analyse_residual(bases.skin, estimate.residual, n_params, noise_mm, model_mm, alpha)
-
-
 def read_task_field(bases: Bases, task: PartTask, min_coverage: float) -> DisplacementField:
     """The displacement field of a task's part, by the path the scan node (clouds) or the CLI (files) takes."""
     if task.kind == "field":
@@ -128,7 +117,7 @@ def inspect_field(bases: Bases, field: DisplacementField, options: Options
     from hood_decomp.core.method.residual import noise_level
 
     estimate = estimate_field(bases, field, options.method, options.min_coverage)
-    analysis = within_model_test(bases, estimate, noise_level(field.noise_rms)[0], options.alpha)
+    analysis = analyse_estimate(bases, estimate, noise_level(field.noise_rms)[0], options.alpha)
     estimate = dataclasses.replace(estimate, within_model=analysis.within_model)
     correction = plan_correction(estimate, options.policy)
     decomposition = decompose_field(bases, field, estimate)
@@ -150,7 +139,8 @@ def process_task(task: PartTask, bases_path: str, options: Options) -> PartRecor
     return dataclasses.replace(
         base, model_id=bases.model_id, bases_id=identity, coverage=field.coverage, noise_mm=analysis.noise_mm,
         residual_rms_mm=analysis.rms_mm, residual_max_mm=analysis.max_mm, residual_mean_mm=analysis.mean_mm,
-        chi2=analysis.chi2, dof=analysis.dof, p_value=analysis.p_value, within_model=analysis.within_model,
+        chi2=estimate.check.statistic, dof=estimate.check.dof, p_value=analysis.p_value,
+        within_model=analysis.within_model,
         safe_to_apply=correction.safe_to_apply, reason=correction.reason, names=tuple(estimate.names),
         values=np.asarray(estimate.values, float), std=np.asarray(estimate.std, float),
         lifted=np.asarray(estimate.lifted, bool), corrections=np.asarray(correction.corrections, float),

@@ -1,8 +1,10 @@
 """Closing the loop (docs/close_loop.md): locate the residual, trace it to an effect the model lacks, add that effect
 as a parameter, rebuild the bases and report the error before and after.
 
-1. **Residual** of every field against the current bases (:mod:`hood_decomp.core.method.residual`): chi-square
-   within-model test and the regions where it exceeds the noise.
+1. **Residual** of every field against the current bases (:mod:`hood_decomp.core.method.residual`): the one
+   within-model test each estimate carries (:func:`~hood_decomp.core.method.residual.check_residual`, against the
+   field's error model; Bonferroni over the fields) and the regions where the residual exceeds the noise. The same
+   test decides whether the fields are within the model with a candidate or a pair (step 2) and after (step 4).
 2. **Trace**: every candidate effect (:mod:`hood_decomp.core.loop.candidates`) is appended to the reduced model as one
    more bilateral input and every field is estimated again with the contact-aware estimator, so the pads' contact
    state is solved anew with the candidate in place (a lifted buffer stays without effect, a seated one keeps its
@@ -51,22 +53,21 @@ import itertools
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.stats import chi2, f
 
 from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solve_members
 from hood_decomp.core.loop.candidates import CandidateFields, augment_reduced
-from hood_decomp.core.method.bases import Bases, build_bases, estimate_field
+from hood_decomp.core.method.bases import Bases, analyse_estimate, build_bases, estimate_field
 from hood_decomp.core.method.contact_estimation import ContactEstimator
 from hood_decomp.core.method.estimation import DEFAULT_MIN_COVERAGE
 from hood_decomp.core.method.residual import (
     DEFAULT_ALPHA,
     DEFAULT_NOISE_MM,
     ResidualAnalysis,
-    analyse_residual,
-    chi2_within,
+    ResidualTest,
     noise_level,
 )
 from hood_decomp.core.types import DisplacementField, Ensemble, ParameterEstimate, ReducedModel
@@ -215,22 +216,20 @@ def _n_unknowns(estimate: ParameterEstimate) -> int:
     return int(np.count_nonzero(~np.asarray(estimate.lifted, bool)))
 
 
+def _decide(estimates: Sequence[ParameterEstimate], alpha: float) -> tuple[float, bool]:
+    """The decision over F fields by the one within-model test each estimate carries
+    (:func:`hood_decomp.core.method.residual.check_residual`): the smallest p-value, Bonferroni-adjusted over the
+    fields, against alpha. (adjusted p-value, within)."""
+    p_value = min(1.0, len(estimates) * min(e.check.p_value for e in estimates))
+    return p_value, p_value >= alpha
+
+
 def _analyse(bases: Bases, estimates: Sequence[ParameterEstimate], noise: Sequence[float], alpha: float
              ) -> tuple[tuple[ResidualAnalysis, ...], float, bool]:
-    """Residual analyses of the estimates and the decision over all fields by the one within-model test
-    (:func:`hood_decomp.core.method.residual.check_residual`, run by the estimator on each field): the smallest
-    p-value, Bonferroni-adjusted over the F fields, against alpha. The analyses carry each field's test result
-    and the regions where the residual exceeds ``noise``."""
-    analyses = []
-    for estimate, sigma in zip(estimates, noise, strict=True):
-        if estimate.method == "pca":
-            n_params, model_mm = bases.pca.n_components_, bases.pca.training_residual_rms_
-        else:
-            n_params, model_mm = _n_unknowns(estimate), 0.0
-        check = replace(estimate.check, alpha=alpha, within_model=estimate.check.p_value >= alpha)
-        analyses.append(analyse_residual(bases.skin, estimate.residual, n_params, sigma, model_mm, alpha, check=check))
-    p_value = min(1.0, len(analyses) * min(a.p_value for a in analyses))
-    return tuple(analyses), p_value, p_value >= alpha
+    """Residual analyses of the estimates (each with its field's test and the regions where the residual exceeds
+    ``noise``) and the decision over all fields (:func:`_decide`)."""
+    analyses = tuple(analyse_estimate(bases, e, sigma, alpha) for e, sigma in zip(estimates, noise, strict=True))
+    return (analyses, *_decide(estimates, alpha))
 
 
 def _declared_shifts(bases: Bases, before: Sequence[ParameterEstimate], named: Sequence[ParameterEstimate]) -> float:
@@ -246,21 +245,22 @@ def _declared_shifts(bases: Bases, before: Sequence[ParameterEstimate], named: S
 
 
 # --- tracing -----------------------------------------------------------------------------------------------------
-def _estimator(reduced: ReducedModel, lower: np.ndarray, upper: np.ndarray, n_added: int, min_coverage: float
-               ) -> ContactEstimator:
-    """A contact estimator for ``reduced`` whose last ``n_added`` bilateral inputs have no declared range yet."""
+def _estimator(reduced: ReducedModel, lower: np.ndarray, upper: np.ndarray, n_added: int, min_coverage: float,
+               test: ResidualTest) -> ContactEstimator:
+    """A contact estimator for ``reduced`` whose last ``n_added`` bilateral inputs have no declared range yet; its
+    estimates carry the one within-model test ``test`` (the skin's)."""
     b = reduced.n_bilateral - n_added
     lower = np.insert(np.asarray(lower, float), b, np.full(n_added, -np.inf))
     upper = np.insert(np.asarray(upper, float), b, np.full(n_added, np.inf))
-    return ContactEstimator(min_coverage).fit(reduced, lower, upper)
+    return ContactEstimator(min_coverage).fit(reduced, lower, upper, test)
 
 
 def _fit(reduced: ReducedModel, lower: np.ndarray, upper: np.ndarray, fields: Sequence[DisplacementField],
-         candidates: CandidateFields, names: Sequence[str], min_coverage: float
+         candidates: CandidateFields, names: Sequence[str], min_coverage: float, test: ResidualTest
          ) -> tuple[np.ndarray, tuple[ParameterEstimate, ...]]:
     """RSS (F,) mm^2 and contact-aware estimates of the fields with the candidates ``names`` appended to ``reduced``."""
     augmented = augment_reduced(reduced, candidates, list(names))
-    estimator = _estimator(augmented, lower, upper, len(names), min_coverage)
+    estimator = _estimator(augmented, lower, upper, len(names), min_coverage, test)
     estimates = tuple(estimator.estimate(field) for field in fields)
     return np.array([np.nansum(e.residual**2) for e in estimates]), estimates
 
@@ -273,6 +273,7 @@ def trace_effect(
     candidates: CandidateFields,
     current: Sequence[ParameterEstimate],
     noise: Sequence[float],
+    test: ResidualTest,
     alpha: float = DEFAULT_ALPHA,
     min_coverage: float = DEFAULT_MIN_COVERAGE,
     pairs: bool = True,
@@ -281,7 +282,9 @@ def trace_effect(
     docstring, step 2: singles, then pairs).
 
     reduced, lower, upper: the current reduced model and its declared ranges (B + U,). fields: F fields.
-    current: their contact-aware estimates with ``reduced``. noise: (F,) noise sigma per field, mm.
+    current: their contact-aware estimates with ``reduced``. noise: (F,) noise sigma per field, mm (weights of the
+    RSS that ranks and tests the candidates). test: the skin's within-model test, which decides whether the fields
+    are within the model with a candidate (the same test as before it, :func:`_decide`).
     pairs: fit pairs when no single candidate brings the fields within the model (False: singles only).
     Candidates already in ``reduced`` are skipped. Raises ModelError when no candidate is left.
     """
@@ -300,7 +303,7 @@ def trace_effect(
     excess = float(weights @ rss0 - dof0.sum())
     rows = []
     for index, name in enumerate(names):
-        rss, estimates = _fit(reduced, lower, upper, fields, candidates, [name], min_coverage)
+        rss, estimates = _fit(reduced, lower, upper, fields, candidates, [name], min_coverage, test)
         rows.append((name, rss, estimates))
         logger.info("trace %d/%d %s: weighted RSS %.1f", index + 1, len(names), name, weights @ rss)
     rows.sort(key=lambda row: float(weights @ row[1]))
@@ -324,7 +327,7 @@ def trace_effect(
     decisiveness = (scores[1].weighted_rss - best.weighted_rss) / variance if len(scores) > 1 else np.inf
     threshold = float(chi2.isf(alpha, q))
     decisive = decisiveness > threshold
-    _, within_after = chi2_within(best.weighted_rss, int(dof1), alpha)
+    _, within_after = _decide(rows[0][2], alpha)
     runner = scores[1].name if len(scores) > 1 else "-"
     pair_scores: tuple[PairScore, ...] = ()
     outcome, named, named_estimates = "unexplained", (), ()
@@ -346,7 +349,7 @@ def trace_effect(
                   f"(adjusted p {best.p_adjusted:.2g}; likelihood ratio to {runner} {decisiveness:.3g})")
         if not within_after and pairs and len(scores) > 1:
             pair_scores, pair, pair_reason = _trace_pairs(reduced, lower, upper, fields, candidates, scores, weights,
-                                                          rss0, excess, dof0, alpha, min_coverage)
+                                                          rss0, excess, dof0, alpha, min_coverage, test)
             if pair is not None:
                 outcome, named, named_estimates, reason = "found", pair[0].names, pair[1], pair_reason
             else:
@@ -365,7 +368,7 @@ def trace_effect(
 def _trace_pairs(
     reduced: ReducedModel, lower: np.ndarray, upper: np.ndarray, fields: Sequence[DisplacementField],
     candidates: CandidateFields, scores: Sequence[CandidateScore], weights: np.ndarray,
-    rss0: np.ndarray, excess: float, dof0: np.ndarray, alpha: float, min_coverage: float,
+    rss0: np.ndarray, excess: float, dof0: np.ndarray, alpha: float, min_coverage: float, test: ResidualTest,
 ) -> tuple[tuple[PairScore, ...], tuple[PairScore, tuple[ParameterEstimate, ...]] | None, str]:
     """Fit the best single jointly with every other candidate; return the pairs (best first), the pair to take with
     its estimates (or None) and why (module docstring, step 2, "Pairs")."""
@@ -376,7 +379,8 @@ def _trace_pairs(
     column = reduced.n_bilateral
     fitted = []
     for second in scores[1:]:
-        rss, estimates = _fit(reduced, lower, upper, fields, candidates, [first.name, second.name], min_coverage)
+        rss, estimates = _fit(reduced, lower, upper, fields, candidates, [first.name, second.name], min_coverage,
+                              test)
         weighted = float(weights @ rss)
         variance = max(weighted / dof2, 1e-300)
         statistic = max(first.weighted_rss - weighted, 0.0) / q / variance
@@ -386,7 +390,7 @@ def _trace_pairs(
             names=(first.name, second.name), rss_mm2=rss, weighted_rss=weighted,
             explained=float(weights @ (rss0 - rss)) / excess if excess > 0 else 0.0, f_statistic=statistic,
             p_adjusted=min(1.0, float(f.sf(statistic, q, dof2)) * n_pairs),
-            within_after=chi2_within(weighted, int(dof2), alpha)[1], values=values, std=std,
+            within_after=_decide(estimates, alpha)[1], values=values, std=std,
         ), estimates))
         logger.info("trace pair %s + %s: weighted RSS %.1f", first.name, second.name, weighted)
     fitted.sort(key=lambda item: item[0].weighted_rss)
@@ -527,8 +531,8 @@ def close_loop(
     start = time.perf_counter()
     reduced, lower, upper = bases.reduced_model, bases.pca.lower_, bases.pca.upper_
     current = before if method == "contact" else tuple(
-        _estimator(reduced, lower, upper, 0, min_coverage).estimate(fd) for fd in fields)
-    trace = trace_effect(reduced, lower, upper, fields, candidates, current, noise, alpha=alpha,
+        _estimator(reduced, lower, upper, 0, min_coverage, bases.residual_test()).estimate(fd) for fd in fields)
+    trace = trace_effect(reduced, lower, upper, fields, candidates, current, noise, bases.residual_test(), alpha=alpha,
                          min_coverage=min_coverage, pairs=max_effects == 2)
     traces = (trace,)
     timings["trace_s"] = time.perf_counter() - start
@@ -555,7 +559,7 @@ def close_loop(
     reduced = augment_reduced(bases.reduced_model, candidates, added_names)
     start = time.perf_counter()
     n_new = len(added_names)
-    provisional = _estimator(reduced, lower, upper, n_new, min_coverage)
+    provisional = _estimator(reduced, lower, upper, n_new, min_coverage, bases.residual_test())
     estimates = [provisional.estimate(fd) for fd in fields]
     b = bases.reduced_model.n_bilateral
     halves = [effect_range(np.array([e.values[b + j] for e in estimates]), np.array([e.std[b + j] for e in estimates]))

@@ -5,7 +5,7 @@ correction for the adjustment robot, the interaction map of an ensemble, and the
 May import: ``hood_decomp.core.types`` and ``hood_decomp.errors`` only (never ``fe``, ``scan`` or ``loop``).
 """
 
-from hood_decomp.core.method.bases import Bases, build_bases, decompose_field, estimate_field
+from hood_decomp.core.method.bases import Bases, analyse_estimate, build_bases, decompose_field, estimate_field
 from hood_decomp.core.method.contact_estimation import ContactEstimator
 from hood_decomp.core.method.correction import CorrectionPolicy, plan_correction
 from hood_decomp.core.method.decomposition import decompose
@@ -17,6 +17,6 @@ from hood_decomp.core.method.residual import analyse_residual
 
 __all__ = [
     "Bases", "ContactEstimator", "CorrectionPolicy", "HierarchicalBasis", "InteractionMap", "PCABasis",
-    "analyse_residual", "build_bases", "decompose", "decompose_field", "estimate_field", "estimate_pca",
-    "interaction_map", "plan_correction",
+    "analyse_estimate", "analyse_residual", "build_bases", "decompose", "decompose_field", "estimate_field",
+    "estimate_pca", "interaction_map", "plan_correction",
 ]

@@ -10,12 +10,14 @@ from __future__ import annotations
 import dataclasses
 import logging
 
+import numpy as np
+
 from hood_decomp.core.method.contact_estimation import ContactEstimator
 from hood_decomp.core.method.decomposition import decompose
 from hood_decomp.core.method.estimation import DEFAULT_MIN_COVERAGE, estimate_pca
 from hood_decomp.core.method.hierarchical import HierarchicalBasis
 from hood_decomp.core.method.pca import PCABasis
-from hood_decomp.core.method.residual import ResidualTest
+from hood_decomp.core.method.residual import DEFAULT_ALPHA, ResidualAnalysis, ResidualTest, analyse_residual
 from hood_decomp.core.types import (
     Decomposition,
     DisplacementField,
@@ -105,6 +107,26 @@ def estimate_field(
     if method == "pca":
         return estimate_pca(bases.pca, field, min_coverage, bases.residual_test())
     return bases.contact_estimator(min_coverage).estimate(field)
+
+
+def analyse_estimate(bases: Bases, estimate: ParameterEstimate, noise_mm: float | None, alpha: float = DEFAULT_ALPHA
+                     ) -> ResidualAnalysis:
+    """Residual statistics and exceeding regions of one estimate, decided by the one within-model test the estimate
+    carries (:func:`~.residual.check_residual`, run by the estimator) at ``alpha``: the analysis every verb, node and
+    application reports (close-loop, shift), so none of them decides "within the model" by a test of its own.
+
+    noise_mm: the level the regions are drawn against (the field's ``noise_rms``; None: the default). Unknowns: a
+    contact-aware estimate fits the bilateral states and the touching pads; the paper's estimator its PCA
+    pre-factors, with its training error as model floor. Raises BasisError for an estimate without a test.
+    """
+    if estimate.check is None:
+        raise BasisError("the estimate carries no within-model test (estimate with estimate_field on these bases)")
+    if estimate.method == "pca":
+        n_params, model_mm = bases.pca.n_components_, bases.pca.training_residual_rms_
+    else:
+        n_params, model_mm = int(np.count_nonzero(~np.asarray(estimate.lifted, bool))), 0.0
+    check = dataclasses.replace(estimate.check, alpha=alpha, within_model=estimate.check.p_value >= alpha)
+    return analyse_residual(bases.skin, estimate.residual, n_params, noise_mm, model_mm, alpha, check=check)
 
 
 def decompose_field(
