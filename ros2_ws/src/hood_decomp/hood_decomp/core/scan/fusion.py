@@ -5,14 +5,16 @@ topic or a file). Each view is registered on its own (its fixture markers, three
 marker fit replaces it, and the difference is reported) and turned into a field by the one scan-to-field step
 (:func:`hood_decomp.core.scan.scan_field.field_from_scan`). The fused field is, per skin node i,
 
-    a_i = sum_v w_v(i) a_v(i),   w_v(i) = s_v(i)^-2 / sum_u s_u(i)^-2   (views that saw node i)
+    a_i = sum_v w_v(i) a_v(i),   w_v(i) = e_v(i)^-2 / sum_u e_u(i)^-2   (views that saw node i)
 
-the inverse-variance weighted mean of the views' values (s_v the view's node std of its error model). Its error model
-follows from the views' being independent (their point noise and their registrations are):
+the inverse-variance weighted mean of the views' values, e_v(i)^2 = s_v(i)^2 + |U_v(i)|^2 the view's node variance
+from its error model: node noise s_v plus what its registration error does at the node (a view with a poor pose
+counts less where its pose error reaches far). Its error model follows from the views' being independent (their
+point noise and their registrations are):
 
-- node std s_i = (sum_v s_v(i)^-2)^-1/2;
-- correlation sum g_i = sum_v w_v(i) g_v(i) (with the weights and stds locally constant over a correlation length,
-  sum_k Cov_ik / (s_i s_k) = sum_v w_v^2 s_v^2 g_v / s_i^2 = sum_v w_v g_v);
+- node std s_i = (sum_v w_v(i)^2 s_v(i)^2)^1/2 (noise only: the registration part is in U below);
+- correlation sum g_i = sum_v w_v(i)^2 s_v(i)^2 g_v(i) / s_i^2 (with the weights and stds locally constant over a
+  correlation length, sum_k Cov_ik / (s_i s_k) over the views' independent noise);
 - one registration error per view, reaching the nodes through the view's weight: U = [w_1 U_1, ..., w_V U_V] (N, 6V)
   (:class:`hood_decomp.core.types.ViewPoseError`), correlated over all nodes of one view and independent between
   views. A single-pose summary (the sum of the views' pose covariances about a common centre, never smaller on any
@@ -144,12 +146,15 @@ def view_field(
     min_coverage: float = 0.02,
     datum_mask: np.ndarray | None = None,
     marker_std_mm: float | None = None,
+    check_correction: bool = True,
 ) -> ViewResult:
     """Register one view with its own pose (refined by its markers) and turn it into its field.
 
     min_coverage: smallest fraction of the skin one view must see (a partial view sees little of it).
-    Raises ScanError prefixed with the view's name (bad pose, markers that do not fit or contradict the pose by more
-    than :data:`MAX_POSE_CORRECTION_MM` / :data:`MAX_POSE_CORRECTION_DEG`, no overlap, too little coverage).
+    check_correction: refuse a view whose markers contradict its pose by more than :data:`MAX_POSE_CORRECTION_MM` /
+    :data:`MAX_POSE_CORRECTION_DEG` (a lone scan's stored nominal pose is only a fallback, and is not checked).
+    Raises ScanError prefixed with the view's name (bad pose, markers that do not fit or contradict the pose, no
+    overlap, too little coverage).
     """
     pose = None if view.scanner_pose is None else check_pose(view.scanner_pose, f"{view.name}: scanner pose")
     use_markers = view.n_markers >= 3 and view.markers_nominal_mm is not None
@@ -164,7 +169,7 @@ def view_field(
     shift_mm = angle_deg = float("nan")
     if use_markers and pose is not None:
         shift_mm, angle_deg = pose_difference(registration.transform, pose)
-        if shift_mm > MAX_POSE_CORRECTION_MM or angle_deg > MAX_POSE_CORRECTION_DEG:
+        if check_correction and (shift_mm > MAX_POSE_CORRECTION_MM or angle_deg > MAX_POSE_CORRECTION_DEG):
             raise ScanError(
                 f"{view.name}: its markers place it {shift_mm:.1f} mm / {angle_deg:.2f} deg from its "
                 f"{view.pose_source} pose (at most {MAX_POSE_CORRECTION_MM:g} mm / {MAX_POSE_CORRECTION_DEG:g} deg "
@@ -188,15 +193,15 @@ def _moved_covariance(covariance: np.ndarray, center: np.ndarray, to: np.ndarray
     omega x (x - c) + t = omega x (x - c') + t + omega x (c' - c)."""
     d = np.asarray(to, float) - np.asarray(center, float)
     adjoint = np.eye(6)
-    adjoint[3:, :3] = np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])  # t' = t - d x omega
+    adjoint[3:, :3] = -np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])  # t' = t - d x omega
     return adjoint @ covariance @ adjoint.T
 
 
-def fuse_fields(fields: Sequence[DisplacementField]) -> DisplacementField:
+def fuse_fields(fields: Sequence[DisplacementField], skin: SkinSurface | None = None) -> DisplacementField:
     """One field (N,) mm from several fields of the same part (see the module docstring for the weights and the
-    error model). One field is returned as it is. Fields without a node std (error model "none" or "stated"
-    without a scan's) are averaged with equal weights per node, and the fused field states what they state
-    jointly only when all are "scan" fields; otherwise it states none.
+    error model). One field is returned as it is. With ``skin`` the weights take each view's registration error at
+    the node into account (without it, the node noise alone). Fields without a scan's node std ("none" or "stated")
+    are averaged with equal weights per node, and the fused field then states no error model.
 
     Raises ScanError for no fields or fields of different models or node counts.
     """
@@ -213,9 +218,15 @@ def fuse_fields(fields: Sequence[DisplacementField]) -> DisplacementField:
     seen = np.isfinite(values)
     scan_models = all(f.errors.kind == "scan" for f in fields)
     if scan_models:
-        std = np.array([np.asarray(f.errors.node_std, float) for f in fields])
-        seen &= np.isfinite(std) & (std > 0)
-        precision = np.where(seen, 1.0 / np.where(seen, std, 1.0) ** 2, 0.0)
+        noise_var = np.array([np.asarray(f.errors.node_std, float) ** 2 for f in fields])
+        seen &= np.isfinite(noise_var) & (noise_var > 0)
+        noise_var = np.where(seen, noise_var, 1.0)
+        pose_var = np.zeros_like(noise_var)
+        if skin is not None:
+            for v, f in enumerate(fields):
+                if f.errors.has_pose:
+                    pose_var[v] = np.sum(f.errors.registration_modes(skin.points, skin.normals) ** 2, axis=1)
+        precision = np.where(seen, 1.0 / (noise_var + pose_var), 0.0)
     else:
         precision = seen.astype(float)
     total = precision.sum(axis=0)
@@ -228,18 +239,29 @@ def fuse_fields(fields: Sequence[DisplacementField]) -> DisplacementField:
     if scan_models:
         models = [f.errors for f in fields]
         correlation = np.array([np.asarray(m.correlation, float) for m in models])
-        node_std = np.where(any_seen, 1.0 / np.sqrt(np.where(any_seen, total, 1.0)), np.nan)
-        views = tuple(ViewPoseError(np.asarray(m.pose_covariance, float), np.asarray(m.pose_center, float), w)
-                      for m, w in zip(models, weight, strict=True))
+        # independent view noise: Var = sum_v w_v^2 s_v^2; correlation sum g = sum_v w_v^2 s_v^2 g_v / Var
+        variance = np.sum(weight**2 * noise_var, axis=0)
+        node_std = np.where(any_seen, np.sqrt(variance), np.nan)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            fused_correlation = np.sum(weight**2 * noise_var * correlation, axis=0) / variance
+        views = tuple(view for m, w in zip(models, weight, strict=True) for view in _view_poses(m, w))
         center = np.mean([v.center for v in views if v.has_pose] or [np.zeros(3)], axis=0)
         summary = sum((_moved_covariance(v.covariance, v.center, center) for v in views if v.has_pose),
                       np.zeros((6, 6)))
         errors = FieldErrorModel(
-            "scan", node_std, np.where(any_seen, np.maximum(np.sum(weight * correlation, axis=0), 1.0), 1.0),
+            "scan", node_std, np.where(any_seen, np.maximum(fused_correlation, 1.0), 1.0),
             max(m.correlation_length_mm for m in models), pose_covariance=summary, pose_center=center,
             bias_correlation=max(m.bias_correlation for m in models), view_poses=views)
         errors.validate(n)
     return DisplacementField(model_id, fused, float(any_seen.mean()), noise_rms, errors)
+
+
+def _view_poses(errors: FieldErrorModel, weight: np.ndarray) -> tuple[ViewPoseError, ...]:
+    """The registration errors of one fused-in field with its fusion weight (N,): its own pose, or the views of a
+    field that was itself fused (their weights multiplied), so fusing in stages stays exact."""
+    if errors.view_poses:
+        return tuple(ViewPoseError(v.covariance, v.center, v.weight * weight) for v in errors.view_poses)
+    return (ViewPoseError(np.asarray(errors.pose_covariance, float), np.asarray(errors.pose_center, float), weight),)
 
 
 def fuse_views(
@@ -270,19 +292,19 @@ def fuse_views(
             raise ScanError(f"{', '.join(missing)}: no scanner pose; every view of a multi-view part needs one "
                             "(robot, TF, pose topic or file)")
     results = [view_field(skin, view, estimator=estimator, min_coverage=min_view_coverage, datum_mask=datum_mask,
-                          marker_std_mm=marker_std_mm) for view in views]
-    fused = fuse_fields([r.field for r in results])
+                          marker_std_mm=marker_std_mm, check_correction=len(views) > 1) for view in views]
+    fused = fuse_fields([r.field for r in results], skin)
     if fused.coverage < min_coverage:
         raise ScanError(f"fused coverage too low: {fused.coverage:.1%} of {skin.n_nodes} skin nodes seen by "
                         f"{len(views)} view(s) (minimum {min_coverage:.0%})")
     if len(results) > 1:
-        results = [_with_overlap(r, [o.field for o in results if o is not r]) for r in results]
+        results = [_with_overlap(r, [o.field for o in results if o is not r], skin) for r in results]
     return FusedField(fused, tuple(results))
 
 
-def _with_overlap(result: ViewResult, others: list[DisplacementField]) -> ViewResult:
+def _with_overlap(result: ViewResult, others: list[DisplacementField], skin: SkinSurface) -> ViewResult:
     """``result`` with its overlap with the other views' fused field (nodes shared, RMS difference)."""
-    rest = fuse_fields(others)
+    rest = fuse_fields(others, skin)
     own = result.field.normal_displacement
     shared = np.isfinite(own) & np.isfinite(rest.normal_displacement)
     rms = float(np.sqrt(np.mean((own[shared] - rest.normal_displacement[shared]) ** 2))) if shared.any() else np.nan
