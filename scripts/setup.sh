@@ -76,7 +76,7 @@ done
 # ament_python is installed with --symlink-install, so editing Python sources needs no rebuild; only the package
 # manifests, setup files and messages trigger one.
 build_stamp="$( (echo "$req_stamp"; find "$WS/src" \( -name package.xml -o -name setup.py -o -name setup.cfg \
-  -o -name CMakeLists.txt -o -name '*.msg' -o -path '*/config/*' -o -path '*/launch/*' \) -type f -print0 | sort -z |
+  -o -name CMakeLists.txt -o -name '*.msg' -o -name '*.srv' -o -name '*.action' -o -path '*/config/*' -o -path '*/launch/*' \) -type f -print0 | sort -z |
   xargs -0 cat) | sha256sum | cut -c1-16)"
 if [ ! -f "$WS/install/setup.bash" ] || [ "$(cat "$WS/install/.stamp-build" 2>/dev/null)" != "$build_stamp" ]; then
   say "colcon build (hood_decomp_msgs, hood_decomp)"

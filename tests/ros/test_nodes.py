@@ -55,7 +55,7 @@ def errors(arrays) -> dict[str, str]:
 
 def _field_msg(coarse_hood, values: np.ndarray, sec: int, model_id: str | None = None) -> DisplacementField:
     field = CoreField(model_id or coarse_hood.bases.model_id, values, float(np.isfinite(values).mean()), 0.0)
-    return messages.field_to_msg(field, Header(frame_id="hood", stamp=Time(sec=sec, nanosec=0)))
+    return messages.field_to_msg(field, Header(frame_id="hood", stamp=Time(sec=sec, nanosec=0)), f"part-{sec}")
 
 
 def test_good_and_bad_fields(coarse_hood, running):
@@ -92,6 +92,9 @@ def test_good_and_bad_fields(coarse_hood, running):
     assert "NaN" in refused["3.000000000"] and f"shape ({good.size - 5},)" in refused["4.000000000"]
     assert all(p.poll() is None for p in processes), "a node died"
     assert [c.header.stamp.sec for c in corrections] == [1, 5]
+    # the part id travels from the field to every output
+    assert [m.part_id for m in (*states, *corrections)] == ["part-1", "part-5"] * 2
+    assert sorted(e.part_id for e in effects) == ["part-1", "part-5"]
     np.testing.assert_allclose(np.array(corrections[0].corrections)[index][in_contact],
                                -member.effective[0][in_contact] / 1000.0, atol=1e-6)
 
@@ -122,6 +125,7 @@ def test_scan_node_refuses_oversized_and_empty_clouds(coarse_hood, tmp_path):
         assert "40,000 points" in refused["1.000000000"] and "at most 20,000" in refused["1.000000000"]
         assert "empty" in refused["2.000000000"]
         assert [f.header.stamp.sec for f in fields] == [3] and fields[0].header.frame_id == "hood"
+        assert fields[0].part_id == "stamp-3.000000000"  # a lone cloud names no part: one is made from its stamp
         assert processes[0].poll() is None
     finally:
         peer.close()

@@ -397,6 +397,8 @@ class BoundaryCorrection:
     std: (P,) mm, one standard deviation of each correction. applicable: (P,) bool, whether this boundary's correction
     may be applied on its own (its std below the limit, its estimate in range, not lifted, and the field within the
     model with enough coverage); None when unknown (decoded from a message without it).
+    remaining: (P,) mm, the part of the move to nominal that a per-cycle step limit left for the next cycle (0 where
+    the correction is the whole move); None means nothing was left.
     """
 
     model_id: str
@@ -406,3 +408,4 @@ class BoundaryCorrection:
     reason: str
     std: np.ndarray | None = None
     applicable: np.ndarray | None = None
+    remaining: np.ndarray | None = None

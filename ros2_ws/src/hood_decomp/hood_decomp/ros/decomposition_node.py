@@ -82,9 +82,10 @@ class DecompositionNode(HoodNode):
         estimate = messages.msg_to_estimate(pair.state) if pair.state is not None else None
         decomposition = decompose_field(bases, messages.msg_to_field(pair.field), estimate,
                                         min_coverage=self.min_coverage)
-        self.effects_pub.publish(messages.decomposition_to_msg(decomposition, pair.header))
+        part_id = messages.part_id_of(pair.field)
+        self.effects_pub.publish(messages.decomposition_to_msg(decomposition, pair.header, part_id))
         self.cloud_pub.publish(self.skin_clouds.effects(decomposition, pair.header))
-        return {"effects": ", ".join(effect.name for effect in decomposition.effects),
+        return {"part_id": part_id, "effects": ", ".join(effect.name for effect in decomposition.effects),
                 "paired_with_boundary_state": pair.state is not None,
                 "reconstruction_rms_mm": f"{decomposition.reconstruction_rms:.4f}"}
 

@@ -35,10 +35,12 @@ class EstimatorNode(HoodNode):
         estimate = estimate_field(self.require_bases(), messages.msg_to_field(msg), method=self.method,
                                   min_coverage=self.policy.min_coverage)
         correction = plan_correction(estimate, self.policy)
-        self.state_pub.publish(messages.estimate_to_msg(estimate, msg.header))
-        self.correction_pub.publish(messages.correction_to_msg(correction, msg.header))
-        return {"residual_rms_mm": f"{estimate.residual_rms:.4f}", "within_model": estimate.within_model,
-                "safe_to_apply": correction.safe_to_apply, "reason": correction.reason}
+        part_id = messages.part_id_of(msg)
+        self.state_pub.publish(messages.estimate_to_msg(estimate, msg.header, part_id))
+        self.correction_pub.publish(messages.correction_to_msg(correction, msg.header, part_id))
+        return {"part_id": part_id, "residual_rms_mm": f"{estimate.residual_rms:.4f}",
+                "within_model": estimate.within_model, "safe_to_apply": correction.safe_to_apply,
+                "reason": correction.reason}
 
 
 def main(args: list[str] | None = None) -> int:

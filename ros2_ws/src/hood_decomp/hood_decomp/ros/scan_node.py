@@ -55,11 +55,12 @@ class ScanNode(HoodNode):
                                               markers_mm=markers_mm, markers_nominal_mm=markers_nominal_mm,
                                               min_coverage=self.min_coverage, estimator=self.estimator)
         header = msg.header
+        part_id = messages.part_id_of(msg)  # a cloud names no part: one id per stamp (an inspection names its own)
         header.frame_id = self.part_frame
-        self.field_pub.publish(messages.field_to_msg(field, header))
+        self.field_pub.publish(messages.field_to_msg(field, header, part_id))
         self.cloud_pub.publish(self.skin_clouds.displacement(field, header))
-        return {"points": points_mm.shape[0], "markers": 0 if markers_mm is None else len(markers_mm),
-                "coverage": f"{field.coverage:.3f}",
+        return {"part_id": part_id, "points": points_mm.shape[0],
+                "markers": 0 if markers_mm is None else len(markers_mm), "coverage": f"{field.coverage:.3f}",
                 "noise_rms_mm": f"{field.noise_rms:.4f}", "registration": registration.method,
                 "overlap": f"{registration.overlap:.3f}"}
 
