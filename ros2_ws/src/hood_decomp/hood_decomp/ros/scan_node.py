@@ -1,9 +1,11 @@
 """Scan node: scan/points (sensor_msgs/PointCloud2, metres, scanner frame) -> hood_decomp/displacement and
 hood_decomp/displacement_cloud (the skin with a normal-displacement channel, metres, for RViz).
 
-The cloud is read with one buffer copy (hood_decomp.ros.messages / pointcloud), registered to the nominal part and
-turned into one signed normal displacement per visible skin node (hood_decomp.core.scan.scan_field). Clouds larger
-than ``max_points`` are refused before any copy.
+The cloud is read with one buffer copy (hood_decomp.ros.messages / pointcloud), placed by its pose (TF, scan/pose,
+the scanner_pose parameter: hood_decomp.ros.poses; markers refine it), registered to the nominal part and turned into
+one signed normal displacement per visible skin node (hood_decomp.core.scan.scan_field). Clouds larger than
+``max_points`` are refused before any copy. While an InspectPart goal is open, clouds are the views of its part
+(hood_decomp.ros.inspection); otherwise one cloud gives one field.
 """
 
 from __future__ import annotations
@@ -13,10 +15,15 @@ from hood_decomp_msgs.msg import DisplacementField
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Header
 
+from hood_decomp.core.scan.fusion import ScanView
+from hood_decomp.core.types import DisplacementField as CoreField
 from hood_decomp.errors import ScanError
 from hood_decomp.ros import messages
+from hood_decomp.ros.inspection import InspectionServer
 from hood_decomp.ros.node_common import HoodNode, declare, spin
+from hood_decomp.ros.poses import PoseSources, PoseTopic, tf_lookup
 
 
 class ScanNode(HoodNode):
@@ -31,7 +38,22 @@ class ScanNode(HoodNode):
         self.marker_field = declare(self, "marker_field", "marker_id", "per-point field holding marker ids")
         self.max_points = declare(self, "max_points", 5_000_000, "largest cloud accepted (points)", 1, 100_000_000)
         self.min_coverage = declare(self, "min_coverage", 0.2, "smallest seen fraction of the skin", 0.0, 1.0)
+        use_tf = declare(self, "use_tf", True, "take each cloud's pose from TF (part_frame <- the cloud's frame at "
+                         "its stamp) before scan/pose and scanner_pose")
+        extrapolation = declare(self, "tf_max_extrapolation_s", 0.0, "how far past the newest transform a TF "
+                                "lookup may reach (s; 0: none, as tf2)", 0.0, 10.0)
         self.scanner_pose, self.markers_nominal = messages.calibration_from_params(pose, markers or [])
+        # the identity (the default) means "not set": a lone cloud is then in the part frame, and an inspection's view
+        # without TF or scan/pose has no pose
+        parameter_pose = None if np.array_equal(self.scanner_pose, np.eye(4)) else self.scanner_pose
+        sources = [("scan/pose", PoseTopic(self).lookup)]
+        if use_tf:
+            try:
+                tf, name = tf_lookup(self, max_extrapolation_s=extrapolation)
+                sources.insert(0, (name, tf.lookup))
+            except ImportError as error:  # neither tf2_ros nor the workspace's tf2_msgs: say so, serve without TF
+                self.get_logger().error(f"no TF: {error} (build ros2_ws/src/tf2_msgs or install tf2_ros)")
+        self.poses = PoseSources(self.part_frame, sources, parameter_pose)
         self.estimator = self.skin_clouds = None
         if self.bases is not None:  # one-time preparation of the skin: the scan-field estimator and the cloud's xyz
             from hood_decomp.core.scan.scan_field import prepared_estimator
@@ -41,6 +63,14 @@ class ScanNode(HoodNode):
         self.field_pub = self.publisher(DisplacementField, "hood_decomp/displacement")
         self.cloud_pub = self.publisher(PointCloud2, "hood_decomp/displacement_cloud")
         self.subscription(PointCloud2, "scan/points", self.guarded("scan", self.on_cloud))
+        self.inspection = InspectionServer(
+            self, skin_and_estimator=lambda: (self.require_bases().skin, self.estimator),
+            publish_field=self.publish_field, part_frame=self.part_frame,
+            variant=declare(self, "variant", "", "the part variant these bases serve (InspectPart goals name it)"),
+            default_timeout_s=declare(self, "inspection_timeout_s", 120.0, "an inspection's timeout when its goal "
+                                      "states none (s)", 0.1, 86400.0),
+            result_timeout_s=declare(self, "result_timeout_s", 30.0, "how long an inspection waits for the "
+                                     "estimator's answer to its fused field (s)", 0.1, 3600.0))
 
     def on_cloud(self, msg: PointCloud2) -> dict[str, object]:
         from hood_decomp.core.scan.scan_field import field_from_scan
@@ -51,18 +81,24 @@ class ScanNode(HoodNode):
             raise ScanError(f"cloud has {n_points:,} points; this node accepts at most {self.max_points:,} "
                             "(parameter max_points)")
         points_mm, markers_mm, markers_nominal_mm = messages.scan_to_mm(msg, self.marker_field, self.markers_nominal)
-        field, registration = field_from_scan(bases.skin, points_mm, scanner_pose=self.scanner_pose,
+        pose = self.poses.resolve(msg.header.frame_id, msg.header.stamp)
+        if self.inspection.active:
+            view = ScanView(points_mm, pose.pose_mm, markers_mm, markers_nominal_mm, pose_source=pose.source)
+            return {**self.inspection.add_view(msg.header, view, pose), "points": points_mm.shape[0]}
+        field, registration = field_from_scan(bases.skin, points_mm, scanner_pose=pose.pose_mm,
                                               markers_mm=markers_mm, markers_nominal_mm=markers_nominal_mm,
                                               min_coverage=self.min_coverage, estimator=self.estimator)
-        header = msg.header
         part_id = messages.part_id_of(msg)  # a cloud names no part: one id per stamp (an inspection names its own)
-        header.frame_id = self.part_frame
-        self.field_pub.publish(messages.field_to_msg(field, header, part_id))
-        self.cloud_pub.publish(self.skin_clouds.displacement(field, header))
+        self.publish_field(field, msg.header, part_id)
         return {"part_id": part_id, "points": points_mm.shape[0],
                 "markers": 0 if markers_mm is None else len(markers_mm), "coverage": f"{field.coverage:.3f}",
                 "noise_rms_mm": f"{field.noise_rms:.4f}", "registration": registration.method,
-                "overlap": f"{registration.overlap:.3f}"}
+                "overlap": f"{registration.overlap:.3f}", "pose_source": pose.report}
+
+    def publish_field(self, field: CoreField, header: Header, part_id: str) -> None:
+        header.frame_id = self.part_frame
+        self.field_pub.publish(messages.field_to_msg(field, header, part_id))
+        self.cloud_pub.publish(self.skin_clouds.displacement(field, header))
 
 
 def main(args: list[str] | None = None) -> int:
