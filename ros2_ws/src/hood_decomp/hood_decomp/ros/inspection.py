@@ -12,8 +12,10 @@ estimator's boundary state and correction for that part (docs/cell.md, DESIGN.md
 - On closing, the views are fused (:func:`hood_decomp.core.scan.fusion.fuse_fields`) and the field is published on
   ``hood_decomp/displacement`` with the goal's part id. The estimator node (another process) answers every field with
   a BoundaryState and a BoundaryCorrection carrying that part id; the action waits for both (``result_timeout_s``)
-  and returns them in its result. The scan node never estimates itself: one estimator, one set of bases, one answer
-  for the robot whether the field came from an inspection or a lone cloud.
+  and returns them in its result. A field the estimator refuses (too little coverage, another model) is answered
+  only on /diagnostics (an ERROR of ``hood_decomp/hood_decomp_estimator`` with the field's stamp): the action takes
+  that as the answer and its result names the reason. The scan node never estimates itself: one estimator, one set
+  of bases, one answer for the robot whether the field came from an inspection or a lone cloud.
 
 Without an open goal, the node keeps one cloud, one field. One part is inspected at a time; a second goal while one
 is open is rejected.
@@ -74,6 +76,7 @@ class InspectionServer:
                  publish_field: Callable[[DisplacementField, Any, str], None], part_frame: str, variant: str = "",
                  default_timeout_s: float = 120.0, result_timeout_s: float = 30.0,
                  min_view_coverage: float = 0.02) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
         from hood_decomp_msgs.action import InspectPart
         from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState
         from hood_decomp_msgs.srv import ClosePart
@@ -93,6 +96,7 @@ class InspectionServer:
         self._numbers = itertools.count(1)
         self._answers: dict[str, dict[str, Any]] = {}
         self._waiting: dict[str, Future] = {}
+        self._stamps: dict[str, str] = {}  # stamp of a published field -> its part id, while its answer is awaited
         self._Action = InspectPart
         group = ReentrantCallbackGroup()  # the goal waits while the node's clouds keep coming in
         self.server = ActionServer(node, InspectPart, ACTION, execute_callback=self._execute,
@@ -103,7 +107,8 @@ class InspectionServer:
             node.create_subscription(BoundaryState, "hood_decomp/boundary_state",
                                      lambda m: self._answer(m, "state"), qos, callback_group=group),
             node.create_subscription(BoundaryCorrection, "hood_decomp/boundary_correction",
-                                     lambda m: self._answer(m, "correction"), qos, callback_group=group)]
+                                     lambda m: self._answer(m, "correction"), qos, callback_group=group),
+            node.create_subscription(DiagnosticArray, "/diagnostics", self._refusal, 50, callback_group=group)]
 
     @property
     def active(self) -> bool:
@@ -194,6 +199,16 @@ class InspectionServer:
         if waiting is not None and not waiting.done() and {"state", "correction"} <= set(answers):
             waiting.set_result(answers)
 
+    def _refusal(self, message: Any) -> None:
+        """An estimator's ERROR about a field this server awaits an answer for: the answer is the refusal."""
+        for status in message.status:
+            if status.level != status.ERROR or not status.name.endswith("_estimator"):
+                continue
+            stamp = next((kv.value for kv in status.values if kv.key == "stamp"), None)
+            waiting = self._waiting.get(self._stamps.get(stamp, ""))
+            if waiting is not None and not waiting.done():
+                waiting.set_result({"refused": status.message})
+
     def _timer(self, seconds: float, future: Future, value: object) -> Any:
         def fire() -> None:
             timer.cancel()
@@ -237,6 +252,8 @@ class InspectionServer:
         header = part.header
         header.frame_id = self.part_frame
         answer = self._waiting[part_id] = Future()
+        stamp = f"{header.stamp.sec}.{header.stamp.nanosec:09d}"
+        self._stamps[stamp] = part_id
         known = self._answers.get(part_id, {})
         if {"state", "correction"} <= set(known):
             answer.set_result(known)
@@ -248,6 +265,11 @@ class InspectionServer:
             timer.cancel()
             self.node.destroy_timer(timer)
             self._waiting.pop(part_id, None)
+            self._stamps.pop(stamp, None)
+        if answers is not None and "refused" in answers:
+            result.message = f"{reason}: {counted}, field published, the estimator refused it: {answers['refused']}"
+            goal_handle.abort()
+            return result
         if answers is None:
             result.message = (f"{reason}: {counted}, field published, but no boundary state and correction for part "
                               f"{part_id} within {self.result_timeout_s:g} s (is the estimator node running?)")
