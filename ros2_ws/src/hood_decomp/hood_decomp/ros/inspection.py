@@ -174,6 +174,9 @@ class InspectionServer:
         part.header = header
         registration = result.registration.method
         report = f"{name}: {pose.report}, registered by {registration}, coverage {result.field.coverage:.3f}"
+        if result.pose_correction_mm == result.pose_correction_mm:  # not NaN: markers refined the pose
+            report += (f", markers moved it {result.pose_correction_mm:.3f} mm / {result.pose_correction_deg:.4f} deg "
+                       "from its pose")
         part.reports.append(report)
         coverage = self._feedback(part, report)
         if len(part.views) >= part.expected:
