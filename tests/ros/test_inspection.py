@@ -15,6 +15,7 @@ from tests.required import require_import
 require_import("hood_decomp_msgs.action", "colcon build", "run inside scripts/with-env after scripts/setup.sh")
 from action_msgs.msg import GoalStatus
 from builtin_interfaces.msg import Duration, Time
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TransformStamped
 from hood_decomp_msgs.action import InspectPart
 from hood_decomp_msgs.msg import DisplacementField
@@ -70,6 +71,7 @@ def cell(coarse_hood, tmp_path_factory):
     latched = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
     peer.publishers["/tf_static"] = peer.node.create_publisher(TFMessage, "/tf_static", latched)
     fields = peer.collect("hood_decomp/displacement", DisplacementField)
+    peer.diagnostics = peer.collect("/diagnostics", DiagnosticArray)
     ready = peer.connected(["scan/points", "scan/pose"], [], 90.0) and peer.wait(
         lambda: client.server_is_ready() and close.service_is_ready()
         and peer.node.count_subscribers("hood_decomp/displacement") >= 2, 90.0)
@@ -190,3 +192,26 @@ def test_cancel_and_close_part(cell):
         result.message
     again = close.call_async(ClosePart.Request())
     assert peer.wait(again.done, 30.0) and not again.result().success
+
+
+def _diagnostic(peer, stamp_sec: int) -> dict[str, str] | None:
+    """Key-values of the scan node's diagnostic about the cloud stamped ``stamp_sec``."""
+    for array in peer.diagnostics:
+        for status in array.status:
+            values = {kv.key: kv.value for kv in status.values}
+            if status.name.endswith("_scan") and values.get("stamp") == f"{stamp_sec}.000000000":
+                return values
+    return None
+
+
+def test_a_lone_cloud_outside_an_inspection_uses_its_pose_and_says_which(cell):
+    """Fails if, without a goal, a cloud is not one field of its own (part id from its stamp) placed by its pose on
+    scan/pose (without the pose the partial view in the scanner frame would not overlap the part and be refused), or
+    if /diagnostics does not name the pose source, for a lone cloud and for an inspection's view."""
+    peer, _, _, scans, _, fields, ready, _ = cell
+    assert ready
+    _send_view(peer, scans[1], "camera_lone", 501)
+    assert peer.wait(lambda: any(f.part_id == "stamp-501.000000000" for f in fields), 60.0)
+    assert peer.wait(lambda: _diagnostic(peer, 501) is not None, 30.0)
+    assert _diagnostic(peer, 501)["pose_source"].startswith("pose from scan/pose"), _diagnostic(peer, 501)
+    assert _diagnostic(peer, 103)["pose_source"] == "tf"  # the first test's third view, inside its inspection

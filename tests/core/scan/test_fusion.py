@@ -73,7 +73,10 @@ def test_fused_coverage_is_the_union_of_the_views_and_of_their_merged_points(par
 def test_a_view_whose_robot_pose_is_off_is_corrected_by_its_markers(part):
     """Fails if the view whose robot pose is 2 mm / 0.2 deg off keeps an error beyond 3.5 stated stds (any twist
     component of its registration against the scanner's true pose, in the marker fit's stated pose covariance) or its
-    Mahalanobis distance beyond the chi-square(6) 99.9 % point, or if the reported correction is not the 2 mm moved."""
+    Mahalanobis distance d2 beyond the 99.9 % point of its law (the marker noise is estimated from the fit's residual
+    with 3K - 6 dof: d2 / 6 ~ F(6, 3K - 6)), or if the reported correction is not the 2 mm moved."""
+    from scipy.stats import f
+
     _, _, scans, views, fused = part
     result = fused.views[1]
     registration = result.registration
@@ -86,7 +89,8 @@ def test_a_view_whose_robot_pose_is_off_is_corrected_by_its_markers(part):
     twist = np.concatenate([omega, delta[:3, :3] @ center + delta[:3, 3] - center])
     std = np.sqrt(np.diag(registration.pose_covariance))
     assert np.all(np.abs(twist / std) <= 3.5), twist / std
-    assert twist @ np.linalg.solve(registration.pose_covariance, twist) <= 22.46  # chi2(6) 99.9 %
+    dof = 3 * registration.n_markers - 6
+    assert twist @ np.linalg.solve(registration.pose_covariance, twist) <= 6 * f.ppf(0.999, 6, dof)
     robot_shift, _ = pose_difference(views[1].scanner_pose, scans[1].true_transform)
     assert robot_shift > 1.0 and abs(result.pose_correction_mm - robot_shift) < 0.2 * robot_shift
 
