@@ -3,7 +3,8 @@ hood_decomp/displacement_cloud (the skin with a normal-displacement channel, met
 
 The cloud is read with one buffer copy (hood_decomp.ros.messages / pointcloud), registered to the nominal part and
 turned into one signed normal displacement per visible skin node (hood_decomp.core.scan.scan_field). Clouds larger
-than ``max_points`` are refused before any copy.
+than ``max_points`` are refused before any copy. The subscription is best effort (it matches reliable and
+best-effort scanner drivers); the field is published transient-local (the latest result).
 """
 
 from __future__ import annotations
@@ -16,47 +17,66 @@ from sensor_msgs.msg import PointCloud2
 
 from hood_decomp.errors import ScanError
 from hood_decomp.ros import messages
-from hood_decomp.ros.node_common import HoodNode, declare, spin
+from hood_decomp.ros.node_common import HoodNode, declare, scan_qos, spin
 
 
 class ScanNode(HoodNode):
     def __init__(self) -> None:
         super().__init__("hood_decomp_scan")
-        self.part_frame = declare(self, "part_frame", "hood", "frame_id of the published fields (the part frame)")
-        pose = declare(self, "scanner_pose", [float(v) for v in np.eye(4).ravel()],
-                       "scanner-to-part transform, 16 numbers row-major, translation in metres (cell calibration)")
-        markers = self.declare_parameter("marker_positions", Parameter.Type.DOUBLE_ARRAY, ParameterDescriptor(
+        declare(self, "part_frame", "hood", "frame_id of the published fields (the part frame)")
+        declare(self, "scanner_pose", [float(v) for v in np.eye(4).ravel()],
+                "scanner-to-part transform, 16 numbers row-major, translation in metres (cell calibration)")
+        self.declare_parameter("marker_positions", Parameter.Type.DOUBLE_ARRAY, ParameterDescriptor(
             description="nominal reference-marker centres in the part frame: id, x, y, z (metres) per marker; the "
-            "cloud reports measured centres as points whose marker_field is the id (-1 for surface points)")).value
-        self.marker_field = declare(self, "marker_field", "marker_id", "per-point field holding marker ids")
-        self.max_points = declare(self, "max_points", 5_000_000, "largest cloud accepted (points)", 1, 100_000_000)
-        self.min_coverage = declare(self, "min_coverage", 0.2, "smallest seen fraction of the skin", 0.0, 1.0)
-        self.scanner_pose, self.markers_nominal = messages.calibration_from_params(pose, markers or [])
-        self.estimator = self.skin_clouds = None
-        if self.bases is not None:  # one-time preparation of the skin: the scan-field estimator and the cloud's xyz
-            from hood_decomp.core.scan.scan_field import prepared_estimator
+            "cloud reports measured centres as points whose marker_field is the id (-1 for surface points)"))
+        if self.get_parameter_or("marker_positions").value is None:  # no markers: an empty list, not "not set"
+            self.set_parameters([Parameter("marker_positions", Parameter.Type.DOUBLE_ARRAY, [])])
+        declare(self, "marker_field", "marker_id", "per-point field holding marker ids")
+        declare(self, "max_points", 5_000_000, "largest cloud accepted (points)", 1, 100_000_000)
+        declare(self, "min_coverage", 0.2, "smallest seen fraction of the skin", 0.0, 1.0)
+        self.estimator = self.skin_clouds = self.field_pub = self.cloud_pub = None
 
-            self.estimator = prepared_estimator(self.bases.skin)
-            self.skin_clouds = messages.SkinClouds(self.bases.skin)
-        self.field_pub = self.publisher(DisplacementField, "hood_decomp/displacement")
+    def check_parameter(self, parameter: Parameter) -> str:
+        if parameter.name not in ("scanner_pose", "marker_positions") or parameter.value is None:
+            return ""
+        values = np.asarray(parameter.value, dtype=float)
+        if parameter.name == "scanner_pose" and (values.shape != (16,) or not np.isfinite(values).all()):
+            return f"16 finite numbers (row-major 4 x 4), got {values.size}"
+        if parameter.name == "marker_positions" and (values.size % 4 or not np.isfinite(values).all()):
+            return f"id, x, y, z per marker (a multiple of 4 finite numbers), got {values.size}"
+        return ""
+
+    def configure_node(self) -> None:
+        from hood_decomp.core.scan.scan_field import prepared_estimator
+
+        # one-time preparation of the skin: the scan-field estimator and the cloud's xyz
+        self.estimator = prepared_estimator(self.bases.skin)
+        self.skin_clouds = messages.SkinClouds(self.bases.skin)
+        self.field_pub = self.publisher(DisplacementField, "hood_decomp/displacement", latest=True)
         self.cloud_pub = self.publisher(PointCloud2, "hood_decomp/displacement_cloud")
-        self.subscription(PointCloud2, "scan/points", self.guarded("scan", self.on_cloud))
+
+    def activate_node(self) -> None:
+        self.subscription(PointCloud2, "scan/points", self.guarded("scan", self.on_cloud), scan_qos(self.depth))
 
     def on_cloud(self, msg: PointCloud2) -> dict[str, object]:
         from hood_decomp.core.scan.scan_field import field_from_scan
 
         bases = self.require_bases()
         n_points = int(msg.width) * int(msg.height)
-        if n_points > self.max_points:
-            raise ScanError(f"cloud has {n_points:,} points; this node accepts at most {self.max_points:,} "
+        max_points = self.param("max_points")
+        if n_points > max_points:
+            raise ScanError(f"cloud has {n_points:,} points; this node accepts at most {max_points:,} "
                             "(parameter max_points)")
-        points_mm, markers_mm, markers_nominal_mm = messages.scan_to_mm(msg, self.marker_field, self.markers_nominal)
-        field, registration = field_from_scan(bases.skin, points_mm, scanner_pose=self.scanner_pose,
+        scanner_pose, markers_nominal = messages.calibration_from_params(self.param("scanner_pose"),
+                                                                         self.param("marker_positions"))
+        points_mm, markers_mm, markers_nominal_mm = messages.scan_to_mm(msg, self.param("marker_field"),
+                                                                        markers_nominal)
+        field, registration = field_from_scan(bases.skin, points_mm, scanner_pose=scanner_pose,
                                               markers_mm=markers_mm, markers_nominal_mm=markers_nominal_mm,
-                                              min_coverage=self.min_coverage, estimator=self.estimator)
+                                              min_coverage=self.param("min_coverage"), estimator=self.estimator)
         header = msg.header
         part_id = messages.part_id_of(msg)  # a cloud names no part: one id per stamp (an inspection names its own)
-        header.frame_id = self.part_frame
+        header.frame_id = self.param("part_frame")
         self.field_pub.publish(messages.field_to_msg(field, header, part_id))
         self.cloud_pub.publish(self.skin_clouds.displacement(field, header))
         return {"part_id": part_id, "points": points_mm.shape[0],
