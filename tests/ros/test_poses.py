@@ -107,16 +107,16 @@ def test_pose_sources_fall_back_in_order():
         raise LookupError("no data")
 
     pose = analytic(0.0)
-    first = PoseSources("hood", [("tf", have(pose)), ("scan/pose", have(np.eye(4)))]).resolve("camera", None)
+    first = PoseSources([("tf", have(pose)), ("scan/pose", have(np.eye(4)))]).resolve("hood", "camera", None)
     assert first.source == "tf"
     np.testing.assert_allclose(first.pose_mm[:3, 3], 1000 * pose[:3, 3])
-    second = PoseSources("hood", [("tf", missing), ("scan/pose", have(pose))]).resolve("camera", None)
+    second = PoseSources([("tf", missing), ("scan/pose", have(pose))]).resolve("hood", "camera", None)
     assert second.source == "scan/pose" and second.skipped == ("tf: no data",)
     parameter = np.eye(4)
     parameter[:3, 3] = [1.0, 2.0, 3.0]
-    third = PoseSources("hood", [("tf", missing)], parameter).resolve("camera", None)
+    third = PoseSources([("tf", missing)]).resolve("hood", "camera", None, parameter)
     assert third.source == "parameter" and third.pose_mm is parameter and "tf: no data" in third.report
-    fourth = PoseSources("hood", [("tf", missing)]).resolve("camera", None)
+    fourth = PoseSources([("tf", missing)]).resolve("hood", "camera", None)
     assert fourth.source == "part frame" and fourth.pose_mm is None
 
 
@@ -178,3 +178,29 @@ def test_own_listener_reads_tf_and_tf_static_from_a_real_publisher():
         np.testing.assert_allclose(topic.lookup("hood", "camera", stamp), analytic(20.3), atol=1e-7)
         with pytest.raises(LookupError, match="not the part frame"):
             topic.lookup("world", "camera", stamp)
+
+
+def test_a_lookup_waits_for_a_transform_still_on_its_way():
+    """Fails if a lookup at a stamp newer than the buffer's newest transform does not wait for the transform that a
+    listener thread adds a moment later (a cloud arrives before the TF after its stamp), or if it waits for data
+    that cannot come (an unknown frame must fail at once)."""
+    import threading
+    import time
+
+    from hood_decomp.ros.poses import _waiting
+
+    buffer = TransformBuffer()
+    fill(buffer, [10.0])
+    later = base_from_flange(10.5)
+    thread = threading.Timer(0.1, lambda: buffer.add("base", "flange", int(10.5e9), later[:3, 3],
+                                                     matrix_quaternion(later[:3, :3])))
+    thread.start()
+    got = _waiting(lambda: buffer.lookup("hood", "camera", int(10.2e9)), 2.0,
+                   lambda error: "after the newest" in str(error))
+    thread.join()
+    np.testing.assert_allclose(got, analytic(10.2), atol=1e-9)
+    start = time.monotonic()
+    with pytest.raises(LookupError, match="not in the transform tree"):
+        _waiting(lambda: buffer.lookup("hood", "laser", int(10.2e9)), 2.0,
+                 lambda error: "after the newest" in str(error))
+    assert time.monotonic() - start < 1.0

@@ -24,6 +24,7 @@ is open is rejected.
 from __future__ import annotations
 
 import itertools
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -58,6 +59,7 @@ class _Part:
     timer: Any = None
 
     def close(self, reason: str) -> None:
+        """Close the part (the first reason wins); hold the server's lock."""
         if not self.closed.done():
             self.closed.set_result(reason)
 
@@ -67,15 +69,15 @@ class InspectionServer:
 
     node: the scan node; skin_and_estimator: () -> (SkinSurface, fitted ScanFieldEstimator) of the loaded bases
     (raises when there are none); publish_field: (DisplacementField, header, part_id) -> None publishes the fused field
-    the way the node publishes every field; part_frame: frame of the published fields; variant: the variant this
-    node's bases serve ("" accepts only goals without a variant); default_timeout_s, result_timeout_s: see the module
-    docstring; min_view_coverage: smallest skin fraction one view must show.
+    the way the node publishes every field; parameter: name -> the node's current value of ``variant`` (the variant
+    its bases serve; "" accepts only goals without one), ``inspection_timeout_s`` (a goal's timeout when it states
+    none) and ``result_timeout_s`` (module docstring), read when used; serving: () -> whether the node takes clouds
+    (a goal is rejected otherwise); min_view_coverage: smallest skin fraction one view must show.
     """
 
     def __init__(self, node: Any, *, skin_and_estimator: Callable[[], tuple[Any, Any]],
-                 publish_field: Callable[[DisplacementField, Any, str], None], part_frame: str, variant: str = "",
-                 default_timeout_s: float = 120.0, result_timeout_s: float = 30.0,
-                 min_view_coverage: float = 0.02) -> None:
+                 publish_field: Callable[[DisplacementField, Any, str], None], parameter: Callable[[str], Any],
+                 serving: Callable[[], bool], min_view_coverage: float = 0.02) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
         from hood_decomp_msgs.action import InspectPart
         from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState
@@ -86,11 +88,10 @@ class InspectionServer:
         self.node = node
         self.skin_and_estimator = skin_and_estimator
         self.publish_field = publish_field
-        self.part_frame = part_frame
-        self.variant = variant
-        self.default_timeout_s = default_timeout_s
-        self.result_timeout_s = result_timeout_s
+        self.parameter = parameter
+        self.serving = serving
         self.min_view_coverage = min_view_coverage
+        self._lock = threading.Lock()  # the node's executor has two threads: a cloud and the goal may meet
         self.part: _Part | None = None
         self._reserved = False
         self._numbers = itertools.count(1)
@@ -117,6 +118,9 @@ class InspectionServer:
 
     # ------------------------------------------------------------------------------------------------- goals
     def _goal(self, request: Any) -> GoalResponse:
+        if not self.serving():
+            self.node.get_logger().warning("InspectPart rejected: the node is not active")
+            return GoalResponse.REJECT
         if self.part is not None or self._reserved:
             open_id = self.part.part_id if self.part is not None else "(starting)"
             self.node.get_logger().warning(f"InspectPart rejected: part {open_id} is being inspected")
@@ -124,16 +128,18 @@ class InspectionServer:
         if request.expected_views < 1:
             self.node.get_logger().warning("InspectPart rejected: expected_views must be >= 1")
             return GoalResponse.REJECT
-        if request.variant and request.variant != self.variant:
+        variant = self.parameter("variant")
+        if request.variant and request.variant != variant:
             self.node.get_logger().warning(f"InspectPart rejected: variant {request.variant!r} is not served here "
-                                           f"(this node's bases: {self.variant or 'no variant'!r})")
+                                           f"(this node's bases: {variant or 'no variant'!r})")
             return GoalResponse.REJECT
         self._reserved = True
         return GoalResponse.ACCEPT
 
     def _cancel(self, goal_handle: Any) -> CancelResponse:
-        if self.part is not None and self.part.goal_handle is goal_handle:
-            self.part.close("canceled")
+        with self._lock:
+            if self.part is not None and self.part.goal_handle is goal_handle:
+                self.part.close("canceled")
         return CancelResponse.ACCEPT
 
     def _close_part(self, request: Any, response: Any) -> Any:
@@ -143,7 +149,8 @@ class InspectionServer:
             response.message = (f"no open inspection of part {request.part_id!r}" if request.part_id
                                 else "no open inspection")
             return response
-        part.close("closed by ClosePart")
+        with self._lock:
+            part.close("closed by ClosePart")
         response.success = True
         response.message = f"part {part.part_id} closed with {len(part.views)} of {part.expected} view(s)"
         return response
@@ -152,8 +159,10 @@ class InspectionServer:
     def add_view(self, header: Any, view: ScanView, pose: ResolvedPose) -> dict[str, object]:
         """One cloud of the open part: its field, or ScanError naming why it was refused (after counting it and
         sending feedback). Returns the key-values of the view's diagnostic."""
-        part = self.part
-        assert part is not None, "add_view without an open inspection"
+        with self._lock:
+            part = self.part
+        if part is None:  # closed since the node asked
+            raise ScanError("the inspection closed before this cloud was taken; it was not used")
         number = len(part.views) + part.refused + 1
         name = f"view {number} of part {part.part_id} ({header.frame_id or 'no frame'}, " \
                f"{header.stamp.sec}.{header.stamp.nanosec:09d})"
@@ -170,8 +179,11 @@ class InspectionServer:
             part.reports.append(f"refused: {error}")
             self._feedback(part, f"refused: {error}")
             raise
-        part.views.append(result)
-        part.header = header
+        with self._lock:
+            if part.closed.done():  # closed (timeout, ClosePart, cancel) while this view was processed
+                raise ScanError(f"{name}: the inspection closed while this view was processed; it was not used")
+            part.views.append(result)
+            part.header = header
         registration = result.registration.method
         report = f"{name}: {pose.report}, registered by {registration}, coverage {result.field.coverage:.3f}"
         if result.pose_correction_mm == result.pose_correction_mm:  # not NaN: markers refined the pose
@@ -180,7 +192,8 @@ class InspectionServer:
         part.reports.append(report)
         coverage = self._feedback(part, report)
         if len(part.views) >= part.expected:
-            part.close("complete")
+            with self._lock:
+                part.close("complete")
         return {"part_id": part.part_id, "view": number, "pose_source": pose.source, "registration": registration,
                 "view_coverage": f"{result.field.coverage:.3f}", "fused_coverage": f"{coverage:.3f}"}
 
@@ -199,8 +212,9 @@ class InspectionServer:
         while len(self._answers) > 50:
             self._answers.pop(next(iter(self._answers)))
         waiting = self._waiting.get(message.part_id)
-        if waiting is not None and not waiting.done() and {"state", "correction"} <= set(answers):
-            waiting.set_result(answers)
+        with self._lock:
+            if waiting is not None and not waiting.done() and {"state", "correction"} <= set(answers):
+                waiting.set_result(answers)
 
     def _refusal(self, message: Any) -> None:
         """An estimator's ERROR about a field this server awaits an answer for: the answer is the refusal."""
@@ -209,14 +223,16 @@ class InspectionServer:
                 continue
             stamp = next((kv.value for kv in status.values if kv.key == "stamp"), None)
             waiting = self._waiting.get(self._stamps.get(stamp, ""))
-            if waiting is not None and not waiting.done():
-                waiting.set_result({"refused": status.message})
+            with self._lock:
+                if waiting is not None and not waiting.done():
+                    waiting.set_result({"refused": status.message})
 
     def _timer(self, seconds: float, future: Future, value: object) -> Any:
         def fire() -> None:
             timer.cancel()
-            if not future.done():
-                future.set_result(value)
+            with self._lock:
+                if not future.done():
+                    future.set_result(value)
 
         timer = self.node.create_timer(seconds, fire)
         return timer
@@ -225,17 +241,19 @@ class InspectionServer:
     async def _execute(self, goal_handle: Any) -> Any:
         request = goal_handle.request
         part_id = request.part_id or f"part-{self.node.get_clock().now().nanoseconds}-{next(self._numbers)}"
-        timeout = request.timeout.sec + request.timeout.nanosec * 1e-9 or self.default_timeout_s
+        timeout = request.timeout.sec + request.timeout.nanosec * 1e-9 or self.parameter("inspection_timeout_s")
         part = _Part(goal_handle, part_id, request.variant, int(request.expected_views), Future())
         part.timer = self._timer(timeout, part.closed, "timeout")
-        self.part, self._reserved = part, False
+        with self._lock:
+            self.part, self._reserved = part, False
         self.node.get_logger().info(f"inspection of part {part_id}: {part.expected} view(s) within {timeout:g} s")
         try:
             reason = await part.closed
         finally:
             part.timer.cancel()
             self.node.destroy_timer(part.timer)
-            self.part = None
+            with self._lock:
+                self.part = None
         result = self._Action.Result(part_id=part_id, variant=request.variant, views_expected=part.expected,
                                      views_used=len(part.views), views_refused=part.refused,
                                      view_reports=list(part.reports), timed_out=reason == "timeout")
@@ -253,7 +271,6 @@ class InspectionServer:
         result.model_id, result.coverage = fused.model_id, float(fused.coverage)
         result.noise_rms = float(fused.noise_rms) * M_PER_MM
         header = part.header
-        header.frame_id = self.part_frame
         answer = self._waiting[part_id] = Future()
         stamp = f"{header.stamp.sec}.{header.stamp.nanosec:09d}"
         self._stamps[stamp] = part_id
@@ -261,7 +278,8 @@ class InspectionServer:
         if {"state", "correction"} <= set(known):
             answer.set_result(known)
         self.publish_field(fused, header, part_id)
-        timer = self._timer(self.result_timeout_s, answer, None)
+        result_timeout = self.parameter("result_timeout_s")
+        timer = self._timer(result_timeout, answer, None)
         try:
             answers = await answer
         finally:
@@ -275,7 +293,7 @@ class InspectionServer:
             return result
         if answers is None:
             result.message = (f"{reason}: {counted}, field published, but no boundary state and correction for part "
-                              f"{part_id} within {self.result_timeout_s:g} s (is the estimator node running?)")
+                              f"{part_id} within {result_timeout:g} s (is the estimator node running?)")
             goal_handle.abort()
             return result
         result.boundary_state, result.boundary_correction = answers["state"], answers["correction"]

@@ -17,6 +17,8 @@ the node turns them into mm (the ROS adapter layer is the only place of the conv
 from __future__ import annotations
 
 import bisect
+import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -101,9 +103,15 @@ class TransformBuffer:
         self.max_extrapolation_s = max_extrapolation_s
         self.cache_s = cache_s
         self._edges: dict[str, _Edge] = {}
+        self._lock = threading.Lock()  # a listener thread adds while a cloud's thread looks up
 
     def add(self, parent: str, child: str, stamp_ns: int, translation: np.ndarray, quaternion: np.ndarray,
             static: bool = False) -> None:
+        with self._lock:
+            self._add(parent, child, stamp_ns, translation, quaternion, static)
+
+    def _add(self, parent: str, child: str, stamp_ns: int, translation: np.ndarray, quaternion: np.ndarray,
+             static: bool) -> None:
         parent, child = parent.lstrip("/"), child.lstrip("/")
         if not parent or not child or parent == child:
             raise ValueError(f"a transform needs two different frame names; got {parent!r} <- {child!r}")
@@ -166,6 +174,10 @@ class TransformBuffer:
 
     def lookup(self, target: str, source: str, stamp_ns: int) -> np.ndarray:
         """(4, 4) target <- source at ``stamp_ns`` (metres)."""
+        with self._lock:
+            return self._lookup(target, source, stamp_ns)
+
+    def _lookup(self, target: str, source: str, stamp_ns: int) -> np.ndarray:
         target, source = target.lstrip("/"), source.lstrip("/")
         if target == source:
             return np.eye(4)
@@ -197,24 +209,44 @@ def transform_msg_matrix(transform: Any) -> np.ndarray:
     return transform_matrix(np.array([t.x, t.y, t.z]), np.array([r.x, r.y, r.z, r.w]))
 
 
+def _waiting(lookup: Callable[[], np.ndarray], wait_s: float, retry: Callable[[LookupError], bool]) -> np.ndarray:
+    """``lookup()``, tried again for up to ``wait_s`` while it fails in a way ``retry`` says may pass (data still on its
+    way: a transform newer than the cloud, a pose sent beside it); the listener fills the buffer in another thread."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            return lookup()
+        except LookupError as error:
+            if time.monotonic() >= deadline or not retry(error):
+                raise
+        time.sleep(0.005)
+
+
 class TfListener:
     """The package's own TF listener: /tf and /tf_static (tf2_msgs/TFMessage) into a :class:`TransformBuffer`.
 
-    /tf_static is subscribed transient-local (latched, as TF publishers send it), /tf volatile. A malformed transform
-    is skipped and counted (``rejected``), never fatal.
+    /tf_static is subscribed transient-local (latched, as TF publishers send it), /tf volatile, both in their own
+    callback group so they are taken while a cloud waits for its transform. A lookup at a stamp newer than the newest
+    transform waits up to ``wait_s`` for it (a cloud often arrives before the transforms after its stamp), as tf2's
+    lookup timeout does. A malformed transform is skipped and counted (``rejected``), never fatal.
     """
 
-    def __init__(self, node: Any, buffer: TransformBuffer) -> None:
+    def __init__(self, node: Any, buffer: TransformBuffer, wait_s: float = 0.5) -> None:
+        from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
         from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
         from tf2_msgs.msg import TFMessage
 
         self.buffer = buffer
+        self.wait_s = wait_s
         self.rejected = 0
+        group = MutuallyExclusiveCallbackGroup()
         dynamic = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         static = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self._subscriptions = [node.create_subscription(TFMessage, "/tf", lambda m: self._take(m, False), dynamic),
-                               node.create_subscription(TFMessage, "/tf_static", lambda m: self._take(m, True), static)]
+        self._subscriptions = [
+            node.create_subscription(TFMessage, "/tf", lambda m: self._take(m, False), dynamic, callback_group=group),
+            node.create_subscription(TFMessage, "/tf_static", lambda m: self._take(m, True), static,
+                                     callback_group=group)]
 
     def _take(self, message: Any, static: bool) -> None:
         for item in message.transforms:
@@ -226,55 +258,64 @@ class TfListener:
                 self.rejected += 1
 
     def lookup(self, target: str, source: str, stamp: Any) -> np.ndarray:
-        return self.buffer.lookup(target, source, stamp_ns(stamp))
+        return _waiting(lambda: self.buffer.lookup(target, source, stamp_ns(stamp)), self.wait_s,
+                        lambda error: "after the newest" in str(error))
 
 
 class Tf2RosLookup:
     """TF through tf2_ros (a full ROS install): its Buffer and TransformListener, the same lookup interface."""
 
-    def __init__(self, node: Any) -> None:
+    def __init__(self, node: Any, wait_s: float = 0.5) -> None:
         import tf2_ros
 
         self._tf2_ros = tf2_ros
+        self.wait_s = wait_s
         self.buffer = tf2_ros.Buffer()
-        self._listener = tf2_ros.TransformListener(self.buffer, node)
+        self._listener = tf2_ros.TransformListener(self.buffer, node, spin_thread=True)
 
     def lookup(self, target: str, source: str, stamp: Any) -> np.ndarray:
+        from rclpy.duration import Duration
         from rclpy.time import Time
 
         try:
-            message = self.buffer.lookup_transform(target, source, Time.from_msg(stamp))
+            message = self.buffer.lookup_transform(target, source, Time.from_msg(stamp),
+                                                   timeout=Duration(seconds=self.wait_s))
         except self._tf2_ros.TransformException as error:
             raise LookupError(str(error)) from None
         return transform_msg_matrix(message.transform)
 
 
-def tf_lookup(node: Any, use_tf2_ros: bool | None = None,
-              max_extrapolation_s: float = 0.0) -> tuple[Any, str]:
+def tf_lookup(node: Any, use_tf2_ros: bool | None = None, max_extrapolation_s: float = 0.0,
+              wait_s: float = 0.5) -> tuple[Any, str]:
     """The TF source for ``node``: tf2_ros when importable (unless ``use_tf2_ros`` is False), else the package's own
-    listener; returns (lookup object, its name "tf2_ros" or "tf")."""
+    listener; returns (lookup object, its name "tf2_ros" or "tf"). wait_s: how long a lookup waits for transforms
+    still on their way."""
     if use_tf2_ros is not False:
         try:
-            return Tf2RosLookup(node), "tf2_ros"
+            return Tf2RosLookup(node, wait_s), "tf2_ros"
         except ImportError:
             if use_tf2_ros:
                 raise
-    return TfListener(node, TransformBuffer(max_extrapolation_s)), "tf"
+    return TfListener(node, TransformBuffer(max_extrapolation_s), wait_s), "tf"
 
 
 class PoseTopic:
     """Poses on ``scan/pose`` (geometry_msgs/TransformStamped), kept by (child frame, stamp) for the clouds to come;
-    the newest ``keep`` are held."""
+    the newest ``keep`` are held. Once a pose has come on the topic, a cloud without its pose waits up to ``wait_s``
+    for it (sent beside the cloud, it may arrive after it)."""
 
-    def __init__(self, node: Any, topic: str = "scan/pose", keep: int = 100,
-                 qos: Any = None) -> None:
+    def __init__(self, node: Any, topic: str = "scan/pose", keep: int = 100, qos: Any = None,
+                 wait_s: float = 0.5) -> None:
         from geometry_msgs.msg import TransformStamped
+        from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
         from rclpy.qos import QoSProfile, ReliabilityPolicy
 
         self.keep = keep
+        self.wait_s = wait_s
         self._poses: dict[tuple[str, int], tuple[str, np.ndarray]] = {}
         self._subscription = node.create_subscription(
-            TransformStamped, topic, self.take, qos or QoSProfile(depth=keep, reliability=ReliabilityPolicy.RELIABLE))
+            TransformStamped, topic, self.take, qos or QoSProfile(depth=keep, reliability=ReliabilityPolicy.RELIABLE),
+            callback_group=MutuallyExclusiveCallbackGroup())
 
     def take(self, message: Any) -> None:
         key = (message.child_frame_id.lstrip("/"), stamp_ns(message.header.stamp))
@@ -283,6 +324,10 @@ class PoseTopic:
             self._poses.pop(next(iter(self._poses)))
 
     def lookup(self, target: str, source: str, stamp: Any) -> np.ndarray:
+        return _waiting(lambda: self._lookup(target, source, stamp), self.wait_s if self._poses else 0.0,
+                        lambda error: "no pose of" in str(error))
+
+    def _lookup(self, target: str, source: str, stamp: Any) -> np.ndarray:
         found = self._poses.get((source.lstrip("/"), stamp_ns(stamp)))
         if found is None:
             raise LookupError(f"no pose of {source!r} at {stamp_ns(stamp) / 1e9:.3f} s on scan/pose")
@@ -312,30 +357,29 @@ class ResolvedPose:
 class PoseSources:
     """Resolve a cloud's pose from the sources in order (module docstring).
 
-    sources: (name, lookup(target, source, stamp) -> (4, 4) metres) in order of preference; parameter_pose_mm: the
-    ``scanner_pose`` parameter in mm, None when left unset (then a cloud without a pose from the sources is in the
-    part frame: "part frame", pose None).
+    sources: (name, lookup(target, source, stamp) -> (4, 4) metres) in order of preference. ``resolve`` takes the
+    part frame and the ``scanner_pose`` parameter (mm; None when left unset) at each cloud, as the node reads them
+    then: without a pose from the sources and without the parameter, a cloud is in the part frame ("part frame",
+    pose None).
     """
 
-    def __init__(self, part_frame: str, sources: list[tuple[str, Callable[[str, str, Any], np.ndarray]]],
-                 parameter_pose_mm: np.ndarray | None = None) -> None:
-        self.part_frame = part_frame
+    def __init__(self, sources: list[tuple[str, Callable[[str, str, Any], np.ndarray]]]) -> None:
         self.sources = sources
-        self.parameter_pose_mm = parameter_pose_mm
 
-    def resolve(self, cloud_frame: str, stamp: Any) -> ResolvedPose:
+    def resolve(self, part_frame: str, cloud_frame: str, stamp: Any,
+                parameter_pose_mm: np.ndarray | None = None) -> ResolvedPose:
         skipped = []
         if not cloud_frame:
             skipped.append("the cloud names no frame")
         else:
             for name, lookup in self.sources:
                 try:
-                    pose = np.array(lookup(self.part_frame, cloud_frame, stamp), dtype=np.float64)
+                    pose = np.array(lookup(part_frame, cloud_frame, stamp), dtype=np.float64)
                 except LookupError as error:
                     skipped.append(f"{name}: {error}")
                     continue
                 pose[:3, 3] *= 1000.0  # m -> mm
                 return ResolvedPose(pose, name, tuple(skipped))
-        if self.parameter_pose_mm is not None:
-            return ResolvedPose(self.parameter_pose_mm, "parameter", tuple(skipped))
+        if parameter_pose_mm is not None:
+            return ResolvedPose(parameter_pose_mm, "parameter", tuple(skipped))
         return ResolvedPose(None, "part frame", tuple(skipped))
