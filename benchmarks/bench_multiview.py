@@ -40,9 +40,8 @@ sys.path.insert(0, str(ROOT))
 from hood_decomp.core.fe.ensemble import solve_members  # noqa: E402
 from hood_decomp.core.method.bases import estimate_field  # noqa: E402
 from hood_decomp.core.scan.fusion import ScanView, fuse_views  # noqa: E402
-from hood_decomp.core.scan.registration import rotation_from_vector  # noqa: E402
 from hood_decomp.core.scan.scan_field import prepared_estimator  # noqa: E402
-from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan  # noqa: E402
+from hood_decomp.synthetic.scanner import ScannerConfig, random_rigid, synthesize_scan  # noqa: E402
 from tests.conftest import _hood_case  # noqa: E402
 
 OUT = ROOT / "benchmarks" / "out" / "multiview.json"
@@ -67,15 +66,6 @@ def pose_error_twist(estimated: np.ndarray, true: np.ndarray, center: np.ndarray
     omega = axis_sin * (angle / np.sin(angle) if angle > 1e-12 else 1.0)
     t = delta[:3, :3] @ center + delta[:3, 3] - center
     return np.concatenate([omega, t])
-
-
-def robot_pose(true: np.ndarray, rng: np.random.Generator, angle_deg: float, shift_mm: float) -> np.ndarray:
-    """``true`` (4, 4) moved by a random rotation of ``angle_deg`` about the scanner origin and a shift."""
-    axis, direction = rng.normal(size=3), rng.normal(size=3)
-    off = np.eye(4)
-    off[:3, :3] = rotation_from_vector(np.radians(angle_deg) * axis / np.linalg.norm(axis))
-    off[:3, 3] = shift_mm * direction / np.linalg.norm(direction)
-    return true @ off
 
 
 def main() -> int:
@@ -119,7 +109,7 @@ def main() -> int:
                                    standoff_mm=1500.0, pose_error_deg=0.0, pose_error_mm=0.0)
             scan = synthesize_scan(skin, member.displacement[0], config, seed=int(rng.integers(1 << 30)))
             angle, shift = (0.2, 2.0) if k == off_view else (0.005, 0.05)
-            pose = robot_pose(scan.true_transform, rng, angle, shift)
+            pose = scan.true_transform @ random_rigid(rng, angle, shift)
             views.append(ScanView(scan.points, pose, scan.markers, scan.markers_nominal, name=f"view {k + 1}",
                                   pose_source="robot"))
             scans.append(scan)

@@ -27,7 +27,7 @@ from hood_decomp.core.fe.model import skin_surface
 from hood_decomp.core.fe.solver import build_solver, reduce_model
 from hood_decomp.core.scan.registration import rotation_from_vector
 from hood_decomp.ros.scan_bag import MALFORMED, write_multiview_bag, write_scenario_bag
-from hood_decomp.synthetic.scanner import ScannerConfig
+from hood_decomp.synthetic.scanner import ScannerConfig, random_rigid
 from hood_decomp.synthetic.scenarios import make_scenario_scan
 
 RESOLUTION = "default"
@@ -97,15 +97,6 @@ MULTIVIEW = (((-0.55, -0.45), (12.0, -12.0)), ((0.55, -0.45), (12.0, 12.0)), ((-
              ((0.55, 0.5), (-12.0, 12.0)))
 
 
-def _off(pose: np.ndarray, rng: np.random.Generator, angle_deg: float, shift_mm: float) -> np.ndarray:
-    """``pose`` moved by a random rotation of ``angle_deg`` about the scanner and a shift of ``shift_mm``."""
-    axis, direction = rng.normal(size=3), rng.normal(size=3)
-    off = np.eye(4)
-    off[:3, :3] = rotation_from_vector(np.radians(angle_deg) * axis / np.linalg.norm(axis))
-    off[:3, 3] = shift_mm * direction / np.linalg.norm(direction)
-    return pose @ off
-
-
 def write_multiview(path: pathlib.Path, scan, labels, model_id: str, points: int) -> None:
     """One part (a state inside the ranges) in four partial views; the robot reports each scanner pose 0.05 mm /
     0.005 deg off the truth, view 3 2 mm / 0.2 deg off."""
@@ -118,7 +109,7 @@ def write_multiview(path: pathlib.Path, scan, labels, model_id: str, points: int
                                pose_error_mm=0.0)
         view = scan(f"multiview_{k + 1}", settings, config, 20 + k)
         views.append(view)
-        robot.append(_off(view.scan.true_transform, rng, *((0.2, 2.0) if k == 2 else (0.005, 0.05))))
+        robot.append(view.scan.true_transform @ random_rigid(rng, *((0.2, 2.0) if k == 2 else (0.005, 0.05))))
     base = np.eye(4)
     base[:3, 3] = [-1200.0, 0.0, -400.0]
     hand_eye = np.eye(4)

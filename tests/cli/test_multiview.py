@@ -7,33 +7,22 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
 import pytest
 
 from hood_decomp.cli import main
 from hood_decomp.io.ply import write_scan
-from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
+from tests.multiview import scanned_part
 
-VIEWS = (((-0.55, -0.45), (12.0, -12.0)), ((0.55, -0.45), (12.0, 12.0)), ((0.0, 0.5), (-12.0, 0.0)))
 STATE = {"HINGE_Y": -0.3, "LOCK_L": 0.4}
 
 
 @pytest.fixture(scope="module")
 def views(coarse_hood, tmp_path_factory):
     """Three partial views (PLY without pose or markers) and their true poses as POSE.json (nested 4 x 4 lists)."""
-    from hood_decomp.core.fe.ensemble import solve_members
-
     directory = tmp_path_factory.mktemp("views")
-    names = list(coarse_hood.reduced.names)
-    state = np.zeros(len(names))
-    for label, value in STATE.items():
-        state[names.index(label)] = value
-    member = solve_members(coarse_hood.reduced, state[None])
+    member, scans = scanned_part(coarse_hood, STATE, 7, n_holes=0, fixture=False)
     files = []
-    for k, (aim, tilt) in enumerate(VIEWS):
-        config = ScannerConfig(n_points=60_000, noise_mm=0.02, n_holes=0, view_center=aim, view_tilt_deg=tilt,
-                               fov_deg=40.0, standoff_mm=1500.0, fixture=False)
-        scan = synthesize_scan(coarse_hood.skin, member.displacement[0], config, seed=7 + k)
+    for k, scan in enumerate(scans):
         ply, pose = directory / f"view{k + 1}.ply", directory / f"view{k + 1}_pose.json"
         write_scan(ply, scan.points)
         pose.write_text(json.dumps(scan.true_transform.tolist()))

@@ -30,29 +30,17 @@ from hood_decomp.ros.launcher import start_nodes, stop_nodes
 from hood_decomp.ros.participant import Participant
 from hood_decomp.ros.poses import matrix_quaternion
 from hood_decomp.ros.scan_bag import scan_cloud
-from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
+from tests.multiview import scanned_part
 
 pytestmark = pytest.mark.ros
 
-VIEWS = (((-0.55, -0.45), (12.0, -12.0)), ((0.55, -0.45), (12.0, 12.0)), ((0.0, 0.5), (-12.0, 0.0)))
 TRUTH = {"HINGE_Y": -0.3, "LOCK_L": 0.4}
 
 
 @pytest.fixture(scope="module")
 def cell(coarse_hood, tmp_path_factory):
     """The scan and estimator nodes, a plain rclpy client, three partial views of one part (with markers)."""
-    from hood_decomp.core.fe.ensemble import solve_members
-
-    names = list(coarse_hood.reduced.names)
-    state = np.zeros(len(names))
-    for label, value in TRUTH.items():
-        state[names.index(label)] = value
-    member = solve_members(coarse_hood.reduced, state[None])
-    scans = []
-    for k, (aim, tilt) in enumerate(VIEWS):
-        config = ScannerConfig(n_points=60_000, noise_mm=0.02, marker_noise_mm=0.01, n_holes=0, view_center=aim,
-                               view_tilt_deg=tilt, fov_deg=40.0, standoff_mm=1500.0)
-        scans.append(synthesize_scan(coarse_hood.skin, member.displacement[0], config, seed=30 + k))
+    member, scans = scanned_part(coarse_hood, TRUTH, 30, marker_noise_mm=0.01, n_holes=0)
     directory = tmp_path_factory.mktemp("inspection")
     _, markers = messages.calibration_to_params(np.eye(4), {int(i): p for s in scans
                                                             for i, p in zip(s.marker_ids, s.markers_nominal,

@@ -13,40 +13,20 @@ from hood_decomp.core.scan.registration import rotation_from_vector
 from hood_decomp.core.scan.scan_field import field_from_scan, prepared_estimator
 from hood_decomp.core.types import DisplacementField, FieldErrorModel, SkinSurface
 from hood_decomp.errors import ScanError
-from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
-
-#: three partial views of the coarse hood from tilted robot poses (aim as fractions of the half extents, tilt deg)
-VIEWS = (((-0.55, -0.45), (12.0, -12.0)), ((0.55, -0.45), (12.0, 12.0)), ((0.0, 0.5), (-12.0, 0.0)))
-
-
-def _pose_off(true: np.ndarray, angle_deg: float, shift_mm: float, seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    axis, direction = rng.normal(size=3), rng.normal(size=3)
-    off = np.eye(4)
-    off[:3, :3] = rotation_from_vector(np.radians(angle_deg) * axis / np.linalg.norm(axis))
-    off[:3, 3] = shift_mm * direction / np.linalg.norm(direction)
-    return true @ off
+from hood_decomp.synthetic.scanner import random_rigid
+from tests.multiview import scanned_part
 
 
 @pytest.fixture(scope="module")
 def part(coarse_hood):
     """One part (LOCK_L 0.4, BUFFER_R -0.3 mm) in three partial views; view 2's robot pose 2 mm / 0.2 deg off."""
-    skin, reduced = coarse_hood.skin, coarse_hood.reduced
-    from hood_decomp.core.fe.ensemble import solve_members
-
-    state = np.zeros(len(reduced.names))
-    state[list(reduced.names).index("LOCK_L")] = 0.4
-    state[list(reduced.names).index("BUFFER_R")] = -0.3
-    member = solve_members(reduced, state[None])
-    scans, views = [], []
-    for k, (aim, tilt) in enumerate(VIEWS):
-        config = ScannerConfig(n_points=60_000, noise_mm=0.02, marker_noise_mm=0.02, n_holes=1, view_center=aim,
-                               view_tilt_deg=tilt, fov_deg=40.0, standoff_mm=1500.0, pose_error_deg=0.0,
-                               pose_error_mm=0.0)
-        scan = synthesize_scan(skin, member.displacement[0], config, seed=100 + k)
-        angle, shift = (0.2, 2.0) if k == 1 else (0.002, 0.02)
-        pose = _pose_off(scan.true_transform, angle, shift, seed=k)
-        scans.append(scan)
+    skin = coarse_hood.skin
+    member, scans = scanned_part(coarse_hood, {"LOCK_L": 0.4, "BUFFER_R": -0.3}, 100, marker_noise_mm=0.02,
+                                 n_holes=1, pose_error_deg=0.0, pose_error_mm=0.0)
+    rng = np.random.default_rng(0)
+    views = []
+    for k, scan in enumerate(scans):
+        pose = scan.true_transform @ random_rigid(rng, *((0.2, 2.0) if k == 1 else (0.002, 0.02)))
         views.append(ScanView(scan.points, pose, scan.markers, scan.markers_nominal, name=f"view {k + 1}",
                               pose_source="robot"))
     return skin, member, scans, views, fuse_views(skin, views, estimator=prepared_estimator(skin))
@@ -99,7 +79,7 @@ def test_fused_error_model_predicts_the_scatter_of_independent_view_errors():
     """Monte Carlo, independent of the fusion formulas: two overlapping views of a 1D strip of nodes with white node
     noise (0.02 and 0.04 mm) and each its own pose error (a rigid twist drawn from its covariance, applied through the
     rigid-body motion of the nodes). Fails if the fused node std or the fused registration modes' variance differ from
-    the scatter of 4,000 draws by more than 8 %, if the pose errors of different views are treated as one (the
+    the scatter of 2,000 draws by more than 12 % (3.8 sampling stds), if the pose errors of different views are treated as one (the
     correlation between a node seen only by view 1 and one seen only by view 2 must be about 0), or if the fused value
     is not weighted by each view's whole node variance, noise and pose (its scatter would exceed the better view's
 where the other view's pose error reaches far)."""
@@ -122,7 +102,7 @@ where the other view's pose error reaches far)."""
         return (np.cross(z[:3], points - center) + z[3:]) @ normals[0]
 
     draws = []
-    for _ in range(4000):
+    for _ in range(2000):
         a = rng.normal(0, 0.02, n) + rigid(cov1, center1)
         b = rng.normal(0, 0.04, n) + rigid(cov2, center2)
         draws.append(fuse_fields([view(a, seen1, 0.02, cov1, center1),
@@ -133,12 +113,12 @@ where the other view's pose error reaches far)."""
     modes = fused.errors.registration_modes(points, normals)
     predicted = fused.errors.node_std**2 + np.sum(modes**2, axis=1)
     empirical = draws.var(axis=0)
-    assert np.all(np.abs(empirical / predicted - 1) < 0.08), np.max(np.abs(empirical / predicted - 1))
+    assert np.all(np.abs(empirical / predicted - 1) < 0.12), np.max(np.abs(empirical / predicted - 1))
     # overlap nodes: better than the better view alone
     alone = view(np.zeros(n), seen1, 0.02, cov1, center1).errors
     assert np.all(empirical[20:40] < 0.02**2 + np.sum(alone.registration_modes(points, normals)[20:40] ** 2, axis=1))
     c = np.corrcoef(draws[:, 5], draws[:, 55])[0, 1]
-    assert abs(c) < 0.06, c
+    assert abs(c) < 0.09, c  # 4 sampling stds of a zero correlation over 2,000 draws
     predicted_cov = modes[5] @ modes[55]
     assert abs(predicted_cov) < 1e-12
     assert np.all(np.isfinite(fused.errors.node_std)) and fused.coverage == 1.0

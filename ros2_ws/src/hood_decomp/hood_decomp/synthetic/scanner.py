@@ -106,8 +106,9 @@ def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return normals / np.where(length > 0, length, 1.0)
 
 
-def _random_rigid(rng: np.random.Generator, angle_deg: float, shift_mm: float) -> np.ndarray:
-    """A (4, 4) rigid transform with a random axis, rotation angle_deg and translation of length shift_mm."""
+def random_rigid(rng: np.random.Generator, angle_deg: float, shift_mm: float) -> np.ndarray:
+    """A (4, 4) rigid transform with a random axis, rotation angle_deg and translation of length shift_mm (a pose
+    error: ``pose @ random_rigid(...)`` turns and shifts the pose about its own origin)."""
     axis = rng.normal(size=3)
     direction = rng.normal(size=3)
     transform = np.eye(4)
@@ -226,7 +227,7 @@ def synthesize_scan(
     nominal_pose = np.eye(4)
     nominal_pose[:3, :3] = cam_rotation
     nominal_pose[:3, 3] = aim + cfg.standoff_mm * view_axes[2]
-    actual_pose = nominal_pose @ _random_rigid(rng, cfg.pose_error_deg, cfg.pose_error_mm)
+    actual_pose = nominal_pose @ random_rigid(rng, cfg.pose_error_deg, cfg.pose_error_mm)
 
     scene = o3d.t.geometry.RaycastingScene()
     skin_id = scene.add_triangles(world.astype(np.float32), skin.triangles.astype(np.uint32))
