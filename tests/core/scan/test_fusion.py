@@ -79,10 +79,10 @@ def test_fused_error_model_predicts_the_scatter_of_independent_view_errors():
     """Monte Carlo, independent of the fusion formulas: two overlapping views of a 1D strip of nodes with white node
     noise (0.02 and 0.04 mm) and each its own pose error (a rigid twist drawn from its covariance, applied through the
     rigid-body motion of the nodes). Fails if the fused node std or the fused registration modes' variance differ from
-    the scatter of 2,000 draws by more than 12 % (3.8 sampling stds), if the pose errors of different views are treated as one (the
-    correlation between a node seen only by view 1 and one seen only by view 2 must be about 0), or if the fused value
-    is not weighted by each view's whole node variance, noise and pose (its scatter would exceed the better view's
-where the other view's pose error reaches far)."""
+    the scatter of 2,000 draws by more than 12 % (3.8 sampling stds), if the pose errors of different views are
+    treated as one (the correlation between a node seen only by view 1 and one seen only by view 2 must be about 0),
+    or if the fused value is not weighted by each view's whole node variance, noise and pose (its scatter would exceed
+    the better view's where the other view's pose error reaches far)."""
     rng = np.random.default_rng(3)
     n = 60
     points = np.column_stack([np.linspace(0.0, 1000.0, n), np.zeros(n), np.zeros(n)])

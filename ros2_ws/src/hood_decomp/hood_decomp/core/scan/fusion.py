@@ -90,10 +90,8 @@ class ScanView:
     already, or the markers register them). markers_mm / markers_nominal_mm: (K, 3) measured (scanner frame) and
     nominal (part frame) fixture markers, row by row; three or more register the view, replacing the pose.
     name: names the view in errors and reports. pose_source: where the pose came from ("file", "tf", "scan/pose",
-    "parameter", ...; "none" without one).
-    pose_covariance: (6, 6) stated covariance of ``scanner_pose`` (the robot's accuracy) as a twist [omega rad,
-    t mm] about the scanner origin in the part frame; None: the pose states none (used only when markers do not
-    register the view: a marker fit carries its own).
+    "parameter", ...; "none" without one). A pose states no error of its own: a view registered by its pose alone
+    carries no registration error in its field's error model (markers give one).
     """
 
     points_mm: np.ndarray
@@ -102,7 +100,6 @@ class ScanView:
     markers_nominal_mm: np.ndarray | None = None
     name: str = "view"
     pose_source: str = "none"
-    pose_covariance: np.ndarray | None = None
 
     @property
     def n_markers(self) -> int:
@@ -174,15 +171,6 @@ def view_field(
                 f"{view.name}: its markers place it {shift_mm:.1f} mm / {angle_deg:.2f} deg from its "
                 f"{view.pose_source} pose (at most {MAX_POSE_CORRECTION_MM:g} mm / {MAX_POSE_CORRECTION_DEG:g} deg "
                 "expected): a wrong pose or mismatched markers")
-    elif pose is not None and view.pose_covariance is not None and field.error_model is not None \
-            and field.error_model.kind == "scan":
-        # no marker fit: the robot's stated pose accuracy is the view's registration error
-        covariance = np.asarray(view.pose_covariance, dtype=np.float64)
-        if covariance.shape != (6, 6):
-            raise ScanError(f"{view.name}: pose covariance must be (6, 6); got {covariance.shape}")
-        field = dataclasses.replace(field, error_model=dataclasses.replace(
-            field.error_model, pose_covariance=covariance, pose_center=pose[:3, 3].copy()))
-        field.errors.validate(skin.n_nodes)
     logger.info("%s: registered by %s (%s pose), coverage %.1f%%", view.name, registration.method,
                 view.pose_source, 100.0 * field.coverage)
     return ViewResult(view.name, view.pose_source, field, registration, shift_mm, angle_deg)
