@@ -139,7 +139,7 @@ def test_good_bases_bring_every_node_to_active(cell, coarse_hood):
 def test_parameters_read_at_configure_refuse_a_change_and_the_others_apply(cell, coarse_hood):
     """Fails if an active node accepts a new ``bases`` and silently keeps the old one (the issue's "ros2 param set"
     that did nothing), if a bad value of a live parameter is accepted, or if a live parameter (the estimator's
-    max_std_mm) is not used from the next message on."""
+    max_std_mm, the per-cycle step limits) is not used from the next message on."""
     peer, _, diagnostics, _, _ = cell
     for node in NODE_EXECUTABLES:
         ok, reason = set_parameter(peer, node, "bases", "/tmp/other.h5")
@@ -162,6 +162,17 @@ def test_parameters_read_at_configure_refuse_a_change_and_the_others_apply(cell,
     assert peer.wait(lambda: any(c.header.stamp.sec == 12 for c in corrections), 60.0)
     first, second = (next(c for c in corrections if c.header.stamp.sec == sec) for sec in (11, 12))
     assert "above 1e-09 mm" not in first.reason and not second.safe_to_apply and "above 1e-09 mm" in second.reason
+    # the per-cycle step limit, set live: every move capped to 0.1 mm, the rest stated per boundary
+    assert set_parameter(peer, "estimator_node", "max_step_by_boundary", ["LOCK_L=0.05", "HINGE_X"])[0] is False
+    assert set_parameter(peer, "estimator_node", "max_step_mm", 0.1) == (True, "")
+    assert set_parameter(peer, "estimator_node", "max_step_by_boundary", ["LOCK_L=0.05"]) == (True, "")
+    publisher.publish(_field_msg(coarse_hood, values, 13))
+    assert peer.wait(lambda: any(c.header.stamp.sec == 13 for c in corrections), 60.0)
+    third = next(c for c in corrections if c.header.stamp.sec == 13)
+    moves = dict(zip(third.names, np.abs(third.corrections), strict=True))
+    rest = dict(zip(third.names, np.abs(third.remaining), strict=True))
+    assert max(moves.values()) <= 1e-4 + 1e-12 and moves["LOCK_L"] == pytest.approx(5e-5)
+    assert rest["LOCK_L"] == pytest.approx(5e-4 - 5e-5) and "LOCK_L: step limited to" in third.reason
 
 
 def test_bulk_parameter_get_answers_every_parameter(cell):

@@ -12,7 +12,7 @@ from tests.required import require_import
 require_import("hood_decomp_msgs.msg", "colcon build", "run inside scripts/with-env after scripts/setup.sh")
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState, DisplacementField, EffectFields
+from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState, DisplacementField, EffectFields, MoveVerification
 from rclpy.qos import DurabilityPolicy
 from std_msgs.msg import Header
 
@@ -114,6 +114,39 @@ def test_a_controller_that_subscribes_late_gets_the_last_results(running):
     assert peer.wait(lambda: all(late.values()), 30.0), {topic: len(got) for topic, got in late.items()}
     for topic, got in late.items():
         assert [(m.header.stamp.sec, m.part_id) for m in got] == [(5, "part-5")], topic
+
+
+def test_a_move_applied_at_half_is_named_by_the_next_inspection(coarse_hood, running):
+    """Fails if the estimator forgets the correction it sent for a part, or does not name a move the robot applied
+    at 50 % (PARTIAL, fraction 0.5) on the next inspection of that part. The second field is made by the FE model
+    from the first truth moved by half the published correction, so the truth does not come from the code under test;
+    a lifted buffer gets no correction and must come out NOT_COMMANDED."""
+    peer, received, _, connected, logs = running
+    assert connected, f"nodes did not come up; logs in {logs}"
+    verifications = peer.collect("hood_decomp/move_verification", MoveVerification,
+                                 topic_qos(10, DurabilityPolicy.TRANSIENT_LOCAL))
+    corrections = received["hood_decomp/boundary_correction"]
+    truth = np.array([0.4, -0.3, 0.5, -0.2, 0.3, 0.6])
+    first = _field_msg(coarse_hood, solve_members(coarse_hood.reduced, truth[None]).normal_displacement[0], 21)
+    first.part_id = "P-21"
+    peer.publishers["hood_decomp/displacement"].publish(first)
+    assert peer.wait(lambda: any(c.part_id == "P-21" for c in corrections), 60.0)
+    sent = next(c for c in corrections if c.part_id == "P-21")
+    index = [list(sent.names).index(n) for n in coarse_hood.reduced.names]
+    commanded = np.array(sent.applicable)[index] & (np.array(sent.corrections)[index] != 0.0)
+    assert commanded.sum() >= 4, sent.reason
+    moved = truth + 0.5 * 1000.0 * np.where(commanded, np.array(sent.corrections)[index], 0.0)
+    second = _field_msg(coarse_hood, solve_members(coarse_hood.reduced, moved[None]).normal_displacement[0], 22)
+    second.part_id = "P-21"
+    peer.publishers["hood_decomp/displacement"].publish(second)
+    assert peer.wait(lambda: any(v.part_id == "P-21" for v in verifications), 60.0), f"no verification; {logs}"
+    check = next(v for v in verifications if v.part_id == "P-21")
+    outcome = np.array(check.outcome)[index]
+    assert check.header.stamp.sec == 22 and check.corrected_stamp.sec == 21 and not check.all_achieved
+    assert list(outcome[commanded]) == [MoveVerification.PARTIAL] * commanded.sum(), list(outcome)
+    assert list(outcome[~commanded]) == [MoveVerification.NOT_COMMANDED] * (~commanded).sum()
+    np.testing.assert_allclose(np.array(check.fraction)[index][commanded], 0.5, atol=0.02)
+    assert "50 % of" in check.summary and "PARTIAL" in check.summary
 
 
 def test_a_boundary_state_of_another_model_is_refused(coarse_hood, running):

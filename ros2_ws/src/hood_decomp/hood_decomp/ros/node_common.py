@@ -52,6 +52,16 @@ def declare(node: Node, name: str, default: Any, description: str,
     return node.declare_parameter(name, default, descriptor).value
 
 
+def declare_list(node: Node, name: str, kind: Parameter.Type, description: str) -> list[Any]:
+    """Declare an array parameter of ``kind`` (e.g. Parameter.Type.DOUBLE_ARRAY) whose default is empty, and return
+    its value. rclpy cannot infer the type of an empty list, and a parameter declared with a type but no value has
+    none, which makes a bulk parameter get fail; so the empty list is set explicitly when no override gave one."""
+    parameter = node.declare_parameter(name, kind, ParameterDescriptor(description=description))
+    if parameter.value is None:
+        node.set_parameters([Parameter(name, kind, [])])
+    return node.get_parameter(name).value
+
+
 def topic_qos(depth: int, durability: DurabilityPolicy = VOLATILE) -> QoSProfile:
     """Reliable, keep-last(depth): a burst of ``depth`` messages waits instead of being dropped. Result publishers
     are transient-local (a late subscriber gets the last ``depth``, or as many as its own depth takes); every

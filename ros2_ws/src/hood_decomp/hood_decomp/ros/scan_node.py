@@ -11,13 +11,12 @@ from __future__ import annotations
 
 import numpy as np
 from hood_decomp_msgs.msg import DisplacementField
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
 
 from hood_decomp.errors import ScanError
 from hood_decomp.ros import messages
-from hood_decomp.ros.node_common import HoodNode, declare, scan_qos, spin
+from hood_decomp.ros.node_common import HoodNode, declare, declare_list, scan_qos, spin
 
 
 class ScanNode(HoodNode):
@@ -26,11 +25,9 @@ class ScanNode(HoodNode):
         declare(self, "part_frame", "hood", "frame_id of the published fields (the part frame)")
         declare(self, "scanner_pose", [float(v) for v in np.eye(4).ravel()],
                 "scanner-to-part transform, 16 numbers row-major, translation in metres (cell calibration)")
-        self.declare_parameter("marker_positions", Parameter.Type.DOUBLE_ARRAY, ParameterDescriptor(
-            description="nominal reference-marker centres in the part frame: id, x, y, z (metres) per marker; the "
-            "cloud reports measured centres as points whose marker_field is the id (-1 for surface points)"))
-        if self.get_parameter_or("marker_positions").value is None:  # no markers: an empty list, not "not set"
-            self.set_parameters([Parameter("marker_positions", Parameter.Type.DOUBLE_ARRAY, [])])
+        declare_list(self, "marker_positions", Parameter.Type.DOUBLE_ARRAY, "nominal reference-marker centres in "
+                     "the part frame: id, x, y, z (metres) per marker; the cloud reports measured centres as points "
+                     "whose marker_field is the id (-1 for surface points)")
         declare(self, "marker_field", "marker_id", "per-point field holding marker ids")
         declare(self, "max_points", 5_000_000, "largest cloud accepted (points)", 1, 100_000_000)
         declare(self, "min_coverage", 0.2, "smallest seen fraction of the skin", 0.0, 1.0)
