@@ -5,6 +5,8 @@ of issue 17 is `benchmarks/bench_nodes.py --best-effort 100` (benchmarks/RESULTS
 
 from __future__ import annotations
 
+import pathlib
+
 import numpy as np
 import pytest
 
@@ -26,6 +28,7 @@ from tests.ros.test_nodes import errors
 pytestmark = pytest.mark.ros
 
 BEST_EFFORT_CLOUDS = 8
+SHIPPED_PARAMS = pathlib.Path(__file__).parents[2] / "ros2_ws/src/hood_decomp/config/hood_decomp.yaml"
 POINTS = 1_000_000
 
 
@@ -33,8 +36,12 @@ def test_best_effort_and_reliable_drivers_are_served(coarse_hood, tmp_path):
     """Fails if the scan subscription is reliable (a best-effort publisher then never matches: the issue), if a
     reliable driver no longer connects, or if a 1M-point best-effort cloud is lost on loopback (stock Fast DDS
     without the shipped shared-memory profile: 0 of 5 delivered, ros2-wheels.md). Each cloud is sent when the previous
-    one was answered, so a loss is a transport loss, not a full queue."""
-    processes = start_nodes(coarse_hood.bases_path, nodes=("scan_node",), log_dir=tmp_path)
+    one was answered, so a loss is a transport loss, not a full queue. Also fails if the node started with the shipped
+    parameter file does not come up (start_nodes raises), as with a file that overrides --bases."""
+    # with the shipped parameter file, as `hood-decomp launch --bases B --params FILE` starts it: its `bases: ""`
+    # must not override --bases (the issue: the file was applied after -p, and the nodes had no bases)
+    processes = start_nodes(coarse_hood.bases_path, params_file=SHIPPED_PARAMS, nodes=("scan_node",),
+                            log_dir=tmp_path)
     peer = Participant("test_scan_qos")
     try:
         fields = peer.collect("hood_decomp/displacement", DisplacementField)
