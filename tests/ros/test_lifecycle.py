@@ -17,6 +17,7 @@ import pytest
 from tests.required import require_import
 
 require_import("hood_decomp_msgs.msg", "colcon build", "run inside scripts/with-env after scripts/setup.sh")
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from hood_decomp_msgs.msg import BoundaryCorrection, DisplacementField
 from lifecycle_msgs.msg import Transition
@@ -25,6 +26,7 @@ from rcl_interfaces.msg import ParameterType
 from rcl_interfaces.srv import GetParameters, ListParameters, SetParameters
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy
+from std_msgs.msg import Header
 
 from hood_decomp.core.fe.ensemble import solve_members
 from hood_decomp.ros.launcher import NODE_EXECUTABLES, NODE_NAMES, bring_up, start_nodes, stop_nodes
@@ -186,3 +188,41 @@ def test_bulk_parameter_get_answers_every_parameter(cell):
         values = peer.call(f"/{name}/get_parameters", GetParameters, GetParameters.Request(names=names), 30.0).values
         unset = [n for n, v in zip(names, values, strict=True) if v.type == ParameterType.PARAMETER_NOT_SET]
         assert len(values) == len(names) and not unset, (node, unset)
+
+
+def test_one_node_serves_two_variants(cell, coarse_hood, tiny_workspace):
+    """Fails if ``variants`` can be changed while a node is configured, if a node does not come up with a second
+    variant's bases, or if a field of either variant is not served with its own bases (the estimate of the second
+    variant's field, made by its FE model with LOCK_L = 0.4 mm, must find LOCK_L = 0.4 mm; both fields get effects)."""
+    from hood_decomp_msgs.msg import BoundaryState, EffectFields
+
+    from hood_decomp.io.fields import read_field
+    from hood_decomp.ros import messages
+
+    peer, processes, _, _, _ = cell
+    variants = [f"tiny={tiny_workspace.bases}"]
+    for node in NODE_EXECUTABLES:
+        ok, reason = set_parameter(peer, node, "variants", variants)
+        assert not ok and "read at configure" in reason
+        for transition in (Transition.TRANSITION_DEACTIVATE, Transition.TRANSITION_CLEANUP):
+            request = ChangeState.Request(transition=Transition(id=transition))
+            assert peer.call(f"/{NODE_NAMES[node]}/change_state", ChangeState, request, 30.0).success
+        assert set_parameter(peer, node, "variants", variants) == (True, "")
+    assert bring_up(NODE_EXECUTABLES, 90.0, processes) == {}
+    latest = topic_qos(10, DurabilityPolicy.TRANSIENT_LOCAL)
+    states = peer.collect("hood_decomp/boundary_state", BoundaryState, latest)
+    effects = peer.collect("hood_decomp/effects", EffectFields, latest)
+    publisher = peer.publishers["hood_decomp/displacement"]
+    assert peer.wait(lambda: publisher.get_subscription_count() >= 2, 30.0)
+    tiny_field, _ = read_field(tiny_workspace.field)
+    values = solve_members(coarse_hood.reduced, np.array([[0.4, -0.3, 0.5, -0.2, 0.3, 0.6]])).normal_displacement[0]
+    publisher.publish(_field_msg(coarse_hood, values, 31))
+    publisher.publish(messages.field_to_msg(tiny_field, Header(frame_id="hood", stamp=Time(sec=32)), "tiny-32"))
+    assert peer.wait(lambda: {31, 32} <= {s.header.stamp.sec for s in states}
+                     and {31, 32} <= {e.header.stamp.sec for e in effects}, 60.0), \
+        ([s.header.stamp.sec for s in states], [e.header.stamp.sec for e in effects])
+    coarse_state, tiny_state = (next(s for s in states if s.header.stamp.sec == sec) for sec in (31, 32))
+    assert coarse_state.model_id == coarse_hood.bases.model_id and tiny_state.model_id == tiny_field.model_id
+    assert tiny_state.model_id != coarse_state.model_id
+    tiny_values = dict(zip(tiny_state.names, 1000.0 * np.asarray(tiny_state.values), strict=True))
+    assert tiny_values["LOCK_L"] == pytest.approx(0.4, abs=0.01), tiny_values

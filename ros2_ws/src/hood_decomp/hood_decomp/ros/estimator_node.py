@@ -21,7 +21,7 @@ from hood_decomp.core.method.correction import CorrectionPolicy, limit_steps, pl
 from hood_decomp.core.types import BoundaryCorrection as CoreCorrection
 from hood_decomp.core.types import ParameterEstimate
 from hood_decomp.ros import messages
-from hood_decomp.ros.node_common import HoodNode, declare, declare_list, spin
+from hood_decomp.ros.node_common import HoodNode, declare, declare_list, parse_entries, spin
 
 METHODS = ("contact", "pca")
 
@@ -37,12 +37,13 @@ class _Sent(NamedTuple):
 def parse_step_limits(entries: list[str]) -> dict[str, float]:
     """``["LABEL=MM", ...]`` -> {label: mm}; a malformed entry is a ValueError naming it."""
     limits = {}
-    for entry in entries:
-        label, _, value = entry.partition("=")
-        number = float(value) if value.strip() else float("nan")
-        if not label.strip() or not np.isfinite(number) or number < 0:
-            raise ValueError(f"{entry!r}: expected LABEL=MM with MM a finite number >= 0")
-        limits[label.strip()] = number
+    for label, value in parse_entries(entries, "MM").items():
+        try:
+            limits[label] = float(value)
+        except ValueError:
+            limits[label] = float("nan")
+        if not np.isfinite(limits[label]) or limits[label] < 0:
+            raise ValueError(f"{label}={value}: expected MM a finite number >= 0")
     return limits
 
 
@@ -76,7 +77,7 @@ class EstimatorNode(HoodNode):
                 parse_step_limits(list(parameter.value or []))
             except ValueError as error:
                 return str(error)
-        return ""
+        return super().check_parameter(parameter)
 
     def policy(self) -> CorrectionPolicy:
         return CorrectionPolicy(min_coverage=self.param("min_coverage"), max_std_mm=self.param("max_std_mm"),
@@ -100,8 +101,8 @@ class EstimatorNode(HoodNode):
         from hood_decomp.core.method.bases import estimate_field
 
         policy = self.policy()
-        estimate = estimate_field(self.require_bases(), messages.msg_to_field(msg), method=self.param("method"),
-                                  min_coverage=policy.min_coverage)
+        estimate = estimate_field(self.bases_for_model(msg.model_id), messages.msg_to_field(msg),
+                                  method=self.param("method"), min_coverage=policy.min_coverage)
         correction = limit_steps(plan_correction(estimate, policy), self.step_limits(estimate.names))
         part_id = messages.part_id_of(msg)
         values: dict[str, object] = {"part_id": part_id}

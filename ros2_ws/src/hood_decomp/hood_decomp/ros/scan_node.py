@@ -9,6 +9,8 @@ best-effort scanner drivers); the field is published transient-local (the latest
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from hood_decomp_msgs.msg import DisplacementField
 from rclpy.parameter import Parameter
@@ -31,11 +33,12 @@ class ScanNode(HoodNode):
         declare(self, "marker_field", "marker_id", "per-point field holding marker ids")
         declare(self, "max_points", 5_000_000, "largest cloud accepted (points)", 1, 100_000_000)
         declare(self, "min_coverage", 0.2, "smallest seen fraction of the skin", 0.0, 1.0)
-        self.estimator = self.skin_clouds = self.field_pub = self.cloud_pub = None
+        self.prepared: dict[str, tuple[Any, messages.SkinClouds]] = {}  # model_id -> (estimator, skin clouds)
+        self.field_pub = self.cloud_pub = None
 
     def check_parameter(self, parameter: Parameter) -> str:
         if parameter.name not in ("scanner_pose", "marker_positions") or parameter.value is None:
-            return ""
+            return super().check_parameter(parameter)
         values = np.asarray(parameter.value, dtype=float)
         if parameter.name == "scanner_pose" and (values.shape != (16,) or not np.isfinite(values).all()):
             return f"16 finite numbers (row-major 4 x 4), got {values.size}"
@@ -46,9 +49,9 @@ class ScanNode(HoodNode):
     def configure_node(self) -> None:
         from hood_decomp.core.scan.scan_field import prepared_estimator
 
-        # one-time preparation of the skin: the scan-field estimator and the cloud's xyz
-        self.estimator = prepared_estimator(self.bases.skin)
-        self.skin_clouds = messages.SkinClouds(self.bases.skin)
+        # one-time preparation of each variant's skin: the scan-field estimator and the cloud's xyz
+        self.prepared = {bases.model_id: (prepared_estimator(bases.skin), messages.SkinClouds(bases.skin))
+                         for bases in self.variant_bases.values()}
         self.field_pub = self.publisher(DisplacementField, "hood_decomp/displacement", latest=True)
         self.cloud_pub = self.publisher(PointCloud2, "hood_decomp/displacement_cloud")
 
@@ -58,7 +61,8 @@ class ScanNode(HoodNode):
     def on_cloud(self, msg: PointCloud2) -> dict[str, object]:
         from hood_decomp.core.scan.scan_field import field_from_scan
 
-        bases = self.require_bases()
+        bases = self.require_bases()  # a lone cloud is of the default variant; an inspection names its own
+        estimator, skin_clouds = self.prepared[bases.model_id]
         n_points = int(msg.width) * int(msg.height)
         max_points = self.param("max_points")
         if n_points > max_points:
@@ -70,12 +74,12 @@ class ScanNode(HoodNode):
                                                                         markers_nominal)
         field, registration = field_from_scan(bases.skin, points_mm, scanner_pose=scanner_pose,
                                               markers_mm=markers_mm, markers_nominal_mm=markers_nominal_mm,
-                                              min_coverage=self.param("min_coverage"), estimator=self.estimator)
+                                              min_coverage=self.param("min_coverage"), estimator=estimator)
         header = msg.header
         part_id = messages.part_id_of(msg)  # a cloud names no part: one id per stamp (an inspection names its own)
         header.frame_id = self.param("part_frame")
         self.field_pub.publish(messages.field_to_msg(field, header, part_id))
-        self.cloud_pub.publish(self.skin_clouds.displacement(field, header))
+        self.cloud_pub.publish(skin_clouds.displacement(field, header))
         return {"part_id": part_id, "points": points_mm.shape[0],
                 "markers": 0 if markers_mm is None else len(markers_mm), "coverage": f"{field.coverage:.3f}",
                 "noise_rms_mm": f"{field.noise_rms:.4f}", "registration": registration.method,
