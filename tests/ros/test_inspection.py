@@ -203,3 +203,13 @@ def test_a_lone_cloud_outside_an_inspection_uses_its_pose_and_says_which(cell):
     assert peer.wait(lambda: _diagnostic(peer, 501) is not None, 30.0)
     assert _diagnostic(peer, 501)["pose_source"].startswith("pose from scan/pose"), _diagnostic(peer, 501)
     assert _diagnostic(peer, 103)["pose_source"] == "tf"  # the first test's third view, inside its inspection
+
+
+def test_a_goal_for_a_variant_not_served_is_rejected(cell):
+    """Fails if the node accepts an inspection of a part variant whose bases it does not have (its views would be
+    fused and estimated on another part's model)."""
+    peer, client, _, _, _, _, ready, _ = cell
+    assert ready
+    sent = client.send_goal_async(InspectPart.Goal(part_id="rhd-0001", variant="RHD", expected_views=1))
+    assert peer.wait(sent.done, 30.0)
+    assert not sent.result().accepted

@@ -409,3 +409,37 @@ class BoundaryCorrection:
     std: np.ndarray | None = None
     applicable: np.ndarray | None = None
     remaining: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class MoveVerification:
+    """Did a correction happen? The measured change of each boundary between the inspection that produced the
+    correction and the next inspection of the same part, against the predicted change (the correction sent).
+
+    names: (P,) labels. predicted, measured, std: (P,) mm (std: one standard deviation of measured - predicted, the
+    two estimates' stds combined). fraction: (P,) measured / predicted (NaN where nothing was commanded).
+    outcome: (P,) one of NOT_COMMANDED, ACHIEVED, PARTIAL, FAILED (the codes of hood_decomp_msgs/MoveVerification).
+    tolerance: (P,) mm, the band around the prediction that counts as achieved. summary: the failed and slipped moves
+    named, "" when every commanded move was achieved.
+    """
+
+    NOT_COMMANDED = 0
+    ACHIEVED = 1
+    PARTIAL = 2
+    FAILED = 3
+    OUTCOMES = ("NOT_COMMANDED", "ACHIEVED", "PARTIAL", "FAILED")
+
+    model_id: str
+    names: tuple[str, ...]
+    predicted: np.ndarray
+    measured: np.ndarray
+    std: np.ndarray
+    fraction: np.ndarray
+    outcome: np.ndarray
+    tolerance: np.ndarray
+    summary: str
+
+    @property
+    def all_achieved(self) -> bool:
+        commanded = self.outcome != self.NOT_COMMANDED
+        return bool(np.all(self.outcome[commanded] == self.ACHIEVED))

@@ -47,12 +47,14 @@ class DecompositionNode(HoodNode):
         declare(self, "min_coverage", 0.2, "smallest seen fraction of the skin", 0.0, 1.0)
         self.fields: OrderedDict[_Key, tuple[DisplacementField, float]] = OrderedDict()
         self.states: OrderedDict[_Key, BoundaryState] = OrderedDict()
-        self.skin_clouds = self.effects_pub = self.cloud_pub = None
+        self.skin_clouds: dict[str, messages.SkinClouds] = {}  # model_id -> the skin of that variant
+        self.effects_pub = self.cloud_pub = None
         self.process = self.guarded("decomposition", self.decompose)
         self.refuse_state = self.guarded("boundary state", self.other_model)
 
     def configure_node(self) -> None:
-        self.skin_clouds = messages.SkinClouds(self.bases.skin)  # the skin's xyz once
+        self.skin_clouds = {bases.model_id: messages.SkinClouds(bases.skin)  # each variant's skin xyz once
+                            for bases in self.variant_bases.values()}
         self.effects_pub = self.publisher(EffectFields, "hood_decomp/effects", latest=True)
         self.cloud_pub = self.publisher(PointCloud2, "hood_decomp/effects_cloud")
 
@@ -72,12 +74,13 @@ class DecompositionNode(HoodNode):
         self.fields[key] = (msg, time.monotonic())
 
     def other_model(self, msg: BoundaryState) -> None:
-        """A state of another model (made with other bases) is refused by name (ERROR diagnostic), never paired."""
+        """A state of a model this node does not serve is refused by name (ERROR diagnostic), never paired."""
+        served = ", ".join(repr(model_id) for model_id in self.skin_clouds)
         raise HoodDecompError(f"boundary state of model_id {msg.model_id!r}, but the bases are of model_id "
-                              f"{self.require_bases().model_id!r}: not used for the field of its stamp")
+                              f"{served}: not used for the field of its stamp")
 
     def on_state(self, msg: BoundaryState) -> None:
-        if msg.model_id != self.require_bases().model_id:
+        if msg.model_id not in self.skin_clouds:
             self.refuse_state(msg)
             return
         key = _key(msg)
@@ -98,13 +101,16 @@ class DecompositionNode(HoodNode):
     def decompose(self, pair: _Pair) -> dict[str, object]:
         from hood_decomp.core.method.bases import decompose_field
 
-        bases = self.require_bases()
+        bases = self.bases_for_model(pair.field.model_id)
+        if pair.state is not None and pair.state.model_id != bases.model_id:
+            raise HoodDecompError(f"field of model_id {bases.model_id!r} paired with a boundary state of model_id "
+                                  f"{pair.state.model_id!r}")
         estimate = messages.msg_to_estimate(pair.state) if pair.state is not None else None
         decomposition = decompose_field(bases, messages.msg_to_field(pair.field), estimate,
                                         min_coverage=self.param("min_coverage"))
         part_id = messages.part_id_of(pair.field)
         self.effects_pub.publish(messages.decomposition_to_msg(decomposition, pair.header, part_id))
-        self.cloud_pub.publish(self.skin_clouds.effects(decomposition, pair.header))
+        self.cloud_pub.publish(self.skin_clouds[bases.model_id].effects(decomposition, pair.header))
         return {"part_id": part_id, "effects": ", ".join(effect.name for effect in decomposition.effects),
                 "paired_with_boundary_state": pair.state is not None,
                 "reconstruction_rms_mm": f"{decomposition.reconstruction_rms:.4f}"}

@@ -35,7 +35,7 @@ from rclpy.task import Future
 
 from hood_decomp.core.scan.fusion import ScanView, ViewResult, fuse_fields, view_field
 from hood_decomp.core.types import DisplacementField
-from hood_decomp.errors import ScanError
+from hood_decomp.errors import HoodDecompError, ScanError
 from hood_decomp.ros.messages import M_PER_MM
 from hood_decomp.ros.poses import ResolvedPose
 
@@ -67,15 +67,15 @@ class _Part:
 class InspectionServer:
     """The action server, the ClosePart service and the estimator's answers, attached to the scan node.
 
-    node: the scan node; skin_and_estimator: () -> (SkinSurface, fitted ScanFieldEstimator) of the loaded bases
-    (raises when there are none); publish_field: (DisplacementField, header, part_id) -> None publishes the fused field
-    the way the node publishes every field; parameter: name -> the node's current value of ``variant`` (the variant
-    its bases serve; "" accepts only goals without one), ``inspection_timeout_s`` (a goal's timeout when it states
-    none) and ``result_timeout_s`` (module docstring), read when used; serving: () -> whether the node takes clouds
-    (a goal is rejected otherwise); min_view_coverage: smallest skin fraction one view must show.
+    node: the scan node; skin_and_estimator: variant -> (SkinSurface, fitted ScanFieldEstimator) of that variant's
+    bases ("" the default; raises HoodDecompError naming the served ones for another); publish_field:
+    (DisplacementField, header, part_id) -> None publishes the fused field the way the node publishes every field;
+    parameter: name -> the node's current value of ``inspection_timeout_s`` (a goal's timeout when it states none)
+    and ``result_timeout_s`` (module docstring), read when used; serving: () -> whether the node takes clouds (a goal
+    is rejected otherwise); min_view_coverage: smallest skin fraction one view must show.
     """
 
-    def __init__(self, node: Any, *, skin_and_estimator: Callable[[], tuple[Any, Any]],
+    def __init__(self, node: Any, *, skin_and_estimator: Callable[[str], tuple[Any, Any]],
                  publish_field: Callable[[DisplacementField, Any, str], None], parameter: Callable[[str], Any],
                  serving: Callable[[], bool], min_view_coverage: float = 0.02) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
@@ -128,10 +128,10 @@ class InspectionServer:
         if request.expected_views < 1:
             self.node.get_logger().warning("InspectPart rejected: expected_views must be >= 1")
             return GoalResponse.REJECT
-        variant = self.parameter("variant")
-        if request.variant and request.variant != variant:
-            self.node.get_logger().warning(f"InspectPart rejected: variant {request.variant!r} is not served here "
-                                           f"(this node's bases: {variant or 'no variant'!r})")
+        try:
+            self.skin_and_estimator(request.variant)
+        except HoodDecompError as error:
+            self.node.get_logger().warning(f"InspectPart rejected: {error}")
             return GoalResponse.REJECT
         self._reserved = True
         return GoalResponse.ACCEPT
@@ -170,7 +170,7 @@ class InspectionServer:
             if view.scanner_pose is None:
                 raise ScanError(f"{name}: no pose from TF, scan/pose or the scanner_pose parameter "
                                 f"({'; '.join(pose.skipped) or 'no source'})")
-            skin, estimator = self.skin_and_estimator()
+            skin, estimator = self.skin_and_estimator(part.variant)
             result = view_field(skin, ScanView(view.points_mm, view.scanner_pose, view.markers_mm,
                                                view.markers_nominal_mm, name=name, pose_source=pose.source),
                                 estimator=estimator, min_coverage=self.min_view_coverage)
@@ -198,7 +198,7 @@ class InspectionServer:
                 "view_coverage": f"{result.field.coverage:.3f}", "fused_coverage": f"{coverage:.3f}"}
 
     def _feedback(self, part: _Part, last: str) -> float:
-        skin, _ = self.skin_and_estimator()
+        skin, _ = self.skin_and_estimator(part.variant)
         coverage = fuse_fields([v.field for v in part.views], skin).coverage if part.views else 0.0
         part.goal_handle.publish_feedback(self._Action.Feedback(
             views_received=len(part.views) + part.refused, views_refused=part.refused, coverage=float(coverage),
@@ -266,7 +266,7 @@ class InspectionServer:
             result.message = f"{reason}: no view fused ({part.refused} refused)"
             goal_handle.abort()
             return result
-        skin, _ = self.skin_and_estimator()
+        skin, _ = self.skin_and_estimator(part.variant)
         fused = fuse_fields([v.field for v in part.views], skin)
         result.model_id, result.coverage = fused.model_id, float(fused.coverage)
         result.noise_rms = float(fused.noise_rms) * M_PER_MM

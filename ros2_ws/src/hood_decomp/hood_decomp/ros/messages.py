@@ -21,6 +21,7 @@ from hood_decomp.core.types import (
     EffectContribution,
     FieldErrorModel,
     ModelCheck,
+    MoveVerification,
     ParameterEstimate,
     SkinSurface,
 )
@@ -191,6 +192,27 @@ def msg_to_correction(msg: Any) -> BoundaryCorrection:
         std=_numpy(msg.std_dev, MM_PER_M) if len(msg.std_dev) else None,
         applicable=np.asarray(msg.applicable, dtype=bool) if len(msg.applicable) else None,
         remaining=_numpy(msg.remaining, MM_PER_M) if len(msg.remaining) else None,
+    )
+
+
+def verification_to_msg(verification: MoveVerification, header: Any, part_id: str, corrected_stamp: Any) -> Any:
+    """core MoveVerification (mm) -> hood_decomp_msgs/MoveVerification (m) of the part ``part_id``; the outcome codes
+    are the message's constants."""
+    from hood_decomp_msgs.msg import MoveVerification as Msg
+
+    return Msg(
+        header=header,
+        model_id=verification.model_id,
+        part_id=part_id,
+        corrected_stamp=corrected_stamp,
+        names=list(verification.names),
+        predicted=(verification.predicted * M_PER_MM).tolist(),
+        measured=(verification.measured * M_PER_MM).tolist(),
+        std_dev=(verification.std * M_PER_MM).tolist(),
+        fraction=np.asarray(verification.fraction, float).tolist(),
+        outcome=[int(code) for code in verification.outcome],
+        all_achieved=verification.all_achieved,
+        summary=verification.summary,
     )
 
 

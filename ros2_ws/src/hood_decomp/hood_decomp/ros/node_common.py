@@ -52,6 +52,28 @@ def declare(node: Node, name: str, default: Any, description: str,
     return node.declare_parameter(name, default, descriptor).value
 
 
+def declare_list(node: Node, name: str, kind: Parameter.Type, description: str) -> list[Any]:
+    """Declare an array parameter of ``kind`` (e.g. Parameter.Type.DOUBLE_ARRAY) whose default is empty, and return
+    its value. rclpy cannot infer the type of an empty list, and a parameter declared with a type but no value has
+    none, which makes a bulk parameter get fail; so the empty list is set explicitly when no override gave one."""
+    parameter = node.declare_parameter(name, kind, ParameterDescriptor(description=description))
+    if parameter.value is None:
+        node.set_parameters([Parameter(name, kind, [])])
+    return node.get_parameter(name).value
+
+
+def parse_entries(entries: list[str], what: str) -> dict[str, str]:
+    """``["NAME=VALUE", ...]`` (a list parameter) -> {name: value}; an entry without a name or value, or a repeated
+    name, is a ValueError naming it and ``what`` the value should be."""
+    parsed: dict[str, str] = {}
+    for entry in entries:
+        name, _, value = (part.strip() for part in entry.partition("="))
+        if not name or not value or name in parsed:
+            raise ValueError(f"{entry!r}: expected NAME={what}, each name once")
+        parsed[name] = value
+    return parsed
+
+
 def topic_qos(depth: int, durability: DurabilityPolicy = VOLATILE) -> QoSProfile:
     """Reliable, keep-last(depth): a burst of ``depth`` messages waits instead of being dropped. Result publishers
     are transient-local (a late subscriber gets the last ``depth``, or as many as its own depth takes); every
@@ -220,18 +242,22 @@ class HoodNode(LifecycleNode):
     message; :meth:`check_parameter` may refuse a bad value with a reason.
     """
 
-    configure_parameters: frozenset[str] = frozenset({"bases", "queue_depth"})
+    configure_parameters: frozenset[str] = frozenset({"bases", "queue_depth", "variants"})
 
     def __init__(self, name: str) -> None:
         super().__init__(name)
         forward_package_logging(self.get_logger())
         declare(self, "bases", "", "path of the bases file (hood-decomp bases --out); read at configure")
         declare(self, "queue_depth", 10, "messages held per topic while the node is busy; read at configure", 1, 1000)
+        declare_list(self, "variants", Parameter.Type.STRING_ARRAY, "further part variants this node serves, "
+                     "VARIANT=PATH of each variant's bases file; a field is served with the bases of its model_id; "
+                     "read at configure")
         declare(self, "autostart", False, "configure and activate at start-up (for a node started alone, without a "
                 "lifecycle manager such as hood-decomp launch)")
         self.state = "unconfigured"
         self.configure_error = ""
-        self.bases: Any = None
+        self.bases: Any = None  # the default variant's
+        self.variant_bases: dict[str, Any] = {}  # variant ("" = default) -> bases
         self.depth = 10
         self._outputs: list[Any] = []
         self._inputs: list[Any] = []
@@ -246,7 +272,12 @@ class HoodNode(LifecycleNode):
 
     # --- parameters -----------------------------------------------------------------------------------------------
     def check_parameter(self, parameter: Parameter) -> str:
-        """The reason a new value of ``parameter`` is refused, or "" (subclasses check their own)."""
+        """The reason a new value of ``parameter`` is refused, or "" (subclasses check their own and call this)."""
+        if parameter.name == "variants" and parameter.value is not None:
+            try:
+                parse_entries(list(parameter.value), "PATH")
+            except ValueError as error:
+                return str(error)
         return ""
 
     def _on_set_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
@@ -271,22 +302,22 @@ class HoodNode(LifecycleNode):
         path = self.param("bases")
         self.depth = int(self.param("queue_depth"))
         try:
-            bases, reason = load_bases_or_reason(path)
-            if bases is None:
-                raise HoodDecompError(reason)
-            self.bases = bases
+            self.variant_bases = self._load_variants(path)
+            self.bases = self.variant_bases[""]
             self.configure_node()
         except Exception as error:  # any failure is a failed transition, never a dead process
             reason = str(error) if isinstance(error, HoodDecompError) else f"{type(error).__name__}: {error}"
             self.get_logger().error(f"configure failed: {reason}")
             self._destroy(self._outputs)
-            self.bases, self.configure_error = None, reason
+            self.bases, self.variant_bases, self.configure_error = None, {}, reason
             self.diagnostics.report(ERROR, f"configure failed: {reason}", bases=path)
             return TransitionCallbackReturn.FAILURE
         self.configure_error = ""
         self.state = "inactive"
-        self.get_logger().info(f"configured with bases {path} (model {self.bases.model_id})")
-        self.diagnostics.report(OK, "configured", bases=path)
+        served = ", ".join(f"{variant or 'default'} (model {bases.model_id})"
+                           for variant, bases in self.variant_bases.items())
+        self.get_logger().info(f"configured with bases {path}; serving {served}")
+        self.diagnostics.report(OK, "configured", bases=path, variants=served)
         return super().on_configure(state)
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -303,7 +334,7 @@ class HoodNode(LifecycleNode):
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._destroy(self._outputs)
-        self.bases = None
+        self.bases, self.variant_bases = None, {}
         self.state = "unconfigured"
         return super().on_cleanup(state)
 
@@ -340,10 +371,44 @@ class HoodNode(LifecycleNode):
         self.diagnostics.report(level, message, heartbeat=True, **self.heartbeat_values())
 
     # --- entities -------------------------------------------------------------------------------------------------
+    def _load_variants(self, path: str) -> dict[str, Any]:
+        """variant ("" = default, from ``bases``) -> loaded bases; a file that does not load, or two variants of
+        the same model_id (a field could not be told apart), is a HoodDecompError naming the variant."""
+        files = {"": path, **parse_entries(list(self.param("variants")), "PATH")}
+        loaded: dict[str, Any] = {}
+        for variant, file in files.items():
+            bases, reason = load_bases_or_reason(file)
+            if bases is None:
+                raise HoodDecompError(f"variant {variant}: {reason}" if variant else reason)
+            twin = next((name for name, other in loaded.items() if other.model_id == bases.model_id), None)
+            if twin is not None:
+                raise HoodDecompError(f"variants {twin or 'default'!r} and {variant!r} have the same model_id "
+                                      f"{bases.model_id}: their fields could not be told apart")
+            loaded[variant] = bases
+        return loaded
+
     def require_bases(self) -> Any:
         if self.bases is None:  # only reachable when a subclass uses it outside the active state
             raise HoodDecompError(f"no bases loaded (node {self.state})")
         return self.bases
+
+    def bases_for_model(self, model_id: str) -> Any:
+        """The bases of the variant whose model_id a field carries; a HoodDecompError naming what is served else."""
+        self.require_bases()
+        for bases in self.variant_bases.values():
+            if bases.model_id == model_id:
+                return bases
+        served = ", ".join(f"{bases.model_id} ({variant or 'default'})"
+                           for variant, bases in self.variant_bases.items())
+        raise HoodDecompError(f"field of model_id {model_id!r}: this node serves model_id {served}")
+
+    def bases_for_variant(self, variant: str) -> Any:
+        """The bases of a part variant by name ("" = the default); a HoodDecompError naming the served ones else."""
+        self.require_bases()
+        if variant not in self.variant_bases:
+            raise HoodDecompError(f"variant {variant!r} is not served here (served: "
+                                  f"{', '.join(name or 'default' for name in self.variant_bases)}; parameter variants)")
+        return self.variant_bases[variant]
 
     def publisher(self, cls: type, topic: str, latest: bool = False) -> Any:
         """A publisher, created at configure and active with the node. ``latest``: a result topic, transient-local,

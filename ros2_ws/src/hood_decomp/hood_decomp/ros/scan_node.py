@@ -5,15 +5,17 @@ The cloud is read with one buffer copy (hood_decomp.ros.messages / pointcloud), 
 the scanner_pose parameter: hood_decomp.ros.poses; markers refine it), registered to the nominal part and turned into
 one signed normal displacement per visible skin node (hood_decomp.core.scan.scan_field). Clouds larger than
 ``max_points`` are refused before any copy. While an InspectPart goal is open, clouds are the views of its part
-(hood_decomp.ros.inspection); otherwise one cloud gives one field. The subscription is best effort (it matches
-reliable and best-effort scanner drivers); the field is published transient-local (the latest result).
+(hood_decomp.ros.inspection), with the bases of the goal's variant; otherwise one cloud gives one field of the default
+bases. The subscription is best effort (it matches reliable and best-effort scanner drivers); the field is published
+transient-local (the latest result).
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from hood_decomp_msgs.msg import DisplacementField
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
@@ -23,7 +25,7 @@ from hood_decomp.core.types import DisplacementField as CoreField
 from hood_decomp.errors import ScanError
 from hood_decomp.ros import messages
 from hood_decomp.ros.inspection import InspectionServer
-from hood_decomp.ros.node_common import HoodNode, declare, scan_qos, spin
+from hood_decomp.ros.node_common import HoodNode, declare, declare_list, scan_qos, spin
 from hood_decomp.ros.poses import PoseSources, PoseTopic, tf_lookup
 
 
@@ -34,11 +36,9 @@ class ScanNode(HoodNode):
         declare(self, "scanner_pose", [float(v) for v in np.eye(4).ravel()],
                 "scanner-to-part transform, 16 numbers row-major, translation in metres (cell calibration); the "
                 "identity means unset: a lone cloud without TF or scan/pose is then in the part frame")
-        self.declare_parameter("marker_positions", Parameter.Type.DOUBLE_ARRAY, ParameterDescriptor(
-            description="nominal reference-marker centres in the part frame: id, x, y, z (metres) per marker; the "
-            "cloud reports measured centres as points whose marker_field is the id (-1 for surface points)"))
-        if self.get_parameter_or("marker_positions").value is None:  # no markers: an empty list, not "not set"
-            self.set_parameters([Parameter("marker_positions", Parameter.Type.DOUBLE_ARRAY, [])])
+        declare_list(self, "marker_positions", Parameter.Type.DOUBLE_ARRAY, "nominal reference-marker centres in "
+                     "the part frame: id, x, y, z (metres) per marker; the cloud reports measured centres as points "
+                     "whose marker_field is the id (-1 for surface points)")
         declare(self, "marker_field", "marker_id", "per-point field holding marker ids")
         declare(self, "max_points", 5_000_000, "largest cloud accepted (points)", 1, 100_000_000)
         declare(self, "min_coverage", 0.2, "smallest seen fraction of the skin", 0.0, 1.0)
@@ -48,11 +48,12 @@ class ScanNode(HoodNode):
                 "0: none, as tf2); read at start", 0.0, 10.0)
         declare(self, "pose_wait_s", 0.5, "how long a cloud waits for its transform or scan/pose message still on "
                 "its way (s); read at start", 0.0, 10.0)
-        declare(self, "variant", "", "the part variant these bases serve (InspectPart goals name it)")
         declare(self, "inspection_timeout_s", 120.0, "an inspection's timeout when its goal states none (s)",
                 0.1, 86400.0)
         declare(self, "result_timeout_s", 30.0, "how long an inspection waits for the estimator's answer to its "
                 "fused field (s)", 0.1, 3600.0)
+        self.prepared: dict[str, tuple[Any, messages.SkinClouds]] = {}  # model_id -> (estimator, skin clouds)
+        self.field_pub = self.cloud_pub = None
         # pose sources listen from the start (TF arrives before the first cloud), in the order of the module docstring
         wait_s = self.param("pose_wait_s")
         sources = [("scan/pose", PoseTopic(self, wait_s=wait_s).lookup)]
@@ -63,14 +64,13 @@ class ScanNode(HoodNode):
             except ImportError as error:  # neither tf2_ros nor the workspace's tf2_msgs: say so, serve without TF
                 self.get_logger().error(f"no TF: {error} (build ros2_ws/src/tf2_msgs or install tf2_ros)")
         self.poses = PoseSources(sources)
-        self.estimator = self.skin_clouds = self.field_pub = self.cloud_pub = None
-        self.inspection = InspectionServer(self, skin_and_estimator=lambda: (self.require_bases().skin, self.estimator),
+        self.inspection = InspectionServer(self, skin_and_estimator=self.skin_and_estimator,
                                            publish_field=self.publish_field, parameter=self.param,
                                            serving=lambda: self.state == "active")
 
     def check_parameter(self, parameter: Parameter) -> str:
         if parameter.name not in ("scanner_pose", "marker_positions") or parameter.value is None:
-            return ""
+            return super().check_parameter(parameter)
         values = np.asarray(parameter.value, dtype=float)
         if parameter.name == "scanner_pose" and (values.shape != (16,) or not np.isfinite(values).all()):
             return f"16 finite numbers (row-major 4 x 4), got {values.size}"
@@ -81,19 +81,23 @@ class ScanNode(HoodNode):
     def configure_node(self) -> None:
         from hood_decomp.core.scan.scan_field import prepared_estimator
 
-        # one-time preparation of the skin: the scan-field estimator and the cloud's xyz
-        self.estimator = prepared_estimator(self.bases.skin)
-        self.skin_clouds = messages.SkinClouds(self.bases.skin)
+        # one-time preparation of each variant's skin: the scan-field estimator and the cloud's xyz
+        self.prepared = {bases.model_id: (prepared_estimator(bases.skin), messages.SkinClouds(bases.skin))
+                         for bases in self.variant_bases.values()}
         self.field_pub = self.publisher(DisplacementField, "hood_decomp/displacement", latest=True)
         self.cloud_pub = self.publisher(PointCloud2, "hood_decomp/displacement_cloud")
 
     def activate_node(self) -> None:
         self.subscription(PointCloud2, "scan/points", self.guarded("scan", self.on_cloud), scan_qos(self.depth))
 
+    def skin_and_estimator(self, variant: str) -> tuple[Any, Any]:
+        """The skin and the prepared scan-field estimator of a part variant ("" = the default bases)."""
+        bases = self.bases_for_variant(variant)
+        return bases.skin, self.prepared[bases.model_id][0]
+
     def on_cloud(self, msg: PointCloud2) -> dict[str, object]:
         from hood_decomp.core.scan.scan_field import field_from_scan
 
-        bases = self.require_bases()
         n_points = int(msg.width) * int(msg.height)
         max_points = self.param("max_points")
         if n_points > max_points:
@@ -108,9 +112,10 @@ class ScanNode(HoodNode):
         if self.inspection.active:
             view = ScanView(points_mm, pose.pose_mm, markers_mm, markers_nominal_mm, pose_source=pose.source)
             return {**self.inspection.add_view(msg.header, view, pose), "points": points_mm.shape[0]}
-        field, registration = field_from_scan(bases.skin, points_mm, scanner_pose=pose.pose_mm,
+        skin, estimator = self.skin_and_estimator("")  # a lone cloud is of the default variant
+        field, registration = field_from_scan(skin, points_mm, scanner_pose=pose.pose_mm,
                                               markers_mm=markers_mm, markers_nominal_mm=markers_nominal_mm,
-                                              min_coverage=self.param("min_coverage"), estimator=self.estimator)
+                                              min_coverage=self.param("min_coverage"), estimator=estimator)
         part_id = messages.part_id_of(msg)  # a cloud names no part: one id per stamp (an inspection names its own)
         self.publish_field(field, msg.header, part_id)
         return {"part_id": part_id, "points": points_mm.shape[0],
@@ -121,7 +126,7 @@ class ScanNode(HoodNode):
     def publish_field(self, field: CoreField, header: Header, part_id: str) -> None:
         header.frame_id = self.param("part_frame")
         self.field_pub.publish(messages.field_to_msg(field, header, part_id))
-        self.cloud_pub.publish(self.skin_clouds.displacement(field, header))
+        self.cloud_pub.publish(self.prepared[field.model_id][1].displacement(field, header))
 
 
 def main(args: list[str] | None = None) -> int:
