@@ -129,7 +129,7 @@ def write_node_params(path: str | pathlib.Path, sidecar: dict[str, Any],
     return path
 
 
-def _transform_stamped(parent: str, child: str, pose_mm: np.ndarray, stamp_ns: int) -> Any:
+def transform_stamped(parent: str, child: str, pose_mm: np.ndarray, stamp_ns: int) -> Any:
     """geometry_msgs/TransformStamped (metres) of a (4, 4) transform parent <- child in mm."""
     from geometry_msgs.msg import TransformStamped
 
@@ -165,8 +165,8 @@ def write_multiview_bag(path: str | pathlib.Path, views: Sequence[ScenarioScan],
         records.append(Record(topic, msgtype, stamp, bytes(serialize_message(message))))
 
     record("/tf_static", "tf2_msgs/msg/TFMessage", start_ns - period_ns, TFMessage(transforms=[
-        _transform_stamped(PART_FRAME, BASE_FRAME, base_pose_mm, start_ns - period_ns),
-        _transform_stamped(FLANGE_FRAME, SCANNER_FRAME, hand_eye_mm, start_ns - period_ns)]))
+        transform_stamped(PART_FRAME, BASE_FRAME, base_pose_mm, start_ns - period_ns),
+        transform_stamped(FLANGE_FRAME, SCANNER_FRAME, hand_eye_mm, start_ns - period_ns)]))
     entries = []
     to_base, from_hand = np.linalg.inv(base_pose_mm), np.linalg.inv(hand_eye_mm)
     for index, (view, robot) in enumerate(zip(views, robot_poses_mm, strict=True)):
@@ -174,9 +174,9 @@ def write_multiview_bag(path: str | pathlib.Path, views: Sequence[ScenarioScan],
         flange = to_base @ robot @ from_hand  # base <- flange that puts the scanner at the robot's pose
         for offset in (-20_000_000, 20_000_000):
             record("/tf", "tf2_msgs/msg/TFMessage", stamp + offset, TFMessage(transforms=[
-                _transform_stamped(BASE_FRAME, FLANGE_FRAME, flange, stamp + offset)]))
+                transform_stamped(BASE_FRAME, FLANGE_FRAME, flange, stamp + offset)]))
         record(POSE_TOPIC, "geometry_msgs/msg/TransformStamped", stamp,
-               _transform_stamped(PART_FRAME, SCANNER_FRAME, robot, stamp))
+               transform_stamped(PART_FRAME, SCANNER_FRAME, robot, stamp))
         record(SCAN_TOPIC, "sensor_msgs/msg/PointCloud2", stamp, scan_cloud(view.scan, stamp))
         error = robot @ np.linalg.inv(view.scan.true_transform)
         sec, nanosec = divmod(stamp, 1_000_000_000)
