@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -100,6 +101,7 @@ def main() -> int:
             client.destroy()
     finally:
         stop_nodes(processes)
+        shutil.rmtree(tmp, ignore_errors=True)
     summary = {"date": time.strftime("%Y-%m-%d"), "load": os.getloadavg()[0], "points_per_view": args.points,
                "skin_nodes": case.skin.n_nodes, "latency_s": latencies, "median_s": float(np.median(latencies)),
                "max_s": float(np.max(latencies)), "results": results}
