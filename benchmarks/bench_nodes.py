@@ -3,8 +3,10 @@
 Latency: from a 1,000,000-point scan published on scan/points to its boundary state received, and to its effect
 fields received (targets at paper resolution: under 1 s and under 1.5 s). Sustained: one scan per second for
 --soak-seconds, counting lost scans and sampling the nodes' resident memory (target: none lost, no growth).
+Best effort (issue 17): --best-effort N clouds from a best-effort publisher (the sensor-data QoS of common scanner
+drivers), each sent when the previous one was answered; target: N of N delivered and answered.
 
-    scripts/with-env python benchmarks/bench_nodes.py --resolution default [--soak-seconds 300]
+    scripts/with-env python benchmarks/bench_nodes.py --resolution default [--soak-seconds 300] [--best-effort 100]
 
 Bases are built once per resolution and cached in benchmarks/out/cache_<resolution>/. Prints a table and writes
 benchmarks/out/bench_nodes_<resolution>.json.
@@ -27,6 +29,7 @@ import psutil
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from hood_decomp_msgs.msg import BoundaryState, EffectFields
+from rclpy.qos import qos_profile_sensor_data
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import PointCloud2
 
@@ -82,6 +85,8 @@ def main() -> int:
     parser.add_argument("--points", type=int, default=1_000_000)
     parser.add_argument("--scans", type=int, default=10, help="scans for the latency figures")
     parser.add_argument("--soak-seconds", type=float, default=0.0, help="length of the one-scan-per-second run")
+    parser.add_argument("--best-effort", type=int, default=0,
+                        help="also send this many clouds from a best-effort publisher, one per answer")
     parser.add_argument("--oversize-points", type=int, default=0,
                         help="also send one cloud of this many points (e.g. 20000000) and check it is refused")
     args = parser.parse_args()
@@ -99,6 +104,7 @@ def main() -> int:
     processes = start_nodes(bases_path.resolve(), params_file=params, log_dir=OUT)
     peer = Participant("bench_nodes", depth=100)
     peer.publisher("scan/points", PointCloud2)
+    best_effort_pub = peer.node.create_publisher(PointCloud2, "scan/points", qos_profile_sensor_data)
     diagnostics = peer.collect("/diagnostics", DiagnosticArray)
     arrival: dict[tuple[str, int], float] = {}
 
@@ -157,6 +163,23 @@ def main() -> int:
                     "rss_mb_last_tenth": rss[-tenth:].mean(axis=0).round(1).tolist(),
                     "rss_mb_every_tenth": [rss[i:i + tenth].mean(axis=0).round(1).tolist()
                                            for i in range(0, len(rss), tenth)]}
+        best_effort = {}
+        if args.best_effort:
+            if not peer.wait(lambda: best_effort_pub.get_subscription_count() >= 1, 60):
+                raise RuntimeError("the best-effort publisher did not match the scan node")
+            seconds = []
+            for i in range(args.best_effort):
+                stamp = 30_000_000_000_000 + 1_000_000_000 * i
+                cloud = clouds[i % len(clouds)]
+                cloud.header.stamp = Time(sec=stamp // 1_000_000_000)
+                sent[stamp] = time.perf_counter()
+                best_effort_pub.publish(cloud)
+                if peer.wait(lambda s=stamp: answered(s) or refused(s), 120) and answered(stamp):
+                    seconds.append(arrival[("hood_decomp/boundary_state", stamp)] - sent[stamp])
+                log(f"best effort {i + 1}/{args.best_effort}: {'answered' if answered(stamp) else 'LOST'}")
+            best_effort = {"sent": args.best_effort, "answered": len(seconds),
+                           "state_latency_median_s": statistics.median(seconds) if seconds else None,
+                           "state_latency_max_s": max(seconds) if seconds else None}
         oversize = {}
         if args.oversize_points:  # a cloud above the scan node's max_points: refused by name, the next one served
             big = scan_cloud(scans[0].scan, 0)
@@ -185,6 +208,10 @@ def main() -> int:
     if soak:
         print(f"sustained 1 Hz for {soak['seconds']:.0f} s: {soak['scans']} scans, {soak['lost']} lost; node RSS MB "
               f"(scan, estimator, decomposition) per tenth of the run: {soak['rss_mb_every_tenth']}")
+    if best_effort:
+        print(f"best-effort publisher: {best_effort['answered']} of {best_effort['sent']} clouds delivered and "
+              f"answered; boundary state median {best_effort['state_latency_median_s']} s, max "
+              f"{best_effort['state_latency_max_s']} s")
     if oversize:
         print(f"oversize cloud of {oversize['points']:,} points ({oversize['bytes'] / 2**20:.0f} MB): "
               f"{oversize['refused'] or 'NOT refused'} after {oversize['seconds_to_diagnostic']} s; next scan "
@@ -192,7 +219,8 @@ def main() -> int:
     OUT.mkdir(exist_ok=True)
     (OUT / f"bench_nodes_{args.resolution}.json").write_text(json.dumps({
         "benchmark": "nodes", "resolution": args.resolution, "skin_nodes": len(skin.points), "points": args.points,
-        "latency": summary, "soak": soak, "oversize": oversize, "cloud_bytes": len(serialize_message(clouds[0])),
+        "latency": summary, "soak": soak, "best_effort": best_effort, "oversize": oversize,
+        "cloud_bytes": len(serialize_message(clouds[0])),
         "date": time.strftime("%Y-%m-%d"), "machine": f"{platform.node()} {platform.machine()}"}, indent=2) + "\n")
     return 0
 

@@ -13,4 +13,8 @@ export PATH="$_hd_root/ros2_ws/install/hood_decomp/lib/hood_decomp:$PATH"
 # Discovery stays on this machine unless the cell says otherwise.
 export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
 export RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
+# Fast DDS with a 64 MB shared-memory transport (best-effort 1M-point clouds on one host), unless the cell chose a
+# profile: export FASTDDS_DEFAULT_PROFILES_FILE (even empty) before sourcing to keep yours.
+[ -n "${FASTDDS_DEFAULT_PROFILES_FILE+set}" ] ||
+  export FASTDDS_DEFAULT_PROFILES_FILE="$_hd_root/ros2_ws/install/hood_decomp/share/hood_decomp/config/fastdds.xml"
 unset _hd_root _hd_nounset

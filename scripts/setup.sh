@@ -76,16 +76,22 @@ done
 # ament_python is installed with --symlink-install, so editing Python sources needs no rebuild; only the package
 # manifests, setup files and messages trigger one.
 build_stamp="$( (echo "$req_stamp"; find "$WS/src" \( -name package.xml -o -name setup.py -o -name setup.cfg \
-  -o -name CMakeLists.txt -o -name '*.msg' -o -path '*/config/*' -o -path '*/launch/*' \) -type f -print0 | sort -z |
+  -o -name CMakeLists.txt -o -name '*.msg' -o -name '*.srv' -o -name '*.action' -o -path '*/config/*' -o -path '*/launch/*' \) -type f -print0 | sort -z |
   xargs -0 cat) | sha256sum | cut -c1-16)"
 if [ ! -f "$WS/install/setup.bash" ] || [ "$(cat "$WS/install/.stamp-build" 2>/dev/null)" != "$build_stamp" ]; then
-  say "colcon build (hood_decomp_msgs, hood_decomp)"
+  say "colcon build (every package of ros2_ws/src: tf2_msgs, hood_decomp_msgs, hood_decomp)"
   (
     cd "$WS" && mkdir -p log
     # shellcheck disable=SC1091
     source "$VENV/bin/activate"
     source "$VENV/local_setup.sh"
-    colcon build --symlink-install --event-handlers console_cohesion- status- \
+    # tf2_msgs (ros2_ws/src/tf2_msgs) stands in for the missing wheel; an underlay that has it (a full ROS install
+    # sourced before) keeps its own, never overlaid by ours
+    skip=()
+    if python -c "import sys, tf2_msgs.msg as m; sys.exit(m.__file__.startswith('$WS/'))" 2>/dev/null; then
+      skip=(--packages-skip tf2_msgs)
+    fi
+    colcon build --symlink-install --event-handlers console_cohesion- status- "${skip[@]}" \
       --cmake-args -DPython3_EXECUTABLE="$VENV/bin/python" -DBUILD_TESTING=OFF >"$WS/log/colcon-build.log" 2>&1 ||
       { tail -40 "$WS/log/colcon-build.log" >&2; say "error: colcon build failed (log: $WS/log/colcon-build.log)"; exit 1; }
   )

@@ -471,6 +471,63 @@ for _verb, _option, _values in (
 ):
     for _value in _values:
         add("option NaN/inf/garbage", f"{_verb[0]} {_option} {_value}", _argv(*_verb, _option, _value))
+# --- scanner poses (issue 17): POSE.json files and where --scanner-pose stands -------------------------------------
+IDENTITY = "[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]"
+
+
+def _pose(text: str | None, *, directory: bool = False, before: bool = False) -> Build:
+    """estimate with --scan and a --scanner-pose holding ``text`` (None: missing; ``directory``: a directory)."""
+    def build(ws: Workspace, tmp: Path) -> list[str]:
+        pose = tmp / "pose.json"
+        if directory:
+            pose.mkdir()
+        elif text is not None:
+            pose.write_text(text)
+        scan = ["--scan", str(ws.scan)]
+        option = ["--scanner-pose", str(pose)]
+        return ["estimate", "--bases", str(ws.bases), *(option + scan if before else scan + option)]
+
+    return build
+
+
+for _name, _text, _fragment in (
+    ("not JSON", "4x4 please", "not a readable JSON"),
+    ("a NaN entry", IDENTITY.replace("[1, 0, 0, 0]", "[NaN, 0, 0, 0]"), "NaN is not a JSON number"),
+    ("3 x 3", "[[1, 0, 0], [0, 1, 0], [0, 0, 1]]", "4 rows of 4 numbers"),
+    ("15 numbers", "[1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0]", "4 x 4"),
+    ("text entries", IDENTITY.replace("[1, 0, 0, 0]", '["1", 0, 0, 0]'), "4 rows of 4 numbers"),
+    ("scaled rotation (metres to mm)", IDENTITY.replace("1, 0, 0, 0]", "1000, 0, 0, 0]"), "not orthonormal"),
+    ("a mirror", IDENTITY.replace("[1, 0, 0, 0]", "[-1, 0, 0, 0]"), "mirrors"),
+    ("last row not 0 0 0 1", IDENTITY.replace("[0, 0, 0, 1]", "[0, 0, 1, 1]"), "last row"),
+    ("an object without a pose", '{"transform": ' + IDENTITY + "}", "'pose' entry"),
+    ("huge file", "[" + " " * 100_000 + "]", "bytes"),
+):
+    add("scanner pose", _name, _pose(_text), _fragment)
+add("scanner pose", "missing file", _pose(None), "no such file")
+add("scanner pose", "a directory", _pose(None, directory=True), "not a regular file")
+add("scanner pose", "--scanner-pose before any --scan", _pose(IDENTITY, before=True), "must follow the --scan")
+add("scanner pose", "--scanner-pose after a --field", _argv(*ESTIMATE, "--scanner-pose", "{tmp}/p.json"),
+    "must follow the --scan")
+
+
+def _two_poses(ws: Workspace, tmp: Path) -> list[str]:
+    (tmp / "pose.json").write_text(IDENTITY)
+    return ["estimate", "--bases", str(ws.bases), "--scan", str(ws.scan), "--scanner-pose", str(tmp / "pose.json"),
+            "--scanner-pose", str(tmp / "pose.json")]
+
+
+def _view_without_pose(ws: Workspace, tmp: Path) -> list[str]:
+    (tmp / "pose.json").write_text(IDENTITY)
+    second = tmp / "second_view.ply"
+    shutil.copyfile(ws.scan, second)
+    return ["decompose", "--bases", str(ws.bases), "--scan", str(ws.scan), "--scanner-pose", str(tmp / "pose.json"),
+            "--scan", str(second)]
+
+
+add("scanner pose", "two poses for one scan", _two_poses, "two --scanner-pose")
+add("scanner pose", "a view of a multi-view part without a pose", _view_without_pose,
+    "second_view.ply: no scanner pose")
+
 add("option NaN/inf/garbage", "unknown verb", _argv("frobnicate"))
 add("option NaN/inf/garbage", "unknown option", _argv(*ESTIMATE, "--frobnicate"))
 add("option NaN/inf/garbage", "estimate without --field or --scan", _argv("estimate", "--bases", "{bases}"))
@@ -617,7 +674,7 @@ def test_the_matrix_covers_every_category() -> None:
     assert {"file missing", "file empty", "file garbage", "file truncated", "hdf5 crafted bases",
             "hdf5 crafted ensemble", "hdf5 attributes", "model.yaml unknown key", "model.yaml wrong type",
             "model.yaml non-finite", "model.yaml hostile text", "scan file (PLY)", "field file", "mesh file",
-            "option NaN/inf/garbage", "scheduler", "output", "truth JSON", "bag"} <= categories
+            "option NaN/inf/garbage", "scheduler", "output", "truth JSON", "bag", "scanner pose"} <= categories
 
 
 SUBPROCESS_CASES = ["option NaN/inf/garbage: simulate --set HINGE_X=nan",

@@ -30,7 +30,8 @@ from hood_decomp.ros.pointcloud import cloud_channel, cloud_to_xyz, xyz_to_cloud
 from tests.toy_models import make_skin
 
 MSG_DIR = pathlib.Path(__file__).parents[2] / "ros2_ws/src/hood_decomp_msgs/msg"
-NAMES = ["DisplacementField", "BoundaryState", "BoundaryCorrection", "EffectField", "EffectFields"]
+NAMES = ["DisplacementField", "BoundaryState", "BoundaryCorrection", "EffectField", "EffectFields", "MoveVerification",
+         "ZoneVerdict"]
 
 
 @pytest.fixture(scope="module")
@@ -55,13 +56,47 @@ def test_every_message_is_generated():
         assert deserialize_message(serialize_message(cls()), cls) == cls()
 
 
+def test_inspect_part_action_and_close_part_service_are_generated():
+    """Fails if the action or service is not generated (rosidl without action_msgs/service_msgs) or its parts do not
+    carry what the cell controller reads: the goal's part id and view count, the result's part id, state, correction,
+    verification and zone verdicts."""
+    from hood_decomp_msgs.action import InspectPart
+    from hood_decomp_msgs.srv import ClosePart
+
+    goal = InspectPart.Goal(part_id="P-17", variant="LHD", expected_views=4)
+    goal.timeout.sec = 30
+    assert deserialize_message(serialize_message(goal), InspectPart.Goal) == goal
+    result = InspectPart.Result(part_id="P-17", views_used=3, timed_out=True, zones=[hd_msg.ZoneVerdict(name="z")])
+    result.boundary_state.part_id = result.boundary_correction.part_id = "P-17"
+    result.verification.outcome = [hd_msg.MoveVerification.PARTIAL]
+    back = deserialize_message(serialize_message(result), InspectPart.Result)
+    assert back == result and back.boundary_correction.part_id == "P-17" and back.zones[0].name == "z"
+    feedback = InspectPart.Feedback(views_received=2, coverage=0.5)
+    assert deserialize_message(serialize_message(feedback), InspectPart.Feedback) == feedback
+    assert ClosePart.Request(part_id="P-17").part_id == "P-17" and not ClosePart.Response().success
+
+
+def test_part_id_is_kept_or_made_from_the_stamp():
+    """Fails if a given part id is replaced, or a missing one is not made, or made differently for two messages of
+    the same stamp (the estimator and the decomposition node must agree on it), or the same for different stamps."""
+    from builtin_interfaces.msg import Time
+
+    given = hd_msg.DisplacementField(part_id="P-1")
+    assert messages.part_id_of(given) == "P-1"
+    a = hd_msg.DisplacementField(header=Header(stamp=Time(sec=12, nanosec=5)))
+    b = hd_msg.BoundaryState(header=Header(stamp=Time(sec=12, nanosec=5)))
+    c = hd_msg.DisplacementField(header=Header(stamp=Time(sec=12, nanosec=6)))
+    assert messages.part_id_of(a) == messages.part_id_of(b) == "stamp-12.000000005"
+    assert messages.part_id_of(c) != messages.part_id_of(a)
+
+
 def test_displacement_field_mm_to_m(typestore):
     values = np.array([1.5, -0.25, np.nan, 0.0])
     field = DisplacementField(model_id="abc123", normal_displacement=values, coverage=0.75, noise_rms=0.02)
-    msg = messages.field_to_msg(field, Header(frame_id="part"))
+    msg = messages.field_to_msg(field, Header(frame_id="part"), "P-7")
     decoded = rosbags_decode(typestore, msg)
     np.testing.assert_allclose(decoded.normal_displacement, [0.0015, -0.00025, np.nan, 0.0], rtol=1e-7)
-    assert decoded.model_id == "abc123" and decoded.header.frame_id == "part"
+    assert decoded.model_id == "abc123" and decoded.header.frame_id == "part" and decoded.part_id == "P-7"
     assert decoded.noise_rms == pytest.approx(2e-5)
     back = messages.msg_to_field(msg)
     np.testing.assert_allclose(back.normal_displacement, values, rtol=1e-7, atol=1e-9)
@@ -77,7 +112,7 @@ def test_field_error_model_travels_in_metres(typestore):
     errors = FieldErrorModel("scan", np.array([0.002, np.nan, 0.003, 0.001]), np.array([11.0, 1.0, 12.0, 10.0]),
                              12.5, cov, np.array([100.0, 200.0, 300.0]), 300.0)
     field = DisplacementField("abc", np.array([1.5, np.nan, 0.0, 0.2]), 0.75, 0.02, errors)
-    msg = messages.field_to_msg(field, Header())
+    msg = messages.field_to_msg(field, Header(), "P-1")
     decoded = rosbags_decode(typestore, msg)
     assert decoded.error_model == "scan" and decoded.correlation_length == pytest.approx(0.0125)
     np.testing.assert_allclose(decoded.node_std, [2e-6, np.nan, 3e-6, 1e-6], rtol=1e-6)
@@ -89,7 +124,8 @@ def test_field_error_model_travels_in_metres(typestore):
     np.testing.assert_allclose(back.node_std, errors.node_std, rtol=1e-6)
     np.testing.assert_allclose(back.correlation, errors.correlation, rtol=1e-6)
     assert back.bias_correlation == 300.0 and back.correlation_length_mm == pytest.approx(12.5)
-    plain = messages.msg_to_field(messages.field_to_msg(DisplacementField("abc", np.zeros(4), 1.0, np.nan), Header()))
+    plain = messages.msg_to_field(messages.field_to_msg(DisplacementField("abc", np.zeros(4), 1.0, np.nan), Header(),
+                                                                 "P-1"))
     assert plain.error_model.kind == "none"
 
 
@@ -104,8 +140,9 @@ def _estimate() -> ParameterEstimate:
 
 
 def test_boundary_state_mm_to_m(typestore):
-    msg = messages.estimate_to_msg(_estimate(), Header())
+    msg = messages.estimate_to_msg(_estimate(), Header(), "P-2")
     decoded = rosbags_decode(typestore, msg)
+    assert decoded.part_id == "P-2"
     np.testing.assert_allclose(decoded.values, [0.0005, -0.0002])
     np.testing.assert_allclose(decoded.std_dev, [1e-6, 2e-6])
     assert list(decoded.lifted) == [False, True] and decoded.residual_max == pytest.approx(5e-5)
@@ -122,14 +159,17 @@ def test_boundary_state_mm_to_m(typestore):
 def test_boundary_correction_mm_to_m(typestore):
     correction = BoundaryCorrection(model_id="m1", names=("LOCK_L", "HINGE_X"), corrections=np.array([-0.8, 0.1]),
                                     safe_to_apply=False, reason="coverage 0.30 below 0.60",
-                                    std=np.array([0.002, 0.07]), applicable=np.array([True, False]))
-    decoded = rosbags_decode(typestore, messages.correction_to_msg(correction, Header()))
+                                    std=np.array([0.002, 0.07]), applicable=np.array([True, False]),
+                                    remaining=np.array([-0.3, 0.0]))
+    decoded = rosbags_decode(typestore, messages.correction_to_msg(correction, Header(), "P-3"))
+    assert decoded.part_id == "P-3"
     assert list(decoded.corrections) == pytest.approx([-0.0008, 0.0001])
     assert decoded.reason == "coverage 0.30 below 0.60"
     assert list(decoded.std_dev) == pytest.approx([2e-6, 7e-5]) and list(decoded.applicable) == [True, False]
-    back = messages.msg_to_correction(messages.correction_to_msg(correction, Header()))
+    back = messages.msg_to_correction(messages.correction_to_msg(correction, Header(), "P-3"))
     assert back.corrections == pytest.approx([-0.8, 0.1]) and not back.safe_to_apply
     assert back.std == pytest.approx([0.002, 0.07]) and list(back.applicable) == [True, False]
+    assert list(decoded.remaining) == pytest.approx([-0.0003, 0.0]) and back.remaining == pytest.approx([-0.3, 0.0])
 
 
 def test_effect_fields_mm_to_m(typestore):
@@ -138,8 +178,9 @@ def test_effect_fields_mm_to_m(typestore):
         EffectContribution("LOCK_L & LOCK_R", ("LOCK_L", "LOCK_R"), np.array([0.0, 2.0]), np.array([0.0, 1.0]), 0.4),
     )
     decomposition = Decomposition("m1", effects, np.array([1.0, 2.0]), np.array([0.001, np.nan]), 0.0007)
-    msg = messages.decomposition_to_msg(decomposition, Header())
+    msg = messages.decomposition_to_msg(decomposition, Header(), "P-4")
     decoded = rosbags_decode(typestore, msg)
+    assert decoded.part_id == "P-4"
     assert [e.name for e in decoded.effects] == ["LOCK_L", "LOCK_L & LOCK_R"]
     assert list(decoded.effects[1].parameters) == ["LOCK_L", "LOCK_R"]
     np.testing.assert_allclose(decoded.reconstruction, [0.001, 0.002], rtol=1e-7)

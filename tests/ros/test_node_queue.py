@@ -18,7 +18,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from hood_decomp_msgs.msg import BoundaryState, DisplacementField
 
 from hood_decomp.core.fe.ensemble import solve_members
-from hood_decomp.ros.launcher import stop_nodes
+from hood_decomp.ros.launcher import bring_up, stop_nodes
 from hood_decomp.ros.participant import Participant
 from tests.ros.test_nodes import _field_msg
 
@@ -36,6 +36,7 @@ def test_overflowing_queue_is_counted_not_silent(coarse_hood, tmp_path):
                                       cwd=root, stdout=log, stderr=subprocess.STDOUT)]
     peer = Participant("test_overflow", depth=1000)
     try:
+        assert not bring_up(["estimator_node"], 60.0, processes)
         diagnostics = peer.collect("/diagnostics", DiagnosticArray)
         states = peer.collect("hood_decomp/boundary_state", BoundaryState)
         peer.publisher("hood_decomp/displacement", DisplacementField)

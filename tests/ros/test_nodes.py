@@ -12,13 +12,15 @@ from tests.required import require_import
 require_import("hood_decomp_msgs.msg", "colcon build", "run inside scripts/with-env after scripts/setup.sh")
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState, DisplacementField, EffectFields
+from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState, DisplacementField, EffectFields, MoveVerification
+from rclpy.qos import DurabilityPolicy
 from std_msgs.msg import Header
 
 from hood_decomp.core.fe.ensemble import solve_members
 from hood_decomp.core.types import DisplacementField as CoreField
 from hood_decomp.ros import messages
 from hood_decomp.ros.launcher import start_nodes, stop_nodes
+from hood_decomp.ros.node_common import topic_qos
 from hood_decomp.ros.participant import Participant
 
 pytestmark = pytest.mark.ros
@@ -55,7 +57,7 @@ def errors(arrays) -> dict[str, str]:
 
 def _field_msg(coarse_hood, values: np.ndarray, sec: int, model_id: str | None = None) -> DisplacementField:
     field = CoreField(model_id or coarse_hood.bases.model_id, values, float(np.isfinite(values).mean()), 0.0)
-    return messages.field_to_msg(field, Header(frame_id="hood", stamp=Time(sec=sec, nanosec=0)))
+    return messages.field_to_msg(field, Header(frame_id="hood", stamp=Time(sec=sec, nanosec=0)), f"part-{sec}")
 
 
 def test_good_and_bad_fields(coarse_hood, running):
@@ -92,8 +94,74 @@ def test_good_and_bad_fields(coarse_hood, running):
     assert "NaN" in refused["3.000000000"] and f"shape ({good.size - 5},)" in refused["4.000000000"]
     assert all(p.poll() is None for p in processes), "a node died"
     assert [c.header.stamp.sec for c in corrections] == [1, 5]
+    # the part id travels from the field to every output
+    assert [m.part_id for m in (*states, *corrections)] == ["part-1", "part-5"] * 2
+    assert sorted(e.part_id for e in effects) == ["part-1", "part-5"]
     np.testing.assert_allclose(np.array(corrections[0].corrections)[index][in_contact],
                                -member.effective[0][in_contact] / 1000.0, atol=1e-6)
+
+
+def test_a_controller_that_subscribes_late_gets_the_last_results(running):
+    """Fails if the results are not published transient-local: a controller that (re)connects after the last field
+    was answered (here: field 5 of the test above) must still receive the last boundary state, correction and
+    effects, with their part id."""
+    peer, _, _, connected, logs = running
+    assert connected, f"nodes did not come up; logs in {logs}"
+    latest = topic_qos(1, DurabilityPolicy.TRANSIENT_LOCAL)  # a controller that wants only the last one
+    late = {topic: peer.collect(topic, cls, latest) for topic, cls in (
+        ("hood_decomp/boundary_state", BoundaryState), ("hood_decomp/boundary_correction", BoundaryCorrection),
+        ("hood_decomp/effects", EffectFields))}
+    assert peer.wait(lambda: all(late.values()), 30.0), {topic: len(got) for topic, got in late.items()}
+    for topic, got in late.items():
+        assert [(m.header.stamp.sec, m.part_id) for m in got] == [(5, "part-5")], topic
+
+
+def test_a_move_applied_at_half_is_named_by_the_next_inspection(coarse_hood, running):
+    """Fails if the estimator forgets the correction it sent for a part, or does not name a move the robot applied
+    at 50 % (PARTIAL, fraction 0.5) on the next inspection of that part. The second field is made by the FE model
+    from the first truth moved by half the published correction, so the truth does not come from the code under test;
+    a lifted buffer gets no correction and must come out NOT_COMMANDED."""
+    peer, received, _, connected, logs = running
+    assert connected, f"nodes did not come up; logs in {logs}"
+    verifications = peer.collect("hood_decomp/move_verification", MoveVerification,
+                                 topic_qos(10, DurabilityPolicy.TRANSIENT_LOCAL))
+    corrections = received["hood_decomp/boundary_correction"]
+    truth = np.array([0.4, -0.3, 0.5, -0.2, 0.3, 0.6])
+    first = _field_msg(coarse_hood, solve_members(coarse_hood.reduced, truth[None]).normal_displacement[0], 21)
+    first.part_id = "P-21"
+    peer.publishers["hood_decomp/displacement"].publish(first)
+    assert peer.wait(lambda: any(c.part_id == "P-21" for c in corrections), 60.0)
+    sent = next(c for c in corrections if c.part_id == "P-21")
+    index = [list(sent.names).index(n) for n in coarse_hood.reduced.names]
+    commanded = np.array(sent.applicable)[index] & (np.array(sent.corrections)[index] != 0.0)
+    assert commanded.sum() >= 4, sent.reason
+    moved = truth + 0.5 * 1000.0 * np.where(commanded, np.array(sent.corrections)[index], 0.0)
+    second = _field_msg(coarse_hood, solve_members(coarse_hood.reduced, moved[None]).normal_displacement[0], 22)
+    second.part_id = "P-21"
+    peer.publishers["hood_decomp/displacement"].publish(second)
+    assert peer.wait(lambda: any(v.part_id == "P-21" for v in verifications), 60.0), f"no verification; {logs}"
+    check = next(v for v in verifications if v.part_id == "P-21")
+    outcome = np.array(check.outcome)[index]
+    assert check.header.stamp.sec == 22 and check.corrected_stamp.sec == 21 and not check.all_achieved
+    assert list(outcome[commanded]) == [MoveVerification.PARTIAL] * commanded.sum(), list(outcome)
+    assert list(outcome[~commanded]) == [MoveVerification.NOT_COMMANDED] * (~commanded).sum()
+    np.testing.assert_allclose(np.array(check.fraction)[index][commanded], 0.5, atol=0.02)
+    assert "50 % of" in check.summary and "PARTIAL" in check.summary
+
+
+def test_a_boundary_state_of_another_model_is_refused(coarse_hood, running):
+    """Fails if the decomposition node pairs a field with a boundary state made with other bases (another model_id)
+    instead of refusing the state by name on /diagnostics."""
+    peer, received, _, connected, logs = running
+    assert connected, f"nodes did not come up; logs in {logs}"
+    foreign = BoundaryState(header=Header(frame_id="hood", stamp=Time(sec=7)), model_id="0123456789abcdef",
+                            part_id="part-7", names=list(coarse_hood.reduced.names))
+    publisher = peer.publisher("hood_decomp/boundary_state", BoundaryState)
+    assert peer.wait(lambda: publisher.get_subscription_count() >= 1, 30.0)
+    publisher.publish(foreign)
+    assert peer.wait(lambda: "7.000000000" in errors(received["/diagnostics"]), 30.0)
+    message = errors(received["/diagnostics"])["7.000000000"]
+    assert "boundary state" in message and "0123456789abcdef" in message and coarse_hood.bases.model_id in message
 
 
 def test_scan_node_refuses_oversized_and_empty_clouds(coarse_hood, tmp_path):
@@ -122,6 +190,11 @@ def test_scan_node_refuses_oversized_and_empty_clouds(coarse_hood, tmp_path):
         assert "40,000 points" in refused["1.000000000"] and "at most 20,000" in refused["1.000000000"]
         assert "empty" in refused["2.000000000"]
         assert [f.header.stamp.sec for f in fields] == [3] and fields[0].header.frame_id == "hood"
+        assert fields[0].part_id == "stamp-3.000000000"  # a lone cloud names no part: one is made from its stamp
+        # transient-local: a late subscriber still gets the last field
+        late = peer.collect("hood_decomp/displacement", DisplacementField,
+                            topic_qos(1, DurabilityPolicy.TRANSIENT_LOCAL))
+        assert peer.wait(lambda: late, 30.0) and late[0].header.stamp.sec == 3
         assert processes[0].poll() is None
     finally:
         peer.close()

@@ -1,8 +1,9 @@
-"""Every bag of bags/ replayed through the three real nodes (separate processes, Fast DDS on loopback), the recorded
-output decoded with rosbags and checked against the bag's sidecar truth."""
+"""Every bag of bags/ replayed with `hood-decomp replay --bases` through the three real nodes (separate processes,
+Fast DDS on loopback), the recorded output decoded with rosbags and checked against the bag's sidecar truth."""
 
 from __future__ import annotations
 
+import json
 import pathlib
 
 import numpy as np
@@ -11,11 +12,9 @@ import pytest
 from tests.required import require_import
 
 require_import("hood_decomp_msgs.msg", "colcon build", "run inside scripts/with-env after scripts/setup.sh")
+from hood_decomp.cli import main
 from hood_decomp.core.method.decomposition import DEFAULT_ZERO_TOL_MM
 from hood_decomp.io.bags import read_bag, read_sidecar, typestore
-from hood_decomp.ros.launcher import start_nodes, stop_nodes
-from hood_decomp.ros.replay import replay_bag
-from hood_decomp.ros.scan_bag import write_node_params
 
 pytestmark = pytest.mark.ros
 
@@ -41,19 +40,20 @@ def test_replay_bag(name, default_hood, tmp_path):
     sidecar = read_sidecar(bag)
     assert sidecar["model"]["model_id"] == default_hood.model.model_id, \
         "bags/ are stale for the current hood model: rebuild them with scripts/make_bags.py"
-    # Pairing must never time out here: an unpaired field skips paper step 3 (checked below).
-    params = write_node_params(tmp_path / "params.yaml", sidecar, decomposition_pair_timeout_s=30.0)
-    processes = start_nodes(default_hood.bases_path, params_file=params, log_dir=tmp_path)
-    try:
-        result = replay_bag(bag, record=tmp_path / "out", timeout_s=60.0, settle_s=1.5)
-        alive = [p.poll() is None for p in processes]
-    finally:
-        stop_nodes(processes)
-    assert all(alive), f"a node died; logs in {tmp_path}"
+    # Through the command line as a user runs it: the nodes take the cell calibration from the bag's sidecar (the
+    # issue: without it all three clean scans were refused, and replay exited 0). Pairing must never time out here:
+    # an unpaired field skips paper step 3 (checked below).
+    params = tmp_path / "params.yaml"
+    params.write_text("hood_decomp_decomposition:\n  ros__parameters:\n    pair_timeout_s: 30.0\n")
+    status = main(["replay", str(bag), "--bases", str(default_hood.bases_path), "--params", str(params),
+                   "--record", str(tmp_path / "out"), "--json", str(tmp_path / "summary.json")])
+    result = json.loads((tmp_path / "summary.json").read_text())
     scans = sidecar["scans"]
     good = [s for s in scans if s["kind"] == "good"]
     bad = [s for s in scans if s["kind"] != "good"]
-    assert result.scans == len(scans) and not result.unanswered
+    assert result["scans"] == len(scans) and not result["unanswered"]
+    assert status == (1 if bad else 0)  # a refused scan is a non-zero exit
+    assert set(result["refused"]) == {s["stamp"] for s in bad}, result["refused"]
 
     # Count in equals count out: one boundary state, one correction and one effect set per good scan.
     states = {stamp(m): m for m in decoded(tmp_path / "out", "hood_decomp/boundary_state")}
@@ -64,13 +64,12 @@ def test_replay_bag(name, default_hood, tmp_path):
     assert len(decoded(tmp_path / "out", "hood_decomp/boundary_state")) == len(good)
 
     # Each malformed cloud is answered on /diagnostics with its stamp and a message naming the problem.
-    for scan in bad:
-        assert scan["stamp"] in result.refused, f"no diagnostic for malformed cloud {scan['kind']}"
+    refused = result["refused"]
     words = {"no_xyz": "no field", "size_mismatch": "row_step * height", "int16_x": "INT16", "empty": "empty",
              "all_nan": "NaN", "metres_as_mm": "in metres"}
     for scan in bad:
-        assert any(words[scan["kind"]] in message for message in result.refused[scan["stamp"]]), \
-            (scan["kind"], result.refused[scan["stamp"]])
+        assert any(words[scan["kind"]] in message for message in refused[scan["stamp"]]), \
+            (scan["kind"], refused[scan["stamp"]])
 
     # Boundary states against the truth that made the scans; the table goes to the test output.
     rows, problems = [], []

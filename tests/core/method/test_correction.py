@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from hood_decomp.core.method.correction import CorrectionPolicy, plan_correction
-from hood_decomp.core.types import ParameterEstimate
+from hood_decomp.core.method.correction import CorrectionPolicy, limit_steps, plan_correction, verify_move
+from hood_decomp.core.types import BoundaryCorrection, MoveVerification, ParameterEstimate
 
 
 def estimate(**changes) -> ParameterEstimate:
@@ -65,3 +65,41 @@ def test_applicability_is_stated_per_boundary():
     outside = plan_correction(estimate(within_model=False), policy)
     assert not outside.applicable.any() and "differs from the part" in outside.reason
     assert "HINGE_X" not in outside.reason
+
+
+def test_step_limit_caps_each_move_and_leaves_the_rest_for_the_next_cycle():
+    """Fails if a move beyond its per-cycle maximum step is sent whole, a boundary without a limit (0) is capped,
+    the sign of a capped move changes, or the rest is not stated (in ``remaining`` and by name in the reason)."""
+    correction = plan_correction(estimate(values=np.array([0.8, -0.1, -0.3])))  # moves -0.8, +0.1, +0.3
+    capped = limit_steps(correction, np.array([0.5, 0.0, 0.2]))
+    np.testing.assert_allclose(capped.corrections, [-0.5, 0.1, 0.2])
+    np.testing.assert_allclose(capped.remaining, [-0.3, 0.0, 0.1])
+    assert "HINGE_X: step limited to -0.500 mm of -0.800 mm, -0.300 mm left for the next cycle" in capped.reason
+    assert "BUFFER_R" in capped.reason and "LOCK_L" not in capped.reason and capped.safe_to_apply
+
+
+def test_verification_names_a_move_applied_at_half_as_slipped():
+    """Fails if the verification does not tell an achieved move (within its tolerance), a move applied at 50 %
+    (PARTIAL, named with its fraction), a move that did not happen or went the wrong way (FAILED) and a boundary that
+    was not commanded (not applicable) apart. Truth: the after-state made by hand from the before-state."""
+    names = ("A", "B", "C", "D", "E")
+    before = estimate(names=names, values=np.array([0.4, -0.3, 0.5, -0.2, 0.6]), std=np.full(5, 0.002),
+                      lower=-np.ones(5), upper=np.ones(5), lifted=np.zeros(5, bool))
+    sent = plan_correction(before, CorrectionPolicy(max_std_mm=0.01))
+    sent = BoundaryCorrection(**{**sent.__dict__, "applicable": np.array([True, True, True, True, False])})
+    moved = np.array([0.5, 1.0, 0.0, -1.0, 0.5]) * sent.corrections  # E moved, but was never commanded
+    after = estimate(names=names, values=before.values + moved, std=np.full(5, 0.002), lower=-np.ones(5),
+                     upper=np.ones(5), lifted=np.zeros(5, bool))
+    check = verify_move(before, sent, after)
+    assert list(check.outcome) == [MoveVerification.PARTIAL, MoveVerification.ACHIEVED, MoveVerification.FAILED,
+                                   MoveVerification.FAILED, MoveVerification.NOT_COMMANDED]
+    np.testing.assert_allclose(check.fraction[:4], [0.5, 1.0, 0.0, -1.0])
+    assert "A: 50 % of -0.400 mm (PARTIAL)" in check.summary and "B" not in check.summary
+    assert "C: 0 % of -0.500 mm (FAILED)" in check.summary and "D: -100 %" in check.summary
+    assert not check.all_achieved
+    np.testing.assert_allclose(check.std, np.full(5, 0.002 * np.sqrt(2)))
+    # all commanded moves made: achieved, nothing named
+    whole = verify_move(before, sent, estimate(names=names, values=before.values + sent.corrections * [1, 1, 1, 1, 0],
+                                               std=np.full(5, 0.002), lower=-np.ones(5), upper=np.ones(5),
+                                               lifted=np.zeros(5, bool)))
+    assert whole.all_achieved and whole.summary == ""

@@ -18,7 +18,13 @@ def generate_launch_description() -> LaunchDescription:
     params = str(Path(get_package_share_directory("hood_decomp")) / "config" / "hood_decomp.yaml")
     bases = LaunchConfiguration("bases")
     nodes = [
-        Node(package="hood_decomp", executable=executable, output="screen", parameters=[params, {"bases": bases}])
+        # lifecycle nodes: autostart configures and activates each at start-up (a cell with its own lifecycle
+        # manager sets autostart false and drives the transitions itself)
+        Node(package="hood_decomp", executable=executable, output="screen",
+             parameters=[params, {"bases": bases, "autostart": LaunchConfiguration("autostart")}])
         for executable in ("scan_node", "estimator_node", "decomposition_node")
     ]
-    return LaunchDescription([DeclareLaunchArgument("bases", description="path of the bases file"), *nodes])
+    return LaunchDescription([DeclareLaunchArgument("bases", description="path of the bases file"),
+                              DeclareLaunchArgument("autostart", default_value="true",
+                                                    description="configure and activate the nodes at start-up"),
+                              *nodes])

@@ -26,6 +26,8 @@ if TYPE_CHECKING:  # only for annotations: a verb's --help does not load the met
 
 #: what ``args.inputs`` holds: ("field" or "scan", path) in the order given on the command line
 Inputs = list[tuple[str, Path]]
+#: what ``args.scanner_poses`` holds: index of a --scan in ``args.inputs`` -> its --scanner-pose POSE.json
+Poses = dict[int, Path]
 
 
 class _Inputs(argparse.Action):
@@ -33,6 +35,20 @@ class _Inputs(argparse.Action):
 
     def __call__(self, parser, namespace, values, option_string=None) -> None:
         namespace.inputs = [*(namespace.inputs or []), (self.dest, Path(values))]
+
+
+class _ScannerPose(argparse.Action):
+    """Attach a --scanner-pose to the --scan just before it (``namespace.scanner_poses``, :data:`Poses`)."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        inputs = namespace.inputs or []
+        if not inputs or inputs[-1][0] != "scan":
+            parser.error(f"--scanner-pose {values}: must follow the --scan SCAN.ply it belongs to")
+        poses = dict(namespace.scanner_poses or {})
+        if len(inputs) - 1 in poses:
+            parser.error(f"--scan {inputs[-1][1]} has two --scanner-pose options; give one per scan")
+        poses[len(inputs) - 1] = Path(values)
+        namespace.scanner_poses = poses
 
 
 class _Input(argparse.Action):
@@ -48,20 +64,27 @@ def add_bases(parser: argparse.ArgumentParser) -> None:
 
 
 def add_inputs(parser: argparse.ArgumentParser, repeatable: bool = False) -> None:
-    """--field FIELD.vtu / --scan SCAN.ply into ``args.inputs`` (:data:`Inputs`): exactly one of them, or with
-    ``repeatable`` any number of either (at least one is checked by :func:`read_fields`); and --min-coverage."""
+    """--field FIELD.vtu / --scan SCAN.ply into ``args.inputs`` (:data:`Inputs`): one field or the views of one part
+    (--scan, repeatable), or with ``repeatable`` any number of either (at least one is checked by
+    :func:`read_fields`); each --scan optionally followed by its --scanner-pose POSE.json (``args.scanner_poses``,
+    :data:`Poses`); and --min-coverage."""
+    pose_help = ("JSON 4 x 4 row-major transform, mm, part <- scanner, of the --scan just before it; with several "
+                 "--scan views every view needs one (or a pose stored in its PLY)")
     if repeatable:
         parser.add_argument("--field", action=_Inputs, metavar="FIELD.vtu", help="field file (repeatable)")
-        parser.add_argument("--scan", action=_Inputs, metavar="SCAN.ply", help="scan point cloud (repeatable)")
+        parser.add_argument("--scan", action=_Inputs, metavar="SCAN.ply", help="scan point cloud (repeatable); "
+                            "scans with a --scanner-pose are the views of one part, fused into one field")
     else:
         source = parser.add_mutually_exclusive_group(required=True)
         source.add_argument("--field", action=_Input, metavar="FIELD.vtu",
                             help="field file (.vtu with point data normal_displacement)")
-        source.add_argument("--scan", action=_Input, metavar="SCAN.ply",
-                            help="scan point cloud (.ply), converted to a field first")
+        source.add_argument("--scan", action=_Inputs, metavar="SCAN.ply",
+                            help="scan point cloud (.ply), converted to a field first; repeat it for several "
+                            "views of one part (fused into one field)")
+    parser.add_argument("--scanner-pose", action=_ScannerPose, metavar="POSE.json", help=pose_help)
     parser.add_argument("--min-coverage", type=finite(0.0, 1.0), default=0.2,
                         help="smallest fraction of skin nodes the field must cover (default 0.2)")
-    parser.set_defaults(inputs=None)
+    parser.set_defaults(inputs=None, scanner_poses=None)
 
 
 def add_json(parser: argparse.ArgumentParser) -> None:
@@ -210,23 +233,47 @@ def model_inputs(model: Path | str) -> list[Path]:
     return model_files(model)
 
 
-def read_fields(inputs: Inputs | None, skin: SkinSurface, min_coverage: float) -> list[DisplacementField]:
-    """The displacement fields of --field and --scan inputs, in their order; FieldError when there is none."""
+def input_paths(args: argparse.Namespace) -> list[Path]:
+    """Every file --field, --scan and --scanner-pose name (for :func:`check_output`)."""
+    return [*(path for _, path in args.inputs or []), *(args.scanner_poses or {}).values()]
+
+
+def read_fields(inputs: Inputs | None, skin: SkinSurface, min_coverage: float,
+                poses: Poses | None = None, one_part: bool = False) -> list[DisplacementField]:
+    """The displacement fields of --field and --scan inputs, in their order; FieldError when there is none.
+
+    The scans are the views of one part, fused into one field in the place of the first (each with its
+    --scanner-pose from ``poses``, else the pose its PLY stores), when ``one_part`` (a verb that reads one part) or
+    when any scan has a --scanner-pose; otherwise every scan is a field of its own.
+    """
     from hood_decomp.io.fields import read_field
-    from hood_decomp.io.scans import field_from_scan_file
+    from hood_decomp.io.scans import fused_field_from_scan_files
 
     if not inputs:
         raise FieldError("give at least one --field FIELD.vtu or --scan SCAN.ply")
-    return [read_field(path, skin)[0] if kind == "field" else field_from_scan_file(skin, path, min_coverage)
-            for kind, path in inputs]
+    poses = poses or {}
+    scans = [(path, poses.get(i)) for i, (kind, path) in enumerate(inputs) if kind == "scan"]
+    fields: list[DisplacementField] = []
+    fused_done = False
+    for kind, path in inputs:
+        if kind == "field":
+            fields.append(read_field(path, skin)[0])
+        elif one_part or poses:
+            if not fused_done:
+                fields.append(fused_field_from_scan_files(skin, scans, min_coverage).field)
+                fused_done = True
+        else:
+            fields.append(fused_field_from_scan_files(skin, [(path, None)], min_coverage).field)
+    return fields
 
 
 def read_bases_and_field(args: argparse.Namespace) -> tuple[Bases, DisplacementField]:
-    """The bases of --bases and the one field of --field or --scan (:func:`add_bases`, :func:`add_inputs`)."""
+    """The bases of --bases and the one field of --field or of the --scan views of one part (:func:`add_bases`,
+    :func:`add_inputs`)."""
     from hood_decomp.io.bases import load_bases
 
     bases = load_bases(args.bases)
-    return bases, read_fields(args.inputs, bases.skin, args.min_coverage)[0]
+    return bases, read_fields(args.inputs, bases.skin, args.min_coverage, args.scanner_poses, one_part=True)[0]
 
 
 def write_json(path: Path, payload: object) -> None:
@@ -239,7 +286,7 @@ def write_json(path: Path, payload: object) -> None:
 def check_json(args: argparse.Namespace) -> list[Path]:
     """Check --json (when given) against the inputs of --bases, --field and --scan before any work (:func:`add_json`);
     return those inputs."""
-    inputs = [args.bases, *(path for _, path in args.inputs or [])]
+    inputs = [args.bases, *input_paths(args)]
     if args.json is not None:
         check_output(args.json, inputs, "--json")
     return inputs

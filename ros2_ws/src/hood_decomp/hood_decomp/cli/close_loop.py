@@ -3,6 +3,8 @@
 Writes DIR/close_loop.json (residual before/after, effect found, magnitude, parameter errors where --truth gives the
 truth), DIR/residual_before_<i>.png, DIR/residual_after_<i>.png, DIR/before_after.png and, when an effect was
 added, the rebuilt bases DIR/bases_closed_loop.h5 (usable with `estimate` and `decompose`).
+Each --field and each --scan is one part, except scans given with --scanner-pose: those are the views of one part,
+fused into one field (every view then needs a pose).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from hood_decomp.cli._common import (
     add_inputs,
     check_output,
     finite,
+    input_paths,
     model_inputs,
     read_fields,
     write_json,
@@ -98,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     from hood_decomp.io.model_files import load_model_with_candidates
     from hood_decomp.plots.close_loop import plot_before_after, plot_residual_maps
 
-    inputs = [*model_inputs(args.model), args.bases, *(p for _, p in args.inputs or []),
+    inputs = [*model_inputs(args.model), args.bases, *input_paths(args),
               *(p for p in (args.truth, args.ensemble) if p is not None)]
     check_output(args.out, inputs, directory=True, writes=["close_loop.json", "bases_closed_loop.h5"])
     model, user_candidates = load_model_with_candidates(args.model)
@@ -106,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     if model.model_id != bases.model_id:
         raise ModelIdMismatchError(f"model {args.model} has model_id {model.model_id!r}, bases {args.bases} "
                                    f"{bases.model_id!r}: build the bases from this model")
-    fields = read_fields(args.inputs, bases.skin, args.min_coverage)
+    fields = read_fields(args.inputs, bases.skin, args.min_coverage, args.scanner_poses)
     truth = _read_truth(args.truth, len(fields))
     ensemble = None
     if args.ensemble is not None:

@@ -6,9 +6,10 @@ import argparse
 import pathlib
 import sys
 
-from hood_decomp.ros.launcher import NODE_EXECUTABLES, run_until_interrupted, start_nodes
+from hood_decomp.ros.launcher import NODE_EXECUTABLES, bring_up, run_until_interrupted, start_nodes
 
-HELP = "start the three nodes as separate processes (Ctrl-C stops them)"
+HELP = "start the three nodes as separate processes and bring them to active (Ctrl-C stops them)"
+BRING_UP_TIMEOUT_S = 120.0  # configure loads the bases in each node
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -22,7 +23,12 @@ def run(args: argparse.Namespace) -> int:
     from hood_decomp.io.bases import load_bases
 
     load_bases(args.bases)  # a bad bases file is refused here, not in three node logs
-    processes = start_nodes(args.bases.resolve(), params_file=args.params, nodes=args.nodes)
+    processes = start_nodes(args.bases.resolve(), params_file=args.params, nodes=args.nodes, activate=False)
     print(f"hood-decomp launch: started {', '.join(args.nodes)} (pids "
-          f"{', '.join(str(p.pid) for p in processes)}); Ctrl-C stops them", file=sys.stderr)
-    return run_until_interrupted(processes)
+          f"{', '.join(str(p.pid) for p in processes)}); bringing them to active", file=sys.stderr)
+    failures = bring_up(args.nodes, BRING_UP_TIMEOUT_S, processes)
+    for name in args.nodes:
+        state = f"NOT ACTIVE: {failures[name]}" if name in failures else "active"
+        print(f"hood-decomp launch: {name} {state}", file=sys.stderr)
+    print("hood-decomp launch: Ctrl-C stops the nodes", file=sys.stderr)
+    return max(run_until_interrupted(processes), 1 if failures else 0)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import pathlib
 import sys
+import tempfile
 
 from hood_decomp.cli._common import check_output, finite, write_json
 from hood_decomp.errors import BagError
@@ -18,7 +19,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--record", type=pathlib.Path, help="new bag directory for everything the nodes publish")
     parser.add_argument("--bases", type=pathlib.Path,
                         help="start the three nodes with this bases file (else they must be running already)")
-    parser.add_argument("--params", type=pathlib.Path, help="ROS parameter YAML for the nodes started here")
+    parser.add_argument("--params", type=pathlib.Path, help="ROS parameter YAML for the nodes started here (applied "
+                        "after the cell calibration the bag's sidecar states)")
     parser.add_argument("--timeout", type=finite(0.0, 86400.0, low_open=True), default=60.0,
                         help="longest wait for one scan's answer, s")
     parser.add_argument("--clock", action="store_true", help="publish each scan's bag time on /clock")
@@ -40,17 +42,42 @@ def run(args: argparse.Namespace) -> int:
         from hood_decomp.io.bases import load_bases
 
         load_bases(args.bases)  # a bad bases file is refused here, not in three node logs
-    processes = start_nodes(args.bases.resolve(), params_file=args.params) if args.bases else []
-    try:
-        result = replay_bag(args.bag, record=args.record, timeout_s=args.timeout, publish_clock=args.clock)
-    finally:
-        stop_nodes(processes)
+    processes = []
+    with tempfile.TemporaryDirectory(prefix="hood_decomp_replay_") as scratch:
+        if args.bases is not None:
+            files = [p for p in (sidecar_params(args.bag, pathlib.Path(scratch)), args.params) if p is not None]
+            processes = start_nodes(args.bases.resolve(), params_file=files)
+        try:
+            result = replay_bag(args.bag, record=args.record, timeout_s=args.timeout, publish_clock=args.clock)
+        finally:
+            stop_nodes(processes)
     summary = {"scans": result.scans, "answered": result.answered, "refused": result.refused,
                "unanswered": result.unanswered, "recorded": result.recorded, "seconds": round(result.seconds, 2),
                "record": str(args.record) if args.record else None}
     if args.json:
         write_json(args.json, summary)
+    for stamp, reasons in result.refused.items():
+        print(f"hood-decomp replay: scan {stamp} refused: {reasons[0]}", file=sys.stderr)
+    for stamp in result.unanswered:
+        print(f"hood-decomp replay: scan {stamp} unanswered within {args.timeout:g} s", file=sys.stderr)
     print(f"hood-decomp replay: {result.scans} scans, {result.answered} answered, {len(result.refused)} refused, "
           f"{len(result.unanswered)} unanswered, {result.recorded} messages recorded"
           + (f" in {args.record}" if args.record else ""), file=sys.stderr)
-    return 1 if result.unanswered else 0
+    return 1 if result.unanswered or result.refused else 0
+
+
+def sidecar_params(bag: pathlib.Path, directory: pathlib.Path) -> pathlib.Path | None:
+    """The cell calibration (scanner pose, reference markers) the bag's sidecar states, as a parameter file for the
+    scan node; None when the bag has no sidecar or it states no calibration (the nodes then use --params)."""
+    from hood_decomp.io.bags import read_sidecar, sidecar_path
+    from hood_decomp.ros.scan_bag import write_node_params
+
+    if not sidecar_path(bag).is_file():
+        return None
+    sidecar = read_sidecar(bag)
+    if "scanner_pose_mm" not in sidecar:
+        return None
+    try:
+        return write_node_params(directory / "sidecar_params.yaml", sidecar)
+    except (KeyError, TypeError, ValueError) as error:
+        raise BagError(f"sidecar of {bag}: the scanner pose or marker positions are malformed ({error})") from error

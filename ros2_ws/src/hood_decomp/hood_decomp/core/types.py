@@ -80,6 +80,11 @@ class FieldErrorModel:
         hinges, free edges); that bias is not noise: it shows as rough residual in excess of ``node_std`` and it is
         correlated over a wider area. Its level is not stated (it depends on the part's state) but measured on each
         residual as that excess; this number says how far it is correlated.
+    view_poses: a field fused from several views (:mod:`hood_decomp.core.scan.fusion`) has one independent
+        registration error per view, each reaching only the nodes that view saw, with that view's fusion weight:
+        :class:`ViewPoseError` per view. When present, :meth:`registration_modes` is built from them (N, 6 V) and
+        ``pose_covariance`` about ``pose_center`` is only a conservative one-pose summary (the sum of the views'
+        covariances moved to a common centre) for consumers that carry a single pose (messages, field files).
     """
 
     kind: str
@@ -89,6 +94,7 @@ class FieldErrorModel:
     pose_covariance: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
     pose_center: np.ndarray = field(default_factory=lambda: np.zeros(3))
     bias_correlation: float = 0.0
+    view_poses: tuple[ViewPoseError, ...] = ()
 
     @staticmethod
     def none() -> FieldErrorModel:
@@ -104,7 +110,7 @@ class FieldErrorModel:
 
     @property
     def has_pose(self) -> bool:
-        return bool(np.any(self.pose_covariance != 0.0))
+        return bool(np.any(self.pose_covariance != 0.0)) or any(view.has_pose for view in self.view_poses)
 
     def validate(self, n_nodes: int) -> None:
         """Raise FieldError naming the problem: an unknown kind, arrays of the wrong shape, negative, infinite or NaN
@@ -140,6 +146,13 @@ class FieldErrorModel:
                              f"(smallest eigenvalue {np.linalg.eigvalsh(pose)[0]:.3g})")
         if np.shape(self.pose_center) != (3,) or not np.all(np.isfinite(self.pose_center)):
             raise FieldError(f"error model pose_center must be a finite (3,) point, got {np.shape(self.pose_center)}")
+        for k, view in enumerate(self.view_poses):
+            weight = np.asarray(view.weight, float)
+            if weight.shape != (n_nodes,) or not np.all((weight >= 0) & (weight <= 1 + 1e-9)):
+                raise FieldError(f"error model view {k}: weight must be (N,) = ({n_nodes},) values in [0, 1], got "
+                                 f"shape {weight.shape}")
+            FieldErrorModel("none", np.zeros(0), np.zeros(0), pose_covariance=view.covariance,
+                            pose_center=view.center).validate(n_nodes)
 
     def registration_modes(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
         """U (N, 6) mm: the normal field error of the pose error, e_reg = U z with z ~ N(0, I_6).
@@ -148,9 +161,35 @@ class FieldErrorModel:
         omega x (x - c) + t, whose normal part is omega . ((x - c) x n) + t . n: the rigid-body modes J (N, 6);
         U = J L with L L^T the pose covariance.
         """
-        modes = np.hstack([np.cross(points - self.pose_center, normals), normals])
-        values, vectors = np.linalg.eigh(np.asarray(self.pose_covariance, float))
-        return modes @ (vectors * np.sqrt(np.clip(values, 0.0, None)))
+        if self.view_poses:
+            return np.hstack([view.weight[:, None] * _pose_modes(view.covariance, view.center, points, normals)
+                              for view in self.view_poses])
+        return _pose_modes(self.pose_covariance, self.pose_center, points, normals)
+
+
+@dataclass(frozen=True)
+class ViewPoseError:
+    """The registration error of one view of a fused field (:attr:`FieldErrorModel.view_poses`).
+
+    covariance: (6, 6) of the view's registration twist [omega rad (3), t mm (3)] about ``center`` (3,) mm, part
+    frame (zeros: the view's pose states none). weight: (N,) the view's share in each fused node value (0 where the
+    view did not see the node; the views' weights sum to 1 on every seen node).
+    """
+
+    covariance: np.ndarray
+    center: np.ndarray
+    weight: np.ndarray
+
+    @property
+    def has_pose(self) -> bool:
+        return bool(np.any(self.covariance != 0.0))
+
+
+def _pose_modes(covariance: np.ndarray, center: np.ndarray, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(N, 6) normal field error per unit of a pose error with ``covariance`` about ``center`` (registration_modes)."""
+    modes = np.hstack([np.cross(points - center, normals), normals])
+    values, vectors = np.linalg.eigh(np.asarray(covariance, float))
+    return modes @ (vectors * np.sqrt(np.clip(values, 0.0, None)))
 
 
 @dataclass(frozen=True)
@@ -358,6 +397,8 @@ class BoundaryCorrection:
     std: (P,) mm, one standard deviation of each correction. applicable: (P,) bool, whether this boundary's correction
     may be applied on its own (its std below the limit, its estimate in range, not lifted, and the field within the
     model with enough coverage); None when unknown (decoded from a message without it).
+    remaining: (P,) mm, the part of the move to nominal that a per-cycle step limit left for the next cycle (0 where
+    the correction is the whole move); None means nothing was left.
     """
 
     model_id: str
@@ -367,3 +408,38 @@ class BoundaryCorrection:
     reason: str
     std: np.ndarray | None = None
     applicable: np.ndarray | None = None
+    remaining: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class MoveVerification:
+    """Did a correction happen? The measured change of each boundary between the inspection that produced the
+    correction and the next inspection of the same part, against the predicted change (the correction sent).
+
+    names: (P,) labels. predicted, measured, std: (P,) mm (std: one standard deviation of measured - predicted, the
+    two estimates' stds combined). fraction: (P,) measured / predicted (NaN where nothing was commanded).
+    outcome: (P,) one of NOT_COMMANDED, ACHIEVED, PARTIAL, FAILED (the codes of hood_decomp_msgs/MoveVerification).
+    tolerance: (P,) mm, the band around the prediction that counts as achieved. summary: the failed and slipped moves
+    named, "" when every commanded move was achieved.
+    """
+
+    NOT_COMMANDED = 0
+    ACHIEVED = 1
+    PARTIAL = 2
+    FAILED = 3
+    OUTCOMES = ("NOT_COMMANDED", "ACHIEVED", "PARTIAL", "FAILED")
+
+    model_id: str
+    names: tuple[str, ...]
+    predicted: np.ndarray
+    measured: np.ndarray
+    std: np.ndarray
+    fraction: np.ndarray
+    outcome: np.ndarray
+    tolerance: np.ndarray
+    summary: str
+
+    @property
+    def all_achieved(self) -> bool:
+        commanded = self.outcome != self.NOT_COMMANDED
+        return bool(np.all(self.outcome[commanded] == self.ACHIEVED))

@@ -22,7 +22,8 @@ from rosbags.typesys.store import Typestore
 from hood_decomp.errors import BagError
 from hood_decomp.io.json_values import loads_strict
 
-PROJECT_MESSAGES = ("DisplacementField", "BoundaryState", "BoundaryCorrection", "EffectField", "EffectFields")
+PROJECT_MESSAGES = ("DisplacementField", "BoundaryState", "BoundaryCorrection", "EffectField", "EffectFields",
+                    "MoveVerification", "ZoneVerdict")
 
 
 @dataclass(frozen=True)

@@ -1,43 +1,125 @@
-"""Estimator node: hood_decomp/displacement -> hood_decomp/boundary_state + hood_decomp/boundary_correction.
+"""Estimator node: hood_decomp/displacement -> hood_decomp/boundary_state + hood_decomp/boundary_correction
+(+ hood_decomp/move_verification for a part that received a correction before).
 
 Least squares on the bases (the contact-aware estimator by default, the paper's PCA estimator on request), then the
-correction for the fixture adjustment robot with ``safe_to_apply`` and its reasons (hood_decomp.core.method.correction).
+correction for the fixture adjustment robot with ``safe_to_apply`` and its reasons (hood_decomp.core.method.correction),
+each move capped to the boundary's maximum step per cycle (the rest left for the next cycle, and said so). The node
+remembers the last estimate and correction per part id; the next inspection of that part compares the measured change
+with the predicted one and names a failed or slipped move. All results are published transient-local.
 """
 
 from __future__ import annotations
 
-from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState, DisplacementField
+from collections import OrderedDict
+from typing import Any, NamedTuple
 
-from hood_decomp.core.method.correction import CorrectionPolicy, plan_correction
+import numpy as np
+from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState, DisplacementField, MoveVerification
+from rclpy.parameter import Parameter
+
+from hood_decomp.core.method.correction import CorrectionPolicy, limit_steps, plan_correction, verify_move
+from hood_decomp.core.types import BoundaryCorrection as CoreCorrection
+from hood_decomp.core.types import ParameterEstimate
 from hood_decomp.ros import messages
-from hood_decomp.ros.node_common import HoodNode, declare, spin
+from hood_decomp.ros.node_common import HoodNode, declare, declare_list, parse_entries, spin
+
+METHODS = ("contact", "pca")
+
+
+class _Sent(NamedTuple):
+    """What the node told the robot for a part: the estimate it came from, the correction, the field's stamp."""
+
+    estimate: ParameterEstimate
+    correction: CoreCorrection
+    stamp: Any
+
+
+def parse_step_limits(entries: list[str]) -> dict[str, float]:
+    """``["LABEL=MM", ...]`` -> {label: mm}; a malformed entry is a ValueError naming it."""
+    limits = {}
+    for label, value in parse_entries(entries, "MM").items():
+        try:
+            limits[label] = float(value)
+        except ValueError:
+            limits[label] = float("nan")
+        if not np.isfinite(limits[label]) or limits[label] < 0:
+            raise ValueError(f"{label}={value}: expected MM a finite number >= 0")
+    return limits
 
 
 class EstimatorNode(HoodNode):
     def __init__(self) -> None:
         super().__init__("hood_decomp_estimator")
-        self.method = declare(self, "method", "contact", "estimator: 'contact' (contact-aware, default) or 'pca' "
-                              "(the paper's eqs. 4-5)")
-        self.policy = CorrectionPolicy(
-            min_coverage=declare(self, "min_coverage", 0.6, "smallest seen fraction of the skin to act on", 0.0, 1.0),
-            max_std_mm=declare(self, "max_std_mm", CorrectionPolicy.max_std_mm,
-                               "largest uncertainty (mm, 1 sigma) to act on", 0.0, 100.0),
-            range_tolerance_mm=declare(self, "range_tolerance_mm", 0.02,
-                                       "tolerance (mm) on the declared parameter ranges", 0.0, 10.0),
-        )
-        self.state_pub = self.publisher(BoundaryState, "hood_decomp/boundary_state")
-        self.correction_pub = self.publisher(BoundaryCorrection, "hood_decomp/boundary_correction")
+        declare(self, "method", "contact", "estimator: 'contact' (contact-aware, default) or 'pca' (the paper's "
+                "eqs. 4-5)")
+        declare(self, "min_coverage", 0.6, "smallest seen fraction of the skin to act on", 0.0, 1.0)
+        declare(self, "max_std_mm", CorrectionPolicy.max_std_mm, "largest uncertainty (mm, 1 sigma) to act on",
+                0.0, 100.0)
+        declare(self, "range_tolerance_mm", 0.02, "tolerance (mm) on the declared parameter ranges", 0.0, 10.0)
+        declare(self, "max_step_mm", 0.0, "largest move (mm) of any boundary per correction cycle; the rest is left "
+                "for the next cycle (0: no limit)", 0.0, 100.0)
+        declare_list(self, "max_step_by_boundary", Parameter.Type.STRING_ARRAY, "per-boundary maximum step per "
+                     "cycle, LABEL=MM entries (override max_step_mm for that boundary)")
+        declare(self, "verify_sigmas", 3.0, "a move counts as achieved within this many stds of the measured change "
+                "minus the predicted one", 0.5, 10.0)
+        declare(self, "verify_min_tolerance_mm", 0.005, "smallest tolerance (mm) of the move verification (the "
+                "robot's repeatability; the std of a noise-free field is 0)", 0.0, 10.0)
+        declare(self, "remembered_parts", 1000, "parts whose last correction is kept for the verification of the "
+                "next inspection (oldest forgotten first)", 1, 1_000_000)
+        self.sent: OrderedDict[str, _Sent] = OrderedDict()
+        self.state_pub = self.correction_pub = self.verification_pub = None
+
+    def check_parameter(self, parameter: Parameter) -> str:
+        if parameter.name == "method" and parameter.value not in METHODS:
+            return f"one of {', '.join(METHODS)}, got {parameter.value!r}"
+        if parameter.name == "max_step_by_boundary":
+            try:
+                parse_step_limits(list(parameter.value or []))
+            except ValueError as error:
+                return str(error)
+        return super().check_parameter(parameter)
+
+    def policy(self) -> CorrectionPolicy:
+        return CorrectionPolicy(min_coverage=self.param("min_coverage"), max_std_mm=self.param("max_std_mm"),
+                                range_tolerance_mm=self.param("range_tolerance_mm"))
+
+    def step_limits(self, names: tuple[str, ...]) -> np.ndarray:
+        """(P,) mm per boundary of ``names``: its LABEL=MM entry, else max_step_mm (0: no limit)."""
+        by_name = parse_step_limits(list(self.param("max_step_by_boundary")))
+        return np.array([by_name.get(name, self.param("max_step_mm")) for name in names])
+
+    def configure_node(self) -> None:
+        self.sent.clear()
+        self.state_pub = self.publisher(BoundaryState, "hood_decomp/boundary_state", latest=True)
+        self.correction_pub = self.publisher(BoundaryCorrection, "hood_decomp/boundary_correction", latest=True)
+        self.verification_pub = self.publisher(MoveVerification, "hood_decomp/move_verification", latest=True)
+
+    def activate_node(self) -> None:
         self.subscription(DisplacementField, "hood_decomp/displacement", self.guarded("estimation", self.on_field))
 
     def on_field(self, msg: DisplacementField) -> dict[str, object]:
         from hood_decomp.core.method.bases import estimate_field
 
-        estimate = estimate_field(self.require_bases(), messages.msg_to_field(msg), method=self.method,
-                                  min_coverage=self.policy.min_coverage)
-        correction = plan_correction(estimate, self.policy)
-        self.state_pub.publish(messages.estimate_to_msg(estimate, msg.header))
-        self.correction_pub.publish(messages.correction_to_msg(correction, msg.header))
-        return {"residual_rms_mm": f"{estimate.residual_rms:.4f}", "within_model": estimate.within_model,
+        policy = self.policy()
+        estimate = estimate_field(self.bases_for_model(msg.model_id), messages.msg_to_field(msg),
+                                  method=self.param("method"), min_coverage=policy.min_coverage)
+        correction = limit_steps(plan_correction(estimate, policy), self.step_limits(estimate.names))
+        part_id = messages.part_id_of(msg)
+        values: dict[str, object] = {"part_id": part_id}
+        earlier = self.sent.pop(part_id, None)
+        if earlier is not None:
+            verification = verify_move(earlier.estimate, earlier.correction, estimate,
+                                       self.param("verify_sigmas"), self.param("verify_min_tolerance_mm"))
+            self.verification_pub.publish(messages.verification_to_msg(verification, msg.header, part_id,
+                                                                       earlier.stamp))
+            values["move_verified"] = verification.all_achieved
+            values["move_summary"] = verification.summary or "every commanded move achieved"
+        self.sent[part_id] = _Sent(estimate, correction, msg.header.stamp)
+        while len(self.sent) > self.param("remembered_parts"):
+            self.sent.popitem(last=False)
+        self.state_pub.publish(messages.estimate_to_msg(estimate, msg.header, part_id))
+        self.correction_pub.publish(messages.correction_to_msg(correction, msg.header, part_id))
+        return {**values, "residual_rms_mm": f"{estimate.residual_rms:.4f}", "within_model": estimate.within_model,
                 "safe_to_apply": correction.safe_to_apply, "reason": correction.reason}
 
 

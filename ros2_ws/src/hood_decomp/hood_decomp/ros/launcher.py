@@ -1,7 +1,8 @@
-"""Start the three nodes as separate processes without launch_ros (which is not on PyPI).
+"""Start the three nodes as separate processes without launch_ros (which is not on PyPI), and bring them to active.
 
 Used by ``hood-decomp launch``, by ``hood-decomp replay --bases`` and by the tests, so the nodes always run as the
-console scripts a cell would run.
+console scripts a cell would run. The nodes are lifecycle nodes: :func:`bring_up` configures and activates them
+through their ``change_state`` services and says which did not come up, and why (from their /diagnostics).
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ from collections.abc import Sequence
 from hood_decomp.errors import HoodDecompError
 
 NODE_EXECUTABLES: tuple[str, ...] = ("scan_node", "estimator_node", "decomposition_node")
+NODE_NAMES = {"scan_node": "hood_decomp_scan", "estimator_node": "hood_decomp_estimator",
+              "decomposition_node": "hood_decomp_decomposition"}
 
 
 def node_executable(name: str) -> str:
@@ -36,21 +39,96 @@ def node_executable(name: str) -> str:
     return found
 
 
-def start_nodes(bases: str | os.PathLike[str], *, params_file: str | os.PathLike[str] | None = None,
+PathLike = str | os.PathLike[str]
+
+
+def start_nodes(bases: PathLike, *, params_file: PathLike | Sequence[PathLike] | None = None,
                 nodes: Sequence[str] = NODE_EXECUTABLES, extra_params: Sequence[str] = (),
-                log_dir: pathlib.Path | None = None) -> list[subprocess.Popen[bytes]]:
-    """Start each node in its own process; ``extra_params`` are ``name:=value`` strings for every node.
-    Output goes to ``log_dir/<node>.log`` when given, else to this process's stderr."""
+                log_dir: pathlib.Path | None = None, activate: bool = True,
+                timeout_s: float = 60.0) -> list[subprocess.Popen[bytes]]:
+    """Start each node in its own process and (``activate``) bring it to active; ``extra_params`` are
+    ``name:=value`` strings for every node. ``params_file``: one parameter file or several (a later one wins). The
+    params files come first on the command line and ``bases`` after them, so ``bases`` wins over a file (rcl applies
+    the later value). Output goes to ``log_dir/<node>.log`` when given,
+    else to this process's stderr. A node that does not come up is a HoodDecompError naming it and why (all nodes
+    are stopped then)."""
+    from hood_decomp.ros.node_common import use_fastdds_profile  # rclpy only when nodes are started
+
+    environment = dict(os.environ)
+    use_fastdds_profile(environment)
     processes = []
     for name in nodes:
-        command = [node_executable(name), "--ros-args", "-p", f"bases:={os.fspath(bases)}"]
-        if params_file is not None:
-            command += ["--params-file", os.fspath(params_file)]
+        command = [node_executable(name), "--ros-args"]
+        files = [] if params_file is None else [params_file] if isinstance(params_file, str | os.PathLike) \
+            else params_file
+        for file in files:
+            command += ["--params-file", os.fspath(file)]
+        command += ["-p", f"bases:={os.fspath(bases)}"]
         for param in extra_params:
             command += ["-p", param]
         output = open(log_dir / f"{name}.log", "wb") if log_dir is not None else None  # closed by the child
-        processes.append(subprocess.Popen(command, stdout=output, stderr=subprocess.STDOUT if output else None))
+        processes.append(subprocess.Popen(command, stdout=output, stderr=subprocess.STDOUT if output else None,
+                                          env=environment))
+    if activate:
+        failures = bring_up(nodes, timeout_s, processes)
+        if failures:
+            stop_nodes(processes)
+            raise HoodDecompError("; ".join(f"{name} did not come up: {why}" for name, why in failures.items()))
     return processes
+
+
+def bring_up(nodes: Sequence[str] = NODE_EXECUTABLES, timeout_s: float = 60.0,
+             processes: Sequence[subprocess.Popen[bytes]] | None = None) -> dict[str, str]:
+    """Configure and activate each node (by executable name) through its lifecycle services; a node already active
+    is left as it is. ``processes`` (one per node, when started here): a process that ended is named at once.
+    Returns executable -> why it is not active, for those that are not (empty: all active)."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState, GetState
+
+    from hood_decomp.ros.participant import Participant
+
+    reasons: dict[str, str] = {}
+
+    def on_diagnostics(array: DiagnosticArray) -> None:
+        """A node's configure failure, from its transition report or any heartbeat after it."""
+        for status in array.status:
+            if "configure failed" in status.message:
+                reasons[status.name] = status.message
+
+    failures = {}
+    deadline = time.monotonic() + timeout_s
+    with Participant("hood_decomp_bring_up") as peer:
+        peer.subscribe("/diagnostics", DiagnosticArray, on_diagnostics)
+        for index, executable in enumerate(nodes):
+            name = NODE_NAMES[executable]
+            process = processes[index] if processes is not None else None
+
+            def ended(process: subprocess.Popen[bytes] | None = process) -> bool:
+                return process is not None and process.poll() is not None
+
+            state = peer.call(f"/{name}/get_state", GetState, GetState.Request(), deadline - time.monotonic(), ended)
+            if state is None:
+                failures[executable] = (f"exited with status {process.returncode}" if ended() else
+                                        f"no answer from /{name}/get_state within {timeout_s:.0f} s")
+                continue
+            steps = {"unconfigured": (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE),
+                     "inactive": (Transition.TRANSITION_ACTIVATE,), "active": ()}.get(state.current_state.label)
+            if steps is None:
+                failures[executable] = f"in state {state.current_state.label!r}"
+                continue
+            for transition in steps:
+                response = peer.call(f"/{name}/change_state", ChangeState,
+                                     ChangeState.Request(transition=Transition(id=transition)),
+                                     max(1.0, deadline - time.monotonic()), ended)
+                if response is None or not response.success:
+                    what = "configure" if transition == Transition.TRANSITION_CONFIGURE else "activate"
+                    key = f"hood_decomp/{name}"
+                    peer.wait(lambda k=key: k in reasons, 2.0)  # the reason comes on /diagnostics
+                    failures[executable] = reasons.get(key, f"{what} failed" if response else
+                                                       f"no answer to {what} within {timeout_s:.0f} s")
+                    break
+    return failures
 
 
 def stop_nodes(processes: Sequence[subprocess.Popen[bytes]], timeout: float = 10.0) -> list[int]:

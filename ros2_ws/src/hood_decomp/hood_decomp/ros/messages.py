@@ -21,6 +21,7 @@ from hood_decomp.core.types import (
     EffectContribution,
     FieldErrorModel,
     ModelCheck,
+    MoveVerification,
     ParameterEstimate,
     SkinSurface,
 )
@@ -42,8 +43,19 @@ def _numpy(values: Any, scale: float = 1.0) -> np.ndarray:
     return np.asarray(values, dtype=np.float64) * scale
 
 
-def field_to_msg(field: DisplacementField, header: Any) -> Any:
-    """core DisplacementField (mm) -> hood_decomp_msgs/DisplacementField (m)."""
+def part_id_of(msg: Any) -> str:
+    """The part id a message carries, or one made from its header stamp (``stamp-<sec>.<nanosec>``) when it has none
+    (a scan cloud, an older sender, a bag recorded before part ids): every node that sees the same stamp makes the same
+    id, so the outputs of one field still agree."""
+    given = getattr(msg, "part_id", "")
+    if given:
+        return given
+    stamp = msg.header.stamp
+    return f"stamp-{stamp.sec}.{stamp.nanosec:09d}"
+
+
+def field_to_msg(field: DisplacementField, header: Any, part_id: str) -> Any:
+    """core DisplacementField (mm) -> hood_decomp_msgs/DisplacementField (m) of the part ``part_id``."""
     from hood_decomp_msgs.msg import DisplacementField as Msg
 
     errors = field.errors
@@ -52,6 +64,7 @@ def field_to_msg(field: DisplacementField, header: Any) -> Any:
     return Msg(
         header=header,
         model_id=field.model_id,
+        part_id=part_id,
         normal_displacement=_float32_array(field.normal_displacement, M_PER_MM),
         coverage=float(field.coverage),
         noise_rms=float(field.noise_rms) * M_PER_MM,
@@ -89,13 +102,14 @@ def msg_to_field(msg: Any) -> DisplacementField:
     )
 
 
-def estimate_to_msg(estimate: ParameterEstimate, header: Any) -> Any:
-    """core ParameterEstimate (mm) -> hood_decomp_msgs/BoundaryState (m)."""
+def estimate_to_msg(estimate: ParameterEstimate, header: Any, part_id: str) -> Any:
+    """core ParameterEstimate (mm) -> hood_decomp_msgs/BoundaryState (m) of the part ``part_id``."""
     from hood_decomp_msgs.msg import BoundaryState
 
     return BoundaryState(
         header=header,
         model_id=estimate.model_id,
+        part_id=part_id,
         names=list(estimate.names),
         values=(estimate.values * M_PER_MM).tolist(),
         std_dev=(estimate.std * M_PER_MM).tolist(),
@@ -147,18 +161,22 @@ def msg_to_estimate(msg: Any) -> ParameterEstimate:
     )
 
 
-def correction_to_msg(correction: BoundaryCorrection, header: Any) -> Any:
-    """core BoundaryCorrection (mm) -> hood_decomp_msgs/BoundaryCorrection (m)."""
+def correction_to_msg(correction: BoundaryCorrection, header: Any, part_id: str) -> Any:
+    """core BoundaryCorrection (mm) -> hood_decomp_msgs/BoundaryCorrection (m) of the part ``part_id``."""
     from hood_decomp_msgs.msg import BoundaryCorrection as Msg
 
     return Msg(
         header=header,
         model_id=correction.model_id,
+        part_id=part_id,
         names=list(correction.names),
         corrections=(correction.corrections * M_PER_MM).tolist(),
         safe_to_apply=bool(correction.safe_to_apply),
         reason=correction.reason,
         std_dev=[] if correction.std is None else (np.asarray(correction.std) * M_PER_MM).tolist(),
+        # always one per boundary: an empty float64[] after a float64[] is padded differently by Fast CDR and rosbags
+        remaining=(np.zeros(len(correction.names)) if correction.remaining is None
+                   else np.asarray(correction.remaining, float) * M_PER_MM).tolist(),
         applicable=[] if correction.applicable is None else [bool(v) for v in correction.applicable],
     )
 
@@ -173,16 +191,40 @@ def msg_to_correction(msg: Any) -> BoundaryCorrection:
         reason=msg.reason,
         std=_numpy(msg.std_dev, MM_PER_M) if len(msg.std_dev) else None,
         applicable=np.asarray(msg.applicable, dtype=bool) if len(msg.applicable) else None,
+        remaining=_numpy(msg.remaining, MM_PER_M) if len(msg.remaining) else None,
     )
 
 
-def decomposition_to_msg(decomposition: Decomposition, header: Any) -> Any:
-    """core Decomposition (mm) -> hood_decomp_msgs/EffectFields (m; contributions stay 0..1)."""
+def verification_to_msg(verification: MoveVerification, header: Any, part_id: str, corrected_stamp: Any) -> Any:
+    """core MoveVerification (mm) -> hood_decomp_msgs/MoveVerification (m) of the part ``part_id``; the outcome codes
+    are the message's constants."""
+    from hood_decomp_msgs.msg import MoveVerification as Msg
+
+    return Msg(
+        header=header,
+        model_id=verification.model_id,
+        part_id=part_id,
+        corrected_stamp=corrected_stamp,
+        names=list(verification.names),
+        predicted=(verification.predicted * M_PER_MM).tolist(),
+        measured=(verification.measured * M_PER_MM).tolist(),
+        std_dev=(verification.std * M_PER_MM).tolist(),
+        fraction=np.asarray(verification.fraction, float).tolist(),
+        outcome=[int(code) for code in verification.outcome],
+        all_achieved=verification.all_achieved,
+        summary=verification.summary,
+    )
+
+
+def decomposition_to_msg(decomposition: Decomposition, header: Any, part_id: str) -> Any:
+    """core Decomposition (mm) -> hood_decomp_msgs/EffectFields (m; contributions stay 0..1) of the part
+    ``part_id``."""
     from hood_decomp_msgs.msg import EffectField, EffectFields
 
     return EffectFields(
         header=header,
         model_id=decomposition.model_id,
+        part_id=part_id,
         effects=[
             EffectField(
                 name=effect.name,

@@ -1,31 +1,43 @@
-"""What the three hood_decomp nodes share: parameter declaration, QoS, diagnostics, a guarded callback.
+"""What the three hood_decomp nodes share: a managed life cycle, parameter declaration, QoS, diagnostics with a
+heartbeat, a guarded callback.
 
 Nodes stay wiring only: declare parameters, convert, call the core, convert, publish, report. Any failure of one
 message (bad input, a core error, a bug) is reported on /diagnostics with the stamp of the offending message and the
 node keeps serving the next one. Messages that never reach the node (the keep-last queue overflowed while it was busy,
 or they were published before it subscribed) are counted from gaps in the publishers' sequence numbers and reported
 too: nothing disappears unannounced. What the package's modules log (``logging``, e.g. the scan field's progress lines)
-goes to the node's ROS logger.
+goes to the node's ROS logger. Each node sends a heartbeat on /diagnostics once a second in every life-cycle state, with
+its state, counters and the matched subscriptions of its outputs.
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import pathlib
+import socket
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, MutableMapping
 from typing import Any
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.executors import MultiThreadedExecutor
 from rclpy.impl.rcutils_logger import RcutilsLogger
+from rclpy.lifecycle import LifecycleNode, LifecyclePublisher, LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
+from rclpy.subscription import Subscription
 
 from hood_decomp.errors import HoodDecompError
 
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+TRANSIENT_LOCAL, VOLATILE = DurabilityPolicy.TRANSIENT_LOCAL, DurabilityPolicy.VOLATILE
+HEARTBEAT_S = 1.0
 
 
 def declare(node: Node, name: str, default: Any, description: str,
@@ -40,21 +52,79 @@ def declare(node: Node, name: str, default: Any, description: str,
     return node.declare_parameter(name, default, descriptor).value
 
 
-def topic_qos(depth: int) -> QoSProfile:
-    """Reliable, keep-last(depth): large clouds arrive whole (one lost fragment drops a best-effort cloud with stock
-    Fast DDS) and a burst of ``depth`` messages waits instead of being dropped. Per-topic overrides follow REP 2003
-    through rclpy's ``qos_overrides.<topic>.<publisher|subscription>.<policy>`` parameters."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+def declare_list(node: Node, name: str, kind: Parameter.Type, description: str) -> list[Any]:
+    """Declare an array parameter of ``kind`` (e.g. Parameter.Type.DOUBLE_ARRAY) whose default is empty, and return
+    its value. rclpy cannot infer the type of an empty list, and a parameter declared with a type but no value has
+    none, which makes a bulk parameter get fail; so the empty list is set explicitly when no override gave one."""
+    parameter = node.declare_parameter(name, kind, ParameterDescriptor(description=description))
+    if parameter.value is None:
+        node.set_parameters([Parameter(name, kind, [])])
+    return node.get_parameter(name).value
+
+
+def parse_entries(entries: list[str], what: str) -> dict[str, str]:
+    """``["NAME=VALUE", ...]`` (a list parameter) -> {name: value}; an entry without a name or value, or a repeated
+    name, is a ValueError naming it and ``what`` the value should be."""
+    parsed: dict[str, str] = {}
+    for entry in entries:
+        name, _, value = (part.strip() for part in entry.partition("="))
+        if not name or not value or name in parsed:
+            raise ValueError(f"{entry!r}: expected NAME={what}, each name once")
+        parsed[name] = value
+    return parsed
+
+
+def topic_qos(depth: int, durability: DurabilityPolicy = VOLATILE) -> QoSProfile:
+    """Reliable, keep-last(depth): a burst of ``depth`` messages waits instead of being dropped. Result publishers
+    are transient-local (a late subscriber gets the last ``depth``, or as many as its own depth takes); every
+    subscription of the nodes is volatile, because a transient-local subscription does not match a volatile publisher.
+    Per-topic overrides follow REP 2003 through rclpy's ``qos_overrides.<topic>.<publisher|subscription>.<policy>``
+    parameters."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=durability)
+
+
+def scan_qos(depth: int) -> QoSProfile:
+    """The scan subscription: best effort, so it matches a best-effort scanner driver (the common sensor-data QoS)
+    and a reliable one alike. On one host, with the Fast DDS profile shipped in config/fastdds.xml (a 64 MB
+    shared-memory transport), best effort loses no 1M-point cloud; across hosts over UDP set
+    ``qos_overrides./scan/points.subscription.reliability: reliable`` (the driver must then publish reliably)."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.BEST_EFFORT)
 
 
 OVERRIDABLE = QoSOverridingOptions.with_default_policies()
 
 
+FASTDDS_PROFILE_VARIABLE = "FASTDDS_DEFAULT_PROFILES_FILE"
+
+
+def fastdds_profile() -> pathlib.Path:
+    """The Fast DDS profile shipped with the package (config/fastdds.xml: a 64 MB shared-memory transport)."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        installed = pathlib.Path(get_package_share_directory("hood_decomp")) / "config" / "fastdds.xml"
+        if installed.is_file():
+            return installed
+    except (ImportError, LookupError, ValueError):
+        pass
+    return pathlib.Path(__file__).resolve().parents[2] / "config" / "fastdds.xml"
+
+
+def use_fastdds_profile(environment: MutableMapping[str, str] = os.environ) -> None:
+    """Point Fast DDS at the package's profile unless the user chose one (``FASTDDS_DEFAULT_PROFILES_FILE`` set, even
+    empty, is theirs). In this process it must happen before the first rclpy.init; for a child, pass its env."""
+    if FASTDDS_PROFILE_VARIABLE not in environment:
+        environment[FASTDDS_PROFILE_VARIABLE] = str(fastdds_profile())
+
+
 class Diagnostics:
-    """Publishes one DiagnosticStatus per processed message on /diagnostics (name ``hood_decomp/<node>``)."""
+    """Publishes DiagnosticStatus on /diagnostics (name ``hood_decomp/<node>``, hardware_id ``<host>:<node's fully
+    qualified name>``, one per node): one per processed message, per life-cycle transition and per heartbeat."""
 
     def __init__(self, node: Node) -> None:
         self._node = node
+        self.hardware_id = f"{socket.gethostname()}:{node.get_fully_qualified_name()}"
         self._publisher = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.processed = 0
         self.failed = 0
@@ -62,7 +132,7 @@ class Diagnostics:
 
     def report(self, level: bytes, message: str, stamp: Any = None, **values: object) -> None:
         status = DiagnosticStatus(level=level, name=f"hood_decomp/{self._node.get_name()}", message=message,
-                                  hardware_id="hood_decomp")
+                                  hardware_id=self.hardware_id)
         if stamp is not None:
             values = {"stamp": f"{stamp.sec}.{stamp.nanosec:09d}", **values}
         values = {**values, "processed": self.processed, "failed": self.failed, "dropped": self.dropped}
@@ -105,7 +175,9 @@ def guarded(node: Node, diagnostics: Diagnostics, what: str,
 
 
 def load_bases_or_reason(path: str) -> tuple[Any, str]:
-    """(bases, "") or (None, the reason): a node with a bad bases path keeps running and says why on every message."""
+    """(bases, "") or (None, the reason): a node with a bad bases file fails its configure transition and stays
+    alive, unconfigured, saying why. Any failure of the loader (also one it did not foresee, e.g. memory) is a
+    reason, never an exception."""
     from hood_decomp.io.bases import load_bases
 
     if not path:
@@ -114,6 +186,8 @@ def load_bases_or_reason(path: str) -> tuple[Any, str]:
         return load_bases(path), ""
     except HoodDecompError as error:
         return None, f"bases not loaded: {error}"
+    except Exception as error:  # the node must survive and name it
+        return None, f"bases {path} not loaded: {type(error).__name__}: {error}"
 
 
 class RosLogHandler(logging.Handler):
@@ -153,35 +227,209 @@ def forward_package_logging(ros_logger: RcutilsLogger) -> None:
     package.setLevel(int(ros_logger.get_effective_level()))
 
 
-class HoodNode(Node):
-    """What every hood_decomp node has: the ``bases`` and ``queue_depth`` parameters, the bases loaded (or the reason
-    they are not, reported at start and on every message), diagnostics, publishers/subscriptions with the project's
-    QoS, overridable per topic, and the package's log records in its ROS log."""
+class HoodNode(LifecycleNode):
+    """What every hood_decomp node has: a managed life cycle, the ``bases`` and ``queue_depth`` parameters,
+    diagnostics with a 1 Hz heartbeat, publishers/subscriptions with the project's QoS (overridable per topic), and
+    the package's log records in its ROS log.
+
+    Life cycle (REP 2002, rclpy.lifecycle): ``configure`` loads and checks the bases and creates the publishers
+    (a failure is a failed transition: the node stays unconfigured, alive, with the reason in its log, on
+    /diagnostics and in every heartbeat); ``activate`` creates the subscriptions, so the node serves only when active;
+    ``deactivate`` and ``cleanup`` undo them. A subclass implements :meth:`configure_node` (publishers, one-time
+    preparation of the bases) and :meth:`activate_node` (subscriptions, timers). Parameters named in
+    ``configure_parameters`` are read at configure: a change is refused unless the node is unconfigured (set it,
+    then configure). Every other parameter is read when it is used, so ``ros2 param set`` takes effect at the next
+    message; :meth:`check_parameter` may refuse a bad value with a reason.
+    """
+
+    configure_parameters: frozenset[str] = frozenset({"bases", "queue_depth", "variants"})
 
     def __init__(self, name: str) -> None:
         super().__init__(name)
         forward_package_logging(self.get_logger())
-        self.bases_path = declare(self, "bases", "", "path of the bases file (hood-decomp bases --out)")
-        self.depth = declare(self, "queue_depth", 10, "messages held per topic while the node is busy", 1, 1000)
+        declare(self, "bases", "", "path of the bases file (hood-decomp bases --out); read at configure")
+        declare(self, "queue_depth", 10, "messages held per topic while the node is busy; read at configure", 1, 1000)
+        declare_list(self, "variants", Parameter.Type.STRING_ARRAY, "further part variants this node serves, "
+                     "VARIANT=PATH of each variant's bases file; a field is served with the bases of its model_id; "
+                     "read at configure")
+        declare(self, "autostart", False, "configure and activate at start-up (for a node started alone, without a "
+                "lifecycle manager such as hood-decomp launch)")
+        self.state = "unconfigured"
+        self.configure_error = ""
+        self.bases: Any = None  # the default variant's
+        self.variant_bases: dict[str, Any] = {}  # variant ("" = default) -> bases
+        self.depth = 10
+        self._outputs: list[Any] = []
+        self._inputs: list[Any] = []
         self.diagnostics = Diagnostics(self)
-        self.bases, self.bases_error = load_bases_or_reason(self.bases_path)
-        if self.bases_error:
-            self.diagnostics.report(ERROR, self.bases_error)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        # the heartbeat has its own callback group, so a multi-threaded executor sends it while a message is processed
+        self.create_timer(HEARTBEAT_S, self.heartbeat, callback_group=MutuallyExclusiveCallbackGroup())
+
+    def param(self, name: str) -> Any:
+        """A parameter's current value (read at use, so a change applies to the next message)."""
+        return self.get_parameter(name).value
+
+    # --- parameters -----------------------------------------------------------------------------------------------
+    def check_parameter(self, parameter: Parameter) -> str:
+        """The reason a new value of ``parameter`` is refused, or "" (subclasses check their own and call this)."""
+        if parameter.name == "variants" and parameter.value is not None:
+            try:
+                parse_entries(list(parameter.value), "PATH")
+            except ValueError as error:
+                return str(error)
+        return ""
+
+    def _on_set_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
+        for parameter in parameters:
+            if parameter.name in self.configure_parameters and self.state != "unconfigured":
+                return SetParametersResult(successful=False, reason=(
+                    f"{parameter.name} is read at configure and the node is {self.state}: deactivate and clean it "
+                    "up, set the parameter, configure again"))
+            reason = self.check_parameter(parameter)
+            if reason:
+                return SetParametersResult(successful=False, reason=f"{parameter.name}: {reason}")
+        return SetParametersResult(successful=True)
+
+    # --- life cycle -----------------------------------------------------------------------------------------------
+    def configure_node(self) -> None:
+        """Create the publishers (:meth:`publisher`) and prepare what ``self.bases`` allows; raise to fail."""
+
+    def activate_node(self) -> None:
+        """Create the subscriptions (:meth:`subscription`) and timers (:meth:`timer`)."""
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        path = self.param("bases")
+        self.depth = int(self.param("queue_depth"))
+        try:
+            self.variant_bases = self._load_variants(path)
+            self.bases = self.variant_bases[""]
+            self.configure_node()
+        except Exception as error:  # any failure is a failed transition, never a dead process
+            reason = str(error) if isinstance(error, HoodDecompError) else f"{type(error).__name__}: {error}"
+            self.get_logger().error(f"configure failed: {reason}")
+            self._destroy(self._outputs)
+            self.bases, self.variant_bases, self.configure_error = None, {}, reason
+            self.diagnostics.report(ERROR, f"configure failed: {reason}", bases=path)
+            return TransitionCallbackReturn.FAILURE
+        self.configure_error = ""
+        self.state = "inactive"
+        served = ", ".join(f"{variant or 'default'} (model {bases.model_id})"
+                           for variant, bases in self.variant_bases.items())
+        self.get_logger().info(f"configured with bases {path}; serving {served}")
+        self.diagnostics.report(OK, "configured", bases=path, variants=served)
+        return super().on_configure(state)
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.activate_node()
+        self.state = "active"
+        self.diagnostics.report(OK, "active")
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._destroy(self._inputs)
+        self.state = "inactive"
+        self.diagnostics.report(WARN, "inactive: not serving")
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._destroy(self._outputs)
+        self.bases, self.variant_bases = None, {}
+        self.state = "unconfigured"
+        return super().on_cleanup(state)
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._destroy(self._inputs)
+        self._destroy(self._outputs)
+        self.state = "finalized"
+        return super().on_shutdown(state)
+
+    def _destroy(self, entities: list[Any]) -> None:
+        for entity in entities:
+            if isinstance(entity, LifecyclePublisher):
+                self.destroy_lifecycle_publisher(entity)
+            elif isinstance(entity, Subscription):
+                self.destroy_subscription(entity)
+            else:
+                self.destroy_timer(entity)
+        entities.clear()
+
+    # --- heartbeat ------------------------------------------------------------------------------------------------
+    def heartbeat_values(self) -> dict[str, object]:
+        """Key-values of the heartbeat: the state and, per output topic, its matched subscriptions."""
+        return {"state": self.state, **{f"subscribers {entity.topic_name}": entity.get_subscription_count()
+                                        for entity in self._outputs if isinstance(entity, LifecyclePublisher)}}
+
+    def heartbeat(self) -> None:
+        """Once a second in every state, so an aggregator never shows the node STALE between parts."""
+        if self.state == "active":
+            level, message = OK, "active: serving"
+        elif self.configure_error:
+            level, message = ERROR, f"{self.state}: configure failed: {self.configure_error}"
+        else:
+            level, message = WARN, f"{self.state}: not serving"
+        self.diagnostics.report(level, message, heartbeat=True, **self.heartbeat_values())
+
+    # --- entities -------------------------------------------------------------------------------------------------
+    def _load_variants(self, path: str) -> dict[str, Any]:
+        """variant ("" = default, from ``bases``) -> loaded bases; a file that does not load, or two variants of
+        the same model_id (a field could not be told apart), is a HoodDecompError naming the variant."""
+        files = {"": path, **parse_entries(list(self.param("variants")), "PATH")}
+        loaded: dict[str, Any] = {}
+        for variant, file in files.items():
+            bases, reason = load_bases_or_reason(file)
+            if bases is None:
+                raise HoodDecompError(f"variant {variant}: {reason}" if variant else reason)
+            twin = next((name for name, other in loaded.items() if other.model_id == bases.model_id), None)
+            if twin is not None:
+                raise HoodDecompError(f"variants {twin or 'default'!r} and {variant!r} have the same model_id "
+                                      f"{bases.model_id}: their fields could not be told apart")
+            loaded[variant] = bases
+        return loaded
 
     def require_bases(self) -> Any:
-        if self.bases is None:
-            raise HoodDecompError(self.bases_error)
+        if self.bases is None:  # only reachable when a subclass uses it outside the active state
+            raise HoodDecompError(f"no bases loaded (node {self.state})")
         return self.bases
 
-    def publisher(self, cls: type, topic: str) -> Any:
-        return self.create_publisher(cls, topic, topic_qos(self.depth), qos_overriding_options=OVERRIDABLE)
+    def bases_for_model(self, model_id: str) -> Any:
+        """The bases of the variant whose model_id a field carries; a HoodDecompError naming what is served else."""
+        self.require_bases()
+        for bases in self.variant_bases.values():
+            if bases.model_id == model_id:
+                return bases
+        served = ", ".join(f"{bases.model_id} ({variant or 'default'})"
+                           for variant, bases in self.variant_bases.items())
+        raise HoodDecompError(f"field of model_id {model_id!r}: this node serves model_id {served}")
 
-    def subscription(self, cls: type, topic: str, callback: Callable[[Any], None]) -> Any:
-        """Subscribe with the project's QoS. Publishers number their messages from 1, so a gap in a publisher's
-        sequence numbers means messages this node never took: the keep-last queue (``queue_depth``) or the
-        publisher's own overflowed while the node was busy, or (before the first message seen from a publisher)
-        they were published before this node subscribed. A WARN diagnostic says how many, with the stamp of the
-        message after the gap."""
+    def bases_for_variant(self, variant: str) -> Any:
+        """The bases of a part variant by name ("" = the default); a HoodDecompError naming the served ones else."""
+        self.require_bases()
+        if variant not in self.variant_bases:
+            raise HoodDecompError(f"variant {variant!r} is not served here (served: "
+                                  f"{', '.join(name or 'default' for name in self.variant_bases)}; parameter variants)")
+        return self.variant_bases[variant]
+
+    def publisher(self, cls: type, topic: str, latest: bool = False) -> Any:
+        """A publisher, created at configure and active with the node. ``latest``: a result topic, transient-local,
+        so a subscriber that comes later (a controller that reconnects) still receives the last results."""
+        qos = topic_qos(self.depth, TRANSIENT_LOCAL if latest else VOLATILE)
+        publisher = self.create_lifecycle_publisher(cls, topic, qos, qos_overriding_options=OVERRIDABLE)
+        self._outputs.append(publisher)
+        return publisher
+
+    def timer(self, period_s: float, callback: Callable[[], None]) -> Any:
+        timer = self.create_timer(period_s, callback)
+        self._inputs.append(timer)
+        return timer
+
+    def subscription(self, cls: type, topic: str, callback: Callable[[Any], None],
+                     qos: QoSProfile | None = None) -> Any:
+        """Subscribe with the project's QoS (or ``qos``), for as long as the node is active. Publishers number their
+        messages from 1, so a gap in a publisher's sequence numbers means messages this node never took: the
+        keep-last queue (``queue_depth``) or the publisher's own overflowed while the node was busy, or (before the
+        first message seen from a publisher) they were published before this node subscribed. A WARN diagnostic
+        says how many, with the stamp of the message after the gap."""
         last: dict[bytes, int] = {}
 
         def counted(message: Any, info: dict[str, Any]) -> None:
@@ -199,20 +447,27 @@ class HoodNode(Node):
                                             message_stamp(message), dropped_now=gap)
             callback(message)
 
-        return self.create_subscription(cls, topic, counted, topic_qos(self.depth),
-                                        qos_overriding_options=OVERRIDABLE)
+        subscription = self.create_subscription(cls, topic, counted, qos or topic_qos(self.depth),
+                                                qos_overriding_options=OVERRIDABLE)
+        self._inputs.append(subscription)
+        return subscription
 
     def guarded(self, what: str, handler: Callable[[Any], dict[str, object] | None]) -> Callable[[Any], None]:
         return guarded(self, self.diagnostics, what, handler)
 
 
-def spin(node_factory: Callable[[], Node], args: list[str] | None = None) -> int:
-    """Console-script body: init, build the node, spin until Ctrl-C or shutdown, clean up."""
+def spin(node_factory: Callable[[], HoodNode], args: list[str] | None = None) -> int:
+    """Console-script body: init, build the node (unconfigured; configured and activated here when its
+    ``autostart`` parameter is true), spin until Ctrl-C or shutdown, clean up. Two executor threads: the heartbeat
+    goes out while a message is processed."""
+    use_fastdds_profile()
     rclpy.init(args=args)
     node = None
     try:
         node = node_factory()
-        rclpy.spin(node)
+        if node.param("autostart") and node.trigger_configure() == TransitionCallbackReturn.SUCCESS:
+            node.trigger_activate()
+        rclpy.spin(node, executor=MultiThreadedExecutor(num_threads=2))
     except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
         pass
     finally:

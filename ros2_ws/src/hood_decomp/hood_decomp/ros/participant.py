@@ -12,12 +12,14 @@ from typing import Any
 
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSProfile
 
-from hood_decomp.ros.node_common import topic_qos
+from hood_decomp.ros.node_common import topic_qos, use_fastdds_profile
 
 
 class Participant:
     def __init__(self, name: str, depth: int = 50) -> None:
+        use_fastdds_profile()  # the same transports as the nodes (large best-effort clouds)
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         self.node = rclpy.create_node(name, context=self.context)
@@ -26,18 +28,35 @@ class Participant:
         self.depth = depth
         self.publishers: dict[str, Any] = {}
 
-    def publisher(self, topic: str, cls: type) -> Any:
-        self.publishers[topic] = self.node.create_publisher(cls, topic, topic_qos(self.depth))
+    def publisher(self, topic: str, cls: type, qos: QoSProfile | None = None) -> Any:
+        """A publisher (reliable, volatile, keep-last(depth) unless ``qos``), kept in ``publishers[topic]``."""
+        self.publishers[topic] = self.node.create_publisher(cls, topic, qos or topic_qos(self.depth))
         return self.publishers[topic]
 
-    def subscribe(self, topic: str, cls: type, callback: Callable[[Any], None], raw: bool = False) -> None:
-        self.node.create_subscription(cls, topic, callback, topic_qos(self.depth), raw=raw)
+    def subscribe(self, topic: str, cls: type, callback: Callable[[Any], None], raw: bool = False,
+                  qos: QoSProfile | None = None) -> Any:
+        return self.node.create_subscription(cls, topic, callback, qos or topic_qos(self.depth), raw=raw)
 
-    def collect(self, topic: str, cls: type) -> list[Any]:
+    def collect(self, topic: str, cls: type, qos: QoSProfile | None = None) -> list[Any]:
         """Subscribe and return the list the messages are appended to, in arrival order."""
         received: list[Any] = []
-        self.subscribe(topic, cls, received.append)
+        self.subscribe(topic, cls, received.append, qos=qos)
         return received
+
+    def call(self, service: str, cls: type, request: Any, seconds: float,
+             give_up: Callable[[], bool] = lambda: False) -> Any:
+        """Call a service once its server is there; the response, or None when none came within ``seconds`` (or
+        ``give_up()`` became true first, e.g. the server's process ended)."""
+        deadline = time.monotonic() + seconds
+        client = self.node.create_client(cls, service)
+        try:
+            if not self.wait(lambda: client.service_is_ready() or give_up(), seconds) or give_up():
+                return None
+            future = client.call_async(request)
+            self.wait(lambda: future.done() or give_up(), max(0.0, deadline - time.monotonic()))
+            return future.result() if future.done() else None
+        finally:
+            self.node.destroy_client(client)
 
     def wait(self, condition: Callable[[], bool], seconds: float) -> bool:
         """Process callbacks until ``condition()`` holds (True) or ``seconds`` pass (False)."""

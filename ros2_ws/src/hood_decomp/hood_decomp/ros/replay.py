@@ -38,6 +38,9 @@ OUTPUTS: dict[str, type] = {
     "/diagnostics": DiagnosticArray,
 }
 ANSWERS = ("hood_decomp/boundary_state", "hood_decomp/effects")  # a good scan is answered by both
+# topics between the nodes: a message sent on one before its publisher matched every subscription is lost to it
+INTERNAL = ("hood_decomp/displacement", "hood_decomp/boundary_state")
+MATCH_TIMEOUT_S = 30.0
 
 
 def _msgtype(cls: type) -> str:
@@ -47,6 +50,19 @@ def _msgtype(cls: type) -> str:
 
 def _stamp_key(stamp: object) -> str:
     return f"{stamp.sec}.{stamp.nanosec:09d}"
+
+
+def _all_matched(peer: Participant, heartbeats: dict[str, dict[str, str]]) -> bool:
+    """Whether each publisher of the nodes' internal topics has matched every subscription of that topic that this
+    participant has discovered, by the nodes' own word: each heartbeat carries ``subscribers <topic>``, the matched
+    subscriptions of the node's publisher there (matched counts only grow while the nodes run)."""
+    for topic in INTERNAL:
+        key = f"subscribers /{topic}"
+        reports = [int(values[key]) for values in heartbeats.values() if key in values]
+        wanted = peer.node.count_subscribers(topic)
+        if len(reports) < peer.node.count_publishers(topic) or any(count < wanted for count in reports):
+            return False
+    return True
 
 
 @dataclass
@@ -76,6 +92,7 @@ def replay_bag(bag: str | pathlib.Path, *, record: str | pathlib.Path | None = N
         raise BagError(f"bag {bag} holds no messages on {SCAN_TOPIC}")
     result = ReplayResult()
     answered: dict[str, set[str]] = {}
+    heartbeats: dict[str, dict[str, str]] = {}
     last_arrival = [time.monotonic()]
     start = time.monotonic()
     with ExitStack() as stack:
@@ -93,7 +110,10 @@ def replay_bag(bag: str | pathlib.Path, *, record: str | pathlib.Path | None = N
                     answered.setdefault(key, set()).add(topic)
                 elif topic == "/diagnostics":
                     for status in deserialize_message(raw, cls).status:
-                        stamp = next((kv.value for kv in status.values if kv.key == "stamp"), None)
+                        values = {kv.key: kv.value for kv in status.values}
+                        if "heartbeat" in values:
+                            heartbeats[status.name] = values
+                        stamp = values.get("stamp")
                         if status.level == DiagnosticStatus.ERROR and stamp is not None:
                             result.refused.setdefault(stamp, []).append(f"{status.name}: {status.message}")
             return callback
@@ -106,13 +126,14 @@ def replay_bag(bag: str | pathlib.Path, *, record: str | pathlib.Path | None = N
             raise BagError(f"no nodes answered within {startup_timeout_s:.0f} s: is something subscribed to "
                            f"{SCAN_TOPIC} and publishing {', '.join(answers)}? (hood-decomp launch --bases B)")
         # The nodes must also have found each other: the field goes to the estimator and the decomposition node
-        # (and to our recorder); a field sent before they matched would be lost between them.
+        # (and to our recorder); a field sent before they matched would be lost between them. Our graph shows their
+        # endpoints before their own writers and readers have matched each other (DDS matches pair by pair; on a
+        # loaded machine the scan node's first field was lost to the estimator that way), so wait for the nodes' own
+        # word: their heartbeats count the matched subscriptions of each publisher.
         peer.wait(lambda: peer.node.count_subscribers("hood_decomp/displacement") >= 3, 10.0)
-        # Our graph shows their endpoints before their own writers and readers have matched each other (DDS matches
-        # pair by pair); on a loaded machine the scan node's first field was lost to the estimator that way. Matching
-        # follows discovery within milliseconds; on a loaded machine one second was seen to fall short once in
-        # about ten runs (2026-11-24), so three, until the outputs are transient-local (issue 17).
-        peer.wait(lambda: False, 3.0)
+        if not peer.wait(lambda: _all_matched(peer, heartbeats), MATCH_TIMEOUT_S):
+            logger.warning("the nodes did not report every subscription of %s matched within %.0f s (nodes without "
+                           "a heartbeat?); replaying anyway", ", ".join(INTERNAL), MATCH_TIMEOUT_S)
         for index, scan in enumerate(scans, start=1):
             key = _stamp_key(deserialize_message(scan.data, PointCloud2).header.stamp)
             if clock_pub is not None:

@@ -1,4 +1,5 @@
-"""Scans as a cell's scanner would send them (sensor_msgs/PointCloud2 in metres, scanner frame) and scenario bags.
+"""Scans as a cell's scanner would send them (sensor_msgs/PointCloud2 in metres, scanner frame) and scenario bags,
+among them a multi-view part with the robot's poses on /tf and scan/pose (:func:`write_multiview_bag`).
 
 A cloud carries x, y, z (float32) and ``marker_id`` (float32): -1 for surface points, the marker's id for the reference
 marker centres the scanner software reports, appended at the end. The sidecar of each bag states the truth of every
@@ -23,8 +24,12 @@ from hood_decomp.synthetic.scanner import SyntheticScan
 from hood_decomp.synthetic.scenarios import ScenarioScan
 
 SCAN_TOPIC = "scan/points"
+POSE_TOPIC = "scan/pose"
 SCANNER_FRAME = "scanner"
 MARKER_FIELD = "marker_id"
+#: frames of a multi-view bag's robot: part <- robot base (static), base <- flange (the robot), flange <- scanner
+#: (static hand-eye calibration)
+PART_FRAME, BASE_FRAME, FLANGE_FRAME = "hood", "robot_base", "flange"
 
 # Malformed clouds a bag may mix in, and what is wrong with each (the node must name it on /diagnostics).
 MALFORMED = {
@@ -122,3 +127,78 @@ def write_node_params(path: str | pathlib.Path, sidecar: dict[str, Any],
         f"    pair_timeout_s: {float(decomposition_pair_timeout_s)}\n"
     )
     return path
+
+
+def transform_stamped(parent: str, child: str, pose_mm: np.ndarray, stamp_ns: int) -> Any:
+    """geometry_msgs/TransformStamped (metres) of a (4, 4) transform parent <- child in mm."""
+    from geometry_msgs.msg import TransformStamped
+
+    from hood_decomp.ros.poses import matrix_quaternion
+
+    item = TransformStamped()
+    item.header = _header(stamp_ns)
+    item.header.frame_id, item.child_frame_id = parent, child
+    t, r = item.transform.translation, item.transform.rotation
+    t.x, t.y, t.z = (float(v) for v in np.asarray(pose_mm)[:3, 3] * messages.M_PER_MM)
+    r.x, r.y, r.z, r.w = (float(v) for v in matrix_quaternion(np.asarray(pose_mm)[:3, :3]))
+    return item
+
+
+def write_multiview_bag(path: str | pathlib.Path, views: Sequence[ScenarioScan], robot_poses_mm: Sequence[np.ndarray],
+                        *, part_id: str, model_id: str, resolution: str, description: str,
+                        base_pose_mm: np.ndarray, hand_eye_mm: np.ndarray, start_ns: int = 1_000_000_000_000,
+                        period_ns: int = 2_000_000_000) -> pathlib.Path:
+    """A bag of one part seen in several views from a robot, and its sidecar ``<path>.json``.
+
+    views: the part's scans (one state, different scanner poses); robot_poses_mm: per view the pose the robot reports
+    for the scanner (part <- scanner, mm; the truth is each scan's ``true_transform``). Recorded: ``/tf_static`` once
+    (part <- robot base ``base_pose_mm``, flange <- scanner ``hand_eye_mm``), then per view ``/tf`` (base <- flange,
+    the robot standing still for the view: at the cloud stamp -/+ 20 ms), ``scan/pose`` (part <- scanner at the cloud
+    stamp, the same robot pose) and the cloud (frame ``scanner``, with its marker centres). The sidecar states the
+    truth, the robot's pose error per view, and what an inspection of the part expects.
+    """
+    from tf2_msgs.msg import TFMessage
+
+    records: list[Record] = []
+
+    def record(topic: str, msgtype: str, stamp: int, message: Any) -> None:
+        records.append(Record(topic, msgtype, stamp, bytes(serialize_message(message))))
+
+    record("/tf_static", "tf2_msgs/msg/TFMessage", start_ns - period_ns, TFMessage(transforms=[
+        transform_stamped(PART_FRAME, BASE_FRAME, base_pose_mm, start_ns - period_ns),
+        transform_stamped(FLANGE_FRAME, SCANNER_FRAME, hand_eye_mm, start_ns - period_ns)]))
+    entries = []
+    to_base, from_hand = np.linalg.inv(base_pose_mm), np.linalg.inv(hand_eye_mm)
+    for index, (view, robot) in enumerate(zip(views, robot_poses_mm, strict=True)):
+        stamp = start_ns + index * period_ns
+        flange = to_base @ robot @ from_hand  # base <- flange that puts the scanner at the robot's pose
+        for offset in (-20_000_000, 20_000_000):
+            record("/tf", "tf2_msgs/msg/TFMessage", stamp + offset, TFMessage(transforms=[
+                transform_stamped(BASE_FRAME, FLANGE_FRAME, flange, stamp + offset)]))
+        record(POSE_TOPIC, "geometry_msgs/msg/TransformStamped", stamp,
+               transform_stamped(PART_FRAME, SCANNER_FRAME, robot, stamp))
+        record(SCAN_TOPIC, "sensor_msgs/msg/PointCloud2", stamp, scan_cloud(view.scan, stamp))
+        error = robot @ np.linalg.inv(view.scan.true_transform)
+        sec, nanosec = divmod(stamp, 1_000_000_000)
+        entries.append({
+            "stamp": f"{sec}.{nanosec:09d}", "name": view.name, "points": len(view.scan.points),
+            "markers": len(view.scan.markers), "noise_mm": view.config.noise_mm,
+            "view_center": list(view.config.view_center), "view_tilt_deg": list(view.config.view_tilt_deg),
+            "fov_deg": view.config.fov_deg, "true_pose_mm": view.scan.true_transform.tolist(),
+            "robot_pose_mm": np.asarray(robot).tolist(),
+            "robot_pose_error_mm": float(np.linalg.norm(error[:3, 3])),
+            "robot_pose_error_deg": float(np.degrees(np.arccos(np.clip((np.trace(error[:3, :3]) - 1) / 2, -1, 1)))),
+        })
+    write_bag(path, sorted(records, key=lambda r: r.timestamp_ns))
+    first = views[0]
+    markers = {str(int(i)): p.tolist() for view in views
+               for i, p in zip(view.scan.marker_ids, view.scan.markers_nominal, strict=True)}
+    return write_sidecar(path, {
+        "description": description, "model": {"preset": "hood", "resolution": resolution, "model_id": model_id},
+        "kind": "multi-view part", "part_id": part_id, "expected_views": len(views),
+        "topic": SCAN_TOPIC, "pose_topic": POSE_TOPIC, "frame_id": SCANNER_FRAME, "part_frame": PART_FRAME,
+        "tf_frames": [PART_FRAME, BASE_FRAME, FLANGE_FRAME, SCANNER_FRAME], "marker_field": MARKER_FIELD,
+        "marker_positions_mm": dict(sorted(markers.items(), key=lambda kv: int(kv[0]))),
+        "settings_mm": first.settings, "truth_mm": first.truth_mm, "lifted": first.lifted,
+        "undeclared_mm": first.undeclared_mm, "views": entries,
+    })

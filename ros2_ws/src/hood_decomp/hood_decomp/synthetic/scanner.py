@@ -43,6 +43,11 @@ class ScannerConfig:
     misplacement: rigid misplacement of the part in the fixture, (rx, ry, rz) rotation vector in degrees then
         (tx, ty, tz) translation in mm, about the skin centroid in part axes.
     smooth: scan the Phong-smoothed displaced skin instead of its flat facets.
+    view_center: where a partial view aims, as fractions (-1..1) of the skin's half extents along its two principal
+        axes ((0, 0): the centroid, the whole-part view).
+    view_tilt_deg: the view direction tilted from the mean skin normal about the skin's first and second principal
+        axes (a robot looking at the part from the side).
+    fov_deg: full angle of a square field of view (a partial view); None: the whole skin plus 8 %.
     """
 
     n_points: int = 1_000_000
@@ -60,6 +65,9 @@ class ScannerConfig:
     pose_error_mm: float = 5.0
     misplacement: tuple[float, float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     smooth: bool = True
+    view_center: tuple[float, float] = (0.0, 0.0)
+    view_tilt_deg: tuple[float, float] = (0.0, 0.0)
+    fov_deg: float | None = None
 
 
 @dataclass(frozen=True)
@@ -98,8 +106,9 @@ def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return normals / np.where(length > 0, length, 1.0)
 
 
-def _random_rigid(rng: np.random.Generator, angle_deg: float, shift_mm: float) -> np.ndarray:
-    """A (4, 4) rigid transform with a random axis, rotation angle_deg and translation of length shift_mm."""
+def random_rigid(rng: np.random.Generator, angle_deg: float, shift_mm: float) -> np.ndarray:
+    """A (4, 4) rigid transform with a random axis, rotation angle_deg and translation of length shift_mm (a pose
+    error: ``pose @ random_rigid(...)`` turns and shifts the pose about its own origin)."""
     axis = rng.normal(size=3)
     direction = rng.normal(size=3)
     transform = np.eye(4)
@@ -208,13 +217,17 @@ def synthesize_scan(
     world = displaced @ misplacement[:3, :3].T + misplacement[:3, 3]
     world_normals = turned @ misplacement[:3, :3].T
 
-    center, axes, _ = _part_frame(skin)
-    # Nominal scanner pose: camera above the centroid looking down the mean normal; x_part = R x_cam + position.
-    cam_rotation = np.column_stack([axes[0], -axes[1], -axes[2]])
+    center, axes, half = _part_frame(skin)
+    # Nominal scanner pose: camera above the aim point (the centroid for a whole-part view) looking down the mean
+    # normal, tilted for a partial view; x_part = R x_cam + position.
+    aim = center + cfg.view_center[0] * half[0] * axes[0] + cfg.view_center[1] * half[1] * axes[1]
+    tilt = rotation_from_vector(np.radians(cfg.view_tilt_deg[0]) * axes[0] + np.radians(cfg.view_tilt_deg[1]) * axes[1])
+    view_axes = axes @ tilt.T  # rows e1, e2, n turned by the tilt
+    cam_rotation = np.column_stack([view_axes[0], -view_axes[1], -view_axes[2]])
     nominal_pose = np.eye(4)
     nominal_pose[:3, :3] = cam_rotation
-    nominal_pose[:3, 3] = center + cfg.standoff_mm * axes[2]
-    actual_pose = nominal_pose @ _random_rigid(rng, cfg.pose_error_deg, cfg.pose_error_mm)
+    nominal_pose[:3, 3] = aim + cfg.standoff_mm * view_axes[2]
+    actual_pose = nominal_pose @ random_rigid(rng, cfg.pose_error_deg, cfg.pose_error_mm)
 
     scene = o3d.t.geometry.RaycastingScene()
     skin_id = scene.add_triangles(world.astype(np.float32), skin.triangles.astype(np.uint32))
@@ -227,10 +240,14 @@ def synthesize_scan(
     origin = actual_pose[:3, 3]
     rotation = actual_pose[:3, :3]
     # Field of view: the skin's angular extent plus 8 % (the fixture around it shows up as background).
-    corners_local = (world - origin) @ rotation
-    tan = corners_local[:, :2] / corners_local[:, 2:3]
-    lo, hi = tan.min(axis=0), tan.max(axis=0)
-    lo, hi = lo - 0.08 * (hi - lo), hi + 0.08 * (hi - lo)
+    if cfg.fov_deg is None:
+        corners_local = (world - origin) @ rotation
+        tan = corners_local[:, :2] / corners_local[:, 2:3]
+        lo, hi = tan.min(axis=0), tan.max(axis=0)
+        lo, hi = lo - 0.08 * (hi - lo), hi + 0.08 * (hi - lo)
+    else:
+        # a partial view: a square field of view about the (actual) optical axis
+        lo, hi = np.full(2, -np.tan(np.radians(cfg.fov_deg) / 2)), np.full(2, np.tan(np.radians(cfg.fov_deg) / 2))
 
     def cast(nu: int, nv: int) -> tuple[np.ndarray, dict]:
         gu, gv = np.meshgrid(np.linspace(lo[0], hi[0], nu), np.linspace(lo[1], hi[1], nv), indexing="ij")

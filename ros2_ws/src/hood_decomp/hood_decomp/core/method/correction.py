@@ -6,16 +6,17 @@ model does not explain the part, an estimate lies outside its declared range, or
 model's, :mod:`hood_decomp.core.method.estimation`) is too large to act on. Which boundaries may still be applied is
 stated per boundary. A lifted unilateral
 boundary (a buffer that lost contact) has no observable commanded position: it gets no correction, and the reason
-says so.
+says so. A per-cycle maximum step caps each move (:func:`limit_steps`, the rest left for the next cycle), and the
+next inspection of the part tells whether the move happened (:func:`verify_move`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from hood_decomp.core.types import BoundaryCorrection, ParameterEstimate
+from hood_decomp.core.types import BoundaryCorrection, MoveVerification, ParameterEstimate
 
 
 @dataclass(frozen=True)
@@ -77,3 +78,58 @@ def plan_correction(estimate: ParameterEstimate, policy: CorrectionPolicy = Corr
         std=np.where(lifted, 0.0, std),
         applicable=applicable,
     )
+
+
+def limit_steps(correction: BoundaryCorrection, max_step_mm: np.ndarray) -> BoundaryCorrection:
+    """Cap each boundary's move to its per-cycle maximum step; the rest is left for the next cycle, and said so.
+
+    max_step_mm: (P,) mm, the largest move per cycle of each boundary of ``correction`` (0 or inf: no limit).
+    Returns the correction with the capped moves, ``remaining`` (P,) mm (correction minus capped move; the next
+    inspection estimates the rest afresh) and one note per capped boundary appended to ``reason``.
+    """
+    limit = np.asarray(max_step_mm, dtype=float)
+    if limit.shape != correction.corrections.shape or np.any(limit < 0):
+        raise ValueError(f"max_step_mm: expected {correction.corrections.shape} non-negative values, got {limit}")
+    limit = np.where(limit > 0, limit, np.inf)
+    capped = np.clip(correction.corrections, -limit, limit)
+    left = correction.corrections - capped
+    notes = [f"{name}: step limited to {move:+.3f} mm of {whole:+.3f} mm, {rest:+.3f} mm left for the next cycle"
+             for name, move, whole, rest in zip(correction.names, capped, correction.corrections, left, strict=True)
+             if rest != 0.0]
+    return replace(correction, corrections=capped, remaining=left,
+                   reason="; ".join(part for part in (correction.reason, *notes) if part))
+
+
+def verify_move(before: ParameterEstimate, sent: BoundaryCorrection, after: ParameterEstimate,
+                sigmas: float = 3.0, min_tolerance_mm: float = 0.005) -> MoveVerification:
+    """Whether the correction ``sent`` after the estimate ``before`` happened, judged from the estimate ``after`` of
+    the next inspection of the same part.
+
+    A boundary was commanded when its correction was applicable and non-zero (the robot applies those). Measured
+    change = after - before; its std combines both estimates' stds (independent scans). With the tolerance
+    t = max(sigmas * std, min_tolerance_mm) (the std of a noise-free field is 0; the robot's repeatability is not):
+    ACHIEVED when |measured - predicted| <= t; FAILED when no move was measured (|measured| <= t) or it went the
+    wrong way; PARTIAL otherwise (it moved, short of or past the prediction: slipped). The summary names every
+    FAILED and PARTIAL boundary with the fraction achieved.
+    """
+    if before.names != after.names or sent.names != before.names:
+        raise ValueError(f"verify_move: boundaries differ: {before.names}, {sent.names}, {after.names}")
+    applicable = np.ones(len(sent.names), bool) if sent.applicable is None else np.asarray(sent.applicable, bool)
+    predicted = np.where(applicable, sent.corrections, 0.0)
+    measured = after.values - before.values
+    std = np.hypot(before.std, after.std)
+    tolerance = np.maximum(sigmas * std, min_tolerance_mm)
+    commanded = predicted != 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        fraction = np.where(commanded, measured / np.where(commanded, predicted, 1.0), np.nan)
+    moved_right_way = (np.abs(measured) > tolerance) & (np.sign(measured) == np.sign(predicted))
+    outcome = np.select(
+        [~commanded, np.abs(measured - predicted) <= tolerance, moved_right_way],
+        [MoveVerification.NOT_COMMANDED, MoveVerification.ACHIEVED, MoveVerification.PARTIAL],
+        MoveVerification.FAILED)
+    named = [f"{name}: {100 * share + 0.0:.0f} % of {move:+.3f} mm ({MoveVerification.OUTCOMES[code]})"
+             for name, share, move, code in zip(sent.names, fraction, predicted, outcome, strict=True)
+             if code in (MoveVerification.PARTIAL, MoveVerification.FAILED)]
+    return MoveVerification(model_id=after.model_id, names=tuple(sent.names), predicted=predicted,
+                            measured=measured, std=std, fraction=fraction, outcome=outcome.astype(np.uint8),
+                            tolerance=tolerance, summary="; ".join(named))

@@ -1,0 +1,215 @@
+"""The InspectPart action against a client written here in plain rclpy, with the real scan and estimator nodes as
+processes (Fast DDS, loopback): goal, feedback, result, cancel, ClosePart, timeout with fewer views than expected,
+and a view without a pose refused by name. Truth: the FE state the synthetic scanner scanned and the scanner's true
+poses (sent on scan/pose, and once as a static transform on /tf_static)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from tests.required import require_import
+
+require_import("hood_decomp_msgs.action", "colcon build", "run inside scripts/with-env after scripts/setup.sh")
+from action_msgs.msg import GoalStatus
+from builtin_interfaces.msg import Duration, Time
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import TransformStamped
+from hood_decomp_msgs.action import InspectPart
+from hood_decomp_msgs.msg import DisplacementField
+from hood_decomp_msgs.srv import ClosePart
+from rclpy.action import ActionClient
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+from tf2_msgs.msg import TFMessage
+
+from hood_decomp.ros import messages
+from hood_decomp.ros.launcher import start_nodes, stop_nodes
+from hood_decomp.ros.participant import Participant
+from hood_decomp.ros.poses import matrix_quaternion
+from hood_decomp.ros.scan_bag import scan_cloud
+from tests.multiview import scanned_part
+
+pytestmark = pytest.mark.ros
+
+TRUTH = {"HINGE_Y": -0.3, "LOCK_L": 0.4}
+
+
+@pytest.fixture(scope="module")
+def cell(coarse_hood, tmp_path_factory):
+    """The scan and estimator nodes, a plain rclpy client, three partial views of one part (with markers)."""
+    member, scans = scanned_part(coarse_hood, TRUTH, 30, marker_noise_mm=0.01, n_holes=0)
+    directory = tmp_path_factory.mktemp("inspection")
+    _, markers = messages.calibration_to_params(np.eye(4), {int(i): p for s in scans
+                                                            for i, p in zip(s.marker_ids, s.markers_nominal,
+                                                                            strict=True)})
+    params = directory / "params.yaml"
+    params.write_text("hood_decomp_scan:\n  ros__parameters:\n"
+                      f"    marker_positions: {json.dumps(markers)}\n    marker_field: marker_id\n"
+                      "    result_timeout_s: 60.0\n")
+    processes = start_nodes(coarse_hood.bases_path, params_file=params, nodes=("scan_node", "estimator_node"),
+                            log_dir=directory)
+    peer = Participant("inspection_client")
+    client = ActionClient(peer.node, InspectPart, "hood_decomp/inspect_part")
+    close = peer.node.create_client(ClosePart, "hood_decomp/close_part")
+    peer.publisher("scan/points", PointCloud2)
+    peer.publisher("scan/pose", TransformStamped)
+    latched = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    peer.publishers["/tf_static"] = peer.node.create_publisher(TFMessage, "/tf_static", latched)
+    fields = peer.collect("hood_decomp/displacement", DisplacementField)
+    peer.diagnostics = peer.collect("/diagnostics", DiagnosticArray)
+    ready = peer.connected(["scan/points", "scan/pose"], [], 90.0) and peer.wait(
+        lambda: client.server_is_ready() and close.service_is_ready()
+        and peer.node.count_subscribers("hood_decomp/displacement") >= 2, 90.0)
+    yield peer, client, close, scans, member, fields, ready, directory
+    client.destroy()
+    peer.close()
+    stop_nodes(processes)
+
+
+def _transform(parent: str, child: str, pose_mm: np.ndarray, stamp: Time) -> TransformStamped:
+    item = TransformStamped()
+    item.header.frame_id, item.child_frame_id, item.header.stamp = parent, child, stamp
+    t, r = item.transform.translation, item.transform.rotation
+    t.x, t.y, t.z = (float(v) for v in pose_mm[:3, 3] * messages.M_PER_MM)
+    r.x, r.y, r.z, r.w = (float(v) for v in matrix_quaternion(pose_mm[:3, :3]))
+    return item
+
+
+def _send_view(peer, scan, frame: str, sec: int, pose: str = "topic") -> None:
+    """A cloud in frame ``frame`` stamped ``sec``; its true pose on scan/pose ("topic"), as a static transform on
+    /tf_static ("tf"), or nowhere ("none")."""
+    cloud = scan_cloud(scan, sec * 1_000_000_000)
+    cloud.header.frame_id = frame
+    if pose == "topic":
+        peer.publishers["scan/pose"].publish(_transform("hood", frame, scan.true_transform, cloud.header.stamp))
+    elif pose == "tf":
+        peer.publishers["/tf_static"].publish(TFMessage(transforms=[
+            _transform("hood", frame, scan.true_transform, cloud.header.stamp)]))
+    peer.wait(lambda: False, 0.3)  # the pose first: the node looks it up when the cloud comes
+    peer.publishers["scan/points"].publish(cloud)
+
+
+def _goal(peer, client, part_id: str, views: int, timeout_s: float = 0.0):
+    feedback = []
+    goal = InspectPart.Goal(part_id=part_id, expected_views=views,
+                            timeout=Duration(sec=int(timeout_s), nanosec=int((timeout_s % 1) * 1e9)))
+    sent = client.send_goal_async(goal, feedback_callback=lambda m: feedback.append(m.feedback))
+    assert peer.wait(sent.done, 30.0)
+    handle = sent.result()
+    assert handle.accepted
+    return handle, feedback
+
+
+def _result(peer, handle, seconds: float = 120.0):
+    future = handle.get_result_async()
+    assert peer.wait(future.done, seconds), "no result"
+    return future.result()
+
+
+def test_goal_feedback_and_result_of_a_three_view_part(cell, coarse_hood):
+    """Fails if the action does not fuse the three views (coverage above every single view's, feedback after each
+    view with growing counts), if a view's pose from scan/pose or from TF is not used (the views would not overlap the
+    part) or not reported, if the result's boundary state is not the estimator's answer for this part id, or if the
+    estimate misses the scanned truth by more than 4 stated stds (or 0.05 mm)."""
+    peer, client, _, scans, member, fields, ready, logs = cell
+    assert ready, f"nodes or action server did not come up; logs in {logs}"
+    handle, feedback = _goal(peer, client, "hood-0001", 3)
+    _send_view(peer, scans[0], "camera_a", 101)
+    _send_view(peer, scans[1], "camera_b", 102)
+    _send_view(peer, scans[2], "camera_c", 103, pose="tf")
+    response = _result(peer, handle)
+    result = response.result
+    assert response.status == GoalStatus.STATUS_SUCCEEDED and result.success, result.message
+    assert result.part_id == "hood-0001" and result.views_used == 3 and not result.timed_out
+    assert [f.views_received for f in feedback] == [1, 2, 3]
+    assert feedback[0].coverage < feedback[1].coverage < feedback[2].coverage == pytest.approx(result.coverage)
+    assert "pose from scan/pose" in result.view_reports[0] and "pose from tf" in result.view_reports[2]
+    assert result.coverage > 0.8 and feedback[0].coverage < 0.7
+    state = result.boundary_state
+    assert state.part_id == "hood-0001" and result.boundary_correction.part_id == "hood-0001"
+    assert any(f.part_id == "hood-0001" for f in fields)
+    truth = dict(zip(coarse_hood.reduced.names, member.effective[0], strict=True))
+    for name, value, std, lifted in zip(state.names, state.values, state.std_dev, state.lifted, strict=True):
+        if lifted:
+            continue
+        error = abs(value * 1000 - truth[name])
+        assert error <= max(4 * std * 1000, 0.005) and error < 0.05, (name, value * 1000, truth[name], std * 1000)
+
+
+def test_timeout_with_fewer_views_and_a_view_without_pose(cell):
+    """Fails if a view without a pose from any source is fused instead of refused by name, if the timeout does not
+    close the part with the views it has and a result that says so (timed_out, 1 of 3 views, the refused one
+    counted), or if the estimator's refusal of that field (too little coverage) is not in the result."""
+    peer, client, _, scans, _, _, ready, _ = cell
+    assert ready
+    handle, feedback = _goal(peer, client, "hood-0002", 3, timeout_s=8.0)
+    _send_view(peer, scans[0], "camera_d", 201)
+    _send_view(peer, scans[1], "camera_nowhere", 202, pose="none")
+    response = _result(peer, handle)
+    result = response.result
+    assert result.timed_out and result.views_used == 1 and result.views_refused == 1, result.message
+    assert result.message.startswith("timeout: 1 of 3 view(s) fused")
+    # one partial view covers about half the skin: the estimator refuses it, and the result says why at once
+    assert not result.success and "the estimator refused it" in result.message, result.message
+    refused = [f.last_view for f in feedback if f.views_refused]
+    assert refused and "camera_nowhere" in refused[0] and "no pose" in refused[0], refused
+
+
+def test_cancel_and_close_part(cell):
+    """Fails if a canceled inspection does not end CANCELED, or if ClosePart does not close an open part early with
+    the views received so far (and refuses when no part is open)."""
+    peer, client, close, scans, _, _, ready, _ = cell
+    assert ready
+    handle, _ = _goal(peer, client, "hood-0003", 3)
+    cancel = handle.cancel_goal_async()
+    assert peer.wait(cancel.done, 30.0)
+    response = _result(peer, handle)
+    assert response.status == GoalStatus.STATUS_CANCELED and response.result.message.startswith("canceled")
+
+    handle, feedback = _goal(peer, client, "hood-0004", 5)
+    _send_view(peer, scans[0], "camera_e", 401)
+    _send_view(peer, scans[1], "camera_f", 402)
+    assert peer.wait(lambda: len(feedback) >= 2, 60.0)
+    answer = close.call_async(ClosePart.Request(part_id="hood-0004"))
+    assert peer.wait(answer.done, 30.0) and answer.result().success, answer.result().message
+    result = _result(peer, handle).result
+    assert result.success and result.views_used == 2 and result.message.startswith("closed by ClosePart"), \
+        result.message
+    again = close.call_async(ClosePart.Request())
+    assert peer.wait(again.done, 30.0) and not again.result().success
+
+
+def _diagnostic(peer, stamp_sec: int) -> dict[str, str] | None:
+    """Key-values of the scan node's diagnostic about the cloud stamped ``stamp_sec``."""
+    for array in peer.diagnostics:
+        for status in array.status:
+            values = {kv.key: kv.value for kv in status.values}
+            if status.name.endswith("_scan") and values.get("stamp") == f"{stamp_sec}.000000000":
+                return values
+    return None
+
+
+def test_a_lone_cloud_outside_an_inspection_uses_its_pose_and_says_which(cell):
+    """Fails if, without a goal, a cloud is not one field of its own (part id from its stamp) placed by its pose on
+    scan/pose (without the pose the partial view in the scanner frame would not overlap the part and be refused), or
+    if /diagnostics does not name the pose source, for a lone cloud and for an inspection's view."""
+    peer, _, _, scans, _, fields, ready, _ = cell
+    assert ready
+    _send_view(peer, scans[1], "camera_lone", 501)
+    assert peer.wait(lambda: any(f.part_id == "stamp-501.000000000" for f in fields), 60.0)
+    assert peer.wait(lambda: _diagnostic(peer, 501) is not None, 30.0)
+    assert _diagnostic(peer, 501)["pose_source"].startswith("pose from scan/pose"), _diagnostic(peer, 501)
+    assert _diagnostic(peer, 103)["pose_source"] == "tf"  # the first test's third view, inside its inspection
+
+
+def test_a_goal_for_a_variant_not_served_is_rejected(cell):
+    """Fails if the node accepts an inspection of a part variant whose bases it does not have (its views would be
+    fused and estimated on another part's model)."""
+    peer, client, _, _, _, _, ready, _ = cell
+    assert ready
+    sent = client.send_goal_async(InspectPart.Goal(part_id="rhd-0001", variant="RHD", expected_views=1))
+    assert peer.wait(sent.done, 30.0)
+    assert not sent.result().accepted
