@@ -21,7 +21,7 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
 from hood_decomp.ros.launcher import start_nodes, stop_nodes
-from hood_decomp.ros.participant import Participant
+from hood_decomp.ros.participant import Participant, latest_heartbeat
 from hood_decomp.ros.pointcloud import xyz_to_cloud
 from tests.ros.test_nodes import errors
 
@@ -48,8 +48,11 @@ def test_best_effort_and_reliable_drivers_are_served(coarse_hood, tmp_path):
         diagnostics = peer.collect("/diagnostics", DiagnosticArray)
         best_effort = peer.node.create_publisher(PointCloud2, "scan/points", qos_profile_sensor_data)
         reliable = peer.publisher("scan/points", PointCloud2)
+        # matched on both sides: the node's heartbeat counts our two publishers (a best-effort subscription drops what
+        # comes from a publisher it has not matched yet, though the publisher already counts it)
         assert peer.wait(lambda: best_effort.get_subscription_count() >= 1 and reliable.get_subscription_count() >= 1
-                         and peer.node.count_publishers("hood_decomp/displacement") >= 1, 60.0), \
+                         and int(latest_heartbeat(diagnostics, "hood_decomp_scan").get("publishers /scan/points", 0))
+                         >= 2 and peer.node.count_publishers("hood_decomp/displacement") >= 1, 60.0), \
             "a publisher did not match the scan node's subscription"
         rng = np.random.default_rng(1)
         points_m = (coarse_hood.skin.points[rng.integers(0, coarse_hood.skin.n_nodes, POINTS)]

@@ -356,9 +356,14 @@ class HoodNode(LifecycleNode):
 
     # --- heartbeat ------------------------------------------------------------------------------------------------
     def heartbeat_values(self) -> dict[str, object]:
-        """Key-values of the heartbeat: the state and, per output topic, its matched subscriptions."""
-        return {"state": self.state, **{f"subscribers {entity.topic_name}": entity.get_subscription_count()
-                                        for entity in self._outputs if isinstance(entity, LifecyclePublisher)}}
+        """Key-values of the heartbeat: the state, per output topic its matched subscriptions and per input topic its
+        matched publishers (DDS matches each pair on both sides; a sender that counts our subscription may not be
+        counted by it yet, and a best-effort subscription loses what comes before)."""
+        return {"state": self.state,
+                **{f"subscribers {entity.topic_name}": entity.get_subscription_count()
+                   for entity in self._outputs if isinstance(entity, LifecyclePublisher)},
+                **{f"publishers {entity.topic_name}": entity.get_publisher_count()
+                   for entity in self._inputs if isinstance(entity, Subscription)}}
 
     def heartbeat(self) -> None:
         """Once a second in every state, so an aggregator never shows the node STALE between parts."""
