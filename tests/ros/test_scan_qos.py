@@ -33,8 +33,9 @@ POINTS = 1_000_000
 
 
 def test_best_effort_and_reliable_drivers_are_served(coarse_hood, tmp_path):
-    """Fails if the scan subscription is reliable (a best-effort publisher then never matches: the issue), if a
-    reliable driver no longer connects, or if a 1M-point best-effort cloud is lost on loopback (stock Fast DDS
+    """Fails if the scan subscription is reliable only (a best-effort publisher then never matches: the issue), if a
+    reliable driver's cloud is lost or taken twice (it matches both of the node's subscriptions), or if a 1M-point
+    best-effort cloud is lost on loopback (stock Fast DDS
     without the shipped shared-memory profile: 0 of 5 delivered, ros2-wheels.md). Each cloud is sent when the previous
     one was answered, so a loss is a transport loss, not a full queue. Also fails if the node started with the shipped
     parameter file does not come up (start_nodes raises), as with a file that overrides --bases."""
@@ -67,6 +68,10 @@ def test_best_effort_and_reliable_drivers_are_served(coarse_hood, tmp_path):
                 answered.append(sec)
         assert not errors(diagnostics), errors(diagnostics)
         assert answered == list(range(1, BEST_EFFORT_CLOUDS + 2)), answered
+        # the reliable cloud reached both subscriptions and was taken once, and no copy was counted as not received
+        peer.wait(lambda: False, 1.5)
+        assert sorted(f.header.stamp.sec for f in fields) == answered
+        assert latest_heartbeat(diagnostics, "hood_decomp_scan")["dropped"] == "0"
         assert processes[0].poll() is None
     finally:
         peer.close()

@@ -3,8 +3,8 @@ hood_decomp/displacement_cloud (the skin with a normal-displacement channel, met
 
 The cloud is read with one buffer copy (hood_decomp.ros.messages / pointcloud), registered to the nominal part and
 turned into one signed normal displacement per visible skin node (hood_decomp.core.scan.scan_field). Clouds larger
-than ``max_points`` are refused before any copy. The subscription is best effort (it matches reliable and
-best-effort scanner drivers); the field is published transient-local (the latest result).
+than ``max_points`` are refused before any copy. Reliable and best-effort scanner drivers both connect (a reliable
+and a best-effort subscription, each cloud taken once); the field is published transient-local (the latest result).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from sensor_msgs.msg import PointCloud2
 
 from hood_decomp.errors import ScanError
 from hood_decomp.ros import messages
-from hood_decomp.ros.node_common import HoodNode, declare, declare_list, scan_qos, spin
+from hood_decomp.ros.node_common import HoodNode, declare, declare_list, spin
 
 
 class ScanNode(HoodNode):
@@ -56,7 +56,8 @@ class ScanNode(HoodNode):
         self.cloud_pub = self.publisher(PointCloud2, "hood_decomp/displacement_cloud")
 
     def activate_node(self) -> None:
-        self.subscription(PointCloud2, "scan/points", self.guarded("scan", self.on_cloud), scan_qos(self.depth))
+        # reliable and best-effort scanner drivers both connect; each cloud is taken once
+        self.subscription(PointCloud2, "scan/points", self.guarded("scan", self.on_cloud), any_reliability=True)
 
     def on_cloud(self, msg: PointCloud2) -> dict[str, object]:
         from hood_decomp.core.scan.scan_field import field_from_scan
