@@ -21,7 +21,7 @@ from hood_decomp.core.types import DisplacementField as CoreField
 from hood_decomp.ros import messages
 from hood_decomp.ros.launcher import start_nodes, stop_nodes
 from hood_decomp.ros.node_common import topic_qos
-from hood_decomp.ros.participant import Participant
+from hood_decomp.ros.participant import Participant, latest_heartbeat
 
 pytestmark = pytest.mark.ros
 
@@ -179,6 +179,9 @@ def test_scan_node_refuses_oversized_and_empty_clouds(coarse_hood, tmp_path):
         fields = peer.collect("hood_decomp/displacement", DisplacementField)
         publisher = peer.publisher("scan/points", PointCloud2)
         assert peer.connected(["scan/points"], ["hood_decomp/displacement"], 60.0)
+        # the best-effort scan subscription must know our publisher too, or it drops the first cloud
+        assert peer.wait(lambda: int(latest_heartbeat(diagnostics, "hood_decomp_scan").get("publishers /scan/points",
+                                                                                         0)) >= 1, 30.0)
         rng = np.random.default_rng(0)
         points_m = (coarse_hood.skin.points[rng.integers(0, coarse_hood.skin.n_nodes, 40_000)]
                     + rng.normal(0.0, 0.01, (40_000, 3))) / 1000.0

@@ -21,7 +21,7 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
 from hood_decomp.ros.launcher import start_nodes, stop_nodes
-from hood_decomp.ros.participant import Participant
+from hood_decomp.ros.participant import Participant, latest_heartbeat
 from hood_decomp.ros.pointcloud import xyz_to_cloud
 from tests.ros.test_nodes import errors
 
@@ -33,8 +33,9 @@ POINTS = 1_000_000
 
 
 def test_best_effort_and_reliable_drivers_are_served(coarse_hood, tmp_path):
-    """Fails if the scan subscription is reliable (a best-effort publisher then never matches: the issue), if a
-    reliable driver no longer connects, or if a 1M-point best-effort cloud is lost on loopback (stock Fast DDS
+    """Fails if the scan subscription is reliable only (a best-effort publisher then never matches: the issue), if a
+    reliable driver's cloud is lost or taken twice (it matches both of the node's subscriptions), or if a 1M-point
+    best-effort cloud is lost on loopback (stock Fast DDS
     without the shipped shared-memory profile: 0 of 5 delivered, ros2-wheels.md). Each cloud is sent when the previous
     one was answered, so a loss is a transport loss, not a full queue. Also fails if the node started with the shipped
     parameter file does not come up (start_nodes raises), as with a file that overrides --bases."""
@@ -48,8 +49,11 @@ def test_best_effort_and_reliable_drivers_are_served(coarse_hood, tmp_path):
         diagnostics = peer.collect("/diagnostics", DiagnosticArray)
         best_effort = peer.node.create_publisher(PointCloud2, "scan/points", qos_profile_sensor_data)
         reliable = peer.publisher("scan/points", PointCloud2)
+        # matched on both sides: the node's heartbeat counts our two publishers (a best-effort subscription drops what
+        # comes from a publisher it has not matched yet, though the publisher already counts it)
         assert peer.wait(lambda: best_effort.get_subscription_count() >= 1 and reliable.get_subscription_count() >= 1
-                         and peer.node.count_publishers("hood_decomp/displacement") >= 1, 60.0), \
+                         and int(latest_heartbeat(diagnostics, "hood_decomp_scan").get("publishers /scan/points", 0))
+                         >= 2 and peer.node.count_publishers("hood_decomp/displacement") >= 1, 60.0), \
             "a publisher did not match the scan node's subscription"
         rng = np.random.default_rng(1)
         points_m = (coarse_hood.skin.points[rng.integers(0, coarse_hood.skin.n_nodes, POINTS)]
@@ -64,6 +68,10 @@ def test_best_effort_and_reliable_drivers_are_served(coarse_hood, tmp_path):
                 answered.append(sec)
         assert not errors(diagnostics), errors(diagnostics)
         assert answered == list(range(1, BEST_EFFORT_CLOUDS + 2)), answered
+        # the reliable cloud reached both subscriptions and was taken once, and no copy was counted as not received
+        peer.wait(lambda: False, 1.5)
+        assert sorted(f.header.stamp.sec for f in fields) == answered
+        assert latest_heartbeat(diagnostics, "hood_decomp_scan")["dropped"] == "0"
         assert processes[0].poll() is None
     finally:
         peer.close()

@@ -79,5 +79,5 @@ def sidecar_params(bag: pathlib.Path, directory: pathlib.Path) -> pathlib.Path |
         return None
     try:
         return write_node_params(directory / "sidecar_params.yaml", sidecar)
-    except (KeyError, TypeError, ValueError) as error:
+    except (AttributeError, KeyError, TypeError, ValueError) as error:
         raise BagError(f"sidecar of {bag}: the scanner pose or marker positions are malformed ({error})") from error

@@ -17,6 +17,7 @@ import os
 import pathlib
 import socket
 import traceback
+from collections import OrderedDict
 from collections.abc import Callable, MutableMapping
 from typing import Any
 
@@ -38,6 +39,7 @@ from hood_decomp.errors import HoodDecompError
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 TRANSIENT_LOCAL, VOLATILE = DurabilityPolicy.TRANSIENT_LOCAL, DurabilityPolicy.VOLATILE
 HEARTBEAT_S = 1.0
+TAKEN_REMEMBERED = 1000  # (publisher, sequence) pairs kept to drop the second copy of a doubly subscribed message
 
 
 def declare(node: Node, name: str, default: Any, description: str,
@@ -85,10 +87,10 @@ def topic_qos(depth: int, durability: DurabilityPolicy = VOLATILE) -> QoSProfile
 
 
 def scan_qos(depth: int) -> QoSProfile:
-    """The scan subscription: best effort, so it matches a best-effort scanner driver (the common sensor-data QoS)
-    and a reliable one alike. On one host, with the Fast DDS profile shipped in config/fastdds.xml (a 64 MB
-    shared-memory transport), best effort loses no 1M-point cloud; across hosts over UDP set
-    ``qos_overrides./scan/points.subscription.reliability: reliable`` (the driver must then publish reliably)."""
+    """The scan node's second subscription of scan/points: best effort, so a best-effort scanner driver (the common
+    sensor-data QoS) connects (a reliable subscription does not match it). On one host, with the Fast DDS profile
+    shipped in config/fastdds.xml (a 64 MB shared-memory transport), best effort loses no 1M-point cloud; across
+    hosts over UDP one lost fragment loses a cloud."""
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.BEST_EFFORT)
 
 
@@ -356,9 +358,14 @@ class HoodNode(LifecycleNode):
 
     # --- heartbeat ------------------------------------------------------------------------------------------------
     def heartbeat_values(self) -> dict[str, object]:
-        """Key-values of the heartbeat: the state and, per output topic, its matched subscriptions."""
-        return {"state": self.state, **{f"subscribers {entity.topic_name}": entity.get_subscription_count()
-                                        for entity in self._outputs if isinstance(entity, LifecyclePublisher)}}
+        """Key-values of the heartbeat: the state, per output topic its matched subscriptions and per input topic its
+        matched publishers (DDS matches each pair on both sides; a sender that counts our subscription may not be
+        counted by it yet, and a best-effort subscription loses what comes before)."""
+        return {"state": self.state,
+                **{f"subscribers {entity.topic_name}": entity.get_subscription_count()
+                   for entity in self._outputs if isinstance(entity, LifecyclePublisher)},
+                **{f"publishers {entity.topic_name}": entity.get_publisher_count()
+                   for entity in self._inputs if isinstance(entity, Subscription)}}
 
     def heartbeat(self) -> None:
         """Once a second in every state, so an aggregator never shows the node STALE between parts."""
@@ -424,19 +431,33 @@ class HoodNode(LifecycleNode):
         return timer
 
     def subscription(self, cls: type, topic: str, callback: Callable[[Any], None],
-                     qos: QoSProfile | None = None) -> Any:
-        """Subscribe with the project's QoS (or ``qos``), for as long as the node is active. Publishers number their
-        messages from 1, so a gap in a publisher's sequence numbers means messages this node never took: the
-        keep-last queue (``queue_depth``) or the publisher's own overflowed while the node was busy, or (before the
-        first message seen from a publisher) they were published before this node subscribed. A WARN diagnostic
-        says how many, with the stamp of the message after the gap."""
+                     any_reliability: bool = False) -> list[Any]:
+        """Subscribe with the project's QoS, for as long as the node is active. Publishers number their messages
+        from 1, so a gap in a publisher's sequence numbers means messages this node never took: the keep-last queue
+        (``queue_depth``) or the publisher's own overflowed while the node was busy, or (before the first message
+        seen from a publisher) they were published before this node subscribed. A WARN diagnostic says how many,
+        with the stamp of the message after the gap.
+
+        ``any_reliability``: a second, best-effort subscription of the topic (:func:`scan_qos`, its overrides under
+        the id "best_effort": ``qos_overrides.<topic>.subscription_best_effort.<policy>``), so best-effort publishers
+        connect too. A reliable publisher matches both and each message is taken once (by publisher and sequence
+        number; the second copy is dropped): reliable delivery stays reliable. One best-effort subscription alone
+        lost the first two 21 MB clouds of every reliable publisher (Fast DDS 3.2.3, measured)."""
         last: dict[bytes, int] = {}
+        taken: OrderedDict[tuple[bytes, int], None] = OrderedDict()
 
         def counted(message: Any, info: dict[str, Any]) -> None:
             sequence = info.get("publication_sequence_number")
             if sequence:  # 0 / None: the middleware does not number its messages
                 publisher = bytes(info["publisher_gid"]["data"])
+                if (publisher, sequence) in taken:  # the other subscription's copy
+                    return
+                taken[(publisher, sequence)] = None
+                while len(taken) > TAKEN_REMEMBERED:
+                    taken.popitem(last=False)
                 previous = last.get(publisher)
+                if previous is not None and sequence < previous:  # a late copy of one counted as not received
+                    self.diagnostics.dropped -= 1
                 gap = sequence - (previous or 0) - 1
                 last[publisher] = max(sequence, previous or 0)
                 if gap > 0:
@@ -447,10 +468,13 @@ class HoodNode(LifecycleNode):
                                             message_stamp(message), dropped_now=gap)
             callback(message)
 
-        subscription = self.create_subscription(cls, topic, counted, qos or topic_qos(self.depth),
-                                                qos_overriding_options=OVERRIDABLE)
-        self._inputs.append(subscription)
-        return subscription
+        profiles = [(topic_qos(self.depth), OVERRIDABLE)]
+        if any_reliability:
+            profiles.append((scan_qos(self.depth), QoSOverridingOptions.with_default_policies(entity_id="best_effort")))
+        subscriptions = [self.create_subscription(cls, topic, counted, qos, qos_overriding_options=options)
+                         for qos, options in profiles]
+        self._inputs.extend(subscriptions)
+        return subscriptions
 
     def guarded(self, what: str, handler: Callable[[Any], dict[str, object] | None]) -> Callable[[Any], None]:
         return guarded(self, self.diagnostics, what, handler)

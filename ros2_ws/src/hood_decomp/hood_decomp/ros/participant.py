@@ -7,7 +7,7 @@ single-threaded executor that runs only while :meth:`Participant.wait` waits.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import rclpy
@@ -15,6 +15,18 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile
 
 from hood_decomp.ros.node_common import topic_qos, use_fastdds_profile
+
+
+def latest_heartbeat(diagnostics: Sequence[Any], node_name: str) -> dict[str, str]:
+    """The key-values of the newest heartbeat of the hood_decomp node ``node_name`` (e.g. "hood_decomp_scan") among
+    collected diagnostic_msgs/DiagnosticArray messages; {} before the first. Its ``publishers <topic>`` values say how
+    many publishers the node's subscription has matched: a best-effort subscription drops what comes before."""
+    for array in reversed(diagnostics):
+        for status in array.status:
+            values = {kv.key: kv.value for kv in status.values}
+            if status.name == f"hood_decomp/{node_name}" and "heartbeat" in values:
+                return values
+    return {}
 
 
 class Participant:

@@ -54,15 +54,20 @@ def _stamp_key(stamp: object) -> str:
 
 def _all_matched(peer: Participant, heartbeats: dict[str, dict[str, str]]) -> bool:
     """Whether each publisher of the nodes' internal topics has matched every subscription of that topic that this
-    participant has discovered, by the nodes' own word: each heartbeat carries ``subscribers <topic>``, the matched
-    subscriptions of the node's publisher there (matched counts only grow while the nodes run)."""
+    participant has discovered, and the scan subscription has matched our scan publisher, by the nodes' own word:
+    each heartbeat carries ``subscribers <topic>`` per output and ``publishers <topic>`` per input (matched counts
+    only grow while the nodes run). DDS matches each pair on both sides: our publisher counting the scan node's
+    subscription does not mean that the best-effort subscription knows our publisher, and until then it drops what
+    comes (a 21 MB first scan was lost that way)."""
     for topic in INTERNAL:
         key = f"subscribers /{topic}"
         reports = [int(values[key]) for values in heartbeats.values() if key in values]
         wanted = peer.node.count_subscribers(topic)
         if len(reports) < peer.node.count_publishers(topic) or any(count < wanted for count in reports):
             return False
-    return True
+    key = f"publishers /{SCAN_TOPIC}"
+    reports = [int(values[key]) for values in heartbeats.values() if key in values]
+    return bool(reports) and all(count >= peer.node.count_publishers(SCAN_TOPIC) for count in reports)
 
 
 @dataclass

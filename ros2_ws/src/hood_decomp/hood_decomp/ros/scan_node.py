@@ -6,8 +6,8 @@ the scanner_pose parameter: hood_decomp.ros.poses; markers refine it), registere
 one signed normal displacement per visible skin node (hood_decomp.core.scan.scan_field). Clouds larger than
 ``max_points`` are refused before any copy. While an InspectPart goal is open, clouds are the views of its part
 (hood_decomp.ros.inspection), with the bases of the goal's variant; otherwise one cloud gives one field of the default
-bases. The subscription is best effort (it matches reliable and best-effort scanner drivers); the field is published
-transient-local (the latest result).
+bases. Reliable and best-effort scanner drivers both connect (a reliable and a best-effort subscription, each cloud
+taken once); the field is published transient-local (the latest result).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from hood_decomp.core.types import DisplacementField as CoreField
 from hood_decomp.errors import ScanError
 from hood_decomp.ros import messages
 from hood_decomp.ros.inspection import InspectionServer
-from hood_decomp.ros.node_common import HoodNode, declare, declare_list, scan_qos, spin
+from hood_decomp.ros.node_common import HoodNode, declare, declare_list, spin
 from hood_decomp.ros.poses import PoseSources, PoseTopic, tf_lookup
 
 
@@ -88,7 +88,8 @@ class ScanNode(HoodNode):
         self.cloud_pub = self.publisher(PointCloud2, "hood_decomp/displacement_cloud")
 
     def activate_node(self) -> None:
-        self.subscription(PointCloud2, "scan/points", self.guarded("scan", self.on_cloud), scan_qos(self.depth))
+        # reliable and best-effort scanner drivers both connect; each cloud is taken once
+        self.subscription(PointCloud2, "scan/points", self.guarded("scan", self.on_cloud), any_reliability=True)
 
     def skin_and_estimator(self, variant: str) -> tuple[Any, Any]:
         """The skin and the prepared scan-field estimator of a part variant ("" = the default bases)."""
