@@ -27,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hood_decomp.core.fe.solver import build_solver, physical_responses
+    from hood_decomp.core.fe.solver import build_solver, physical_responses, thickness_sensitivities
     from hood_decomp.core.loop.calibration import CalibrationEntry, PhysicalResponses, calibrate, rebuild_bases
     from hood_decomp.errors import CalibrationError
     from hood_decomp.io.bases import bases_id, load_bases, save_bases
@@ -43,9 +43,10 @@ def run(args: argparse.Namespace) -> int:
         raise CalibrationError(f"model {args.model} (model_id {model.model_id}) is not the bases' ({bases.model_id})")
     read = read_entries(args.cal, bases.skin, args.min_coverage)
     entries = [CalibrationEntry(e.name, e.field, e.setting_vector(bases.names)) for e in read]
-    logger.info("calibrate: %d entries, factorising the model once for its gas-spring and thermal responses",
-                len(entries))
-    physics = PhysicalResponses.from_solver(physical_responses(build_solver(model)))
+    logger.info("calibrate: %d entries; the model's gas-spring, thermal and thickness responses (one factorisation "
+                "and one per sheet group)", len(entries))
+    physics = PhysicalResponses.from_solver(physical_responses(build_solver(model)),
+                                            thickness_sensitivities(model, bases.reduced_model))
     reduced, calibration = calibrate(bases.reduced_model, physics, entries, bases.skin.normals)
     record = calibration.record()
     record["settings_mm"] = {e.name: e.setting for e in read}

@@ -9,11 +9,13 @@ same mesh, with perturbed physics:
 - per *part*: thickness x (1 +- 0.5 %) on top of the family's (what no calibration can learn: the floor).
 
 CalculiX runs cost seconds each, so a family is not one CalculiX run per part: the unit responses (the load split
-into gravity and gas springs, one unit motion per bilateral parameter, one unit force per pad spring) are solved by
-CalculiX at three thickness scales and interpolated quadratically in the thickness scale (responses are smooth in
-it); Young's modulus scales every force response by 1/E exactly (the unit motions not at all); pad stiffness and
-preload enter the pad contact, which is solved exactly per part with the repository's contact solver on the
-CalculiX responses (the buffers are the only nonlinearity): that is what ``ensemble --solver calculix`` does too.
+into gravity and gas springs, one unit motion per bilateral parameter) are solved by CalculiX at three thickness
+scales and interpolated quadratically in the thickness scale (responses are smooth in it); the pad spring responses
+(most of the jobs) by CalculiX at the nominal thickness, moved to other thicknesses by the embedded solver's
+difference (a first-order mix: the part of the stand-in that is not pure CalculiX); Young's modulus scales every
+force response by 1/E exactly (the unit motions not at all); pad stiffness and preload enter the pad contact, which
+is solved exactly per part with the repository's contact solver on the CalculiX responses (the buffers are the only
+nonlinearity): that is what ``ensemble --solver calculix`` does too.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ import numpy as np
 from hood_decomp.core.fe.calculix import LoadCase, load_cases, run_cases
 from hood_decomp.core.fe.ensemble import solve_members
 from hood_decomp.core.fe.model import PartModel
-from hood_decomp.core.fe.solver import PAD_LATTICE, condense, force_boundary_loads, pad_springs
+from hood_decomp.core.fe.solver import PAD_LATTICE, build_solver, condense, force_boundary_loads, pad_springs
 from hood_decomp.core.types import ReducedModel
 from hood_decomp.errors import SolverError
 
@@ -49,8 +51,10 @@ def scaled_thickness(model: PartModel, scale: float) -> PartModel:
 def calculix_responses(model: PartModel, scales: tuple[float, ...] = THICKNESS_SCALES,
                        cache: Path | None = None, pad_lattice: int = PAD_LATTICE) -> dict[float, dict[str, np.ndarray]]:
     """CalculiX translations (n, 3) mm per thickness scale: "load" (gravity + gas springs), "gas" (gas springs
-    alone), "unit_<LABEL>" per bilateral parameter and "pad_<s>" per pad spring. ``cache``: an .npz read when present
-    (and its model_id matches) and written after the runs."""
+    alone), "unit_<LABEL>" per bilateral parameter at every scale, and "pad_<s>" per pad spring at scale 1 only (the
+    pad responses are 28 of 34 jobs on the coarse hood; :class:`StandIn` moves them with thickness by the embedded
+    solver's difference). ``cache``: an .npz read when present (and its model_id matches) and written after the runs.
+    """
     if cache is not None and Path(cache).exists():
         with np.load(cache, allow_pickle=False) as data:
             if str(data["model_id"]) == model.model_id and tuple(data["scales"]) == tuple(scales):
@@ -64,6 +68,7 @@ def calculix_responses(model: PartModel, scales: tuple[float, ...] = THICKNESS_S
     for scale in scales:
         scaled = scaled_thickness(model, scale)
         cases, constrained = load_cases(scaled, pad_lattice)
+        cases = [c for c in cases if scale == 1.0 or not c.name.startswith("pad_")]
         cases.append(LoadCase("gas", force_boundary_loads(scaled), np.zeros(len(constrained))))
         logger.info("stand-in: %d CalculiX jobs at thickness scale %.3f", len(cases), scale)
         out[scale] = run_cases(scaled, cases, constrained)
@@ -90,6 +95,11 @@ class Family:
         return Family(**{key: float(1.0 + rng.uniform(-spread, spread)) for key, spread in FAMILY_SPREAD.items()})
 
 
+def embedded_pad_responses(model: PartModel, scale: float, pad_lattice: int = PAD_LATTICE) -> np.ndarray:
+    """The embedded solver's pad spring responses (n, 3, S) mm of the model at thickness ``scale``."""
+    return build_solver(scaled_thickness(model, scale), validate=False, pad_lattice=pad_lattice).pad_responses()
+
+
 class StandIn:
     """Stand-in parts of one model from CalculiX responses (:func:`calculix_responses`).
 
@@ -104,11 +114,17 @@ class StandIn:
         self.scales = np.array(sorted(responses))
         if len(self.scales) != 3:
             raise SolverError(f"stand-in needs responses at 3 thickness scales, got {len(self.scales)}")
-        first = responses[float(self.scales[0])]
         self.bilateral = [f"unit_{p.label}" for p in model.bilateral]
-        self.pad_names = sorted(name for name in first if name.startswith("pad_"))
+        self.pad_names = sorted(name for name in responses[1.0] if name.startswith("pad_"))
         self._stack = {float(s): responses[float(s)] for s in self.scales}
         self.pads = pad_springs(model, pad_lattice)
+        # pad responses at the other scales: CalculiX at scale 1 plus the embedded solver's change with thickness
+        for scale in self.scales:
+            if scale != 1.0:
+                change = embedded_pad_responses(model, scale, pad_lattice) - embedded_pad_responses(model, 1.0,
+                                                                                                   pad_lattice)
+                for s_index, name in enumerate(self.pad_names):
+                    self._stack[float(scale)][name] = responses[1.0][name] + change[:, :, s_index]
 
     def _interpolate(self, name: str, scale: float) -> np.ndarray:
         """Quadratic (Lagrange) interpolation of a response in the thickness scale."""

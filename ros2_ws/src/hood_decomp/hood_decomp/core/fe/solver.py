@@ -451,3 +451,38 @@ def physical_responses(solver: ShellSolver, expansion: float = STEEL_EXPANSION) 
     columns = np.stack([gas, free[:, :3] + held], axis=2)
     w, z, w3 = project(model, solver.pads, columns)
     return {name: (w[:, i], z[:, i], w3[:, :, i]) for i, name in enumerate(("gas_spring", "thermal"))}
+
+
+#: relative thickness step of the finite-difference thickness sensitivities
+THICKNESS_STEP = 0.02
+
+
+def thickness_groups(model: PartModel) -> dict[str, tuple[str, ...]]:
+    """The sheet groups whose thickness a calibration scales together: parts by the name before the first "_"
+    (outer_skin, inner_panel, and the four reinf_* together on the hood)."""
+    groups: dict[str, list[str]] = {}
+    for part in model.parts:
+        groups.setdefault(part.name.split("_")[0], []).append(part.name)
+    return {name: tuple(members) for name, members in groups.items()}
+
+
+def thickness_sensitivities(model: PartModel, base: ReducedModel, step: float = THICKNESS_STEP,
+                            pad_lattice: int = PAD_LATTICE) -> dict[str, ReducedModel]:
+    """Finite-difference sensitivities of the reduced model to each thickness group's scale
+    (:func:`thickness_groups`): group -> ReducedModel whose arrays are d(array)/d(log thickness) (one assembly and
+    factorisation per group, logged). ``base``: the reduced model of ``model`` itself."""
+    out = {}
+    for index, (group, members) in enumerate(thickness_groups(model).items(), start=1):
+        parts = tuple(replace(p, thickness=p.thickness * (1.0 + step)) if p.name in members else p
+                      for p in model.parts)
+        logger.info("thickness sensitivity %d/%d: %s (%s)", index, len(thickness_groups(model)), group,
+                    ", ".join(members))
+        shifted = reduce_model(build_solver(replace(model, parts=parts), validate=False, pad_lattice=pad_lattice))
+        scale = 1.0 / np.log1p(step)
+        out[group] = replace(base, **{name: (getattr(shifted, name) - getattr(base, name)) * scale
+                                      for name in SENSITIVE_ARRAYS})
+    return out
+
+
+#: the reduced model's arrays a thickness changes (k, preload and pad_of do not depend on it)
+SENSITIVE_ARRAYS = ("w0", "R", "G", "z0", "Sa", "H", "w0_3d", "R_3d", "G_3d")

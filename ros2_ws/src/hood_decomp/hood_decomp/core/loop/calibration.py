@@ -8,12 +8,13 @@ Calibration (``hood-decomp calibrate``) takes entries (a field of the part in a 
 state and +- each parameter moved one at a time by a dial gauge or the robot, as in the paper's experiment) and fits,
 in this order:
 
-1. **Physical factors** through the FE model (:data:`FACTORS`): the compliance scale (Young's modulus times the
-   sheets' stiffness: it scales the load and pad-force responses, not the unit boundary motions), the gas-spring force
-   scale, and per pad its stiffness (log scale) and preload (mm). Gauss-Newton (Levenberg-Marquardt) with
-   finite-difference sensitivities on the reduced model: each evaluation is the exact pad contact of every entry plus
-   superposition, so the factorisation of the embedded solver is used once (for the gas-spring and thermal responses)
-   and never repeated. A Gaussian prior (:data:`PRIOR_STD`) keeps factors the entries do not determine at nominal.
+1. **Physical factors** through the FE model (:func:`factor_names`): the compliance scale (1 / Young's modulus: it
+   scales the load and pad-force responses, not the unit boundary motions), the gas-spring force scale, the thickness
+   of each sheet group (outer skin, inner panel, reinforcements; through the reduced model's finite-difference
+   sensitivity to it, one refactorisation per group, :func:`core.fe.solver.thickness_sensitivities`), and per pad its
+   stiffness (log scale) and preload (mm). Levenberg-Marquardt with finite-difference sensitivities on the reduced
+   model: each evaluation is the exact pad contact of every entry plus superposition, no refactorisation. A Gaussian
+   prior (:data:`PRIOR_STD`) keeps factors the entries do not determine at nominal.
 2. **A low-rank correction** of the unit responses on the skin where the physical factors leave a residual above the
    noise: per skin node, the residual of entry j is regressed on x_j = (1, a_j, F_j / 1 kN) (bilateral states a,
    total pad forces F of the calibrated physics): Delta (N, 1 + B + U) = corrections of the load response, of each
@@ -49,6 +50,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solve_members
+from hood_decomp.core.fe.solver import SENSITIVE_ARRAYS
 from hood_decomp.core.method.bases import Bases, build_bases
 from hood_decomp.core.method.residual import DEFAULT_NOISE_MM
 from hood_decomp.core.types import DisplacementField, ReducedModel, fingerprint
@@ -57,8 +59,8 @@ from hood_decomp.errors import CalibrationError
 logger = logging.getLogger(__name__)
 
 #: prior standard deviations of the physical factors (Gaussian, about nominal): compliance (log), gas-spring force
-#: (relative), pad stiffness (log), pad preload (mm)
-PRIOR_STD = {"compliance": 0.1, "gas_spring": 0.2, "pad_stiffness": 0.5, "preload": 0.3}
+#: (relative), sheet thickness (log), pad stiffness (log), pad preload (mm)
+PRIOR_STD = {"compliance": 0.1, "gas_spring": 0.2, "thickness": 0.1, "pad_stiffness": 0.5, "preload": 0.3}
 #: relative finite-difference step of the physical factors' sensitivities
 FD_STEP = 1e-4
 #: singular values of the whitened correction kept above this many times the largest of a pure-noise matrix
@@ -92,11 +94,13 @@ class PhysicalResponses:
     thermal_w: np.ndarray
     thermal_z: np.ndarray
     thermal_w3: np.ndarray
+    #: thickness group -> d(reduced model arrays)/d(log thickness) (core.fe.solver.thickness_sensitivities)
+    thickness: dict[str, ReducedModel]
 
     @staticmethod
-    def from_solver(responses: dict[str, tuple]) -> PhysicalResponses:
+    def from_solver(responses: dict[str, tuple], thickness: dict[str, ReducedModel]) -> PhysicalResponses:
         (gw, gz, g3), (tw, tz, t3) = responses["gas_spring"], responses["thermal"]
-        return PhysicalResponses(gw, gz, g3, tw, tz, t3)
+        return PhysicalResponses(gw, gz, g3, tw, tz, t3, thickness)
 
 
 @dataclass(frozen=True)
@@ -131,19 +135,27 @@ class Calibration:
         return body
 
 
-def factor_names(reduced: ReducedModel) -> list[str]:
-    """Names of the physical factors of a reduced model: compliance, gas_spring, then per pad stiffness and preload."""
+def factor_names(reduced: ReducedModel, physics: PhysicalResponses) -> list[str]:
+    """Names of the physical factors: compliance, gas_spring, thickness per sheet group, then per pad stiffness and
+    preload."""
     pads = reduced.names[reduced.n_bilateral:]
-    return ["compliance", "gas_spring", *(f"pad_stiffness:{p}" for p in pads), *(f"preload:{p}" for p in pads)]
+    return ["compliance", "gas_spring", *(f"thickness:{g}" for g in physics.thickness),
+            *(f"pad_stiffness:{p}" for p in pads), *(f"preload:{p}" for p in pads)]
 
 
 def apply_factors(reduced: ReducedModel, physics: PhysicalResponses, theta: np.ndarray) -> ReducedModel:
     """The reduced model with physical factors theta (:func:`factor_names` order): compliance exp(theta_0) on the load
-    and pad-force responses, gas-spring force x (1 + theta_1), pad stiffness x exp, preload + theta (mm)."""
+    and pad-force responses, gas-spring force x (1 + theta_1), each sheet group's thickness x exp(theta) (first order
+    through its sensitivity), pad stiffness x exp, preload + theta (mm)."""
     n_pads = len(reduced.names) - reduced.n_bilateral
+    n_groups = len(physics.thickness)
     c, g = float(np.exp(theta[0])), float(theta[1])
-    stiffness = np.exp(np.asarray(theta[2:2 + n_pads]))
-    preload = np.asarray(theta[2 + n_pads:2 + 2 * n_pads])
+    stiffness = np.exp(np.asarray(theta[2 + n_groups:2 + n_groups + n_pads]))
+    preload = np.asarray(theta[2 + n_groups + n_pads:2 + n_groups + 2 * n_pads])
+    if n_groups:
+        reduced = replace(reduced, **{name: getattr(reduced, name) + sum(
+            t * getattr(sens, name) for t, sens in zip(theta[2:2 + n_groups], physics.thickness.values(),
+                                                       strict=True)) for name in SENSITIVE_ARRAYS})
     return replace(
         reduced,
         w0=c * (reduced.w0 + g * physics.gas_w), z0=c * (reduced.z0 + g * physics.gas_z),
@@ -151,13 +163,6 @@ def apply_factors(reduced: ReducedModel, physics: PhysicalResponses, theta: np.n
         G=c * reduced.G, H=c * reduced.H, G_3d=c * reduced.G_3d,
         k=reduced.k * stiffness[reduced.pad_of], preload=reduced.preload + preload[reduced.pad_of],
     )
-
-
-def at_temperature(reduced: ReducedModel, physics: PhysicalResponses, kelvin: float) -> ReducedModel:
-    """The reduced model of the part ``kelvin`` K off its reference temperature (uniform): the thermal response
-    joins the load response (skin and pads)."""
-    return replace(reduced, w0=reduced.w0 + kelvin * physics.thermal_w, z0=reduced.z0 + kelvin * physics.thermal_z,
-                   w0_3d=reduced.w0_3d + kelvin * physics.thermal_w3)
 
 
 def with_correction(reduced: ReducedModel, correction: np.ndarray, normals: np.ndarray) -> ReducedModel:
@@ -198,7 +203,7 @@ class _Problem:
         self.Y = np.where(self.mask, values, 0.0)
         self.settings = np.array([np.asarray(e.setting, float) for e in entries])
         self.noise = np.array([_noise(e.field) for e in entries])
-        self.prior = np.array([PRIOR_STD[name.split(":")[0]] for name in factor_names(reduced)])
+        self.prior = np.array([PRIOR_STD[name.split(":")[0]] for name in factor_names(reduced, physics)])
 
     def predict(self, theta: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Model fields (m, N) and total pad forces (m, U) of entries ``rows`` with physical factors theta."""
@@ -343,7 +348,8 @@ def calibrate(reduced: ReducedModel, physics: PhysicalResponses, entries: list[C
     M = len(entries)
     everything = np.arange(M)
     theta, covariance = problem.fit_factors(everything)
-    logger.info("calibration: physical factors %s", dict(zip(factor_names(reduced), np.round(theta, 5), strict=True)))
+    logger.info("calibration: physical factors %s",
+                dict(zip(factor_names(reduced, physics), np.round(theta, 5), strict=True)))
     loo = np.zeros(M)
     setting_error = np.zeros(M)
     for j in range(M):
@@ -364,7 +370,7 @@ def calibrate(reduced: ReducedModel, physics: PhysicalResponses, entries: list[C
     calibrated = with_correction(apply_factors(reduced, physics, theta), correction, normals)
     fitted = solve_members(calibrated, problem.settings).normal_displacement
     residual = np.sqrt(np.sum(((problem.Y - fitted) * problem.mask) ** 2, axis=1) / problem.mask.sum(axis=1))
-    names = factor_names(reduced)
+    names = factor_names(reduced, physics)
     std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
     calibration = Calibration(
         factors=dict(zip(names, map(float, theta), strict=True)), factor_std=dict(zip(names, map(float, std),
@@ -426,4 +432,4 @@ def _node_std(field: DisplacementField, n: int) -> np.ndarray:
 
 
 __all__ = ["Calibration", "CalibrationEntry", "PhysicalResponses", "apply_factors",
-           "at_temperature", "calibrate", "factor_names", "rebuild_bases", "relative_field", "with_correction"]
+           "calibrate", "factor_names", "rebuild_bases", "relative_field", "with_correction"]
