@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
                 "and one per sheet group)", len(entries))
     physics = PhysicalResponses.from_solver(physical_responses(build_solver(model)),
                                             thickness_sensitivities(model, bases.reduced_model))
-    reduced, calibration = calibrate(bases.reduced_model, physics, entries, bases.skin.normals)
+    reduced, calibration = calibrate(bases.reduced_model, physics, entries, bases.skin)
     record = calibration.record()
     record["settings_mm"] = {e.name: e.setting for e in read}
     record["from_bases_id"] = bases_id(bases)

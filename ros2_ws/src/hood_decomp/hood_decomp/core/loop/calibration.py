@@ -49,11 +49,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from hood_decomp.core.fe.contact import contact_state
 from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solve_members
 from hood_decomp.core.fe.solver import SENSITIVE_ARRAYS
 from hood_decomp.core.method.bases import Bases, build_bases
-from hood_decomp.core.method.residual import DEFAULT_NOISE_MM
-from hood_decomp.core.types import DisplacementField, ReducedModel, fingerprint
+from hood_decomp.core.method.residual import DEFAULT_NOISE_MM, skin_adjacency
+from hood_decomp.core.types import DisplacementField, ReducedModel, SkinSurface, fingerprint
 from hood_decomp.errors import CalibrationError
 
 logger = logging.getLogger(__name__)
@@ -69,6 +70,8 @@ RANK_SIGMAS = 1.0
 SETTING_RTOL = 0.08
 SETTING_ATOL_MM = 0.01
 SETTING_SIGMAS = 4.0
+#: smooth skin modes the correction lives in (:func:`smooth_modes`)
+SMOOTH_MODES = 100
 #: total pad force unit of the correction's regressors (N): the pad columns of Delta are per kN
 FORCE_UNIT_N = 1000.0
 
@@ -143,26 +146,31 @@ def factor_names(reduced: ReducedModel, physics: PhysicalResponses) -> list[str]
             *(f"pad_stiffness:{p}" for p in pads), *(f"preload:{p}" for p in pads)]
 
 
-def apply_factors(reduced: ReducedModel, physics: PhysicalResponses, theta: np.ndarray) -> ReducedModel:
+def apply_factors(reduced: ReducedModel, physics: PhysicalResponses, theta: np.ndarray,
+                  full: bool = True) -> ReducedModel:
     """The reduced model with physical factors theta (:func:`factor_names` order): compliance exp(theta_0) on the load
     and pad-force responses, gas-spring force x (1 + theta_1), each sheet group's thickness x exp(theta) (first order
-    through its sensitivity), pad stiffness x exp, preload + theta (mm)."""
+    through its sensitivity), pad stiffness x exp, preload + theta (mm). ``full``: False leaves the 3D arrays as they
+    are (the fit reads only the normal ones)."""
     n_pads = len(reduced.names) - reduced.n_bilateral
     n_groups = len(physics.thickness)
     c, g = float(np.exp(theta[0])), float(theta[1])
     stiffness = np.exp(np.asarray(theta[2 + n_groups:2 + n_groups + n_pads]))
     preload = np.asarray(theta[2 + n_groups + n_pads:2 + n_groups + 2 * n_pads])
+    arrays = SENSITIVE_ARRAYS if full else tuple(name for name in SENSITIVE_ARRAYS if not name.endswith("_3d"))
     if n_groups:
         reduced = replace(reduced, **{name: getattr(reduced, name) + sum(
             t * getattr(sens, name) for t, sens in zip(theta[2:2 + n_groups], physics.thickness.values(),
-                                                       strict=True)) for name in SENSITIVE_ARRAYS})
-    return replace(
+                                                       strict=True)) for name in arrays})
+    reduced = replace(
         reduced,
         w0=c * (reduced.w0 + g * physics.gas_w), z0=c * (reduced.z0 + g * physics.gas_z),
-        w0_3d=c * (reduced.w0_3d + g * physics.gas_w3),
-        G=c * reduced.G, H=c * reduced.H, G_3d=c * reduced.G_3d,
+        G=c * reduced.G, H=c * reduced.H,
         k=reduced.k * stiffness[reduced.pad_of], preload=reduced.preload + preload[reduced.pad_of],
     )
+    if not full:
+        return reduced
+    return replace(reduced, w0_3d=c * (reduced.w0_3d + g * physics.gas_w3), G_3d=c * reduced.G_3d)
 
 
 def with_correction(reduced: ReducedModel, correction: np.ndarray, normals: np.ndarray) -> ReducedModel:
@@ -177,6 +185,16 @@ def with_correction(reduced: ReducedModel, correction: np.ndarray, normals: np.n
         w0_3d=reduced.w0_3d + normals * d0[:, None], R_3d=reduced.R_3d + normals[:, :, None] * dR[:, None, :],
         G_3d=reduced.G_3d + normals[:, :, None] * dG[:, None, :],
     )
+
+
+def normal_fields(reduced: ReducedModel, settings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Skin normal fields (m, N) mm and total pad forces (m, U) N at commanded settings (m, P) mm: the exact pad
+    contact and superposition of :func:`core.fe.ensemble.solve_members`, without its 3D fields (the fit's hot path)."""
+    B = reduced.n_bilateral
+    U = len(reduced.names) - B
+    forces = np.array([contact_state(reduced, state[:B], state[B:]).f for state in settings])
+    totals = np.stack([forces[:, reduced.pad_of == u].sum(axis=1) for u in range(U)], axis=1)
+    return reduced.w0[None, :] + settings[:, :B] @ reduced.R.T + forces @ reduced.G.T, totals
 
 
 def _noise(field: DisplacementField) -> float:
@@ -195,8 +213,9 @@ def _noise(field: DisplacementField) -> float:
 class _Problem:
     """The entries as arrays: Y (M, N) with 0 where unseen, mask (M, N), settings (M, P), noise (M,)."""
 
-    def __init__(self, entries: list[CalibrationEntry], reduced: ReducedModel, physics: PhysicalResponses):
-        self.reduced, self.physics = reduced, physics
+    def __init__(self, entries: list[CalibrationEntry], reduced: ReducedModel, physics: PhysicalResponses,
+                 modes: np.ndarray):
+        self.reduced, self.physics, self.modes = reduced, physics, modes
         self.names = tuple(e.name for e in entries)
         values = np.array([np.asarray(e.field.normal_displacement, float) for e in entries])
         self.mask = np.isfinite(values)
@@ -207,8 +226,7 @@ class _Problem:
 
     def predict(self, theta: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Model fields (m, N) and total pad forces (m, U) of entries ``rows`` with physical factors theta."""
-        block = solve_members(apply_factors(self.reduced, self.physics, theta), self.settings[rows])
-        return block.normal_displacement, block.reactions
+        return normal_fields(apply_factors(self.reduced, self.physics, theta, full=False), self.settings[rows])
 
     def weighted_residual(self, theta: np.ndarray, rows: np.ndarray) -> np.ndarray:
         fields, _ = self.predict(theta, rows)
@@ -250,28 +268,26 @@ class _Problem:
         return np.hstack([np.ones((len(rows), 1)), self.settings[rows, :B], forces / FORCE_UNIT_N])
 
     def fit_correction(self, theta: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, int]:
-        """The low-rank correction (N, q) from entries ``rows`` after physical factors theta, and its rank."""
+        """The low-rank correction (N, q) from entries ``rows`` after physical factors theta, and its rank.
+
+        The residuals are projected on the skin's smooth modes (:attr:`modes`, orthonormal (N, K)): a model error is
+        smooth, noise is not, so the noise the correction can pick up lives in K dimensions instead of N (an unseen
+        node counts as no residual). C (K, q) is the least-squares regression on X, whitened by (X^T X)^(1/2) and
+        truncated to the singular values above the largest of a pure-noise (K, q) matrix."""
         fields, forces = self.predict(theta, rows)
         X = self.regressors(forces, rows)
         q = X.shape[1]
-        residual = (self.Y[rows] - fields) * self.mask[rows]
-        if np.all(self.mask[rows]):
-            gram = X.T @ X
-            delta = np.linalg.solve(gram + 1e-12 * np.trace(gram) * np.eye(q), X.T @ residual).T
-        else:  # per node: only the entries that saw it
-            w = self.mask[rows].T.astype(float)  # (N, m)
-            gram_n = np.einsum("nm,mi,mj->nij", w, X, X)
-            gram_n += 1e-12 * np.trace(X.T @ X) * np.eye(q)
-            delta = np.linalg.solve(gram_n, np.einsum("nm,mi->ni", residual.T, X)[..., None])[..., 0]
-            gram = X.T @ X
+        residual = ((self.Y[rows] - fields) * self.mask[rows]) @ self.modes  # (m, K)
+        gram = X.T @ X
+        coefficients = np.linalg.solve(gram + 1e-12 * np.trace(gram) * np.eye(q), X.T @ residual).T  # (K, q)
         values, vectors = np.linalg.eigh(gram)
         root = (vectors * np.sqrt(np.clip(values, 0.0, None))) @ vectors.T
         inverse_root = (vectors / np.sqrt(np.clip(values, 1e-300, None))) @ vectors.T
-        u, s, vt = np.linalg.svd(delta @ root, full_matrices=False)
+        u, s, vt = np.linalg.svd(coefficients @ root, full_matrices=False)
         sigma = float(np.sqrt(np.mean(self.noise[rows] ** 2)))
-        threshold = RANK_SIGMAS * sigma * (np.sqrt(delta.shape[0]) + np.sqrt(q))
+        threshold = RANK_SIGMAS * sigma * (np.sqrt(self.modes.shape[1]) + np.sqrt(q))
         rank = int(np.sum(s > threshold))
-        return (u[:, :rank] * s[:rank]) @ vt[:rank] @ inverse_root, rank
+        return self.modes @ ((u[:, :rank] * s[:rank]) @ vt[:rank] @ inverse_root), rank
 
     def setting_error(self, theta: np.ndarray, row: int) -> tuple[float, str]:
         """The entry's setting test (module docstring) with physical factors theta fitted without it: the largest
@@ -282,13 +298,13 @@ class _Problem:
             return -np.inf, ""
         rows = np.array([row])
         base, _ = self.predict(theta, rows)
-        reduced = apply_factors(self.reduced, self.physics, theta)
+        reduced = apply_factors(self.reduced, self.physics, theta, full=False)
         sens = []
         for i in moved:
             step = 1e-3
             shifted = setting.copy()
             shifted[i] += step
-            sens.append((solve_members(reduced, shifted[None, :]).normal_displacement[0] - base[0]) / step)
+            sens.append((normal_fields(reduced, shifted[None, :])[0][0] - base[0]) / step)
         J = np.array(sens).T[self.mask[row]]
         observable = np.linalg.norm(J, axis=0) > 1e-6 * max(np.linalg.norm(J), 1e-300)
         if not observable.any():
@@ -300,6 +316,19 @@ class _Problem:
         excess = np.abs(delta) - (SETTING_RTOL * np.abs(setting[moved]) + SETTING_ATOL_MM + SETTING_SIGMAS * std)
         worst = int(np.argmax(excess))
         return float(excess[worst]), self.reduced.names[moved[worst]]
+
+
+def smooth_modes(skin: SkinSurface, count: int = SMOOTH_MODES) -> np.ndarray:
+    """The ``count`` smoothest skin fields (N, count), orthonormal: the lowest eigenvectors of the skin's graph
+    Laplacian (edge weights 1), which resolve features down to about sqrt(skin area / count) (~100 mm on the hood)."""
+    from scipy.sparse import diags
+    from scipy.sparse.linalg import eigsh
+
+    adjacency = skin_adjacency(skin)
+    laplacian = diags(np.asarray(adjacency.sum(axis=1)).ravel()) - adjacency
+    count = min(count, skin.n_nodes - 2)
+    _, vectors = eigsh(laplacian.tocsc(), k=count, sigma=-1e-3, which="LM")
+    return np.linalg.qr(vectors)[0]
 
 
 def _check_support(problem: _Problem, entries: list[CalibrationEntry]) -> None:
@@ -324,11 +353,11 @@ def _check_support(problem: _Problem, entries: list[CalibrationEntry]) -> None:
 
 
 def calibrate(reduced: ReducedModel, physics: PhysicalResponses, entries: list[CalibrationEntry],
-              normals: np.ndarray) -> tuple[ReducedModel, Calibration]:
+              skin: SkinSurface) -> tuple[ReducedModel, Calibration]:
     """Fit physical factors, then the low-rank correction (module docstring); leave-one-out over the entries.
 
     reduced: the bases' reduced model; physics: :class:`PhysicalResponses` of the same model; entries: fields in the
-    skin node order with settings (P,) mm in ``reduced.names`` order; normals: (N, 3) skin normals.
+    skin node order with settings (P,) mm in ``reduced.names`` order; skin: the bases' skin (normals, smooth modes).
     Returns the calibrated reduced model and the :class:`Calibration`. Raises CalibrationError naming an entry whose
     setting disagrees with the others, or what the entries do not support.
     """
@@ -343,7 +372,8 @@ def calibrate(reduced: ReducedModel, physics: PhysicalResponses, entries: list[C
             raise CalibrationError(f"calibration entry {entry.name}: field has "
                                    f"{np.shape(entry.field.normal_displacement)} values, expected "
                                    f"({reduced.w0.shape[0]},)")
-    problem = _Problem(entries, reduced, physics)
+    problem = _Problem(entries, reduced, physics, smooth_modes(skin))
+    normals = skin.normals
     _check_support(problem, entries)
     M = len(entries)
     everything = np.arange(M)
@@ -361,14 +391,14 @@ def calibrate(reduced: ReducedModel, physics: PhysicalResponses, entries: list[C
             raise CalibrationError(f"calibration entry {entries[j].name}: its known setting of {label} disagrees with "
                                    f"the other entries by {excess:.3f} mm beyond the tolerance (a wrong reading?)")
         correction_j, _ = problem.fit_correction(theta_j, others)
-        model_j = with_correction(apply_factors(reduced, physics, theta_j), correction_j, normals)
-        predicted = solve_members(model_j, problem.settings[j][None, :]).normal_displacement[0]
+        model_j = with_correction(apply_factors(reduced, physics, theta_j, full=False), correction_j, normals)
+        predicted = normal_fields(model_j, problem.settings[j][None, :])[0][0]
         seen = problem.mask[j]
         loo[j] = float(np.sqrt(np.mean((problem.Y[j, seen] - predicted[seen]) ** 2)))
         logger.info("calibration: leave-one-out %d/%d (%s): %.4f mm", j + 1, M, entries[j].name, loo[j])
     correction, rank = problem.fit_correction(theta, everything)
     calibrated = with_correction(apply_factors(reduced, physics, theta), correction, normals)
-    fitted = solve_members(calibrated, problem.settings).normal_displacement
+    fitted = normal_fields(calibrated, problem.settings)[0]
     residual = np.sqrt(np.sum(((problem.Y - fitted) * problem.mask) ** 2, axis=1) / problem.mask.sum(axis=1))
     names = factor_names(reduced, physics)
     std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
