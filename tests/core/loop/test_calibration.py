@@ -121,8 +121,8 @@ def test_too_few_entries_are_refused(coarse_hood, case):
         calibrate(coarse_hood.reduced, case["physics"], entries, coarse_hood.skin)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 16 target unmet: the embedded thermal response differs from CalculiX's by "
-                   "1.7 % (RMS), which moves HINGE_X by ~0.011 mm and BUFFER_L by ~0.03 mm at 5 K (RESULTS.md)")
+@pytest.mark.xfail(strict=True, reason="issue 16 target unmet: the embedded thermal response differs from "
+                   "CalculiX's by 1.7 % (RMS), which moves HINGE_X by ~0.011 mm and BUFFER_L by ~0.03 mm at 5 K")
 def test_part_5_k_warmer_estimates_as_at_reference(coarse_hood, case):
     """Fails if a CalculiX part 5 K warmer (thermal field by CalculiX with a thermal load: *EXPANSION, *TEMPERATURE)
     estimated with its temperature moves any boundary estimate by more than 0.005 mm from the same part at the

@@ -147,11 +147,14 @@ class StandIn:
         return replace(reduced, k=reduced.k * family.pad_stiffness, preload=reduced.preload * family.preload)
 
     def fields(self, family: Family, settings: np.ndarray, rng: np.random.Generator,
-               part_spread: float = PART_THICKNESS_SPREAD) -> np.ndarray:
-        """Normal fields (m, N) mm of m parts of ``family`` at commanded settings (m, P) mm (noise-free)."""
+               part_spread: float = PART_THICKNESS_SPREAD) -> tuple[np.ndarray, np.ndarray]:
+        """Normal fields (m, N) mm (noise-free) and effective states (m, P) mm of m parts of ``family`` at commanded
+        settings (m, P) mm, each part with its own thickness factor."""
         settings = np.atleast_2d(np.asarray(settings, dtype=float))
         out = np.empty((len(settings), len(self.model.skin_nodes)))
+        effective = np.empty_like(settings)
         for i, setting in enumerate(settings):
             thickness = 1.0 + rng.uniform(-part_spread, part_spread) if part_spread > 0 else 1.0
-            out[i] = solve_members(self.reduced(family, thickness), setting[None, :]).normal_displacement[0]
-        return out
+            block = solve_members(self.reduced(family, thickness), setting[None, :])
+            out[i], effective[i] = block.normal_displacement[0], block.effective[0]
+        return out, effective
