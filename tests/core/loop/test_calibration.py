@@ -189,7 +189,7 @@ def test_calibrate_verb_names_the_wrong_entry_and_exits_2(coarse_hood, case, tmp
         write_field(tmp_path / f"e{j}.vtu", coarse_hood.skin, entry.field)
         setting = {label: float(v) for label, v in zip(coarse_hood.model.names, entry.setting, strict=True) if v}
         cal.append({"field": f"e{j}.vtu", "setting": setting, "name": f"dial {j}"})
-    cal[4]["setting"] = {"HINGE_Y": -0.65}  # moved -0.8
+    cal[1]["setting"] = {"HINGE_X": 0.9}  # moved 0.8
     (tmp_path / "cal.json").write_text(json.dumps(cal))
     command = [sys.executable, "-m", "hood_decomp.cli", "calibrate", "--bases", str(coarse_hood.bases_path),
                "--model", str(tmp_path / "model"), "--cal", str(tmp_path / "cal.json"), "--out",
@@ -197,5 +197,5 @@ def test_calibrate_verb_names_the_wrong_entry_and_exits_2(coarse_hood, case, tmp
     run = subprocess.run(command, capture_output=True, text=True, timeout=600)
     assert run.returncode == 2, run.stderr[-2000:]
     last = run.stderr.strip().splitlines()[-1]
-    assert "dial 4" in last and "HINGE_Y" in last, last
+    assert "dial 1" in last and "HINGE_X" in last, last
     assert not (tmp_path / "calibrated.h5").exists()

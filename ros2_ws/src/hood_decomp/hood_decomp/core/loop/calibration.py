@@ -384,7 +384,7 @@ def calibrate(reduced: ReducedModel, physics: PhysicalResponses, entries: list[C
     setting_error = np.zeros(M)
     for j in range(M):
         others = np.delete(everything, j)
-        theta_j, _ = problem.fit_factors(others, start=theta, iterations=4)
+        theta_j, _ = problem.fit_factors(others, start=theta, iterations=3)
         excess, label = problem.setting_error(theta_j, j)
         setting_error[j] = excess
         if excess > 0:
