@@ -31,6 +31,7 @@ from hood_decomp.core.loop.calibration import (
     CalibrationEntry,
     PhysicalResponses,
     calibrate,
+    one_at_a_time,
     rebuild_bases,
     relative_field,
 )
@@ -50,17 +51,6 @@ def field(model_id: str, values: np.ndarray, rng: np.random.Generator | None) ->
         return DisplacementField(model_id, values, 1.0, np.nan)
     return DisplacementField(model_id, values + rng.normal(0.0, NOISE_MM, values.shape), 1.0, NOISE_MM,
                              FieldErrorModel.stated(NOISE_MM, values.size))
-
-
-def plan(n_params: int, moves: tuple[float, ...]) -> np.ndarray:
-    settings = [np.zeros(n_params)]
-    for move in moves:
-        for i in range(n_params):
-            for sign in (1.0, -1.0):
-                setting = np.zeros(n_params)
-                setting[i] = sign * move
-                settings.append(setting)
-    return np.array(settings)
 
 
 def summarise(errors: list, stds: list, within: list, names: tuple[str, ...]) -> dict:
@@ -137,7 +127,7 @@ def main() -> None:
         for label, moves in (("calibrated_13", (0.8,)), ("calibrated_25", (0.8, 0.4))):
             if label == "calibrated_25" and f >= args.families_25:
                 continue
-            settings = plan(len(names), moves)
+            settings = one_at_a_time(len(names), moves)
             values, _ = standin.fields(family, settings, rng)
             entries = [CalibrationEntry(f"entry {j}", field(mid, values[j], rng), settings[j])
                        for j in range(len(settings))]

@@ -21,6 +21,7 @@ from hood_decomp.core.loop.calibration import (
     CalibrationEntry,
     PhysicalResponses,
     calibrate,
+    one_at_a_time,
     rebuild_bases,
     relative_field,
 )
@@ -31,17 +32,6 @@ from hood_decomp.errors import CalibrationError
 NOISE_MM = 0.02
 #: the stand-in's physics relative to the model
 E_FACTOR, PAD_K_FACTOR, PRELOAD_FACTOR = 1.02, 1.25, 1.4
-
-
-def one_at_a_time(n_params: int, move: float = 0.8) -> np.ndarray:
-    """The reference (all 0) and +-``move`` mm of each parameter alone: (1 + 2P, P)."""
-    settings = [np.zeros(n_params)]
-    for i in range(n_params):
-        for sign in (1.0, -1.0):
-            setting = np.zeros(n_params)
-            setting[i] = sign * move
-            settings.append(setting)
-    return np.array(settings)
 
 
 def noisy(model_id: str, values: np.ndarray, rng: np.random.Generator) -> DisplacementField:

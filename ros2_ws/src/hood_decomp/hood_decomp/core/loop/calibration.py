@@ -138,6 +138,19 @@ class Calibration:
         return body
 
 
+def one_at_a_time(n_params: int, moves: tuple[float, ...] = (0.8,)) -> np.ndarray:
+    """The usual calibration plan: the reference (all 0) and +-each move (mm) of each parameter alone,
+    (1 + 2 P len(moves), P); 13 entries for the hood with one move, 25 with two."""
+    settings = [np.zeros(n_params)]
+    for move in moves:
+        for i in range(n_params):
+            for sign in (1.0, -1.0):
+                setting = np.zeros(n_params)
+                setting[i] = sign * move
+                settings.append(setting)
+    return np.array(settings)
+
+
 def factor_names(reduced: ReducedModel, physics: PhysicalResponses) -> list[str]:
     """Names of the physical factors: compliance, gas_spring, thickness per sheet group, then per pad stiffness and
     preload."""
@@ -461,5 +474,15 @@ def _node_std(field: DisplacementField, n: int) -> np.ndarray:
     return np.full(n, float(np.nan_to_num(field.noise_rms)))
 
 
-__all__ = ["Calibration", "CalibrationEntry", "PhysicalResponses", "apply_factors",
-           "calibrate", "factor_names", "rebuild_bases", "relative_field", "with_correction"]
+__all__ = [
+    "Calibration",
+    "CalibrationEntry",
+    "PhysicalResponses",
+    "apply_factors",
+    "calibrate",
+    "factor_names",
+    "one_at_a_time",
+    "rebuild_bases",
+    "relative_field",
+    "with_correction",
+]
