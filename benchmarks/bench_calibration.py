@@ -85,6 +85,7 @@ def main() -> None:
     parser.add_argument("--families-25", type=int, default=2)
     parser.add_argument("--parts", type=int, default=40, help="parts per family")
     parser.add_argument("--detect", type=int, default=20, help="parts per family with the hinge_R.z move")
+    parser.add_argument("--json", default="bench_calibration.json", help="file name in benchmarks/out/")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     for name in ("distributed", "hood_decomp.core.method", "hood_decomp.core.fe.solver"):
@@ -170,8 +171,8 @@ def main() -> None:
               f"{summary['hinge_R_z_parts']} parts")
     results["seconds"] = time.perf_counter() - start
     OUT.mkdir(exist_ok=True)
-    (OUT / "bench_calibration.json").write_text(json.dumps(results, indent=1))
-    print(f"wrote {OUT / 'bench_calibration.json'} in {results['seconds']:.0f} s")
+    (OUT / args.json).write_text(json.dumps(results, indent=1))
+    print(f"wrote {OUT / args.json} in {results['seconds']:.0f} s")
 
 
 if __name__ == "__main__":

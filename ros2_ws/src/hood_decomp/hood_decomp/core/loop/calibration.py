@@ -385,9 +385,10 @@ def calibrate(reduced: ReducedModel, physics: PhysicalResponses, entries: list[C
             raise CalibrationError(f"calibration entry {entry.name}: field has "
                                    f"{np.shape(entry.field.normal_displacement)} values, expected "
                                    f"({reduced.w0.shape[0]},)")
-    problem = _Problem(entries, reduced, physics, smooth_modes(skin))
-    normals = skin.normals
+    problem = _Problem(entries, reduced, physics, np.zeros((skin.n_nodes, 0)))
     _check_support(problem, entries)
+    problem.modes = smooth_modes(skin)  # after the checks: a refused calibration costs nothing
+    normals = skin.normals
     M = len(entries)
     everything = np.arange(M)
     theta, covariance = problem.fit_factors(everything)
