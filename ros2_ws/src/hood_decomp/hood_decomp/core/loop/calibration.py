@@ -33,8 +33,9 @@ Honest calibration:
   field along the parameters it moves (least squares on the model's sensitivities at its state) differs from the known
   setting by more than :data:`SETTING_RTOL` of the move plus :data:`SETTING_ATOL_MM` plus
   :data:`SETTING_SIGMAS` standard deviations of that fit under the entry's noise. The tolerance covers the model error
-  that the physical factors leave in a response (at most 4 % on the stand-in parts, benchmarks/RESULTS.md); the
-  physical factors cannot absorb a wrong reading because they do not scale the unit motions.
+  that the physical factors leave in a response (no correct entry of the CalculiX stand-in calibrations in
+  benchmarks/RESULTS.md and the tests is refused); the physical factors cannot absorb a wrong reading because they
+  do not scale the unit motions.
 
 Reference-relative estimation (``--reference``): a field of a part in a known state is subtracted and the model's
 own field for that state added back, so a static model error (in the load response, the paper's protocol) cancels
