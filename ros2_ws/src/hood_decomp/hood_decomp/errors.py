@@ -62,3 +62,8 @@ class HistoryError(HoodDecompError):
 
 class ShiftError(HoodDecompError):
     """A shift cannot be analysed: no input part, too few parts for a control chart, a baseline without spread."""
+
+
+class CalibrationError(HoodDecompError):
+    """A calibration cannot be made or used: too few entries for what is fitted, an entry whose known setting
+    disagrees with the others, a reference or calibration file that is malformed."""

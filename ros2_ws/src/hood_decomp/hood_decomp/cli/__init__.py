@@ -35,6 +35,7 @@ VERBS: dict[str, str] = {
     "estimate": "estimate",
     "decompose": "decompose",
     "close-loop": "close_loop",
+    "calibrate": "calibrate",
     "scan": "scan",
     "replay": "replay",
     "shift": "shift",

@@ -87,6 +87,30 @@ def add_inputs(parser: argparse.ArgumentParser, repeatable: bool = False) -> Non
     parser.set_defaults(inputs=None, scanner_poses=None)
 
 
+def add_reference(parser: argparse.ArgumentParser) -> None:
+    """--reference REF.json (reference-relative estimation) into ``args.reference``; :func:`apply_reference`."""
+    parser.add_argument("--reference", type=Path, default=None, metavar="REF.json",
+                        help='a part in a known state: {"field": F.vtu or "scans": [S.ply], "setting": {LABEL: mm}} '
+                        "(file relative to REF.json); each field becomes measured - reference + the model's field "
+                        "for that state, so a static model error cancels (docs/calibration.md)")
+
+
+def apply_reference(args: argparse.Namespace, bases: Bases, fields: list[DisplacementField]
+                    ) -> list[DisplacementField]:
+    """The fields made reference-relative when --reference was given (:func:`add_reference`), else unchanged."""
+    if getattr(args, "reference", None) is None:
+        return fields
+    from hood_decomp.core.loop.calibration import relative_field
+    from hood_decomp.errors import CalibrationError
+    from hood_decomp.io.calibration_files import read_entries
+
+    if bases.reduced_model is None:
+        raise CalibrationError(f"--reference needs the bases' reduced model, which {args.bases} lacks")
+    entry = read_entries(args.reference, bases.skin, args.min_coverage, single=True)[0]
+    setting = entry.setting_vector(bases.names)
+    return [relative_field(bases.reduced_model, field, entry.field, setting) for field in fields]
+
+
 def add_json(parser: argparse.ArgumentParser) -> None:
     """--json OUT; :func:`emit_json` prints to stdout without it."""
     parser.add_argument("--json", type=Path, default=None, help="write the result as JSON here (default: stdout)")
@@ -273,7 +297,8 @@ def read_bases_and_field(args: argparse.Namespace) -> tuple[Bases, DisplacementF
     from hood_decomp.io.bases import load_bases
 
     bases = load_bases(args.bases)
-    return bases, read_fields(args.inputs, bases.skin, args.min_coverage, args.scanner_poses, one_part=True)[0]
+    fields = read_fields(args.inputs, bases.skin, args.min_coverage, args.scanner_poses, one_part=True)
+    return bases, apply_reference(args, bases, fields[:1])[0]
 
 
 def write_json(path: Path, payload: object) -> None:
@@ -287,6 +312,8 @@ def check_json(args: argparse.Namespace) -> list[Path]:
     """Check --json (when given) against the inputs of --bases, --field and --scan before any work (:func:`add_json`);
     return those inputs."""
     inputs = [args.bases, *input_paths(args)]
+    if getattr(args, "reference", None) is not None:
+        inputs.append(args.reference)
     if args.json is not None:
         check_output(args.json, inputs, "--json")
     return inputs

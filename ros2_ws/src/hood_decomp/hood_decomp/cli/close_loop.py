@@ -17,6 +17,8 @@ from pathlib import Path
 from hood_decomp.cli._common import (
     add_bases,
     add_inputs,
+    add_reference,
+    apply_reference,
     check_output,
     finite,
     input_paths,
@@ -37,6 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "optional 'candidates:' list adds user candidate effects)")
     add_bases(parser)
     add_inputs(parser, repeatable=True)
+    add_reference(parser)
     parser.add_argument("--out", required=True, type=Path, help="output directory")
     parser.add_argument("--truth", type=Path, default=None, help="JSON: label -> true value (mm; N for a force "
                         "effect) for all fields, or a list of such objects, one per field")
@@ -102,14 +105,15 @@ def run(args: argparse.Namespace) -> int:
     from hood_decomp.plots.close_loop import plot_before_after, plot_residual_maps
 
     inputs = [*model_inputs(args.model), args.bases, *input_paths(args),
-              *(p for p in (args.truth, args.ensemble) if p is not None)]
+              *(p for p in (args.truth, args.ensemble, args.reference) if p is not None)]
     check_output(args.out, inputs, directory=True, writes=["close_loop.json", "bases_closed_loop.h5"])
     model, user_candidates = load_model_with_candidates(args.model)
     bases = load_bases(args.bases)
     if model.model_id != bases.model_id:
         raise ModelIdMismatchError(f"model {args.model} has model_id {model.model_id!r}, bases {args.bases} "
                                    f"{bases.model_id!r}: build the bases from this model")
-    fields = read_fields(args.inputs, bases.skin, args.min_coverage, args.scanner_poses)
+    fields = apply_reference(args, bases, read_fields(args.inputs, bases.skin, args.min_coverage,
+                                                      args.scanner_poses))
     truth = _read_truth(args.truth, len(fields))
     ensemble = None
     if args.ensemble is not None:

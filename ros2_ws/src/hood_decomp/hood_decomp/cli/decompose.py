@@ -9,6 +9,7 @@ from hood_decomp.cli._common import (
     add_bases,
     add_inputs,
     add_json,
+    add_reference,
     check_json,
     check_output,
     emit_json,
@@ -23,6 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_bases(parser)
     add_inputs(parser)
     add_json(parser)
+    add_reference(parser)
     parser.add_argument("--plots", type=Path, default=None, help="directory for the PNG contribution plots")
     parser.add_argument("--method", choices=("contact", "pca"), default="contact",
                         help="estimator of step 2 that selects the effect subset (default contact)")

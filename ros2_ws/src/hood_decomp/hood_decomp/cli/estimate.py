@@ -4,7 +4,16 @@ from __future__ import annotations
 
 import argparse
 
-from hood_decomp.cli._common import add_bases, add_inputs, add_json, check_json, emit_json, read_bases_and_field
+from hood_decomp.cli._common import (
+    add_bases,
+    add_inputs,
+    add_json,
+    add_reference,
+    check_json,
+    emit_json,
+    finite,
+    read_bases_and_field,
+)
 
 HELP = "estimate the parameter states of a field or scan"
 
@@ -13,6 +22,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_bases(parser)
     add_inputs(parser)
     add_json(parser)
+    add_reference(parser)
+    parser.add_argument("--temperature-k", type=finite(-100.0, 100.0), default=0.0, metavar="K",
+                        help="part temperature minus the model's reference temperature, K (default 0; needs "
+                        "calibrated bases, which carry the thermal response)")
     parser.add_argument("--method", choices=("contact", "pca"), default="contact",
                         help="contact-aware estimator (default) or the paper's PCA estimator")
 
@@ -44,11 +57,26 @@ def estimate_payload(estimate, n_bilateral: int) -> dict:
     }
 
 
+def bases_provenance(bases) -> dict:
+    """Which bases and which calibration an estimate used: ``bases_id`` and ``calibration`` (null for uncalibrated
+    bases, else the calibration's id, entries and leave-one-out RMS, mm)."""
+    import json
+
+    from hood_decomp.io.bases import bases_id
+
+    record = json.loads(bases.calibration) if bases.calibration else None
+    return {"bases_id": bases_id(bases), "calibration": None if record is None else {
+        "id": record["id"], "entries": [e["name"] for e in record["entries"]], "loo_rms_mm": record["loo_rms_mm"]}}
+
+
 def run(args: argparse.Namespace) -> int:
     from hood_decomp.core.method.bases import estimate_field
 
     check_json(args)
     bases, field = read_bases_and_field(args)
-    estimate = estimate_field(bases, field, args.method, args.min_coverage)
-    emit_json(estimate_payload(estimate, bases.pca.n_bilateral_), args.json)
+    estimate = estimate_field(bases, field, args.method, args.min_coverage, args.temperature_k)
+    payload = estimate_payload(estimate, bases.pca.n_bilateral_)
+    payload.update(bases_provenance(bases), reference=None if args.reference is None else str(args.reference),
+                   temperature_k=args.temperature_k)
+    emit_json(payload, args.json)
     return 0

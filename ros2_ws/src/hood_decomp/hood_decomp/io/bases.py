@@ -41,6 +41,7 @@ _REDUCED_DIMS = {
     "w0": ("N",), "R": ("N", "B"), "G": ("N", "S"), "z0": ("S",), "Sa": ("S", "B"), "H": ("S", "S"), "k": ("S",),
     "preload": ("S",), "pad_of": ("S",), "w0_3d": ("N", "3"), "R_3d": ("N", "3", "B"), "G_3d": ("N", "3", "S"),
 }  # fmt: skip
+_THERMAL_DIMS = {"w": ("N",), "z": ("S",), "w3": ("N", "3")}
 
 
 def bases_id(bases: Bases) -> str:
@@ -60,6 +61,10 @@ def bases_id(bases: Bases) -> str:
         items += ["reduced", reduced.model_id, "\x00".join(reduced.names), str(reduced.n_bilateral),
                   reduced.parameter_states,
                   *(np.asarray(getattr(reduced, name)) for name in _REDUCED_DIMS)]
+    if bases.calibration:  # uncalibrated bases keep the ids they always had
+        items += ["calibration", bases.calibration]
+    if bases.thermal is not None:
+        items += ["thermal", *bases.thermal]
     return fingerprint(*items)
 
 
@@ -74,6 +79,12 @@ def save_bases(path: str | Path, bases: Bases) -> None:
     """Write ``bases`` to an HDF5 file (overwrites)."""
     with h5py.File(path, "w") as h5:
         h5.attrs.update(format=FORMAT, schema_version=SCHEMA_VERSION, model_id=bases.model_id, bases_id=bases_id(bases))
+        if bases.calibration:
+            h5.attrs["calibration"] = bases.calibration
+        if bases.thermal is not None:
+            thermal = h5.create_group("thermal")
+            for name, value in zip(_THERMAL_DIMS, bases.thermal, strict=True):
+                thermal.create_dataset(name, data=value)
         skin = h5.create_group("skin")
         skin.attrs["model_id"] = bases.skin.model_id
         for name in ("points", "normals", "triangles"):
@@ -180,12 +191,19 @@ def load_bases(path: str | Path) -> Bases:
                 raise BasisError(f"{path}: reduced_model names {reduced.names} (n_bilateral {reduced.n_bilateral}) "
                                  f"differ from the parameters {names} (n_bilateral {n_bilateral})")
         stored_id = read.attr("/", "bases_id", "str")
+        # optional (issue 16): the calibration record of calibrated bases, JSON text
+        calibration = read.attr("/", "calibration", "str") if "calibration" in h5.attrs else ""
+        thermal = None
+        if "thermal" in h5:  # optional (issue 16): calibrated bases' response to 1 K
+            if reduced is None:
+                raise BasisError(f"{path}: a thermal response needs the reduced model, which the file lacks")
+            thermal = tuple(read.array(f"thermal/{name}", dims) for name, dims in _THERMAL_DIMS.items())
 
     for what, other in (("skin", skin.model_id), ("PCA basis", pca.model_id_), ("hierarchical basis", hier.model_id_),
                         ("reduced model", None if reduced is None else reduced.model_id)):
         if other is not None and other != model_id:
             raise BasisError(f"{path}: {what} model_id {other!r} differs from the file's {model_id!r}")
-    bases = Bases(model_id, skin, pca, hier, reduced)
+    bases = Bases(model_id, skin, pca, hier, reduced, calibration, thermal)
     if bases_id(bases) != stored_id:
         raise BasisError(f"{path}: content does not match its bases_id {stored_id!r} (the file was altered after "
                          "it was written: a rewritten model_id or array); rebuild it with `hood-decomp bases`")

@@ -30,7 +30,14 @@ from pathlib import Path
 import numpy as np
 
 from hood_decomp.core.fe.model import AXES, PartModel, patch_nodes, validate_model
-from hood_decomp.core.fe.solver import PAD_LATTICE, condense, constrained_dofs, load_vector, pad_springs
+from hood_decomp.core.fe.solver import (
+    PAD_LATTICE,
+    STEEL_EXPANSION,
+    condense,
+    constrained_dofs,
+    load_vector,
+    pad_springs,
+)
 from hood_decomp.core.types import ReducedModel
 from hood_decomp.errors import SolverError
 
@@ -39,11 +46,15 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class LoadCase:
-    """One linear job: nodal forces (n, 3) N and the value (mm) of every constrained translation DOF (C,)."""
+    """One linear job: nodal forces (n, 3) N and the value (mm) of every constrained translation DOF (C,);
+    temperature_k: a uniform temperature rise (K) of the whole part, with the expansion coefficient ``expansion``
+    (1/K) (0: no thermal load)."""
 
     name: str
     forces: np.ndarray
     prescribed: np.ndarray
+    temperature_k: float = 0.0
+    expansion: float = STEEL_EXPANSION
 
 
 def ccx_executable() -> str | None:
@@ -143,10 +154,18 @@ def write_deck(model: PartModel, case: LoadCase, constrained: np.ndarray, path: 
         lines += [f"{e + 1}," + ",".join(map(str, row)) for e, row in zip(members, connectivity, strict=True)]
     lines += ["*MATERIAL, NAME=STEEL", "*ELASTIC", f"{model.material.E:.9g},{model.material.nu:.9g}",
               "*DENSITY", f"{model.material.density:.9g}"]
+    thermal = bool(np.isfinite(case.temperature_k) and case.temperature_k != 0.0)
+    if thermal:
+        lines += ["*EXPANSION", f"{case.expansion:.9g}"]
     for p, part in enumerate(model.parts):
         if np.any(model.cell_part == p):
             lines += [f"*SHELL SECTION, ELSET={elsets[p]}, MATERIAL=STEEL", f"{part.thickness:.9g}"]
-    lines += ["*STEP", "*STATIC", "*BOUNDARY"]
+    if thermal:
+        lines += ["*INITIAL CONDITIONS, TYPE=TEMPERATURE", "NALL, 0.", "NMID, 0."]
+    lines += ["*STEP", "*STATIC"]
+    if thermal:
+        lines += ["*TEMPERATURE", f"NALL, {case.temperature_k:.9g}", f"NMID, {case.temperature_k:.9g}"]
+    lines += ["*BOUNDARY"]
     node, axis = np.divmod(constrained, 6)
     lines += [f"{a + 1},{b + 1},{b + 1},{v:.12g}" for a, b, v in zip(node, axis, case.prescribed, strict=True)]
     held = np.full((n, 3), np.nan)

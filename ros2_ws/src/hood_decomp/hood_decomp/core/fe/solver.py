@@ -75,12 +75,18 @@ def load_vector(model: PartModel) -> np.ndarray:
     mass = np.zeros(len(model.nodes))
     np.add.at(mass, model.cells.ravel(), np.repeat(area * thickness * model.material.density / 4.0, 4))
     F = np.zeros((len(model.nodes), 6))
-    F[:, :3] = mass[:, None] * np.asarray(model.gravity, dtype=float)
+    F[:, :3] = mass[:, None] * np.asarray(model.gravity, dtype=float) + force_boundary_loads(model)
+    return F.ravel()
+
+
+def force_boundary_loads(model: PartModel) -> np.ndarray:
+    """Nodal forces (n, 3) N of the force boundaries (gas springs) alone, at their stated force."""
+    forces = np.zeros((len(model.nodes), 3))
     for boundary in model.boundaries:
         if boundary.kind == "force":
             nodes = patch_nodes(model, boundary)
-            F[nodes, :3] += boundary.force * patch_weights(model, nodes)[:, None] * np.asarray(boundary.axis)
-    return F.ravel()
+            forces[nodes] += boundary.force * patch_weights(model, nodes)[:, None] * np.asarray(boundary.axis)
+    return forces
 
 
 def rigid_body_check(model: PartModel, constrained: np.ndarray) -> None:
@@ -340,13 +346,9 @@ def build_solver(model: PartModel, validate: bool = True, pad_lattice: int = PAD
     return ShellSolver(model, K, constrained, factor, backend, timings, pad_lattice)
 
 
-def condense(model: PartModel, pads: PadSprings, columns: np.ndarray, pad_columns: np.ndarray,
-             names: tuple[str, ...], n_bilateral: int) -> ReducedModel:
-    """Build the ReducedModel from nodal translations (solver independent: embedded or CalculiX).
-
-    columns: (n, 3, 1 + B) mm, the load response then one unit response per bilateral input; pad_columns: (n, 3, S)
-    mm, one unit pad spring force response per spring; names: (B + U,) labels; n_bilateral: B.
-    """
+def project(model: PartModel, pads: PadSprings, columns: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What the reduced model keeps of nodal translations (n, 3, k) mm: the skin normal displacement (N, k), the pad
+    springs' mean axial displacement (S, k) and the skin translations (N, 3, k)."""
     skin = model.skin_nodes
     normals = skin_surface(model).normals
     n = len(model.nodes)
@@ -354,10 +356,19 @@ def condense(model: PartModel, pads: PadSprings, columns: np.ndarray, pad_column
     translation = sp.csr_matrix((np.ones(3 * n), (np.arange(3 * n), rows[rows % 6 < 3])), shape=(3 * n, 6 * n))
     loads = (translation @ pads.loads).tocsc()  # (3n, S): spring weights x axis on the translations
     z = np.asarray(loads.T @ columns.reshape(3 * n, -1))
-    H = np.asarray(loads.T @ pad_columns.reshape(3 * n, -1))
-    w3, g3 = columns[skin], pad_columns[skin]
-    w = np.einsum("nak,na->nk", w3, normals)
-    g = np.einsum("nas,na->ns", g3, normals)
+    w3 = columns[skin]
+    return np.einsum("nak,na->nk", w3, normals), z, w3
+
+
+def condense(model: PartModel, pads: PadSprings, columns: np.ndarray, pad_columns: np.ndarray,
+             names: tuple[str, ...], n_bilateral: int) -> ReducedModel:
+    """Build the ReducedModel from nodal translations (solver independent: embedded or CalculiX).
+
+    columns: (n, 3, 1 + B) mm, the load response then one unit response per bilateral input; pad_columns: (n, 3, S)
+    mm, one unit pad spring force response per spring; names: (B + U,) labels; n_bilateral: B.
+    """
+    w, z, w3 = project(model, pads, columns)
+    g, H, g3 = project(model, pads, pad_columns)
     return ReducedModel(
         model_id=model.model_id,
         names=tuple(names),
@@ -414,3 +425,64 @@ def retarget_pads(reduced: ReducedModel, model: PartModel, pad_lattice: int = PA
         raise ModelError(f"model {model.name!r} has {len(pads.k)} pad springs, the reduced model {len(reduced.k)} "
                          "with another layout: use reduce_model")
     return replace(reduced, k=pads.k, preload=pads.preload, parameter_states=model.parameter_states)
+
+
+#: linear thermal expansion coefficient of steel, 1/K (the default part material)
+STEEL_EXPANSION = 1.2e-5
+
+
+def physical_responses(solver: ShellSolver, expansion: float = STEEL_EXPANSION) -> dict[str, tuple]:
+    """Responses behind the physical factors of a calibration, from the solver's one factorisation (no refactorisation).
+
+    Returns name -> (skin normal (N,), pad spring axial (S,), skin translations (N, 3)) mm:
+    - "gas_spring": the force boundaries (gas springs) alone at their stated force (a part of the load response);
+    - "thermal": a uniform temperature rise of 1 K. A free part expands by ``expansion`` (x - c) (stress free for the
+      shell: uniform in-plane strain, no curvature); the held translations cannot follow, so the response is that
+      free expansion plus the response to moving the held DOFs back by it (no other loads).
+    """
+    model = solver.model
+    n = len(model.nodes)
+    F = np.zeros((n, 6))
+    F[:, :3] = force_boundary_loads(model)
+    gas = solver.solve(F.ravel()).reshape(n, 6)[:, :3]
+    free = np.zeros((n, 6))
+    free[:, :3] = expansion * (model.nodes - model.nodes.mean(axis=0))
+    held = solver.solve(np.zeros(solver.n_dof), -free.ravel()[solver.constrained]).reshape(n, 6)[:, :3]
+    columns = np.stack([gas, free[:, :3] + held], axis=2)
+    w, z, w3 = project(model, solver.pads, columns)
+    return {name: (w[:, i], z[:, i], w3[:, :, i]) for i, name in enumerate(("gas_spring", "thermal"))}
+
+
+#: relative thickness step of the finite-difference thickness sensitivities
+THICKNESS_STEP = 0.02
+
+
+def thickness_groups(model: PartModel) -> dict[str, tuple[str, ...]]:
+    """The sheet groups whose thickness a calibration scales together: parts by the name before the first "_"
+    (outer_skin, inner_panel, and the four reinf_* together on the hood)."""
+    groups: dict[str, list[str]] = {}
+    for part in model.parts:
+        groups.setdefault(part.name.split("_")[0], []).append(part.name)
+    return {name: tuple(members) for name, members in groups.items()}
+
+
+def thickness_sensitivities(model: PartModel, base: ReducedModel, step: float = THICKNESS_STEP,
+                            pad_lattice: int = PAD_LATTICE) -> dict[str, ReducedModel]:
+    """Finite-difference sensitivities of the reduced model to each thickness group's scale
+    (:func:`thickness_groups`): group -> ReducedModel whose arrays are d(array)/d(log thickness) (one assembly and
+    factorisation per group, logged). ``base``: the reduced model of ``model`` itself."""
+    out = {}
+    for index, (group, members) in enumerate(thickness_groups(model).items(), start=1):
+        parts = tuple(replace(p, thickness=p.thickness * (1.0 + step)) if p.name in members else p
+                      for p in model.parts)
+        logger.info("thickness sensitivity %d/%d: %s (%s)", index, len(thickness_groups(model)), group,
+                    ", ".join(members))
+        shifted = reduce_model(build_solver(replace(model, parts=parts), validate=False, pad_lattice=pad_lattice))
+        scale = 1.0 / np.log1p(step)
+        out[group] = replace(base, **{name: (getattr(shifted, name) - getattr(base, name)) * scale
+                                      for name in SENSITIVE_ARRAYS})
+    return out
+
+
+#: the reduced model's arrays a thickness changes (k, preload and pad_of do not depend on it)
+SENSITIVE_ARRAYS = ("w0", "R", "G", "z0", "Sa", "H", "w0_3d", "R_3d", "G_3d")

@@ -43,9 +43,15 @@ class Bases:
     pca: PCABasis
     hierarchical: HierarchicalBasis
     reduced_model: ReducedModel | None
-    # min_coverage -> fitted ContactEstimator; filled on first use, not part of the bases' value
-    _contact_estimators: dict[float, ContactEstimator] = dataclasses.field(default_factory=dict, init=False,
-                                                                           repr=False, compare=False)
+    #: the calibration these bases were rebuilt with (core.loop.calibration.Calibration.record as JSON text; "" for
+    #: uncalibrated bases)
+    calibration: str = ""
+    #: response of the part to 1 K of uniform temperature rise (skin normal (N,), pad springs (S,), skin 3D (N, 3), mm;
+    #: core.fe.solver.physical_responses), carried by calibrated bases; None: no temperature term
+    thermal: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    # (min_coverage, temperature K) -> fitted ContactEstimator; filled on first use, not part of the bases' value
+    _contact_estimators: dict[tuple[float, float], ContactEstimator] = dataclasses.field(
+        default_factory=dict, init=False, repr=False, compare=False)
     # the skin's within-model test (its smooth modes), prepared on first use
     _tests: dict[str, ResidualTest] = dataclasses.field(default_factory=dict, init=False, repr=False, compare=False)
 
@@ -59,20 +65,39 @@ class Bases:
             self._tests.setdefault("test", ResidualTest().fit(self.skin))
         return self._tests["test"]
 
-    def contact_estimator(self, min_coverage: float = DEFAULT_MIN_COVERAGE) -> ContactEstimator:
-        """The contact-aware estimator on these bases, fitted on first use and kept (one per ``min_coverage``).
+    def contact_estimator(self, min_coverage: float = DEFAULT_MIN_COVERAGE,
+                          temperature_k: float = 0.0) -> ContactEstimator:
+        """The contact-aware estimator on these bases, fitted on first use and kept (one per ``min_coverage`` and
+        part temperature ``temperature_k``, K off the model's reference: its thermal response joins the load case).
 
         Fitting forms the (B + S, N) fields and their Gram matrix, which costs as much as estimating a field; the
         fitted estimator is only read by ``estimate``, so one instance serves every later field.
         """
         if self.reduced_model is None:
             raise BasisError("the bases file holds no reduced model: the contact-aware estimator needs one (use 'pca')")
-        estimator = self._contact_estimators.get(min_coverage)
+        key = (min_coverage, float(temperature_k))
+        estimator = self._contact_estimators.get(key)
         if estimator is None:
-            estimator = ContactEstimator(min_coverage).fit(self.reduced_model, self.pca.lower_, self.pca.upper_,
-                                                           self.residual_test())
-            estimator = self._contact_estimators.setdefault(min_coverage, estimator)
+            estimator = ContactEstimator(min_coverage).fit(self.at_temperature(temperature_k), self.pca.lower_,
+                                                           self.pca.upper_, self.residual_test())
+            estimator = self._contact_estimators.setdefault(key, estimator)
         return estimator
+
+    def at_temperature(self, temperature_k: float) -> ReducedModel:
+        """The reduced model of a part ``temperature_k`` K off the model's reference temperature (uniform)."""
+        if self.reduced_model is None:
+            raise BasisError("the bases file holds no reduced model")
+        if temperature_k == 0.0:
+            return self.reduced_model
+        if self.thermal is None:
+            raise BasisError("these bases carry no thermal response: a part temperature needs calibrated bases "
+                             "(`hood-decomp calibrate` adds it)")
+        if not np.isfinite(temperature_k):
+            raise BasisError(f"part temperature offset must be a finite number of K, got {temperature_k}")
+        w, z, w3 = self.thermal
+        reduced = self.reduced_model
+        return dataclasses.replace(reduced, w0=reduced.w0 + temperature_k * w, z0=reduced.z0 + temperature_k * z,
+                                   w0_3d=reduced.w0_3d + temperature_k * w3)
 
 
 def build_bases(
@@ -99,14 +124,21 @@ def build_bases(
 
 
 def estimate_field(
-    bases: Bases, field: DisplacementField, method: str = "contact", min_coverage: float = DEFAULT_MIN_COVERAGE
+    bases: Bases, field: DisplacementField, method: str = "contact", min_coverage: float = DEFAULT_MIN_COVERAGE,
+    temperature_k: float = 0.0,
 ) -> ParameterEstimate:
-    """Estimate a field's parameter states: "contact" (default, needs the reduced model) or "pca" (the paper's)."""
+    """Estimate a field's parameter states: "contact" (default, needs the reduced model) or "pca" (the paper's).
+    temperature_k: the part's temperature minus the model's reference temperature, K (needs bases with a thermal
+    response; the PCA estimator removes the thermal field from the measured one, the contact-aware one also lets it
+    move the pads)."""
     if method not in METHODS:
         raise BasisError(f"unknown estimation method {method!r}, expected one of {METHODS}")
     if method == "pca":
+        if temperature_k != 0.0 and np.shape(field.normal_displacement) == bases.pca.mean_field_.shape:
+            thermal = bases.at_temperature(temperature_k).w0 - bases.reduced_model.w0
+            field = dataclasses.replace(field, normal_displacement=field.normal_displacement - thermal)
         return estimate_pca(bases.pca, field, min_coverage, bases.residual_test())
-    return bases.contact_estimator(min_coverage).estimate(field)
+    return bases.contact_estimator(min_coverage, temperature_k).estimate(field)
 
 
 def analyse_estimate(bases: Bases, estimate: ParameterEstimate, noise_mm: float | None, alpha: float = DEFAULT_ALPHA

@@ -1,0 +1,490 @@
+"""Calibration of the reduced model to the real part from fields with known settings, and reference-relative fields.
+
+A model never matches the real part: on the hood, CalculiX's S8R unit responses differ from the embedded shell's by
+1-2 %, and a real part's sheet thickness, pad stiffness and preload or gas-spring force differ from the drawing's.
+Where a parameter is weakly observable those percent become tenths of a millimetre in the estimates (issue 16).
+
+Calibration (``hood-decomp calibrate``) takes entries (a field of the part in a known setting, e.g. the reference
+state and +- each parameter moved one at a time by a dial gauge or the robot, as in the paper's experiment) and fits,
+in this order:
+
+1. **Physical factors** through the FE model (:func:`factor_names`): the compliance scale (1 / Young's modulus: it
+   scales the load and pad-force responses, not the unit boundary motions), the gas-spring force scale, the thickness
+   of each sheet group (outer skin, inner panel, reinforcements; through the reduced model's finite-difference
+   sensitivity to it, one refactorisation per group, :func:`core.fe.solver.thickness_sensitivities`), and per pad its
+   stiffness (log scale) and preload (mm). Levenberg-Marquardt with finite-difference sensitivities on the reduced
+   model: each evaluation is the exact pad contact of every entry plus superposition, no refactorisation. A Gaussian
+   prior (:data:`PRIOR_STD`) keeps factors the entries do not determine at nominal.
+2. **A low-rank correction** of the unit responses on the skin where the physical factors leave a residual above the
+   noise: per skin node, the residual of entry j is regressed on x_j = (1, a_j, F_j / 1 kN) (bilateral states a,
+   total pad forces F of the calibrated physics): Delta (N, 1 + B + U) = corrections of the load response, of each
+   unit response and of each pad's response per newton. Delta is whitened by (X^T X)^(1/2), where pure noise has
+   i.i.d. entries of the noise level sigma, and truncated to the singular values above
+   :data:`RANK_SIGMAS` x sigma (sqrt(N) + sqrt(1 + B + U)) (the largest a noise matrix reaches): only structure the
+   noise cannot make is kept.
+
+Judged by leave-one-out: each entry is predicted by the calibration fitted on the others (its RMS error is recorded).
+Honest calibration:
+
+- too few entries for what is fitted (a response no two other entries move, so leave-one-out cannot judge it) is
+  refused naming the parameter (:class:`~hood_decomp.errors.CalibrationError`);
+- an entry whose known setting disagrees with the others (a wrong dial reading) is refused naming the entry. The test
+  (leave-one-out): with the physical factors fitted on the *other* entries, the setting that best explains the entry's
+  field along the parameters it moves (least squares on the model's sensitivities at its state) differs from the known
+  setting by more than :data:`SETTING_RTOL` of the move plus :data:`SETTING_ATOL_MM` plus
+  :data:`SETTING_SIGMAS` standard deviations of that fit under the entry's noise. The tolerance covers the model error
+  that the physical factors leave in a response (no correct entry of the CalculiX stand-in calibrations in
+  benchmarks/RESULTS.md and the tests is refused); the physical factors cannot absorb a wrong reading because they
+  do not scale the unit motions.
+
+Reference-relative estimation (``--reference``): a field of a part in a known state is subtracted and the model's
+own field for that state added back, so a static model error (in the load response, the paper's protocol) cancels
+(:func:`relative_field`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from hood_decomp.core.fe.contact import contact_state
+from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solve_members
+from hood_decomp.core.fe.solver import SENSITIVE_ARRAYS
+from hood_decomp.core.method.bases import Bases, build_bases
+from hood_decomp.core.method.residual import DEFAULT_NOISE_MM, skin_adjacency
+from hood_decomp.core.types import DisplacementField, ReducedModel, SkinSurface, fingerprint
+from hood_decomp.errors import CalibrationError
+
+logger = logging.getLogger(__name__)
+
+#: prior standard deviations of the physical factors (Gaussian, about nominal): compliance (log), gas-spring force
+#: (relative), sheet thickness (log), pad stiffness (log), pad preload (mm)
+PRIOR_STD = {"compliance": 0.1, "gas_spring": 0.2, "thickness": 0.1, "pad_stiffness": 0.5, "preload": 0.3}
+#: relative finite-difference step of the physical factors' sensitivities
+FD_STEP = 1e-4
+#: singular values of the whitened correction kept above this many times the largest of a pure-noise matrix
+RANK_SIGMAS = 1.0
+#: setting test of an entry (module docstring): relative tolerance of a move, absolute tolerance (mm), sigmas
+SETTING_RTOL = 0.08
+SETTING_ATOL_MM = 0.01
+SETTING_SIGMAS = 4.0
+#: smooth skin modes the correction lives in (:func:`smooth_modes`)
+SMOOTH_MODES = 100
+#: total pad force unit of the correction's regressors (N): the pad columns of Delta are per kN
+FORCE_UNIT_N = 1000.0
+
+
+@dataclass(frozen=True)
+class CalibrationEntry:
+    """One calibration entry: a field of the part (N,) mm in a known setting (P,) mm (names order of the bases'
+    parameters; unset parameters 0). name: how the entry is named in messages (its file, or "entry 3")."""
+
+    name: str
+    field: DisplacementField
+    setting: np.ndarray
+
+
+@dataclass(frozen=True)
+class PhysicalResponses:
+    """The FE responses behind the physical factors (core.fe.solver.physical_responses): gas springs at their stated
+    force and 1 K of uniform temperature rise, each as skin normal (N,), pad springs (S,), skin translations (N, 3)."""
+
+    gas_w: np.ndarray
+    gas_z: np.ndarray
+    gas_w3: np.ndarray
+    thermal_w: np.ndarray
+    thermal_z: np.ndarray
+    thermal_w3: np.ndarray
+    #: thickness group -> d(reduced model arrays)/d(log thickness) (core.fe.solver.thickness_sensitivities)
+    thickness: dict[str, ReducedModel]
+
+    @staticmethod
+    def from_solver(responses: dict[str, tuple], thickness: dict[str, ReducedModel]) -> PhysicalResponses:
+        (gw, gz, g3), (tw, tz, t3) = responses["gas_spring"], responses["thermal"]
+        return PhysicalResponses(gw, gz, g3, tw, tz, t3, thickness)
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A fitted calibration. factors: name -> value (see :func:`factor_names`); factor_std: their std from the fit;
+    correction: (N, 1 + B + U) mm per unit regressor; rank: the correction's rank; entries: entry names;
+    loo_rms_mm: (M,) leave-one-out prediction RMS per entry; noise_mm: the noise level used; residual_rms_mm: (M,)
+    in-sample RMS after the calibration; setting_error_mm: (M,) largest setting discrepancy of the entry's test."""
+
+    factors: dict[str, float]
+    factor_std: dict[str, float]
+    correction: np.ndarray
+    rank: int
+    entries: tuple[str, ...]
+    loo_rms_mm: np.ndarray
+    noise_mm: float
+    residual_rms_mm: np.ndarray
+    setting_error_mm: np.ndarray
+
+    def record(self) -> dict:
+        """The calibration as JSON-ready data (what the bases file records): factors, rank, entries with their
+        leave-one-out and in-sample error, the noise level, and an id (fingerprint of all of it and the correction)."""
+        body = {
+            "factors": self.factors, "factor_std": self.factor_std, "rank": self.rank, "noise_mm": self.noise_mm,
+            "entries": [{"name": n, "loo_rms_mm": float(loo), "residual_rms_mm": float(res),
+                         "setting_error_mm": float(err) if np.isfinite(err) else None}
+                        for n, loo, res, err in zip(self.entries, self.loo_rms_mm, self.residual_rms_mm,
+                                                    self.setting_error_mm, strict=True)],
+            "loo_rms_mm": float(np.sqrt(np.mean(self.loo_rms_mm**2))),
+        }
+        body["id"] = fingerprint(json.dumps(body, sort_keys=True), self.correction)
+        return body
+
+
+def one_at_a_time(n_params: int, moves: tuple[float, ...] = (0.8,)) -> np.ndarray:
+    """The usual calibration plan: the reference (all 0) and +-each move (mm) of each parameter alone,
+    (1 + 2 P len(moves), P); 13 entries for the hood with one move, 25 with two."""
+    settings = [np.zeros(n_params)]
+    for move in moves:
+        for i in range(n_params):
+            for sign in (1.0, -1.0):
+                setting = np.zeros(n_params)
+                setting[i] = sign * move
+                settings.append(setting)
+    return np.array(settings)
+
+
+def factor_names(reduced: ReducedModel, physics: PhysicalResponses) -> list[str]:
+    """Names of the physical factors: compliance, gas_spring, thickness per sheet group, then per pad stiffness and
+    preload."""
+    pads = reduced.names[reduced.n_bilateral:]
+    return ["compliance", "gas_spring", *(f"thickness:{g}" for g in physics.thickness),
+            *(f"pad_stiffness:{p}" for p in pads), *(f"preload:{p}" for p in pads)]
+
+
+def apply_factors(reduced: ReducedModel, physics: PhysicalResponses, theta: np.ndarray,
+                  full: bool = True) -> ReducedModel:
+    """The reduced model with physical factors theta (:func:`factor_names` order): compliance exp(theta_0) on the load
+    and pad-force responses, gas-spring force x (1 + theta_1), each sheet group's thickness x exp(theta) (first order
+    through its sensitivity), pad stiffness x exp, preload + theta (mm). ``full``: False leaves the 3D arrays as they
+    are (the fit reads only the normal ones)."""
+    n_pads = len(reduced.names) - reduced.n_bilateral
+    n_groups = len(physics.thickness)
+    c, g = float(np.exp(theta[0])), float(theta[1])
+    stiffness = np.exp(np.asarray(theta[2 + n_groups:2 + n_groups + n_pads]))
+    preload = np.asarray(theta[2 + n_groups + n_pads:2 + n_groups + 2 * n_pads])
+    arrays = SENSITIVE_ARRAYS if full else tuple(name for name in SENSITIVE_ARRAYS if not name.endswith("_3d"))
+    if n_groups:
+        reduced = replace(reduced, **{name: getattr(reduced, name) + sum(
+            t * getattr(sens, name) for t, sens in zip(theta[2:2 + n_groups], physics.thickness.values(),
+                                                       strict=True)) for name in arrays})
+    reduced = replace(
+        reduced,
+        w0=c * (reduced.w0 + g * physics.gas_w), z0=c * (reduced.z0 + g * physics.gas_z),
+        G=c * reduced.G, H=c * reduced.H,
+        k=reduced.k * stiffness[reduced.pad_of], preload=reduced.preload + preload[reduced.pad_of],
+    )
+    if not full:
+        return reduced
+    return replace(reduced, w0_3d=c * (reduced.w0_3d + g * physics.gas_w3), G_3d=c * reduced.G_3d)
+
+
+def with_correction(reduced: ReducedModel, correction: np.ndarray, normals: np.ndarray) -> ReducedModel:
+    """The reduced model with a skin correction (N, 1 + B + U) mm: of w0, each unit response, and each pad's response
+    per kN (spread on every spring of the pad: the pad's total force carries it). normals (N, 3): the 3D fields move
+    along the skin normal."""
+    B = reduced.n_bilateral
+    d0, dR, dP = correction[:, 0], correction[:, 1:1 + B], correction[:, 1 + B:] / FORCE_UNIT_N
+    dG = dP[:, reduced.pad_of]
+    return replace(
+        reduced, w0=reduced.w0 + d0, R=reduced.R + dR, G=reduced.G + dG,
+        w0_3d=reduced.w0_3d + normals * d0[:, None], R_3d=reduced.R_3d + normals[:, :, None] * dR[:, None, :],
+        G_3d=reduced.G_3d + normals[:, :, None] * dG[:, None, :],
+    )
+
+
+def normal_fields(reduced: ReducedModel, settings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Skin normal fields (m, N) mm and total pad forces (m, U) N at commanded settings (m, P) mm: the exact pad
+    contact and superposition of :func:`core.fe.ensemble.solve_members`, without its 3D fields (the fit's hot path)."""
+    B = reduced.n_bilateral
+    U = len(reduced.names) - B
+    forces = np.array([contact_state(reduced, state[:B], state[B:]).f for state in settings])
+    totals = np.stack([forces[:, reduced.pad_of == u].sum(axis=1) for u in range(U)], axis=1)
+    return reduced.w0[None, :] + settings[:, :B] @ reduced.R.T + forces @ reduced.G.T, totals
+
+
+def _noise(field: DisplacementField) -> float:
+    """The noise level (mm) of a field: its error model's median node std, its noise_rms, else the default."""
+    errors = field.errors
+    if errors.kind != "none":
+        std = np.asarray(errors.node_std, float)
+        std = std[np.isfinite(std)]
+        if std.size and np.median(std) > 0:
+            return float(np.median(std))
+    if np.isfinite(field.noise_rms) and field.noise_rms > 0:
+        return float(field.noise_rms)
+    return DEFAULT_NOISE_MM
+
+
+class _Problem:
+    """The entries as arrays: Y (M, N) with 0 where unseen, mask (M, N), settings (M, P), noise (M,)."""
+
+    def __init__(self, entries: list[CalibrationEntry], reduced: ReducedModel, physics: PhysicalResponses,
+                 modes: np.ndarray):
+        self.reduced, self.physics, self.modes = reduced, physics, modes
+        self.names = tuple(e.name for e in entries)
+        values = np.array([np.asarray(e.field.normal_displacement, float) for e in entries])
+        self.mask = np.isfinite(values)
+        self.Y = np.where(self.mask, values, 0.0)
+        self.settings = np.array([np.asarray(e.setting, float) for e in entries])
+        self.noise = np.array([_noise(e.field) for e in entries])
+        self.prior = np.array([PRIOR_STD[name.split(":")[0]] for name in factor_names(reduced, physics)])
+
+    def predict(self, theta: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Model fields (m, N) and total pad forces (m, U) of entries ``rows`` with physical factors theta."""
+        return normal_fields(apply_factors(self.reduced, self.physics, theta, full=False), self.settings[rows])
+
+    def weighted_residual(self, theta: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        fields, _ = self.predict(theta, rows)
+        r = (self.Y[rows] - fields) * self.mask[rows] / self.noise[rows, None]
+        return np.concatenate([r.ravel(), theta / self.prior])
+
+    def fit_factors(self, rows: np.ndarray, start: np.ndarray | None = None, iterations: int = 12
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """Levenberg-Marquardt on the physical factors over entries ``rows``: (theta, covariance)."""
+        theta = np.zeros(len(self.prior)) if start is None else start.copy()
+        r = self.weighted_residual(theta, rows)
+        cost, damping = float(r @ r), 1e-3
+        jac = np.zeros((r.size, theta.size))
+        for iteration in range(iterations):
+            for i in range(theta.size):
+                step = FD_STEP * max(1.0, abs(theta[i]))
+                shifted = theta.copy()
+                shifted[i] += step
+                jac[:, i] = (self.weighted_residual(shifted, rows) - r) / step
+            normal, gradient = jac.T @ jac, jac.T @ r
+            improved = False
+            for _ in range(8):
+                delta = np.linalg.solve(normal + damping * np.diag(np.diag(normal)), -gradient)
+                trial = theta + delta
+                r_trial = self.weighted_residual(trial, rows)
+                if float(r_trial @ r_trial) < cost:
+                    theta, r, cost = trial, r_trial, float(r_trial @ r_trial)
+                    damping, improved = damping / 10.0, True
+                    break
+                damping *= 10.0
+            logger.debug("physical factors: iteration %d cost %.6g", iteration, cost)
+            if not improved or np.max(np.abs(delta)) < 1e-7:
+                break
+        return theta, np.linalg.inv(jac.T @ jac)
+
+    def regressors(self, forces: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """X (m, 1 + B + U): 1, the bilateral states and the total pad forces (kN) of entries ``rows``."""
+        B = self.reduced.n_bilateral
+        return np.hstack([np.ones((len(rows), 1)), self.settings[rows, :B], forces / FORCE_UNIT_N])
+
+    def fit_correction(self, theta: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, int]:
+        """The low-rank correction (N, q) from entries ``rows`` after physical factors theta, and its rank.
+
+        The residuals are projected on the skin's smooth modes (:attr:`modes`, orthonormal (N, K)): a model error is
+        smooth, noise is not, so the noise the correction can pick up lives in K dimensions instead of N (an unseen
+        node counts as no residual). C (K, q) is the least-squares regression on X, whitened by (X^T X)^(1/2) and
+        truncated to the singular values above the largest of a pure-noise (K, q) matrix."""
+        fields, forces = self.predict(theta, rows)
+        X = self.regressors(forces, rows)
+        q = X.shape[1]
+        residual = ((self.Y[rows] - fields) * self.mask[rows]) @ self.modes  # (m, K)
+        gram = X.T @ X
+        coefficients = np.linalg.solve(gram + 1e-12 * np.trace(gram) * np.eye(q), X.T @ residual).T  # (K, q)
+        values, vectors = np.linalg.eigh(gram)
+        root = (vectors * np.sqrt(np.clip(values, 0.0, None))) @ vectors.T
+        inverse_root = (vectors / np.sqrt(np.clip(values, 1e-300, None))) @ vectors.T
+        u, s, vt = np.linalg.svd(coefficients @ root, full_matrices=False)
+        sigma = float(np.sqrt(np.mean(self.noise[rows] ** 2)))
+        threshold = RANK_SIGMAS * sigma * (np.sqrt(self.modes.shape[1]) + np.sqrt(q))
+        rank = int(np.sum(s > threshold))
+        return self.modes @ ((u[:, :rank] * s[:rank]) @ vt[:rank] @ inverse_root), rank
+
+    def setting_error(self, theta: np.ndarray, row: int) -> tuple[float, str]:
+        """The entry's setting test (module docstring) with physical factors theta fitted without it: the largest
+        excess of |apparent - known| over the tolerance (mm, <= 0 passes) and the parameter it is on."""
+        setting = self.settings[row]
+        moved = np.flatnonzero(setting != 0.0)
+        if moved.size == 0:
+            return -np.inf, ""
+        rows = np.array([row])
+        base, _ = self.predict(theta, rows)
+        reduced = apply_factors(self.reduced, self.physics, theta, full=False)
+        sens = []
+        for i in moved:
+            step = 1e-3
+            shifted = setting.copy()
+            shifted[i] += step
+            sens.append((normal_fields(reduced, shifted[None, :])[0][0] - base[0]) / step)
+        J = np.array(sens).T[self.mask[row]]
+        observable = np.linalg.norm(J, axis=0) > 1e-6 * max(np.linalg.norm(J), 1e-300)
+        if not observable.any():
+            return -np.inf, ""
+        J, moved = J[:, observable], moved[observable]
+        r = (self.Y[row] - base[0])[self.mask[row]]
+        delta, *_ = np.linalg.lstsq(J, r, rcond=None)
+        std = self.noise[row] * np.sqrt(np.diag(np.linalg.inv(J.T @ J)))
+        excess = np.abs(delta) - (SETTING_RTOL * np.abs(setting[moved]) + SETTING_ATOL_MM + SETTING_SIGMAS * std)
+        worst = int(np.argmax(excess))
+        return float(excess[worst]), self.reduced.names[moved[worst]]
+
+
+def smooth_modes(skin: SkinSurface, count: int = SMOOTH_MODES) -> np.ndarray:
+    """The ``count`` smoothest skin fields (N, count), orthonormal: the lowest eigenvectors of the skin's graph
+    Laplacian (edge weights 1), which resolve features down to about sqrt(skin area / count) (~100 mm on the hood)."""
+    from scipy.sparse import diags
+    from scipy.sparse.linalg import eigsh
+
+    adjacency = skin_adjacency(skin)
+    laplacian = diags(np.asarray(adjacency.sum(axis=1)).ravel()) - adjacency
+    count = min(count, skin.n_nodes - 2)
+    _, vectors = eigsh(laplacian.tocsc(), k=count, sigma=-1e-3, which="LM")
+    return np.linalg.qr(vectors)[0]
+
+
+def _check_support(problem: _Problem, entries: list[CalibrationEntry]) -> None:
+    """CalibrationError when the entries cannot support the fit with leave-one-out: every response needs at least
+    two entries that move it beyond the others (so that leaving one out still determines it)."""
+    M = len(entries)
+    names = problem.reduced.names
+    B = problem.reduced.n_bilateral
+    q = 1 + B + (len(names) - B)
+    if M < q + 1:
+        raise CalibrationError(f"calibration needs at least {q + 1} entries (the reference and each parameter moved "
+                               f"at least twice: leave-one-out), got {M}")
+    for i, label in enumerate(names):
+        moved = int(np.sum(problem.settings[:, i] != problem.settings[0, i]) if i >= B else
+                    np.sum(problem.settings[:, i] != 0.0))
+        if i < B and moved < 2:
+            raise CalibrationError(f"parameter {label} is moved in {moved} calibration entr"
+                                   f"{'y' if moved == 1 else 'ies'}; its response needs at least 2 (leave-one-out)")
+        if i >= B and len(np.unique(problem.settings[:, i])) < 3:
+            raise CalibrationError(f"parameter {label} takes {len(np.unique(problem.settings[:, i]))} distinct "
+                                   "values in the calibration entries; its pad needs at least 3 (leave-one-out)")
+
+
+def calibrate(reduced: ReducedModel, physics: PhysicalResponses, entries: list[CalibrationEntry],
+              skin: SkinSurface) -> tuple[ReducedModel, Calibration]:
+    """Fit physical factors, then the low-rank correction (module docstring); leave-one-out over the entries.
+
+    reduced: the bases' reduced model; physics: :class:`PhysicalResponses` of the same model; entries: fields in the
+    skin node order with settings (P,) mm in ``reduced.names`` order; skin: the bases' skin (normals, smooth modes).
+    Returns the calibrated reduced model and the :class:`Calibration`. Raises CalibrationError naming an entry whose
+    setting disagrees with the others, or what the entries do not support.
+    """
+    for entry in entries:
+        if entry.field.model_id != reduced.model_id:
+            raise CalibrationError(f"calibration entry {entry.name}: field model_id {entry.field.model_id!r} is not "
+                                   f"the bases' {reduced.model_id!r}")
+        if np.shape(entry.setting) != (len(reduced.names),):
+            raise CalibrationError(f"calibration entry {entry.name}: setting has shape {np.shape(entry.setting)}, "
+                                   f"expected ({len(reduced.names)},)")
+        if np.shape(entry.field.normal_displacement) != (reduced.w0.shape[0],):
+            raise CalibrationError(f"calibration entry {entry.name}: field has "
+                                   f"{np.shape(entry.field.normal_displacement)} values, expected "
+                                   f"({reduced.w0.shape[0]},)")
+    problem = _Problem(entries, reduced, physics, np.zeros((skin.n_nodes, 0)))
+    _check_support(problem, entries)
+    problem.modes = smooth_modes(skin)  # after the checks: a refused calibration costs nothing
+    normals = skin.normals
+    M = len(entries)
+    everything = np.arange(M)
+    theta, covariance = problem.fit_factors(everything)
+    logger.info("calibration: physical factors %s",
+                dict(zip(factor_names(reduced, physics), np.round(theta, 5), strict=True)))
+    loo = np.zeros(M)
+    setting_error = np.zeros(M)
+    for j in range(M):
+        others = np.delete(everything, j)
+        theta_j, _ = problem.fit_factors(others, start=theta, iterations=3)
+        excess, label = problem.setting_error(theta_j, j)
+        setting_error[j] = excess
+        if excess > 0:
+            raise CalibrationError(f"calibration entry {entries[j].name}: its known setting of {label} disagrees with "
+                                   f"the other entries by {excess:.3f} mm beyond the tolerance (a wrong reading?)")
+        correction_j, _ = problem.fit_correction(theta_j, others)
+        model_j = with_correction(apply_factors(reduced, physics, theta_j, full=False), correction_j, normals)
+        predicted = normal_fields(model_j, problem.settings[j][None, :])[0][0]
+        seen = problem.mask[j]
+        loo[j] = float(np.sqrt(np.mean((problem.Y[j, seen] - predicted[seen]) ** 2)))
+        logger.info("calibration: leave-one-out %d/%d (%s): %.4f mm", j + 1, M, entries[j].name, loo[j])
+    correction, rank = problem.fit_correction(theta, everything)
+    calibrated = with_correction(apply_factors(reduced, physics, theta), correction, normals)
+    fitted = normal_fields(calibrated, problem.settings)[0]
+    residual = np.sqrt(np.sum(((problem.Y - fitted) * problem.mask) ** 2, axis=1) / problem.mask.sum(axis=1))
+    names = factor_names(reduced, physics)
+    std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+    calibration = Calibration(
+        factors=dict(zip(names, map(float, theta), strict=True)), factor_std=dict(zip(names, map(float, std),
+                                                                                      strict=True)),
+        correction=correction, rank=rank, entries=problem.names, loo_rms_mm=loo,
+        noise_mm=float(np.sqrt(np.mean(problem.noise**2))), residual_rms_mm=residual, setting_error_mm=setting_error)
+    logger.info("calibration: correction rank %d, leave-one-out RMS %.4f mm", rank, np.sqrt(np.mean(loo**2)))
+    return calibrated, calibration
+
+
+def rebuild_bases(bases: Bases, reduced: ReducedModel, calibration: str = "",
+                  physics: PhysicalResponses | None = None) -> Bases:
+    """Both bases rebuilt from a (calibrated) reduced model: the full-factorial ensemble by exact contact and
+    superposition, then PCA and hierarchical basis with the original bases' settings. ``calibration``: the JSON record
+    the new bases carry (their bases_id changes with it; the model_id stays); ``physics``: its thermal response goes
+    into the bases (the temperature term)."""
+    lower, upper = bases.pca.lower_, bases.pca.upper_
+    commanded, rank = factorial_plan(lower, upper)
+    logger.info("rebuilding the ensemble: %d members", len(commanded))
+    ensemble = simulate_ensemble(reduced, commanded, rank, lower, upper)
+    rebuilt = build_bases(ensemble, bases.skin, reduced, bases.pca.n_components, bases.pca.explained_variance,
+                          bases.hierarchical.epsilon_)
+    thermal = None if physics is None else (physics.thermal_w, physics.thermal_z, physics.thermal_w3)
+    return replace(rebuilt, calibration=calibration, thermal=thermal)
+
+
+def relative_field(reduced: ReducedModel, field: DisplacementField, reference: DisplacementField,
+                   setting: np.ndarray) -> DisplacementField:
+    """Reference-relative field: measured - reference + the model's own field at the reference's known setting
+    (P,) mm, so a static model error cancels. Unseen where either is unseen; the error model's node variances add
+    (the correlation and pose of the measured field are kept; the reference's registration error adds as noise)."""
+    for what, other in (("field", field.model_id), ("reference", reference.model_id)):
+        if other != reduced.model_id:
+            raise CalibrationError(f"{what} model_id {other!r} is not the bases' {reduced.model_id!r}")
+    setting = np.asarray(setting, dtype=float)
+    if setting.shape != (len(reduced.names),):
+        raise CalibrationError(f"reference setting has shape {setting.shape}, expected ({len(reduced.names)},)")
+    own = solve_members(reduced, setting[None, :]).normal_displacement[0]
+    values = np.asarray(field.normal_displacement, float) - np.asarray(reference.normal_displacement, float) + own
+    n = values.size
+    errors = field.errors
+    if errors.kind != "none" or reference.errors.kind != "none":
+        std_f = _node_std(field, n)
+        std_r = _node_std(reference, n)
+        corr = np.asarray(errors.correlation, float) if errors.kind != "none" else np.ones(n)
+        errors = replace(errors, kind="stated" if errors.kind == "none" else errors.kind,
+                         node_std=np.sqrt(std_f**2 + std_r**2), correlation=corr)
+    noise = float(np.hypot(np.nan_to_num(field.noise_rms), np.nan_to_num(reference.noise_rms)))
+    return DisplacementField(model_id=field.model_id, normal_displacement=values,
+                             coverage=float(np.isfinite(values).mean()),
+                             noise_rms=noise if noise > 0 else np.nan, error_model=errors)
+
+
+def _node_std(field: DisplacementField, n: int) -> np.ndarray:
+    """Per-node std (N,) mm of a field's error model; a field without one counts its noise_rms (or 0)."""
+    if field.errors.kind != "none":
+        return np.nan_to_num(np.asarray(field.errors.node_std, float))
+    return np.full(n, float(np.nan_to_num(field.noise_rms)))
+
+
+__all__ = [
+    "Calibration",
+    "CalibrationEntry",
+    "PhysicalResponses",
+    "apply_factors",
+    "calibrate",
+    "factor_names",
+    "one_at_a_time",
+    "rebuild_bases",
+    "relative_field",
+    "with_correction",
+]

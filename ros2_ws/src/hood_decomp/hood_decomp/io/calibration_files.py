@@ -1,0 +1,120 @@
+"""Calibration files (CAL.json) and reference files (REF.json): fields or scans of the part in known settings.
+
+CAL.json is a JSON list of entries; REF.json is one entry (or a list of one). An entry is
+
+    {"field": "ref.vtu", "setting": {"HINGE_X": 0.5}}          a field file, or
+    {"scans": ["ref.ply"], "setting": {...}}                   one scan (a multi-view entry with "poses" needs the
+                                                               multi-view fusion of issue 17: refused until then)
+
+with the setting in mm per parameter label (unset parameters are 0). Optional "name" (how messages call the entry;
+default: its file). File names are relative to the JSON file's directory and must stay inside it (no absolute path,
+no ".." out of it, resolved through links): a calibration file cannot make the program read any other file.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from hood_decomp.core.types import DisplacementField, SkinSurface
+from hood_decomp.errors import CalibrationError, HoodDecompError
+from hood_decomp.io.json_values import loads_strict
+
+#: largest calibration file (bytes) read: a list of entries, not data
+MAX_BYTES = 1 << 20
+#: most entries one calibration reads
+MAX_ENTRIES = 1000
+ENTRY_KEYS = {"field", "scans", "poses", "setting", "name"}
+
+
+@dataclass(frozen=True)
+class FieldEntry:
+    """One entry read: its name, field (N,) mm and setting label -> mm."""
+
+    name: str
+    field: DisplacementField
+    setting: dict[str, float]
+
+    def setting_vector(self, names: tuple[str, ...]) -> np.ndarray:
+        """The setting (P,) mm in ``names`` order (unset: 0); CalibrationError naming an unknown label."""
+        unknown = sorted(set(self.setting) - set(names))
+        if unknown:
+            raise CalibrationError(f"calibration entry {self.name}: unknown parameter {unknown[0]!r} in its setting; "
+                                   f"the bases have {list(names)}")
+        return np.array([self.setting.get(label, 0.0) for label in names])
+
+
+def read_entries(path: str | Path, skin: SkinSurface, min_coverage: float = 0.2, single: bool = False
+                 ) -> list[FieldEntry]:
+    """The entries of a CAL.json (``single``: a REF.json, exactly one entry) with their fields read on ``skin``.
+    Raises CalibrationError naming the problem (and the entry); a field or scan that cannot be read names its file."""
+    path = Path(path)
+    what = "reference" if single else "calibration"
+    try:
+        if path.stat().st_size > MAX_BYTES:
+            raise CalibrationError(f"{what} file {path} is larger than {MAX_BYTES} bytes")
+        data = loads_strict(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as error:
+        raise CalibrationError(f"{what} file {path} cannot be read as JSON: {error}") from error
+    if isinstance(data, dict):
+        data = [data]
+    if not isinstance(data, list) or not data or not all(isinstance(e, dict) for e in data):
+        raise CalibrationError(f"{what} file {path}: expected a list of entries (objects with 'field' or 'scans' "
+                               "and 'setting')")
+    if single and len(data) != 1:
+        raise CalibrationError(f"reference file {path}: expected one entry, got {len(data)}")
+    if len(data) > MAX_ENTRIES:
+        raise CalibrationError(f"{what} file {path}: {len(data)} entries, at most {MAX_ENTRIES}")
+    base = path.resolve().parent
+    return [_entry(raw, index, base, path, skin, min_coverage) for index, raw in enumerate(data)]
+
+
+def _inside(base: Path, text: object, where: str) -> Path:
+    """A file named in an entry: relative, inside the JSON file's directory, existing."""
+    if not isinstance(text, str) or not text or "\x00" in text:
+        raise CalibrationError(f"{where}: a file name must be a non-empty string")
+    if Path(text).is_absolute():
+        raise CalibrationError(f"{where}: {text!r} is absolute; name files relative to the calibration file")
+    resolved = (base / text).resolve()
+    if not resolved.is_relative_to(base):
+        raise CalibrationError(f"{where}: {text!r} leaves the calibration file's directory")
+    if not resolved.is_file():
+        raise CalibrationError(f"{where}: {text!r} is not a file")
+    return resolved
+
+
+def _entry(raw: dict, index: int, base: Path, path: Path, skin: SkinSurface, min_coverage: float) -> FieldEntry:
+    from hood_decomp.io.fields import read_field
+    from hood_decomp.io.scans import field_from_scan_file
+
+    where = f"{path.name} entry {index}"
+    unknown = sorted(set(raw) - ENTRY_KEYS)
+    if unknown:
+        raise CalibrationError(f"{where}: unknown key {unknown[0]!r}; an entry has {sorted(ENTRY_KEYS)}")
+    if ("field" in raw) == ("scans" in raw):
+        raise CalibrationError(f"{where}: give exactly one of 'field' and 'scans'")
+    setting = raw.get("setting")
+    if not isinstance(setting, dict) or not all(
+            isinstance(k, str) and isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+            and abs(v) <= 1000.0 for k, v in setting.items()):
+        raise CalibrationError(f"{where}: 'setting' must map parameter labels to finite numbers of mm (|x| <= 1000)")
+    if "field" in raw:
+        file, scan = _inside(base, raw["field"], where), False
+    else:
+        scans = raw["scans"]
+        if not isinstance(scans, list) or not scans:
+            raise CalibrationError(f"{where}: 'scans' must be a non-empty list of scan files")
+        if len(scans) > 1 or raw.get("poses"):
+            raise CalibrationError(f"{where}: several views with scanner poses need the multi-view fusion (issue 17),"
+                                   " not in this build; give one scan (registered by its markers or stored pose)")
+        file, scan = _inside(base, scans[0], where), True
+    name = raw.get("name")
+    name = name if isinstance(name, str) and name else str(raw.get("field") or raw["scans"][0])
+    try:
+        field = field_from_scan_file(skin, file, min_coverage) if scan else read_field(file, skin)[0]
+    except HoodDecompError as error:
+        raise CalibrationError(f"{where} ({name}): {error}") from error
+    return FieldEntry(name=name[:200], field=field, setting={k: float(v) for k, v in setting.items()})

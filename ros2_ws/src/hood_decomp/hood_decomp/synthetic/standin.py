@@ -1,0 +1,160 @@
+"""Stand-in parts for calibration tests and benchmarks: fields made by another model than the bases (issue 16).
+
+A real part differs from its FE model. The stand-in is made by CalculiX (S8R shells, :mod:`core.fe.calculix`) on the
+same mesh, with perturbed physics:
+
+- per part *family* (a plant's parts share it; what a calibration can learn): Young's modulus x (1 +- 3 %), all
+  sheet thicknesses x (1 +- 5 %), pad stiffness x (1 +- 30 %), pad preload x (1 +- 50 %), gas-spring force
+  x (1 +- 5 %);
+- per *part*: thickness x (1 +- 0.5 %) on top of the family's (what no calibration can learn: the floor).
+
+CalculiX runs cost seconds each, so a family is not one CalculiX run per part: the unit responses (the load split
+into gravity and gas springs, one unit motion per bilateral parameter) are solved by CalculiX at three thickness
+scales and interpolated quadratically in the thickness scale (responses are smooth in it); the pad spring responses
+(most of the jobs) by CalculiX at the nominal thickness, moved to other thicknesses by the embedded solver's
+difference (a first-order mix: the part of the stand-in that is not pure CalculiX); Young's modulus scales every
+force response by 1/E exactly (the unit motions not at all); pad stiffness and preload enter the pad contact, which
+is solved exactly per part with the repository's contact solver on the CalculiX responses (the buffers are the only
+nonlinearity): that is what ``ensemble --solver calculix`` does too.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from hood_decomp.core.fe.calculix import LoadCase, load_cases, run_cases
+from hood_decomp.core.fe.ensemble import solve_members
+from hood_decomp.core.fe.model import PartModel
+from hood_decomp.core.fe.solver import PAD_LATTICE, build_solver, condense, force_boundary_loads, pad_springs
+from hood_decomp.core.types import ReducedModel
+from hood_decomp.errors import SolverError
+
+logger = logging.getLogger(__name__)
+
+#: thickness scales at which CalculiX solves the unit responses (quadratic interpolation between them)
+THICKNESS_SCALES = (0.95, 1.0, 1.05)
+#: half-widths of the family perturbations (relative, except preload: relative to the model's preload)
+FAMILY_SPREAD = {"E": 0.03, "thickness": 0.05, "pad_stiffness": 0.30, "preload": 0.50, "gas_spring": 0.05}
+#: half-width of the per-part thickness variation (relative)
+PART_THICKNESS_SPREAD = 0.005
+
+
+def scaled_thickness(model: PartModel, scale: float) -> PartModel:
+    """The model with every part's thickness times ``scale`` (mesh and model_id unchanged)."""
+    return replace(model, parts=tuple(replace(p, thickness=p.thickness * scale) for p in model.parts))
+
+
+def calculix_responses(model: PartModel, scales: tuple[float, ...] = THICKNESS_SCALES,
+                       cache: Path | None = None, pad_lattice: int = PAD_LATTICE) -> dict[float, dict[str, np.ndarray]]:
+    """CalculiX translations (n, 3) mm per thickness scale: "load" (gravity + gas springs), "gas" (gas springs
+    alone), "unit_<LABEL>" per bilateral parameter at every scale, and "pad_<s>" per pad spring at scale 1 only (the
+    pad responses are 28 of 34 jobs on the coarse hood; :class:`StandIn` moves them with thickness by the embedded
+    solver's difference). ``cache``: an .npz read when present (and its model_id matches) and written after the runs.
+    """
+    if cache is not None and Path(cache).exists():
+        with np.load(cache, allow_pickle=False) as data:
+            if str(data["model_id"]) == model.model_id and tuple(data["scales"]) == tuple(scales):
+                out: dict[float, dict[str, np.ndarray]] = {s: {} for s in scales}
+                for key in data.files:
+                    if "|" in key:
+                        scale, name = key.split("|", 1)
+                        out[float(scale)][name] = data[key]
+                return out
+    out = {}
+    for scale in scales:
+        scaled = scaled_thickness(model, scale)
+        cases, constrained = load_cases(scaled, pad_lattice)
+        cases = [c for c in cases if scale == 1.0 or not c.name.startswith("pad_")]
+        cases.append(LoadCase("gas", force_boundary_loads(scaled), np.zeros(len(constrained))))
+        logger.info("stand-in: %d CalculiX jobs at thickness scale %.3f", len(cases), scale)
+        out[scale] = run_cases(scaled, cases, constrained)
+    if cache is not None:
+        arrays = {f"{s!r}|{name}": value for s, columns in out.items() for name, value in columns.items()}
+        np.savez_compressed(cache, model_id=np.array(model.model_id), scales=np.array(scales), **arrays)
+    return out
+
+
+@dataclass(frozen=True)
+class Family:
+    """One part family's physics, relative to the model: E, thickness, pad stiffness, gas-spring force as factors;
+    preload as a factor on the model's preload."""
+
+    E: float = 1.0
+    thickness: float = 1.0
+    pad_stiffness: float = 1.0
+    preload: float = 1.0
+    gas_spring: float = 1.0
+
+    @staticmethod
+    def draw(rng: np.random.Generator) -> Family:
+        """A family with every factor uniform in 1 +- :data:`FAMILY_SPREAD`."""
+        return Family(**{key: float(1.0 + rng.uniform(-spread, spread)) for key, spread in FAMILY_SPREAD.items()})
+
+
+def embedded_pad_responses(model: PartModel, scale: float, pad_lattice: int = PAD_LATTICE) -> np.ndarray:
+    """The embedded solver's pad spring responses (n, 3, S) mm of the model at thickness ``scale``."""
+    return build_solver(scaled_thickness(model, scale), validate=False, pad_lattice=pad_lattice).pad_responses()
+
+
+class StandIn:
+    """Stand-in parts of one model from CalculiX responses (:func:`calculix_responses`).
+
+    ``reduced(family, thickness)`` is the CalculiX reduced model of a part (thickness: the part's own factor on top of
+    the family's); ``fields(family, settings, rng)`` makes the skin normal fields (m, N) of m parts of a family at
+    commanded settings (m, P) mm, each with its own thickness variation.
+    """
+
+    def __init__(self, model: PartModel, responses: dict[float, dict[str, np.ndarray]],
+                 pad_lattice: int = PAD_LATTICE) -> None:
+        self.model = model
+        self.scales = np.array(sorted(responses))
+        if len(self.scales) != 3:
+            raise SolverError(f"stand-in needs responses at 3 thickness scales, got {len(self.scales)}")
+        self.bilateral = [f"unit_{p.label}" for p in model.bilateral]
+        self.pad_names = sorted(name for name in responses[1.0] if name.startswith("pad_"))
+        self._stack = {float(s): responses[float(s)] for s in self.scales}
+        self.pads = pad_springs(model, pad_lattice)
+        # pad responses at the other scales: CalculiX at scale 1 plus the embedded solver's change with thickness
+        for scale in self.scales:
+            if scale != 1.0:
+                change = embedded_pad_responses(model, scale, pad_lattice) - embedded_pad_responses(model, 1.0,
+                                                                                                   pad_lattice)
+                for s_index, name in enumerate(self.pad_names):
+                    self._stack[float(scale)][name] = responses[1.0][name] + change[:, :, s_index]
+
+    def _interpolate(self, name: str, scale: float) -> np.ndarray:
+        """Quadratic (Lagrange) interpolation of a response in the thickness scale."""
+        x = self.scales
+        weights = [np.prod([(scale - x[m]) / (x[i] - x[m]) for m in range(3) if m != i]) for i in range(3)]
+        return sum(w * self._stack[float(x[i])][name] for i, w in enumerate(weights))
+
+    def reduced(self, family: Family, thickness: float = 1.0) -> ReducedModel:
+        """The CalculiX reduced model of a part of ``family`` with its own thickness factor ``thickness``."""
+        scale = family.thickness * thickness
+        load = self._interpolate("load", scale)
+        gas = self._interpolate("gas", scale)
+        load = (load + (family.gas_spring - 1.0) * gas) / family.E
+        units = [self._interpolate(name, scale) for name in self.bilateral]
+        pads = np.stack([self._interpolate(name, scale) / family.E for name in self.pad_names], axis=2) \
+            if self.pad_names else np.zeros((len(self.model.nodes), 3, 0))
+        columns = np.stack([load, *units], axis=2)
+        names = tuple(p.label for p in self.model.bilateral) + tuple(p.label for p in self.model.unilateral)
+        reduced = condense(self.model, self.pads, columns, pads, names, len(self.model.bilateral))
+        return replace(reduced, k=reduced.k * family.pad_stiffness, preload=reduced.preload * family.preload)
+
+    def fields(self, family: Family, settings: np.ndarray, rng: np.random.Generator,
+               part_spread: float = PART_THICKNESS_SPREAD) -> tuple[np.ndarray, np.ndarray]:
+        """Normal fields (m, N) mm (noise-free) and effective states (m, P) mm of m parts of ``family`` at commanded
+        settings (m, P) mm, each part with its own thickness factor."""
+        settings = np.atleast_2d(np.asarray(settings, dtype=float))
+        out = np.empty((len(settings), len(self.model.skin_nodes)))
+        effective = np.empty_like(settings)
+        for i, setting in enumerate(settings):
+            thickness = 1.0 + rng.uniform(-part_spread, part_spread) if part_spread > 0 else 1.0
+            block = solve_members(self.reduced(family, thickness), setting[None, :])
+            out[i], effective[i] = block.normal_displacement[0], block.effective[0]
+        return out, effective

@@ -1,0 +1,191 @@
+"""Calibration to the real part (issue 16) on the coarse hood, against parts made by CalculiX (S8R).
+
+The "real part" is CalculiX's load and unit responses (the session fixture ``coarse_calculix_columns``) with the
+embedded pad responses and perturbed physics (Young's modulus +2 %, pad stiffness +25 %, preload +40 %), solved with
+the repository's exact pad contact: a different FE model than the bases', whose errors reach 0.1-0.3 mm uncalibrated.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from hood_decomp.core.fe.ensemble import solve_members, validation_plan
+from hood_decomp.core.fe.solver import condense, physical_responses, thickness_sensitivities
+from hood_decomp.core.loop.calibration import (
+    CalibrationEntry,
+    PhysicalResponses,
+    calibrate,
+    one_at_a_time,
+    rebuild_bases,
+    relative_field,
+)
+from hood_decomp.core.method.bases import estimate_field
+from hood_decomp.core.types import DisplacementField, FieldErrorModel
+from hood_decomp.errors import CalibrationError
+
+NOISE_MM = 0.02
+#: the stand-in's physics relative to the model
+E_FACTOR, PAD_K_FACTOR, PRELOAD_FACTOR = 1.02, 1.25, 1.4
+
+
+def noisy(model_id: str, values: np.ndarray, rng: np.random.Generator) -> DisplacementField:
+    return DisplacementField(model_id, values + rng.normal(0.0, NOISE_MM, values.shape), 1.0, NOISE_MM,
+                             FieldErrorModel.stated(NOISE_MM, values.size))
+
+
+@pytest.fixture(scope="module")
+def case(coarse_hood, coarse_calculix_columns):
+    """CalculiX-made part model, 13 noisy entries, the calibrated reduced model and bases."""
+    model, solver, reduced = coarse_hood.model, coarse_hood.solver, coarse_hood.reduced
+    columns = np.stack([coarse_calculix_columns["load"] / E_FACTOR,
+                        *(coarse_calculix_columns[f"unit_{p.label}"] for p in model.bilateral)], axis=2)
+    truth = condense(model, solver.pads, columns, solver.pad_responses() / E_FACTOR, reduced.names,
+                     reduced.n_bilateral)
+    truth = replace(truth, k=truth.k * PAD_K_FACTOR, preload=truth.preload * PRELOAD_FACTOR)
+    physics = PhysicalResponses.from_solver(physical_responses(solver), thickness_sensitivities(model, reduced))
+    rng = np.random.default_rng(16)
+    settings = one_at_a_time(len(model.names))
+    fields = solve_members(truth, settings).normal_displacement
+    entries = [CalibrationEntry(f"entry {j}", noisy(model.model_id, fields[j], rng), settings[j])
+               for j in range(len(settings))]
+    calibrated, calibration = calibrate(reduced, physics, entries, coarse_hood.skin)
+    bases = rebuild_bases(coarse_hood.bases, calibrated, json.dumps(calibration.record()), physics)
+    return {"truth": truth, "physics": physics, "entries": entries, "bases": bases, "calibration": calibration,
+            "rng": rng}
+
+
+def _errors(bases, truth, states, rng, model_id, temperature_k=0.0, thermal=None):
+    """|estimate - truth| (m, P), stated std (m, P) and lifted flags of CalculiX parts at ``states``."""
+    block = solve_members(truth, states)
+    errors, stds, lifted = [], [], []
+    for i in range(len(states)):
+        values = block.normal_displacement[i] + (0.0 if thermal is None else thermal)
+        estimate = estimate_field(bases, noisy(model_id, values, rng), temperature_k=temperature_k)
+        errors.append(np.abs(estimate.values - block.effective[i]))
+        stds.append(estimate.std)
+        lifted.append(estimate.lifted)
+    return np.array(errors), np.array(stds), np.array(lifted)
+
+
+def test_calibrated_bases_estimate_calculix_parts_within_the_bound(coarse_hood, case):
+    """Fails if calibration from 13 CalculiX-made entries does not bring the estimates of 16 other CalculiX-made
+    parts (0.02 mm noise) within 0.05 mm on every bilateral parameter and the median buffer error within 0.02 mm
+    (uncalibrated they are off by more than 0.1 mm: checked too, so the stand-in really differs), or if the
+    leave-one-out error of the calibration is not at the noise level (a correction that fits noise, or physical
+    factors that fail). The issue's 0.02 mm max is not reached (benchmarks/RESULTS.md): this bound is what is met."""
+    model = coarse_hood.model
+    states = validation_plan(model.lower, model.upper, 16, seed=161)
+    B = len(model.bilateral)
+    rng = np.random.default_rng(3)
+    before, _, _ = _errors(coarse_hood.bases, case["truth"], states, rng, model.model_id)
+    after, _, lifted = _errors(case["bases"], case["truth"], states, rng, model.model_id)
+    assert before[:, :B].max() > 0.1, f"the stand-in should differ from the model: {before.max(axis=0)}"
+    assert after[:, :B].max() <= 0.05, f"calibrated max errors {after.max(axis=0)}"
+    assert np.median(after[:, B:][~lifted[:, B:]]) <= 0.02, f"calibrated buffer errors {after[:, B:]}"
+    loo = case["calibration"].loo_rms_mm
+    assert loo.max() < 1.3 * NOISE_MM, f"leave-one-out RMS {loo}"
+
+
+def test_wrong_known_setting_is_named_and_refused(coarse_hood, case):
+    """Fails if an entry whose known setting is wrong (the dial read 0.9 mm where HINGE_X moved 0.8 mm) is absorbed
+    by the calibration instead of refused with its name."""
+    entries = list(case["entries"])
+    wrong = entries[1]
+    assert wrong.setting[0] == 0.8
+    entries[1] = replace(wrong, setting=np.where(np.arange(wrong.setting.size) == 0, 0.9, wrong.setting))
+    with pytest.raises(CalibrationError, match=r"calibration entry entry 1: .*HINGE_X"):
+        calibrate(coarse_hood.reduced, case["physics"], entries, coarse_hood.skin)
+
+
+def test_too_few_entries_are_refused(coarse_hood, case):
+    """Fails if a calibration without a second move of LOCK_R (leave-one-out cannot judge its response) is made
+    instead of refused naming the parameter."""
+    entries = [e for e in case["entries"] if not (e.setting[3] < 0)]
+    with pytest.raises(CalibrationError, match="LOCK_R"):
+        calibrate(coarse_hood.reduced, case["physics"], entries, coarse_hood.skin)
+
+
+@pytest.mark.xfail(strict=True, reason="issue 16 target unmet: the embedded thermal response differs from "
+                   "CalculiX's by 1.7 % (RMS), which moves HINGE_X by ~0.011 mm and BUFFER_L by ~0.03 mm at 5 K")
+def test_part_5_k_warmer_estimates_as_at_reference(coarse_hood, case):
+    """Fails if a CalculiX part 5 K warmer (thermal field by CalculiX with a thermal load: *EXPANSION, *TEMPERATURE)
+    estimated with its temperature moves any boundary estimate by more than 0.005 mm from the same part at the
+    reference temperature (and checks that ignoring the temperature does move them: the test has teeth)."""
+    from hood_decomp.core.fe.calculix import LoadCase, _deck_text, load_cases, run_job
+    from hood_decomp.core.fe.solver import project
+
+    model, solver = coarse_hood.model, coarse_hood.solver
+    _, constrained = load_cases(model, 1)
+    n = len(model.nodes)
+    warm = LoadCase("warm", np.zeros((n, 3)), np.zeros(len(constrained)), temperature_k=5.0)
+    thermal = project(model, solver.pads, run_job(_deck_text(model, warm, constrained), "warm", n)[:, :, None])
+    truth = case["truth"]
+    warm_truth = replace(truth, w0=truth.w0 + thermal[0][:, 0], z0=truth.z0 + thermal[1][:, 0])
+    states = validation_plan(model.lower, model.upper, 6, seed=162)
+    at_reference, ignored, corrected = [], [], []
+    bases = case["bases"]
+    for state in states:
+        cold = solve_members(truth, state[None, :])
+        hot = solve_members(warm_truth, state[None, :])
+        field = lambda values: DisplacementField(model.model_id, values, 1.0, np.nan)  # noqa: E731
+        at_reference.append(estimate_field(bases, field(cold.normal_displacement[0])).values)
+        ignored.append(estimate_field(bases, field(hot.normal_displacement[0])).values)
+        corrected.append(estimate_field(bases, field(hot.normal_displacement[0]), temperature_k=5.0).values)
+    shift = np.abs(np.array(corrected) - np.array(at_reference))
+    assert np.abs(np.array(ignored) - np.array(at_reference)).max() > 0.02
+    assert shift.max() <= 0.005, f"5 K moved the estimates by {shift.max(axis=0)}"
+
+
+def test_reference_relative_removes_a_static_model_error(coarse_hood):
+    """Fails if a static deviation the model cannot make (a smooth dent of up to 0.3 mm, made analytically on the
+    skin, present in every part of the family) is not cancelled by --reference: estimates of a part with it must lie
+    within 0.005 mm of the same part without it, while without the reference they are off by more."""
+    from tests.skins import smooth_field
+
+    model, bases, reduced = coarse_hood.model, coarse_hood.bases, coarse_hood.reduced
+    static = 0.3 * smooth_field(coarse_hood.skin) / np.abs(smooth_field(coarse_hood.skin)).max()
+    reference_setting = np.zeros(len(model.names))
+    reference_setting[0] = 0.3
+    reference = solve_members(reduced, reference_setting[None, :]).normal_displacement[0] + static
+    plain = lambda values: DisplacementField(model.model_id, values, 1.0, np.nan)  # noqa: E731
+    states = validation_plan(model.lower, model.upper, 5, seed=163)
+    block = solve_members(reduced, states)
+    absolute, relative = [], []
+    for i in range(len(states)):
+        clean = estimate_field(bases, plain(block.normal_displacement[i])).values
+        measured = plain(block.normal_displacement[i] + static)
+        absolute.append(np.abs(estimate_field(bases, measured).values - clean))
+        field = relative_field(reduced, measured, plain(reference), reference_setting)
+        relative.append(np.abs(estimate_field(bases, field).values - clean))
+    assert np.max(absolute) > 0.02
+    assert np.max(relative) <= 0.005, f"reference-relative errors {np.max(relative, axis=0)}"
+
+
+def test_calibrate_verb_names_the_wrong_entry_and_exits_2(coarse_hood, case, tmp_path):
+    """Fails if `hood-decomp calibrate` with a wrong dial reading in one of 13 entries does not exit 2 with one line
+    naming that entry (or if a correct CAL.json is refused: first run)."""
+    from hood_decomp.io.fields import write_field
+    from hood_decomp.io.model_files import save_model
+
+    save_model(coarse_hood.model, tmp_path / "model")
+    cal = []
+    for j, entry in enumerate(case["entries"]):
+        write_field(tmp_path / f"e{j}.vtu", coarse_hood.skin, entry.field)
+        setting = {label: float(v) for label, v in zip(coarse_hood.model.names, entry.setting, strict=True) if v}
+        cal.append({"field": f"e{j}.vtu", "setting": setting, "name": f"dial {j}"})
+    cal[1]["setting"] = {"HINGE_X": 0.9}  # moved 0.8
+    (tmp_path / "cal.json").write_text(json.dumps(cal))
+    command = [sys.executable, "-m", "hood_decomp.cli", "calibrate", "--bases", str(coarse_hood.bases_path),
+               "--model", str(tmp_path / "model"), "--cal", str(tmp_path / "cal.json"), "--out",
+               str(tmp_path / "calibrated.h5")]
+    run = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 2, run.stderr[-2000:]
+    last = run.stderr.strip().splitlines()[-1]
+    assert "dial 1" in last and "HINGE_X" in last, last
+    assert not (tmp_path / "calibrated.h5").exists()
