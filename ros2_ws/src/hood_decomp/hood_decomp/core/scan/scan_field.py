@@ -146,6 +146,7 @@ class ScanFieldEstimator:
         self.spacing_mm_ = spacing
         self.radius_mm_ = float(self.radius_mm) if self.radius_mm is not None else 2.5 * spacing
         self.center_ = points.mean(axis=0)
+        self.skin_size_mm_ = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))  # bounding-box diagonal
         self.points_ = points
         tangent1, tangent2 = _tangent_frames(normals)
         self.frames_ = np.stack([tangent1, tangent2, normals], axis=1)  # (N, 3, 3) rows t1, t2, n
@@ -459,22 +460,22 @@ def prepared_estimator(skin: SkinSurface, **options: float | None) -> ScanFieldE
     return _PREPARED[key]
 
 
-def _check_points(points_mm: np.ndarray, skin: SkinSurface) -> np.ndarray:
-    """Validate a raw scan (M, 3) mm; returns its finite rows. Raises ScanError naming the problem."""
+def _check_points(points_mm: np.ndarray, skin_size: float) -> np.ndarray:
+    """Validate a raw scan (M, 3) mm of a part whose skin's bounding-box diagonal is ``skin_size`` mm; returns its
+    finite rows. Raises ScanError naming the problem."""
     points = np.asarray(points_mm, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ScanError(f"scan points must be an (M, 3) array in mm; got shape {points.shape}")
     if points.shape[0] == 0:
         raise ScanError("scan is empty: 0 points")
-    finite = np.isfinite(points[:, 0] + points[:, 1] + points[:, 2])  # any NaN or inf makes the sum non-finite
-    if not finite.any():
-        raise ScanError(f"scan has no finite points: all {points.shape[0]} points are NaN or infinite")
-    if not finite.all():
-        points = points[finite]
+    if not np.isfinite(points).all():  # one flat pass; the row mask only for a scan with non-finite points
+        finite = np.isfinite(points[:, 0] + points[:, 1] + points[:, 2])  # any NaN or inf makes the sum non-finite
+        if not finite.any():
+            raise ScanError(f"scan has no finite points: all {points.shape[0]} points are NaN or infinite")
+        points = np.compress(finite, points, axis=0)
     # Unit check on robust extents: a part seen partly still spans a good fraction of its own size.
     lo, hi = np.percentile(points[:: max(1, points.shape[0] // 50000)], [1, 99], axis=0)
     scan_size = float(np.linalg.norm(hi - lo))
-    skin_size = float(np.linalg.norm(np.ptp(skin.points, axis=0)))
     ratio = scan_size / skin_size
     if 2e-4 <= ratio <= 1e-2:
         raise ScanError(
@@ -521,8 +522,8 @@ def field_from_scan(
     registration's pose covariance) (paper: the condensed signed distance field) and the RegistrationResult.
     Raises ScanError for an empty or all-NaN scan, a scan in metres, no overlap with the part or too little coverage.
     """
-    points = _check_points(points_mm, skin)
     est = estimator if estimator is not None else prepared_estimator(skin)
+    points = _check_points(points_mm, est.skin_size_mm_)
     registration = register_scan(
         points,
         est,
