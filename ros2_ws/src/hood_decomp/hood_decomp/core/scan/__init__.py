@@ -5,9 +5,14 @@ May import: ``hood_decomp.core.types`` and ``hood_decomp.errors`` only (never ``
 """
 
 from hood_decomp.core.scan.registration import RegistrationResult, register_scan, rigid_from_markers
-from hood_decomp.core.scan.scan_field import ScanFieldEstimator, field_from_scan, prepared_estimator
+from hood_decomp.core.scan.scan_field import (
+    ScanFieldEstimator,
+    field_from_scan,
+    prepared_estimator,
+    register_prepared_skin,
+)
 
 __all__ = [
     "RegistrationResult", "ScanFieldEstimator", "field_from_scan", "prepared_estimator", "register_scan",
-    "rigid_from_markers",
+    "register_prepared_skin", "rigid_from_markers",
 ]

@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -57,6 +58,14 @@ _QUADRIC_NEIGHBOURS = 13
 SMOOTHING_BIAS_CORRELATION = 1000.0
 # Upper triangle of a symmetric 3x3 matrix: xx xy xz yy yz zz.
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+#: The prepared skin's arrays (ScanFieldEstimator.prepared_skin): named dimensions (N nodes, N1 = N + 1, G grid cells,
+#: Z kernel entries; digits fixed) and kind.
+PREPARED_SKIN: dict[str, tuple[tuple[str, ...], str]] = {
+    "spacing": (("1",), "float"), "radius": (("1",), "float"), "gate2": (("N",), "float"),
+    "quadric": (("N", "5"), "float"), "node_radius": (("N",), "float"), "grid_origin": (("3",), "float"),
+    "grid_cell": (("1",), "float"), "grid_shape": (("3",), "integer"), "grid_table": (("G",), "integer"),
+    "kernel_indptr": (("N1",), "integer"), "kernel_indices": (("Z",), "integer"),
+}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -75,9 +84,44 @@ class PointDistances:
     tangent: np.ndarray
 
 
-def _unique_edges(triangles: np.ndarray) -> np.ndarray:
-    edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
-    return np.unique(edges, axis=0)
+def _unique_edges(triangles: np.ndarray, n: int) -> np.ndarray:
+    """(E, 2) node pairs (low, high) of the triangles' (T, 3) edges, each once, in row-major order. A sparse matrix
+    of the half-edges sums the duplicates by a counting sort over rows (np.unique(axis=0) sorts rows of pairs,
+    about 15 times slower at 1.1M half-edges)."""
+    a, b = triangles.ravel(), np.roll(triangles, -1, axis=1).ravel()
+    pairs = sp.csr_matrix((np.ones(a.size, np.int32), (np.minimum(a, b), np.maximum(a, b))), shape=(n, n)).tocoo()
+    return np.column_stack([pairs.row, pairs.col]).astype(np.int64)
+
+
+def _check_prepared(prepared: Mapping[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
+    """The arrays of a prepared skin for a skin of ``n`` nodes, checked (shapes, kinds, finiteness, index ranges);
+    raises ScanError naming the first problem."""
+    missing = sorted(set(PREPARED_SKIN) - set(prepared))
+    if missing:
+        raise ScanError(f"prepared skin lacks {', '.join(missing)}")
+    arrays = {name: np.asarray(prepared[name]) for name in PREPARED_SKIN}
+    sizes = {"N": n, "N1": n + 1, "G": int(np.prod(arrays["grid_shape"])) if arrays["grid_shape"].size == 3 else -1,
+             "Z": arrays["kernel_indices"].size}  # fmt: skip
+    for name, (dims, kind) in PREPARED_SKIN.items():
+        array = arrays[name]
+        expected = tuple(int(d) if d.isdigit() else sizes[d] for d in dims)
+        if array.shape != expected:
+            raise ScanError(f"prepared skin {name} has shape {array.shape}, expected {expected} ({', '.join(dims)})")
+        if kind == "integer" and array.dtype.kind not in "iu":
+            raise ScanError(f"prepared skin {name} holds {array.dtype}, expected integers")
+        if kind == "float" and not np.all(np.isfinite(array)):
+            raise ScanError(f"prepared skin {name} holds non-finite values")
+    positive = ("spacing", "radius", "grid_cell", "node_radius", "grid_shape")
+    bad = [name for name in positive if np.any(arrays[name] <= 0)] + (["gate2"] if np.any(arrays["gate2"] < 0) else [])
+    indptr, indices, table = arrays["kernel_indptr"], arrays["kernel_indices"], arrays["grid_table"]
+    if indptr[0] != 0 or indptr[-1] != indices.size or np.any(np.diff(indptr) < 0):
+        bad.append("kernel_indptr")
+    for name, values in (("kernel_indices", indices), ("grid_table", table)):
+        if values.size and (values.min() < 0 or values.max() >= n):
+            bad.append(name)
+    if bad:
+        raise ScanError(f"prepared skin for {n} nodes has out-of-range {', '.join(bad)}")
+    return arrays
 
 
 def _tangent_frames(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -127,20 +171,28 @@ class ScanFieldEstimator:
         self.edge_widening = edge_widening
 
     # ------------------------------------------------------------------------------------------------ preparation
-    def fit(self, skin: SkinSurface) -> ScanFieldEstimator:
-        """Prepare the nominal skin: (N, 3) points and unit normals, (T, 3) triangles, mm."""
+    def fit(self, skin: SkinSurface, prepared: Mapping[str, np.ndarray] | None = None) -> ScanFieldEstimator:
+        """Prepare the nominal skin: (N, 3) points and unit normals, (T, 3) triangles, mm.
+
+        prepared: the arrays of :meth:`prepared_skin` of an estimator with the same options fitted to this skin (as
+        stored in a bases file): the lookup grid, quadrics, gates and kernel are then taken from it, not rebuilt.
+        """
         points = np.asarray(skin.points, dtype=np.float64)
         normals = np.asarray(skin.normals, dtype=np.float64)
         n = points.shape[0]
         if points.ndim != 2 or points.shape[1] != 3 or n < 4 or normals.shape != points.shape:
             raise ScanError(f"skin must have (N>=4, 3) points and normals; got {points.shape} and {normals.shape}")
         normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
-        edges = _unique_edges(np.asarray(skin.triangles, dtype=np.int64))
-        edge_length = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
-        spacing = float(np.median(edge_length))
-        longest = np.zeros(n)
-        np.maximum.at(longest, edges[:, 0], edge_length)
-        np.maximum.at(longest, edges[:, 1], edge_length)
+        if prepared is None:
+            edges = _unique_edges(np.asarray(skin.triangles, dtype=np.int64), n)
+            edge_length = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
+            spacing = float(np.median(edge_length))
+            longest = np.zeros(n)
+            np.maximum.at(longest, edges[:, 0], edge_length)
+            np.maximum.at(longest, edges[:, 1], edge_length)
+        else:
+            prepared = _check_prepared(prepared, n)
+            spacing = float(prepared["spacing"][0])
 
         self.skin_ = skin
         self.spacing_mm_ = spacing
@@ -154,14 +206,24 @@ class ScanFieldEstimator:
         # A point belongs to node j when it lies within this tangential distance (grid lookups may be off by about
         # one spacing, hence the generous factor); beyond it, it is past a free edge. So a point on the surface's
         # own continuation up to about 2.5 spacings past a free edge still counts as skin.
-        self.gate2_ = (1.6 * longest + 0.5 * spacing) ** 2
-        tree = cKDTree(points)
-        self.quadric_ = self._fit_quadrics(tree)
-        self._build_grid()
+        if prepared is None:
+            self.gate2_ = (1.6 * longest + 0.5 * spacing) ** 2
+            tree = cKDTree(points)
+            self.quadric_ = self._fit_quadrics(tree)
+            self._build_grid()
+            self.kernel_ = self._build_kernel(tree)
+        else:
+            if abs(float(prepared["radius"][0]) - self.radius_mm_) > 1e-9 * self.radius_mm_:
+                raise ScanError(f"prepared skin has radius {float(prepared['radius'][0])} mm; this estimator uses "
+                                f"{self.radius_mm_} mm")
+            self.gate2_, self.quadric_ = prepared["gate2"], prepared["quadric"]
+            self._set_grid(prepared["grid_origin"], float(prepared["grid_cell"][0]), prepared["grid_shape"],
+                           prepared["grid_table"])  # fmt: skip
+            self.node_radius_mm_ = prepared["node_radius"]
+            self.kernel_ = self._kernel_of(prepared["kernel_indptr"], prepared["kernel_indices"])
         # What a located point reads of its node, in one row: position in grid units, frame, quadric, squared gate.
         grid_position = (points - self.grid_origin_) / self.grid_cell_mm_
         self.node_table_ = np.column_stack([grid_position, self.frames_.reshape(n, 9), self.quadric_, self.gate2_])
-        self.kernel_ = self._build_kernel(tree)
         # Nodes within half the radius: a node needs scan points this close, or it sits in a gap of the scan and a
         # value there would be interpolated across the gap rather than measured.
         near = self.kernel_.copy()
@@ -221,11 +283,14 @@ class ScanFieldEstimator:
         table = np.full(tuple(shape), -1, dtype=np.int64)
         table[keys[:, 0], keys[:, 1], keys[:, 2]] = np.arange(self.points_.shape[0])
         nearest = ndimage.distance_transform_edt(table < 0, return_distances=False, return_indices=True)
-        self.grid_origin_ = lo
-        self.grid_cell_mm_ = float(cell)
-        self.grid_shape_ = shape
+        self._set_grid(lo, float(cell), shape, table[tuple(nearest)].ravel().astype(np.int32))
+
+    def _set_grid(self, origin: np.ndarray, cell_mm: float, shape: np.ndarray, table: np.ndarray) -> None:
+        self.grid_origin_ = np.asarray(origin, dtype=np.float64)
+        self.grid_cell_mm_ = cell_mm
+        self.grid_shape_ = np.asarray(shape, dtype=np.int64)
         self.grid_strides_ = np.array([shape[1] * shape[2], shape[2], 1], dtype=np.float64)
-        self.grid_table_ = table[tuple(nearest)].ravel().astype(np.int32)
+        self.grid_table_ = np.ascontiguousarray(table, dtype=np.int32)
 
     def _build_kernel(self, tree: cKDTree) -> sp.csr_matrix:
         """(N, N) sparse biweight kernel w_ij = (1 - (|x_i - x_j| / r_i)^2)^2 over node pairs closer than r_i.
@@ -262,9 +327,29 @@ class ScanFieldEstimator:
             dist = np.concatenate([dist, np.linalg.norm(self.points_[wide_i] - self.points_[wide_j], axis=1)])
         i = np.concatenate([i, np.arange(n)])
         j = np.concatenate([j, np.arange(n)])
-        dist = np.concatenate([dist, np.zeros(n)])
-        weight = (1.0 - (dist / radius[i]) ** 2) ** 2
-        return sp.csr_matrix((weight, (i, j)), shape=(n, n))
+        pattern = sp.csr_matrix((np.ones(i.size), (i, j)), shape=(n, n))
+        return self._kernel_of(pattern.indptr, pattern.indices)
+
+    def _kernel_of(self, indptr: np.ndarray, indices: np.ndarray) -> sp.csr_matrix:
+        """The biweight kernel on the node pairs of a CSR pattern (N + 1,), (Z,) with ``node_radius_mm_``."""
+        n = self.points_.shape[0]
+        i = np.repeat(np.arange(n), np.diff(indptr))
+        dist = np.linalg.norm(self.points_[indices] - self.points_[i], axis=1)
+        weight = (1.0 - (dist / self.node_radius_mm_[i]) ** 2) ** 2
+        return sp.csr_matrix((weight, indices, indptr), shape=(n, n))
+
+    def prepared_skin(self) -> dict[str, np.ndarray]:
+        """What :meth:`fit` builds slowly, as arrays (names and shapes: ``PREPARED_SKIN``) to store with the bases
+        and give back to ``fit(skin, prepared=...)``: grid, quadrics, gates, kernel pattern and node radii."""
+        self._check_fitted()
+        return {
+            "spacing": np.array([self.spacing_mm_]), "radius": np.array([self.radius_mm_]),
+            "gate2": self.gate2_, "quadric": self.quadric_, "node_radius": self.node_radius_mm_,
+            "grid_origin": self.grid_origin_, "grid_cell": np.array([self.grid_cell_mm_]),
+            "grid_shape": self.grid_shape_, "grid_table": self.grid_table_,
+            "kernel_indptr": self.kernel_.indptr.astype(np.int64),
+            "kernel_indices": self.kernel_.indices.astype(np.int32),
+        }  # fmt: skip
 
     # ------------------------------------------------------------------------------------------------ per scan
     def _check_fitted(self) -> None:
@@ -444,19 +529,29 @@ class ScanFieldEstimator:
 
 
 _PREPARED: dict[tuple, ScanFieldEstimator] = {}
+_STORED: dict[tuple, Callable[[], Mapping[str, np.ndarray]]] = {}
+
+
+def register_prepared_skin(skin: SkinSurface, load: Callable[[], Mapping[str, np.ndarray]]) -> None:
+    """Offer a stored prepared skin for ``skin`` (default estimator options): ``load()`` returns the arrays of
+    :meth:`ScanFieldEstimator.prepared_skin` (e.g. read from a bases file, io/bases.py) and is called only when a
+    scan of this skin is first turned into a field, instead of rebuilding the grid, quadrics and kernel."""
+    _STORED[(skin.model_id, skin.n_nodes)] = load
 
 
 def prepared_estimator(skin: SkinSurface, **options: float | None) -> ScanFieldEstimator:
     """A fitted :class:`ScanFieldEstimator` for ``skin``, reused across calls with the same skin and options.
 
     The preparation (grid, kernel, quadrics) costs far more than one scan; callers that hold a skin for many scans
-    (the scan node, the CLI) get it once. Keyed by ``model_id``, node count and the options; keeps the last 4.
+    (the scan node, the CLI) get it once, from a registered stored preparation (:func:`register_prepared_skin`)
+    where there is one for the default options. Keyed by ``model_id``, node count and the options; keeps the last 4.
     """
     key = (skin.model_id, skin.n_nodes, tuple(sorted(options.items())))
     if key not in _PREPARED:
         if len(_PREPARED) >= 4:
             _PREPARED.pop(next(iter(_PREPARED)))
-        _PREPARED[key] = ScanFieldEstimator(**options).fit(skin)
+        stored = _STORED.get((skin.model_id, skin.n_nodes)) if not options else None
+        _PREPARED[key] = ScanFieldEstimator(**options).fit(skin, prepared=None if stored is None else stored())
     return _PREPARED[key]
 
 
