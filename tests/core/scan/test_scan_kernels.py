@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from hood_decomp.core.scan import kernels
-from hood_decomp.core.scan.scan_field import ScanFieldEstimator
+from hood_decomp.core.scan.scan_field import ScanFieldEstimator, warm_up
 from hood_decomp.core.types import SkinSurface
 from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
 from tests.skins import along_normals, crowned_patch, smooth_field
@@ -125,3 +125,14 @@ def test_compiled_path_equals_the_numpy_path(estimator, scan_points):
     np.testing.assert_allclose(fast.error_model.node_std, slow.error_model.node_std, rtol=0, atol=1e-9)
     assert abs(fast.noise_rms - slow.noise_rms) < 1e-9
     assert np.isfinite(fast.normal_displacement).mean() > 0.8
+
+
+def test_warm_up_leaves_the_estimator_unchanged(skin, scan_points):
+    """Fails if warming the scan path up (the scan node does it before it serves) changes any later field, or if it
+    fails on a fitted estimator."""
+    estimator = ScanFieldEstimator().fit(skin)
+    before = estimator.field(scan_points)
+    warm_up(estimator)
+    after = estimator.field(scan_points)
+    np.testing.assert_array_equal(after.normal_displacement, before.normal_displacement)
+    np.testing.assert_array_equal(after.error_model.node_std, before.error_model.node_std)

@@ -34,9 +34,10 @@ class ScanNode(HoodNode):
         self.scanner_pose, self.markers_nominal = messages.calibration_from_params(pose, markers or [])
         self.estimator = self.skin_clouds = None
         if self.bases is not None:  # one-time preparation of the skin: the scan-field estimator and the cloud's xyz
-            from hood_decomp.core.scan.scan_field import prepared_estimator
+            from hood_decomp.core.scan.scan_field import prepared_estimator, warm_up
 
             self.estimator = prepared_estimator(self.bases.skin)
+            warm_up(self.estimator)  # the first scan then runs at steady-state speed (issue 19)
             self.skin_clouds = messages.SkinClouds(self.bases.skin)
         self.field_pub = self.publisher(DisplacementField, "hood_decomp/displacement")
         self.cloud_pub = self.publisher(PointCloud2, "hood_decomp/displacement_cloud")

@@ -10,9 +10,16 @@ from hood_decomp.core.scan.scan_field import (
     field_from_scan,
     prepared_estimator,
     register_prepared_skin,
+    warm_up,
 )
 
 __all__ = [
-    "RegistrationResult", "ScanFieldEstimator", "field_from_scan", "prepared_estimator", "register_scan",
-    "register_prepared_skin", "rigid_from_markers",
+    "RegistrationResult",
+    "ScanFieldEstimator",
+    "field_from_scan",
+    "prepared_estimator",
+    "register_prepared_skin",
+    "register_scan",
+    "rigid_from_markers",
+    "warm_up",
 ]
