@@ -97,7 +97,7 @@ def test_field_equals_a_per_node_reference(estimator, scan_points):
     np.testing.assert_allclose(value[supported], expected[supported], rtol=0, atol=1e-9)
 
 
-@pytest.mark.skipif(kernels.njit is None, reason="numba is not installed: only the numpy path exists")
+@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed: only the numpy path exists")
 def test_compiled_path_equals_the_numpy_path(estimator, scan_points):
     """Fails if the compiled kernels and the numpy path differ by more than 1e-9 mm anywhere (values, node std,
     noise), with a transform folded in, several threads and blocks, NaN rows and outliers."""

@@ -16,7 +16,6 @@ import numpy as np
 from hood_decomp.core.method.bases import Bases
 from hood_decomp.core.method.hierarchical import HIERARCHICAL_FITTED_ARRAYS, HierarchicalBasis
 from hood_decomp.core.method.pca import PCA_FITTED_ARRAYS, PCABasis
-from hood_decomp.core.scan.scan_field import PREPARED_SKIN, ScanFieldEstimator, register_prepared_skin
 from hood_decomp.core.types import ReducedModel, SkinSurface, fingerprint
 from hood_decomp.errors import BasisError
 from hood_decomp.io.hdf5 import Reader, open_hdf5
@@ -75,6 +74,8 @@ def _write_arrays(group: h5py.Group, obj: object, names: tuple[str, ...]) -> Non
 def prepared_id(content_id: str, arrays: dict[str, np.ndarray]) -> str:
     """The fingerprint of a prepared scan skin: the bases' ``bases_id`` and every array, so a prepared skin altered
     or moved from another bases file is refused."""
+    from hood_decomp.core.scan.scan_field import PREPARED_SKIN
+
     return fingerprint(content_id, *(item for name in PREPARED_SKIN for item in (name, np.asarray(arrays[name]))))
 
 
@@ -121,6 +122,8 @@ def save_bases(path: str | Path, bases: Bases, *, scan_skin: bool = True) -> Non
                     model.attrs[item.name] = value
 
         if scan_skin:
+            from hood_decomp.core.scan.scan_field import ScanFieldEstimator
+
             arrays = ScanFieldEstimator().fit(bases.skin).prepared_skin()
             group = h5.create_group("scan_skin")
             group.attrs["prepared_id"] = prepared_id(content_id, arrays)
@@ -208,6 +211,8 @@ def load_bases(path: str | Path) -> Bases:
         raise BasisError(f"{path}: content does not match its bases_id {stored_id!r} (the file was altered after "
                          "it was written: a rewritten model_id or array); rebuild it with `hood-decomp bases`")
     if has_scan_skin:  # read when the first scan of this skin needs it (not for a field or a decomposition)
+        from hood_decomp.core.scan.scan_field import register_prepared_skin
+
         register_prepared_skin(skin, lambda: load_scan_skin(path, stored_id, skin.n_nodes))
     return bases
 
@@ -217,6 +222,8 @@ def load_scan_skin(path: str | Path, content_id: str, n_nodes: int) -> dict[str,
     nodes (ScanFieldEstimator.prepared_skin arrays). Raises BasisError when the file changed since (another
     bases_id), the group is malformed (kinds, named shapes, finiteness) or its content does not match its
     ``prepared_id``; index ranges are checked by ``ScanFieldEstimator.fit``."""
+    from hood_decomp.core.scan.scan_field import PREPARED_SKIN
+
     path = Path(path)
     with open_hdf5(path, "bases file", BasisError) as h5:
         read = Reader(h5, path, BasisError)

@@ -12,25 +12,25 @@ Per node (:func:`raw_moments`, :func:`node_fits`): the cell sums to raw 3D momen
 
 from __future__ import annotations
 
+import importlib.util
 import os
 
 import numpy as np
 
-try:  # numba is optional: the numpy path below gives the same numbers
-    from numba import njit
-except ImportError:  # pragma: no cover - depends on the installation
-    njit = None
-
+#: numba is optional (the numpy path gives the same numbers) and imported only when a kernel first runs: it costs
+#: about 0.3 s of start-up that a verb without scans need not pay
+HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 #: points per block: a block's temporaries (about 20 float64 columns) stay within a few MB of cache
 BLOCK_POINTS = 131_072
-_COMPILED = njit is not None and os.environ.get("HOOD_DECOMP_PURE_NUMPY", "") not in ("1", "true", "yes")
+_COMPILED = HAVE_NUMBA and os.environ.get("HOOD_DECOMP_PURE_NUMPY", "") not in ("1", "true", "yes")
+_JIT: dict[str, object] = {}
 
 
 def use_compiled(enabled: bool) -> bool:
     """Select the compiled (True, if numba is installed) or the numpy path; returns the previous choice."""
     global _COMPILED
     previous = _COMPILED
-    _COMPILED = bool(enabled) and njit is not None
+    _COMPILED = bool(enabled) and HAVE_NUMBA
     return previous
 
 
@@ -249,14 +249,21 @@ def _node_fits_loop(mixed, frames, tangent_quad, t1x, t2x, coef, weight, inflati
         inflation[i] = s0 * (c00 * inv_det)
 
 
-if njit is not None:
-    _cell = njit(nogil=True, cache=True, inline="always")(_cell)
-    _add_one = njit(nogil=True, cache=True, inline="always")(_add_one)
-    _locate_block_loop = njit(nogil=True, cache=True)(_locate_block_loop)
-    _add_moments_loop = njit(nogil=True, cache=True)(_add_moments_loop)
-    _plane_residuals_loop = njit(nogil=True, cache=True)(_plane_residuals_loop)
-    _raw_moments_loop = njit(nogil=True, cache=True)(_raw_moments_loop)
-    _node_fits_loop = njit(nogil=True, cache=True)(_node_fits_loop)
+def _kernel(name: str):
+    """The compiled loop ``name`` when the compiled path is on (numba imported and the loops compiled, or loaded from
+    numba's cache, on first use), else the numpy function of the same job."""
+    if not _COMPILED:
+        return globals()[name.replace("_loop", "_numpy")]
+    if not _JIT:
+        from numba import njit
+
+        module = globals()
+        for helper in ("_cell", "_add_one"):  # called from the loops: compiled inline into them
+            module[helper] = njit(nogil=True, cache=True, inline="always")(module[helper])
+        for loop in ("_locate_block_loop", "_add_moments_loop", "_plane_residuals_loop", "_raw_moments_loop",
+                     "_node_fits_loop"):  # fmt: skip
+            _JIT[loop] = njit(nogil=True, cache=True)(module[loop])
+    return _JIT[name]
 
 
 # ------------------------------------------------------------------------------------------------ the interface
@@ -273,26 +280,25 @@ def locate_block(points: np.ndarray, start: int, stop: int, affine: np.ndarray, 
     first ``count`` entries of the out buffers (each at least stop - start long); with ``cells`` (N, 9) float64
     their moments are added to it.
     """
-    run = _locate_block_loop if _COMPILED else _locate_block_numpy
-    return int(run(points, start, stop, affine, hi, strides, table, cell_mm, nodes, max_d,
+    return int(_kernel("_locate_block_loop")(points, start, stop, affine, hi, strides, table, cell_mm, nodes, max_d,
                    out_row, out_j, out_u, out_v, out_d, cells))  # fmt: skip
 
 
 def add_moments(j: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, sign: float, cells: np.ndarray) -> None:
     """cells (N, 9) += sign * per-node sums of [1, u, v, uu, uv, vv, d, du, dv] of the points (K,) at nodes j."""
-    (_add_moments_loop if _COMPILED else _add_moments_numpy)(j, u, v, d, float(sign), cells)
+    _kernel("_add_moments_loop")(j, u, v, d, float(sign), cells)
 
 
 def plane_residuals(j: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, coef: np.ndarray) -> np.ndarray:
     """Residuals (K,) float32 mm of the points (nodes j, u, v, d (K,)) from their own node's plane coef (N, 3)."""
     out = np.empty(j.size, np.float32)
-    (_plane_residuals_loop if _COMPILED else _plane_residuals_numpy)(j, u, v, d, coef, out)
+    _kernel("_plane_residuals_loop")(j, u, v, d, coef, out)
     return out
 
 
 def raw_moments(cells: np.ndarray, basis: np.ndarray, second: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """Raw 3D moments (K, 14) of the cells ``rows`` (K,) from their sums (N, 9); see ScanFieldEstimator."""
-    return (_raw_moments_loop if _COMPILED else _raw_moments_numpy)(cells, basis, second, rows)
+    return _kernel("_raw_moments_loop")(cells, basis, second, rows)
 
 
 def node_fits(mixed: np.ndarray, frames: np.ndarray, tangent_quad: np.ndarray, t1x: np.ndarray,
@@ -302,6 +308,5 @@ def node_fits(mixed: np.ndarray, frames: np.ndarray, tangent_quad: np.ndarray, t
     singular."""
     n = mixed.shape[0]
     coef, weight, inflation = np.empty((n, 3)), np.empty(n), np.empty(n)
-    (_node_fits_loop if _COMPILED else _node_fits_numpy)(mixed, frames, tangent_quad, t1x, t2x, coef, weight,
-                                                         inflation)  # fmt: skip
+    _kernel("_node_fits_loop")(mixed, frames, tangent_quad, t1x, t2x, coef, weight, inflation)
     return coef, weight, inflation

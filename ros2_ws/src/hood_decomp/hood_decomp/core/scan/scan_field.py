@@ -33,16 +33,18 @@ import os
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
-from scipy import ndimage
-from scipy.spatial import cKDTree
 
 from hood_decomp.core.scan import kernels
 from hood_decomp.core.scan.registration import RegistrationResult, register_scan
 from hood_decomp.core.types import DisplacementField, FieldErrorModel, SkinSurface
 from hood_decomp.errors import ScanError
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 logger = logging.getLogger(__name__)
 
@@ -208,6 +210,8 @@ class ScanFieldEstimator:
         # own continuation up to about 2.5 spacings past a free edge still counts as skin.
         if prepared is None:
             self.gate2_ = (1.6 * longest + 0.5 * spacing) ** 2
+            from scipy.spatial import cKDTree  # preparing a skin only
+
             tree = cKDTree(points)
             self.quadric_ = self._fit_quadrics(tree)
             self._build_grid()
@@ -282,6 +286,8 @@ class ScanFieldEstimator:
         keys = np.floor((self.points_ - lo) / cell).astype(np.int64)
         table = np.full(tuple(shape), -1, dtype=np.int64)
         table[keys[:, 0], keys[:, 1], keys[:, 2]] = np.arange(self.points_.shape[0])
+        from scipy import ndimage  # preparing a skin only (a stored one needs none of it)
+
         nearest = ndimage.distance_transform_edt(table < 0, return_distances=False, return_indices=True)
         self._set_grid(lo, float(cell), shape, table[tuple(nearest)].ravel().astype(np.int32))
 
