@@ -561,16 +561,24 @@ def prepared_estimator(skin: SkinSurface, **options: float | None) -> ScanFieldE
     return _PREPARED[key]
 
 
-def warm_up(estimator: ScanFieldEstimator) -> None:
-    """Run the fitted estimator's whole scan path once on its own skin, so that the first real scan runs at
-    steady-state speed: the compiled kernels are loaded (or compiled, the first time after an install), and the
-    sparse and numpy paths and the allocator are exercised. The cloud is the skin's nodes, with every 50th pushed
-    1 mm off along its normal (so the outlier pass runs too); about a tenth of a scan's work at the same skin."""
+def warm_up(estimator: ScanFieldEstimator, points: int = 1_000_000) -> None:
+    """Run the fitted estimator's whole scan path once on a scan-sized cloud of its own skin, so that the first real
+    scan runs at steady-state speed: the compiled kernels are loaded (or compiled, the first time after an install),
+    the threads, the allocator's buffers of a scan's size and the sparse products are exercised.
+
+    The cloud: about ``points`` points, each skin node repeated with small tangential offsets (a third of a mesh
+    spacing), every 50th pushed 1 mm off along its normal (so the outlier pass runs too); as long as one scan.
+    """
     estimator._check_fitted()
-    points = estimator.points_.copy()
-    points[::50] += estimator.frames_[::50, 2]
-    estimator.field(points)
-    estimator.point_distances(points[:1000])
+    nodes, frames = estimator.points_, estimator.frames_
+    copies = max(1, -(-points // nodes.shape[0]))
+    angle = 2.0 * np.pi * np.arange(copies) / copies
+    step = estimator.spacing_mm_ / 3.0
+    cos, sin = np.cos(angle)[:, None, None], np.sin(angle)[:, None, None]
+    cloud = (nodes[None] + step * (cos * frames[None, :, 0] + sin * frames[None, :, 1])).reshape(-1, 3)
+    cloud[::50] += np.tile(frames[:, 2], (copies, 1))[::50]
+    estimator.field(cloud)
+    estimator.point_distances(cloud[:20_000])
 
 
 def _check_points(points_mm: np.ndarray, skin_size: float) -> np.ndarray:
