@@ -136,3 +136,30 @@ def test_warm_up_leaves_the_estimator_unchanged(skin, scan_points):
     after = estimator.field(scan_points)
     np.testing.assert_array_equal(after.normal_displacement, before.normal_displacement)
     np.testing.assert_array_equal(after.error_model.node_std, before.error_model.node_std)
+
+
+@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed: only the numpy path exists")
+def test_first_compiled_use_from_many_threads_at_once():
+    """Fails if the first use of the compiled kernels from several threads at once (a node's first scan runs in
+    threads) compiles them twice and raises (a fresh interpreter, eight threads released together)."""
+    import subprocess
+    import sys
+
+    script = (
+        "import threading\n"
+        "from hood_decomp.core.scan import kernels\n"
+        "barrier = threading.Barrier(8)\n"
+        "errors = []\n"
+        "def first():\n"
+        "    barrier.wait()\n"
+        "    try:\n"
+        "        kernels._kernel('_locate_block_loop')\n"
+        "    except Exception as error:\n"
+        "        errors.append(repr(error))\n"
+        "threads = [threading.Thread(target=first) for _ in range(8)]\n"
+        "[t.start() for t in threads]\n"
+        "[t.join() for t in threads]\n"
+        "assert not errors, errors\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]

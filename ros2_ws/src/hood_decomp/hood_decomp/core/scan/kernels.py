@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import threading
 
 import numpy as np
 
@@ -24,6 +25,7 @@ HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 BLOCK_POINTS = 131_072
 _COMPILED = HAVE_NUMBA and os.environ.get("HOOD_DECOMP_PURE_NUMPY", "") not in ("1", "true", "yes")
 _JIT: dict[str, object] = {}
+_JIT_LOCK = threading.Lock()
 
 
 def use_compiled(enabled: bool) -> bool:
@@ -254,15 +256,16 @@ def _kernel(name: str):
     numba's cache, on first use), else the numpy function of the same job."""
     if not _COMPILED:
         return globals()[name.replace("_loop", "_numpy")]
-    if not _JIT:
-        from numba import njit
+    with _JIT_LOCK:  # the first scan's threads arrive here together
+        if not _JIT:
+            from numba import njit
 
-        module = globals()
-        for helper in ("_cell", "_add_one"):  # called from the loops: compiled inline into them
-            module[helper] = njit(nogil=True, cache=True, inline="always")(module[helper])
-        for loop in ("_locate_block_loop", "_add_moments_loop", "_plane_residuals_loop", "_raw_moments_loop",
-                     "_node_fits_loop"):  # fmt: skip
-            _JIT[loop] = njit(nogil=True, cache=True)(module[loop])
+            module = globals()
+            for helper in ("_cell", "_add_one"):  # called from the loops: compiled inline into them
+                module[helper] = njit(nogil=True, cache=True, inline="always")(module[helper])
+            for loop in ("_locate_block_loop", "_add_moments_loop", "_plane_residuals_loop", "_raw_moments_loop",
+                         "_node_fits_loop"):  # fmt: skip
+                _JIT[loop] = njit(nogil=True, cache=True)(module[loop])
     return _JIT[name]
 
 
