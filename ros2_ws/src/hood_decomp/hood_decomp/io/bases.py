@@ -81,7 +81,7 @@ def prepared_id(content_id: str, arrays: dict[str, np.ndarray]) -> str:
 
 def save_bases(path: str | Path, bases: Bases, *, scan_skin: bool = True) -> None:
     """Write ``bases`` to an HDF5 file (overwrites); with ``scan_skin`` also the prepared scan skin (lookup grid,
-    quadrics, kernel pattern of the default ScanFieldEstimator), so that scans need not rebuild it."""
+    quadrics, kernel of the default ScanFieldEstimator), so that scans need not rebuild it."""
     content_id = bases_id(bases)
     with h5py.File(path, "w") as h5:
         h5.attrs.update(format=FORMAT, schema_version=SCHEMA_VERSION, model_id=bases.model_id, bases_id=content_id)

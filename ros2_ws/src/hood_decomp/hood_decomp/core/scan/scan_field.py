@@ -66,7 +66,7 @@ PREPARED_SKIN: dict[str, tuple[tuple[str, ...], str]] = {
     "spacing": (("1",), "float"), "radius": (("1",), "float"), "gate2": (("N",), "float"),
     "quadric": (("N", "5"), "float"), "node_radius": (("N",), "float"), "grid_origin": (("3",), "float"),
     "grid_cell": (("1",), "float"), "grid_shape": (("3",), "integer"), "grid_table": (("G",), "integer"),
-    "kernel_indptr": (("N1",), "integer"), "kernel_indices": (("Z",), "integer"),
+    "kernel_indptr": (("N1",), "integer"), "kernel_indices": (("Z",), "integer"), "kernel_data": (("Z",), "float"),
 }  # fmt: skip
 
 
@@ -115,6 +115,8 @@ def _check_prepared(prepared: Mapping[str, np.ndarray], n: int) -> dict[str, np.
             raise ScanError(f"prepared skin {name} holds non-finite values")
     positive = ("spacing", "radius", "grid_cell", "node_radius", "grid_shape")
     bad = [name for name in positive if np.any(arrays[name] <= 0)] + (["gate2"] if np.any(arrays["gate2"] < 0) else [])
+    if np.any(arrays["kernel_data"] < 0) or np.any(arrays["kernel_data"] > 1):  # biweight values
+        bad.append("kernel_data")
     indptr, indices, table = arrays["kernel_indptr"], arrays["kernel_indices"], arrays["grid_table"]
     if indptr[0] != 0 or indptr[-1] != indices.size or np.any(np.diff(indptr) < 0):
         bad.append("kernel_indptr")
@@ -224,7 +226,8 @@ class ScanFieldEstimator:
             self._set_grid(prepared["grid_origin"], float(prepared["grid_cell"][0]), prepared["grid_shape"],
                            prepared["grid_table"])  # fmt: skip
             self.node_radius_mm_ = prepared["node_radius"]
-            self.kernel_ = self._kernel_of(prepared["kernel_indptr"], prepared["kernel_indices"])
+            kernel = (prepared["kernel_data"], prepared["kernel_indices"], prepared["kernel_indptr"])
+            self.kernel_ = sp.csr_matrix(kernel, shape=(n, n))
         # What a located point reads of its node, in one row: position in grid units, frame, quadric, squared gate.
         grid_position = (points - self.grid_origin_) / self.grid_cell_mm_
         self.node_table_ = np.column_stack([grid_position, self.frames_.reshape(n, 9), self.quadric_, self.gate2_])
@@ -334,19 +337,14 @@ class ScanFieldEstimator:
         i = np.concatenate([i, np.arange(n)])
         j = np.concatenate([j, np.arange(n)])
         pattern = sp.csr_matrix((np.ones(i.size), (i, j)), shape=(n, n))
-        return self._kernel_of(pattern.indptr, pattern.indices)
-
-    def _kernel_of(self, indptr: np.ndarray, indices: np.ndarray) -> sp.csr_matrix:
-        """The biweight kernel on the node pairs of a CSR pattern (N + 1,), (Z,) with ``node_radius_mm_``."""
-        n = self.points_.shape[0]
-        i = np.repeat(np.arange(n), np.diff(indptr))
-        dist = np.linalg.norm(self.points_[indices] - self.points_[i], axis=1)
-        weight = (1.0 - (dist / self.node_radius_mm_[i]) ** 2) ** 2
-        return sp.csr_matrix((weight, indices, indptr), shape=(n, n))
+        rows = np.repeat(np.arange(n), np.diff(pattern.indptr))
+        dist = np.linalg.norm(self.points_[pattern.indices] - self.points_[rows], axis=1)
+        pattern.data = (1.0 - (dist / radius[rows]) ** 2) ** 2
+        return pattern
 
     def prepared_skin(self) -> dict[str, np.ndarray]:
         """What :meth:`fit` builds slowly, as arrays (names and shapes: ``PREPARED_SKIN``) to store with the bases
-        and give back to ``fit(skin, prepared=...)``: grid, quadrics, gates, kernel pattern and node radii."""
+        and give back to ``fit(skin, prepared=...)``: grid, quadrics, gates, kernel (CSR) and node radii."""
         self._check_fitted()
         return {
             "spacing": np.array([self.spacing_mm_]), "radius": np.array([self.radius_mm_]),
@@ -354,7 +352,7 @@ class ScanFieldEstimator:
             "grid_origin": self.grid_origin_, "grid_cell": np.array([self.grid_cell_mm_]),
             "grid_shape": self.grid_shape_, "grid_table": self.grid_table_,
             "kernel_indptr": self.kernel_.indptr.astype(np.int64),
-            "kernel_indices": self.kernel_.indices.astype(np.int32),
+            "kernel_indices": self.kernel_.indices.astype(np.int32), "kernel_data": self.kernel_.data,
         }  # fmt: skip
 
     # ------------------------------------------------------------------------------------------------ per scan
