@@ -90,6 +90,24 @@ def _plane_residuals_numpy(j, u, v, d, coef, out):
         out[part] = d[part] - (c[:, 0] + c[:, 1] * u[part] + c[:, 2] * v[part])
 
 
+def _plane_system(s0, ts0, ts1, q0, q1, q2, d0, td0, td1, a, b):
+    """One node's plane-fit normal equations in its tangent frame from raw moments about the centroid (node offset
+    a = t1.x, b = t2.x), solved by the adjugate: cofactors c00..c22, determinant, m00 m11 m22 (the singularity scale)
+    and the right-hand side. Elementwise: numpy arrays on the numpy path, scalars in the compiled loop."""
+    m00 = s0
+    m01 = ts0 - s0 * a
+    m02 = ts1 - s0 * b
+    m11 = q0 - 2 * ts0 * a + s0 * a * a
+    m12 = q1 - ts0 * b - a * ts1 + s0 * a * b
+    m22 = q2 - 2 * ts1 * b + s0 * b * b
+    c00 = m11 * m22 - m12 * m12
+    c01 = m02 * m12 - m01 * m22
+    c02 = m01 * m12 - m02 * m11
+    det = m00 * c00 + m01 * c01 + m02 * c02
+    return (c00, c01, c02, m00 * m22 - m02 * m02, m01 * m02 - m00 * m12, m00 * m11 - m01 * m01, det, m00 * m11 * m22,
+            d0, td0 - d0 * a, td1 - d0 * b)  # fmt: skip
+
+
 def _raw_moments_numpy(cells, basis, second, rows):
     out = np.empty((rows.size, 14))
     c = cells[rows]
@@ -106,22 +124,10 @@ def _node_fits_numpy(mixed, frames, tangent_quad, t1x, t2x, coef, weight, inflat
     ts = np.einsum("nkd,nd->nk", frames[:, :2], s1)
     td = np.einsum("nkd,nd->nk", frames[:, :2], d1)
     quad = np.einsum("nkc,nc->nk", tangent_quad, s2)
-    m00 = s0
-    m01 = ts[:, 0] - s0 * t1x
-    m02 = ts[:, 1] - s0 * t2x
-    m11 = quad[:, 0] - 2 * ts[:, 0] * t1x + s0 * t1x * t1x
-    m12 = quad[:, 1] - ts[:, 0] * t2x - t1x * ts[:, 1] + s0 * t1x * t2x
-    m22 = quad[:, 2] - 2 * ts[:, 1] * t2x + s0 * t2x * t2x
-    r0, r1, r2 = d0, td[:, 0] - d0 * t1x, td[:, 1] - d0 * t2x
-    c00 = m11 * m22 - m12 * m12
-    c01 = m02 * m12 - m01 * m22
-    c02 = m01 * m12 - m02 * m11
-    c11 = m00 * m22 - m02 * m02
-    c12 = m01 * m02 - m00 * m12
-    c22 = m00 * m11 - m01 * m01
-    det = m00 * c00 + m01 * c01 + m02 * c02
+    c00, c01, c02, c11, c12, c22, det, scale, r0, r1, r2 = _plane_system(
+        s0, ts[:, 0], ts[:, 1], quad[:, 0], quad[:, 1], quad[:, 2], d0, td[:, 0], td[:, 1], t1x, t2x)
     with np.errstate(divide="ignore", invalid="ignore"):
-        inv_det = np.where(np.abs(det) > 1e-12 * np.abs(m00 * m11 * m22) + 1e-300, 1.0 / det, np.nan)
+        inv_det = np.where(np.abs(det) > 1e-12 * np.abs(scale) + 1e-300, 1.0 / det, np.nan)
     coef[:, 0] = (c00 * r0 + c01 * r1 + c02 * r2) * inv_det
     coef[:, 1] = (c01 * r0 + c11 * r1 + c12 * r2) * inv_det
     coef[:, 2] = (c02 * r0 + c12 * r1 + c22 * r2) * inv_det
@@ -228,22 +234,9 @@ def _node_fits_loop(mixed, frames, tangent_quad, t1x, t2x, coef, weight, inflati
             q0 += tangent_quad[i, 0, c] * mixed[i, 4 + c]
             q1 += tangent_quad[i, 1, c] * mixed[i, 4 + c]
             q2 += tangent_quad[i, 2, c] * mixed[i, 4 + c]
-        a, b = t1x[i], t2x[i]
-        m00 = s0
-        m01 = ts0 - s0 * a
-        m02 = ts1 - s0 * b
-        m11 = q0 - 2 * ts0 * a + s0 * a * a
-        m12 = q1 - ts0 * b - a * ts1 + s0 * a * b
-        m22 = q2 - 2 * ts1 * b + s0 * b * b
-        r0, r1, r2 = d0, td0 - d0 * a, td1 - d0 * b
-        c00 = m11 * m22 - m12 * m12
-        c01 = m02 * m12 - m01 * m22
-        c02 = m01 * m12 - m02 * m11
-        c11 = m00 * m22 - m02 * m02
-        c12 = m01 * m02 - m00 * m12
-        c22 = m00 * m11 - m01 * m01
-        det = m00 * c00 + m01 * c01 + m02 * c02
-        inv_det = 1.0 / det if abs(det) > 1e-12 * abs(m00 * m11 * m22) + 1e-300 else np.nan
+        c00, c01, c02, c11, c12, c22, det, scale, r0, r1, r2 = _plane_system(s0, ts0, ts1, q0, q1, q2, d0, td0, td1,
+                                                                             t1x[i], t2x[i])  # fmt: skip
+        inv_det = 1.0 / det if abs(det) > 1e-12 * abs(scale) + 1e-300 else np.nan
         coef[i, 0] = (c00 * r0 + c01 * r1 + c02 * r2) * inv_det
         coef[i, 1] = (c01 * r0 + c11 * r1 + c12 * r2) * inv_det
         coef[i, 2] = (c02 * r0 + c12 * r1 + c22 * r2) * inv_det
@@ -261,7 +254,7 @@ def _kernel(name: str):
             from numba import njit
 
             module = globals()
-            for helper in ("_cell", "_add_one"):  # called from the loops: compiled inline into them
+            for helper in ("_cell", "_add_one", "_plane_system"):  # called from the loops: compiled inline into them
                 module[helper] = njit(nogil=True, cache=True, inline="always")(module[helper])
             for loop in ("_locate_block_loop", "_add_moments_loop", "_plane_residuals_loop", "_raw_moments_loop",
                          "_node_fits_loop"):  # fmt: skip
