@@ -1,17 +1,29 @@
-"""Scan -> displacement field at the paper's resolution, against synthetic truth and against CloudCompare.
+"""Scan -> displacement field, like with like against CloudCompare's cloud-to-mesh distance, in one run.
 
-A crowned open skin of 188,871 nodes (the paper's visible skin has 188,559) carries a smooth boundary-effect-like
-normal displacement (about 1.3 mm peak); the synthetic structured-light scanner takes about 1,000,000 points of it
-(plus fixture background and outliers) at 0.02 and 0.05 mm range noise. Measured:
+Per resolution (the hood preset's skin at default and paper resolution) one synthetic structured-light scan of the
+displaced skin (0.05 mm range noise, fixture background, outliers) is taken with about 10 million points in the part
+frame; the 100k, 1M and 5M clouds are sorted random subsets of it (the same view, sparser). Every cloud is one PLY
+file; the nominal skin is one mesh PLY. On the same files:
 
-- field_from_scan (markers registration + node field) time and RMS error on seen nodes, free-edge row, near-edge
-  band and interior separately, coverage, noise estimate;
-- CloudCompare 2.11 cloud-to-mesh distance, like with like: (a) per scan point against the nominal skin mesh vs our
-  per-point signed distance; (b) per skin node against the meshed scan (the paper's use) vs our node field, both
-  against the truth; wall time of each side.
+- CloudCompare C2M (``-C2M_DIST``) with ``-MAX_DIST 5`` (hood_decomp's own 5 mm cap) and without it, as a fresh
+  process under ``/usr/bin/time -v`` (wall, peak RSS), loading and saving included;
+- hood_decomp file to file: ``hood-decomp estimate --bases B --scan cloud.ply`` as a fresh process under
+  ``/usr/bin/time -v`` (start-up, bases and prepared skin load, PLY read, field, estimate);
+- hood_decomp per scan: ``field_from_scan`` (marker registration included) in a child process with the prepared
+  skin read from the bases file: first call, median of the repeats, peak RSS of the scan step (VmHWM reset before
+  it) and the field's RMS error against the truth on seen nodes.
+Both hood_decomp runs accept any coverage (``min_coverage`` 0): 100k points cannot cover 188k paper nodes (the
+coverage is reported).
 
-Prints a table and writes benchmarks/out/bench_scan.json. Run from the repository root:
-    PYTHONPATH=ros2_ws/src/hood_decomp .venv/bin/python benchmarks/bench_scan.py [--repeats 3] [--no-cloudcompare]
+The bases files carry a toy reduced model on the real skin (tests/toy_models.py: 3 parameters, 27 members): a
+paper-resolution FE ensemble needs about 9.5 GB, which this shared machine cannot spare; the scan step, the file
+reading and the prepared skin, which are what is measured, are those of the real skin. The time per scan is fitted
+as a + b * points (a: the per-node work) and the marginal cost per point is given at 1M and at 10M. The load average
+is recorded with every figure.
+
+Prints a table and writes benchmarks/out/bench_scan.json. Run from the repository root inside the environment:
+    scripts/with-env python benchmarks/bench_scan.py [--repeats 5] [--uncapped-repeats 3] [--sizes 1e5,1e6,5e6,1e7]
+        [--resolutions default,paper] [--no-cloudcompare] [--work DIR]
 """
 
 from __future__ import annotations
@@ -19,7 +31,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -29,252 +43,237 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-
-from hood_decomp.core.scan.scan_field import ScanFieldEstimator, field_from_scan  # noqa: E402
-from hood_decomp.io.ply import write_ply, write_skin_mesh  # noqa: E402
-from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan  # noqa: E402
-from tests.skins import (  # noqa: E402
-    CLOUDCOMPARE,
-    along_normals,
-    boundary_nodes,
-    cloudcompare_c2m,
-    crowned_patch,
-    mesh_scan_2p5d,
-    near_edge,
-    smooth_field,
-)
-
-
-def rms(values: np.ndarray) -> float:
-    values = values[np.isfinite(values)]
-    return float(np.sqrt(np.mean(values**2))) if values.size else float("nan")
+CLOUDCOMPARE = "CloudCompare"
 
 
 def log(line: str) -> None:
     print(f"[bench_scan {time.strftime('%H:%M:%S')}] {line}", file=sys.stderr, flush=True)
 
 
+def load() -> float:
+    return round(os.getloadavg()[0], 2)
+
+
+def timed_process(command: list[str], env: dict[str, str] | None = None) -> dict:
+    """Run ``command`` under /usr/bin/time -v: wall s, peak RSS MB, exit status, load at start and end."""
+    start_load = load()
+    done = subprocess.run(["/usr/bin/time", "-v", *command], capture_output=True, text=True, timeout=3600,
+                          env={**os.environ, **(env or {})})  # fmt: skip
+    wall = re.search(r"Elapsed \(wall clock\) time \(h:mm:ss or m:ss\): (?:(\d+):)?(\d+):([\d.]+)", done.stderr)
+    rss = re.search(r"Maximum resident set size \(kbytes\): (\d+)", done.stderr)
+    seconds = (int(wall.group(1) or 0) * 3600 + int(wall.group(2)) * 60 + float(wall.group(3))) if wall else np.nan
+    if done.returncode != 0:
+        log(f"FAILED ({done.returncode}): {' '.join(command)}\n{done.stdout[-1500:]}\n{done.stderr[-1500:]}")
+    return {"wall_s": seconds, "peak_rss_mb": int(rss.group(1)) / 1024 if rss else np.nan,
+            "status": done.returncode, "load_start": start_load, "load_end": load()}  # fmt: skip
+
+
+def summary(runs: list[dict]) -> dict:
+    ok = [r for r in runs if r["status"] == 0]
+    return {"runs": len(runs), "ok": len(ok), "median_wall_s": float(np.median([r["wall_s"] for r in ok])) if ok
+            else None, "median_peak_rss_mb": float(np.median([r["peak_rss_mb"] for r in ok])) if ok else None,
+            "walls_s": [r["wall_s"] for r in runs], "loads": [r["load_start"] for r in runs]}  # fmt: skip
+
+
+# ------------------------------------------------------------------------------------------------ data
+def truth_field(points: np.ndarray) -> np.ndarray:
+    """(N,) mm: a smooth boundary-effect-like normal displacement over the skin's bounding box (about 1 mm)."""
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    x, y = ((points[:, :2] - lo[:2]) / (hi[:2] - lo[:2])).T
+    bump = np.exp(-((x - 0.6) ** 2 + (y - 0.55) ** 2) / (2 * 0.2**2))
+    return 0.8 * x * x * y + 0.6 * x * y * y - 0.5 * x**3 + 0.4 * y**3 + 0.5 * bump
+
+
+def prepare(resolution: str, work: Path, max_points: int, sizes: list[int]) -> dict:
+    """Model, toy bases with the prepared skin, mesh PLY, the scan clouds (part frame) and their markers."""
+    from hood_decomp.core.fe.model import skin_surface
+    from hood_decomp.core.method.bases import build_bases
+    from hood_decomp.core.scan.scan_field import ScanFieldEstimator
+    from hood_decomp.io.bases import save_bases
+    from hood_decomp.io.model_files import load_model
+    from hood_decomp.io.ply import write_ply, write_skin_mesh
+    from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
+    from tests.toy_models import full_factorial, make_ensemble, make_reduced_model
+
+    directory = work / resolution
+    directory.mkdir(parents=True, exist_ok=True)
+    subprocess.run([sys.executable, "-m", "hood_decomp.cli", "model", "--preset", "hood", "--resolution", resolution,
+                    "--out", str(directory / "model")], check=True, capture_output=True)  # fmt: skip
+    skin = skin_surface(load_model(directory / "model"))
+    info: dict = {"skin_nodes": skin.n_nodes, "load_at_prepare": load()}
+    start = time.perf_counter()
+    ScanFieldEstimator().fit(skin)
+    info["prepare_skin_s"] = time.perf_counter() - start
+    log(f"{resolution}: {skin.n_nodes} skin nodes, skin prepared in {info['prepare_skin_s']:.2f} s (load {load()})")
+    model = make_reduced_model(skin, seed=1, n_bilateral=2, n_pads=1, springs_per_pad=1)
+    states, rank = full_factorial(3)
+    bases = build_bases(make_ensemble(model, states, rank), skin, model, n_components=6, epsilon=0.01)
+    start = time.perf_counter()
+    save_bases(directory / "bases.h5", bases)
+    info["save_bases_s"] = time.perf_counter() - start
+    info["bases_mb"] = (directory / "bases.h5").stat().st_size / 2**20
+    write_skin_mesh(directory / "mesh.ply", skin)
+    truth = truth_field(skin.points)
+    np.save(directory / "truth.npy", truth)
+    # ~20 % of a hood scan is fixture background and outliers: ask for that much less on the skin
+    scan = synthesize_scan(skin, skin.normals * truth[:, None],
+                           ScannerConfig(n_points=int(max_points / 1.2), noise_mm=0.05), seed=7)  # fmt: skip
+    rotation, shift = scan.true_transform[:3, :3], scan.true_transform[:3, 3]
+    points = scan.points @ rotation.T + shift
+    np.save(directory / "markers.npy", np.stack([scan.markers @ rotation.T + shift, scan.markers_nominal]))
+    del scan
+    rng = np.random.default_rng(11)
+    info["clouds"] = {}
+    for size in sizes:
+        chosen = points if size >= points.shape[0] else points[np.sort(rng.choice(points.shape[0], size, False))]
+        path = directory / f"cloud_{size}.ply"
+        write_ply(path, chosen)
+        info["clouds"][size] = {"path": str(path), "points": int(chosen.shape[0])}
+        log(f"{resolution}: cloud of {chosen.shape[0]:,} points written")
+    return info
+
+
+# ------------------------------------------------------------------------------------------------ child
+def child(resolution_dir: str, cloud: str, repeats: int) -> None:
+    """One scan size in a fresh process: per-scan timings, scan-step peak memory, accuracy. Prints one JSON line."""
+    from hood_decomp.core.scan.scan_field import field_from_scan, prepared_estimator
+    from hood_decomp.io.bases import load_bases
+    from hood_decomp.io.ply import read_scan
+
+    directory = Path(resolution_dir)
+    t0 = time.perf_counter()
+    bases = load_bases(directory / "bases.h5")
+    estimator = prepared_estimator(bases.skin)  # the prepared skin read from the file
+    load_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    points = read_scan(cloud).points
+    read_s = time.perf_counter() - t0
+    markers, nominal = np.load(directory / "markers.npy")
+    truth = np.load(directory / "truth.npy")
+
+    def run():
+        return field_from_scan(bases.skin, points, markers_mm=markers, markers_nominal_mm=nominal,
+                               estimator=estimator, min_coverage=0.0)  # fmt: skip
+
+    status = Path("/proc/self/status")
+    before = int(re.search(r"VmRSS:\s+(\d+)", status.read_text()).group(1)) / 1024
+    Path("/proc/self/clear_refs").write_text("5")  # reset VmHWM: the peak below is the scan step's
+    t0 = time.perf_counter()
+    field, _ = run()
+    first = time.perf_counter() - t0
+    peak = int(re.search(r"VmHWM:\s+(\d+)", status.read_text()).group(1)) / 1024
+    times, loads = [], []
+    for _ in range(repeats):
+        loads.append(load())
+        t0 = time.perf_counter()
+        run()
+        times.append(time.perf_counter() - t0)
+    error = field.normal_displacement - truth
+    seen = np.isfinite(error)
+    print(json.dumps({
+        "points": int(points.shape[0]), "load_prepared_s": load_s, "read_ply_s": read_s, "first_s": first,
+        "times_s": times, "median_s": float(np.median(times)), "loads": loads,
+        "rss_before_mb": before, "scan_peak_rss_mb": peak, "coverage": field.coverage,
+        "rms_error_mm": float(np.sqrt(np.mean(error[seen] ** 2))), "noise_rms_mm": field.noise_rms,
+    }))  # fmt: skip
+
+
+# ------------------------------------------------------------------------------------------------ main
+def cloudcompare(cloud: str, mesh: str, out: str, cap: bool) -> list[str]:
+    return [CLOUDCOMPARE, "-SILENT", "-AUTO_SAVE", "OFF", "-C_EXPORT_FMT", "PLY", "-O", cloud, "-O", mesh,
+            "-C2M_DIST", *(["-MAX_DIST", "5"] if cap else []), "-SAVE_CLOUDS", "FILE", out]  # fmt: skip
+
+
+def linear_fit(points: np.ndarray, seconds: np.ndarray) -> dict:
+    b, a = np.polyfit(points, seconds, 1)
+    order = np.argsort(points)
+    p, t = points[order], seconds[order]
+    return {"a_s": float(a), "b_ns_per_point": float(b * 1e9),
+            "marginal_ns_per_point": {f"{int(p[k])}-{int(p[k + 1])}": float((t[k + 1] - t[k]) / (p[k + 1] - p[k]) * 1e9)
+                                      for k in range(len(p) - 1)}}  # fmt: skip
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=3, help="timed repetitions of field_from_scan (median)")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--uncapped-repeats", type=int, default=3, help="runs of uncapped CloudCompare at >= 5M")
+    parser.add_argument("--sizes", default="1e5,1e6,5e6,1e7")
+    parser.add_argument("--resolutions", default="default,paper")
     parser.add_argument("--no-cloudcompare", action="store_true")
-    parser.add_argument("--points", type=int, default=1_000_000, help="target scan points on the skin")
-    parser.add_argument("--hood", default="default", choices=("none", "coarse", "default", "paper"),
-                        help="also scan the built-in hood at this resolution (a forward FE solve as truth)")
+    parser.add_argument("--work", default=None, help="work directory (default: a temporary one, removed)")
+    parser.add_argument("--child", nargs=2, metavar=("RESOLUTION_DIR", "CLOUD"), help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.child:
+        child(*args.child, args.repeats)
+        return 0
+    sizes = [int(float(s)) for s in args.sizes.split(",")]
+    work = Path(args.work or tempfile.mkdtemp(prefix="bench_scan_"))
+    have_cc = not args.no_cloudcompare and shutil.which(CLOUDCOMPARE) is not None
+    results: dict = {"date": time.strftime("%Y-%m-%d %H:%M"), "cpus": os.cpu_count(), "sizes": sizes,
+                     "load_at_start": load(), "resolutions": {}}  # fmt: skip
+    hood = [shutil.which("hood-decomp")] if shutil.which("hood-decomp") else [sys.executable, "-m", "hood_decomp.cli"]
+    rows = []
+    try:
+        for resolution in args.resolutions.split(","):
+            info = prepare(resolution, work, max(sizes), sizes)
+            directory = work / resolution
+            per_size = {}
+            for size in sizes:
+                cloud = info["clouds"][size]["path"]
+                n = info["clouds"][size]["points"]
+                entry: dict = {"points": n}
+                done = subprocess.run([sys.executable, __file__, "--repeats", str(args.repeats), "--child",
+                                       str(directory), cloud], capture_output=True, text=True, check=True)  # fmt: skip
+                entry["per_scan"] = json.loads(done.stdout.strip().splitlines()[-1])
+                estimate = [*hood, "estimate", "--bases", str(directory / "bases.h5"), "--scan", cloud,
+                            "--min-coverage", "0", "--json", str(directory / "estimate.json")]  # fmt: skip
+                entry["file_to_file"] = summary([timed_process(estimate) for _ in range(args.repeats)])
+                if have_cc:
+                    out = str(directory / "cc_out.ply")
+                    env = {"QT_QPA_PLATFORM": "offscreen"}
+                    for cap in (True, False):
+                        count = args.repeats if cap or size < 5_000_000 else args.uncapped_repeats
+                        runs = [timed_process(cloudcompare(cloud, str(directory / "mesh.ply"), out, cap), env)
+                                for _ in range(count)]  # fmt: skip
+                        entry["cloudcompare_capped" if cap else "cloudcompare_uncapped"] = summary(runs)
+                    Path(out).unlink(missing_ok=True)
+                per_size[size] = entry
+                ps, ff = entry["per_scan"], entry["file_to_file"]
+                cc = entry.get("cloudcompare_capped", {}).get("median_wall_s")
+                ccu = entry.get("cloudcompare_uncapped", {}).get("median_wall_s")
+                rows.append((resolution, n, ps["median_s"], ps["first_s"], ps["scan_peak_rss_mb"],
+                             ff["median_wall_s"], ff["median_peak_rss_mb"], cc, ccu, ps["rms_error_mm"],
+                             float(np.median(ps["loads"]))))  # fmt: skip
+                log(f"{resolution} {n:,}: per scan {ps['median_s']:.3f} s, file to file {ff['median_wall_s']:.2f} s, "
+                    f"CC capped {cc}, uncapped {ccu} (load {load()})")
+            points = np.array([per_size[s]["points"] for s in sizes], dtype=float)
+            info["fit"] = linear_fit(points, np.array([per_size[s]["per_scan"]["median_s"] for s in sizes]))
+            info["sizes"] = per_size
+            results["resolutions"][resolution] = info
+            out_dir = ROOT / "benchmarks" / "out"
+            out_dir.mkdir(exist_ok=True)
+            (out_dir / "bench_scan.json").write_text(json.dumps(results, indent=1, default=str))
+    finally:
+        if args.work is None:
+            shutil.rmtree(work, ignore_errors=True)
+    results["load_at_end"] = load()
+    (ROOT / "benchmarks" / "out" / "bench_scan.json").write_text(json.dumps(results, indent=1, default=str))
 
-    skin = crowned_patch(471, 401)
-    truth = smooth_field(skin, amplitude_mm=1.0)
-    edge_row = boundary_nodes(skin)
-    band = near_edge(skin, 10.0) & ~edge_row
-    interior = ~near_edge(skin, 10.0)
-    log(f"skin {skin.n_nodes} nodes, truth peak {np.abs(truth).max():.3f} mm")
-    start = time.perf_counter()
-    estimator = ScanFieldEstimator().fit(skin)
-    fit_s = time.perf_counter() - start
-    log(f"estimator prepared in {fit_s:.2f} s (radius {estimator.radius_mm_:.2f} mm)")
-    results: dict = {
-        "skin_nodes": skin.n_nodes,
-        "radius_mm": estimator.radius_mm_,
-        "prepare_s": fit_s,
-        "load_average_1min_at_start": os.getloadavg()[0],
-        "cpu_count": os.cpu_count(),
-        "noise": {},
-    }
-    scans = {}
-    for noise in (0.02, 0.05):
-        start = time.perf_counter()
-        scan = synthesize_scan(skin, along_normals(skin, truth), ScannerConfig(n_points=args.points, noise_mm=noise), 7)
-        scan_s = time.perf_counter() - start
-        scans[noise] = scan
-        log(f"noise {noise}: {scan.points.shape[0]} points ({scan.n_skin_points} on the skin) in {scan_s:.1f} s")
-        kwargs = {"markers_mm": scan.markers, "markers_nominal_mm": scan.markers_nominal, "estimator": estimator}
-        field_from_scan(skin, scan.points, **kwargs)  # warm-up (page faults of the first touch)
-        times, cpu = [], []
-        for _ in range(args.repeats):
-            start, start_cpu = time.perf_counter(), time.process_time()
-            field, registration = field_from_scan(skin, scan.points, **kwargs)
-            times.append(time.perf_counter() - start)
-            cpu.append(time.process_time() - start_cpu)
-        error = field.normal_displacement - truth
-        results["noise"][str(noise)] = {
-            "scan_points": int(scan.points.shape[0]),
-            "scan_points_on_skin": scan.n_skin_points,
-            "synthesize_s": scan_s,
-            "field_from_scan_s_median": float(np.median(times)),
-            "field_from_scan_s_min": float(np.min(times)),
-            "field_from_scan_cpu_s_median": float(np.median(cpu)),
-            "rms_error_mm": rms(error),
-            "rms_error_edge_row_mm": rms(error[edge_row]),
-            "rms_error_edge_band_mm": rms(error[band]),
-            "rms_error_interior_mm": rms(error[interior]),
-            "max_abs_error_mm": float(np.nanmax(np.abs(error))),
-            "coverage": field.coverage,
-            "noise_rms_estimate_mm": field.noise_rms,
-            "registration": registration.method,
-            "marker_rms_mm": registration.marker_rms_mm,
-        }
-        log(f"noise {noise}: {results['noise'][str(noise)]}")
+    def show(value: float | None, fmt: str) -> str:
+        return "-" if value is None or not np.isfinite(value) else format(value, fmt)
 
-    if args.hood != "none":
-        results["hood"] = hood_case(args.hood, args.points)
-    if not args.no_cloudcompare:
-        if shutil.which(CLOUDCOMPARE) is None:
-            results["cloudcompare"] = "not installed (apt-get install cloudcompare)"
-        else:
-            results["cloudcompare"] = compare_with_cloudcompare(skin, truth, estimator, scans[0.05])
-    results["load_average_1min_at_end"] = os.getloadavg()[0]
-    out = ROOT / "benchmarks" / "out"
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "bench_scan.json").write_text(json.dumps(results, indent=2))
-    print_table(results)
+    print(f"{'resolution':<10} {'points':>11} {'scan s':>7} {'first s':>7} {'scan MB':>7} {'f2f s':>6} {'f2f MB':>6} "
+          f"{'CC5 s':>6} {'CC s':>7} {'RMS mm':>7} {'load':>5}")
+    for r in rows:
+        print(f"{r[0]:<10} {r[1]:>11,} {show(r[2], '.3f'):>7} {show(r[3], '.3f'):>7} {show(r[4], '.0f'):>7} "
+              f"{show(r[5], '.2f'):>6} {show(r[6], '.0f'):>6} {show(r[7], '.2f'):>6} {show(r[8], '.2f'):>7} "
+              f"{show(r[9], '.4f'):>7} {r[10]:>5}")
+    for resolution, info in results["resolutions"].items():
+        fit = info["fit"]
+        print(f"{resolution}: prepare skin {info['prepare_skin_s']:.2f} s; per scan = {fit['a_s'] * 1e3:.1f} ms + "
+              f"{fit['b_ns_per_point']:.1f} ns x points; marginal ns/point {fit['marginal_ns_per_point']}")
     return 0
 
 
-def hood_case(resolution: str, n_points: int) -> dict:
-    """The built-in hood: LOCK_L = 1, HINGE_X = -0.5, BUFFER_R = 0.5 mm solved by the embedded FE solver (truth: its
-    skin normal displacement u.n, with in-plane motion from the hinge), scanned, turned back into a field."""
-    from hood_decomp.core.fe.ensemble import simulate_setting
-    from hood_decomp.core.fe.hood_preset import build_hood
-    from hood_decomp.core.fe.model import skin_surface
-    from hood_decomp.core.fe.solver import build_solver
-
-    model = build_hood(resolution)
-    skin = skin_surface(model)
-    setting = {"LOCK_L": 1.0, "HINGE_X": -0.5, "BUFFER_R": 0.5}
-    log(f"hood {resolution}: {skin.n_nodes} skin nodes, solving {setting}")
-    solved = simulate_setting(build_solver(model), setting)
-    estimator = ScanFieldEstimator().fit(skin)
-    edge_row = boundary_nodes(skin)
-    report: dict = {"resolution": resolution, "skin_nodes": skin.n_nodes, "setting_mm": setting,
-                    "truth_peak_mm": float(np.abs(solved.normal_displacement).max()),
-                    "radius_mm": estimator.radius_mm_, "noise": {}}  # fmt: skip
-    for noise in (0.02, 0.05):
-        scan = synthesize_scan(skin, solved.displacement, ScannerConfig(n_points=n_points, noise_mm=noise), 3)
-        kwargs = {"markers_mm": scan.markers, "markers_nominal_mm": scan.markers_nominal, "estimator": estimator}
-        field_from_scan(skin, scan.points, **kwargs)
-        start = time.perf_counter()
-        field, _ = field_from_scan(skin, scan.points, **kwargs)
-        elapsed = time.perf_counter() - start
-        error = field.normal_displacement - solved.normal_displacement
-        report["noise"][str(noise)] = {
-            "scan_points": int(scan.points.shape[0]),
-            "field_from_scan_s": elapsed,
-            "rms_error_mm": rms(error),
-            "rms_error_edge_row_mm": rms(error[edge_row]),
-            "rms_error_interior_mm": rms(error[~edge_row]),
-            "max_abs_error_mm": float(np.nanmax(np.abs(error))),
-            "coverage": field.coverage,
-            "noise_rms_estimate_mm": field.noise_rms,
-        }
-        log(f"hood {resolution} noise {noise}: {report['noise'][str(noise)]}")
-    return report
-
-
-def compare_with_cloudcompare(skin, truth, estimator, scan) -> dict:
-    """Both CloudCompare comparisons on the registered 0.05 mm scan (same points, same frame for both sides)."""
-    _, registration = field_from_scan(
-        skin, scan.points, markers_mm=scan.markers, markers_nominal_mm=scan.markers_nominal, estimator=estimator
-    )
-    transform = registration.transform
-    points = scan.points @ transform[:3, :3].T + transform[:3, 3]
-    report: dict = {}
-    with tempfile.TemporaryDirectory() as tmp:
-        tmp_path = Path(tmp)
-        # (a) per scan point -> nominal skin mesh.
-        start = time.perf_counter()
-        located = estimator.point_distances(points)
-        ours_s = time.perf_counter() - start
-        write_ply(tmp_path / "cloud.ply", points)
-        write_skin_mesh(tmp_path / "skin.ply", skin)
-        log("CloudCompare: scan points -> nominal skin mesh")
-        theirs, wall, reported = cloudcompare_c2m(str(tmp_path / "cloud.ply"), str(tmp_path / "skin.ply"),
-                                                  str(tmp_path / "out_a.ply"))  # fmt: skip
-        inner = located.node >= 0
-        inner[inner] = ~boundary_nodes(skin)[located.node[inner]]
-        diff = located.distance[inner] - theirs[inner]
-        report["per_point"] = {
-            "points_compared": int(inner.sum()),
-            "mean_diff_mm": float(np.mean(diff)),
-            "std_diff_mm": float(np.std(diff)),
-            "max_abs_diff_mm": float(np.max(np.abs(diff))),
-            "ours_s": ours_s,
-            "cloudcompare_wall_s": wall,
-            "cloudcompare_reported_compute_s": reported,
-        }
-        log(f"per point: {report['per_point']}")
-        # (b) per skin node -> meshed scan (the paper's use); the scan meshed here (Debian's CloudCompare has no CGAL).
-        on_skin = points[located.node >= 0]
-        start = time.perf_counter()
-        triangles = mesh_scan_2p5d(on_skin, max_edge_mm=3.0 * estimator.spacing_mm_)
-        mesh_s = time.perf_counter() - start
-        write_ply(tmp_path / "scan_mesh.ply", on_skin, triangles=triangles)
-        write_ply(tmp_path / "nodes.ply", skin.points)
-        log("CloudCompare: skin nodes -> meshed scan")
-        to_scan, wall_b, reported_b = cloudcompare_c2m(str(tmp_path / "nodes.ply"), str(tmp_path / "scan_mesh.ply"),
-                                                       str(tmp_path / "out_b.ply"))  # fmt: skip
-        start = time.perf_counter()
-        ours = field_from_scan(
-            skin, scan.points, markers_mm=scan.markers, markers_nominal_mm=scan.markers_nominal, estimator=estimator
-        )[0].normal_displacement
-        ours_b_s = time.perf_counter() - start
-        theirs_b = -to_scan
-        both = np.isfinite(ours) & ~boundary_nodes(skin) & (np.abs(to_scan) < 2.0)
-        report["per_node"] = {
-            "nodes_compared": int(both.sum()),
-            "ours_rms_error_mm": rms(ours[both] - truth[both]),
-            "cloudcompare_rms_error_mm": rms(theirs_b[both] - truth[both]),
-            "cloudcompare_median_abs_error_mm": float(np.median(np.abs(theirs_b[both] - truth[both]))),
-            "median_diff_cloudcompare_minus_ours_mm": float(np.median(theirs_b[both] - ours[both])),
-            "ours_field_from_scan_s": ours_b_s,
-            "scan_meshing_s": mesh_s,
-            "cloudcompare_wall_s": wall_b,
-            "cloudcompare_reported_compute_s": reported_b,
-        }
-        log(f"per node: {report['per_node']}")
-    return report
-
-
-def print_table(results: dict) -> None:
-    print(f"\nScan -> field, {results['skin_nodes']} skin nodes, radius {results['radius_mm']:.2f} mm, preparation "
-          f"{results['prepare_s']:.2f} s (once per skin); load average {results['load_average_1min_at_start']:.2f} -> "
-          f"{results['load_average_1min_at_end']:.2f} on {results['cpu_count']} cores")  # fmt: skip
-    header = ("noise mm", "points", "wall s", "cpu s", "rms", "edge row", "edge band", "interior", "max", "coverage",
-              "noise est")  # fmt: skip
-    print(" ".join(f"{h:>9}" for h in header))
-    for noise, r in results["noise"].items():
-        row = (noise, r["scan_points"], r["field_from_scan_s_median"], r["field_from_scan_cpu_s_median"],
-               r["rms_error_mm"], r["rms_error_edge_row_mm"], r["rms_error_edge_band_mm"], r["rms_error_interior_mm"],
-               r["max_abs_error_mm"], r["coverage"], r["noise_rms_estimate_mm"])  # fmt: skip
-        print(" ".join(f"{v:>9}" if isinstance(v, str | int) else f"{v:>9.4f}" for v in row))
-    hood = results.get("hood")
-    if hood:
-        print(f"\nBuilt-in hood ({hood['resolution']}, {hood['skin_nodes']} skin nodes, radius "
-              f"{hood['radius_mm']:.1f} mm), FE solve {hood['setting_mm']} as truth "
-              f"(peak {hood['truth_peak_mm']:.2f} mm)")
-        print(" ".join(f"{h:>9}" for h in ("noise mm", "points", "wall s", "rms", "edge row", "interior", "max",
-                                            "coverage", "noise est")))  # fmt: skip
-        for noise, r in hood["noise"].items():
-            row = (noise, r["scan_points"], r["field_from_scan_s"], r["rms_error_mm"], r["rms_error_edge_row_mm"],
-                   r["rms_error_interior_mm"], r["max_abs_error_mm"], r["coverage"], r["noise_rms_estimate_mm"])
-            print(" ".join(f"{v:>9}" if isinstance(v, str | int) else f"{v:>9.4f}" for v in row))
-    cc = results.get("cloudcompare")
-    if isinstance(cc, dict):
-        a, b = cc["per_point"], cc["per_node"]
-        print("\nCloudCompare 2.11 C2M vs hood_decomp (0.05 mm scan, the same registered points for both)")
-        print(f"{'comparison':<32} {'ours s':>8} {'CC wall s':>10} {'CC compute s':>13}  agreement")
-        print(f"{'per point -> nominal mesh':<32} {a['ours_s']:>8.3f} {a['cloudcompare_wall_s']:>10.2f} "
-              f"{a['cloudcompare_reported_compute_s']:>13.2f}  ours - CC: mean {a['mean_diff_mm']:.1e}, "
-              f"std {a['std_diff_mm']:.1e} mm over {a['points_compared']} points")  # fmt: skip
-        print(f"{'per node -> meshed scan (paper)':<32} {b['ours_field_from_scan_s']:>8.3f} "
-              f"{b['cloudcompare_wall_s']:>10.2f} {b['cloudcompare_reported_compute_s']:>13.2f}  median CC - ours "
-              f"{b['median_diff_cloudcompare_minus_ours_mm']:.1e} mm over {b['nodes_compared']} nodes")  # fmt: skip
-        print(f"per node RMS error vs truth: ours {b['ours_rms_error_mm']:.4f} mm, CloudCompare "
-              f"{b['cloudcompare_rms_error_mm']:.4f} mm (median |error| {b['cloudcompare_median_abs_error_mm']:.4f}); "
-              f"meshing the scan for CloudCompare: {b['scan_meshing_s']:.1f} s, not in its time")  # fmt: skip
-    elif cc is not None:
-        print(f"\nCloudCompare: {cc}")
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())

@@ -20,7 +20,7 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
 from hood_decomp.errors import PointCloudError
-from hood_decomp.ros.pointcloud import cloud_channel, cloud_to_xyz, xyz_to_cloud
+from hood_decomp.ros.pointcloud import cloud_channel, cloud_to_xyz, finite_rows, xyz_to_cloud
 
 STRUCT = {7: "f", 8: "d", 2: "B", 4: "H", 6: "I"}
 SIZE = {7: 4, 8: 8, 2: 1, 4: 2, 6: 4}
@@ -87,6 +87,21 @@ def test_reads_every_layout_exactly(layout):
     np.testing.assert_array_equal(dropped, points[np.isfinite(points).all(axis=1)])
     for i in range(len(layout["extra"])):  # any numeric extra field reads back in point order
         np.testing.assert_array_equal(cloud_channel(cloud, f"extra{i}"), np.full(points.shape[0], 7.0))
+
+
+def test_non_finite_points_are_dropped_in_any_coordinate():
+    """Fails if the one-pass finiteness test misses a NaN, +inf or -inf in any coordinate of the adjacent-xyz read, or
+    drops a finite point (against numpy's per-element test)."""
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-2.0, 2.0, (300, 3))
+    for row, (axis, bad) in enumerate([(a, b) for a in range(3) for b in (np.nan, np.inf, -np.inf)]):
+        points[17 * row + 3, axis] = bad
+    expected = np.isfinite(points).all(axis=1)
+    np.testing.assert_array_equal(finite_rows(points), expected)
+    assert finite_rows(points[expected]) is None
+    cloud = encode(points, height=3, xyz_types=(7, 7, 7), extra=[2], big=False, gap=0, row_pad=2, order=[0, 1, 2, 3])
+    np.testing.assert_array_equal(cloud_to_xyz(cloud, scale=1000.0),
+                                  points[expected].astype(np.float32).astype(np.float64) * 1000.0)
 
 
 @settings(max_examples=50, deadline=None)

@@ -21,7 +21,8 @@ from hood_decomp.errors import BasisError
 from hood_decomp.io.hdf5 import Reader, open_hdf5
 
 FORMAT = "hood_decomp.bases"
-SCHEMA_VERSION = 2  # 2: bases_id (content fingerprint) checked on load; version 1 files had none
+SCHEMA_VERSION = 3  # 3: optional /scan_skin (prepared scan skin); 2: bases_id checked on load; 1 had none (refused)
+READABLE_VERSIONS = (2, 3)
 _STR = h5py.string_dtype()
 
 # The named dimensions of every array (docs/bases_schema.md): a digit is a fixed size.
@@ -75,10 +76,20 @@ def _write_arrays(group: h5py.Group, obj: object, names: tuple[str, ...]) -> Non
                              compression_opts=1, shuffle=True)
 
 
-def save_bases(path: str | Path, bases: Bases) -> None:
-    """Write ``bases`` to an HDF5 file (overwrites)."""
+def prepared_id(content_id: str, arrays: dict[str, np.ndarray]) -> str:
+    """The fingerprint of a prepared scan skin: the bases' ``bases_id`` and every array, so a prepared skin altered
+    or moved from another bases file is refused."""
+    from hood_decomp.core.scan.scan_field import PREPARED_SKIN
+
+    return fingerprint(content_id, *(item for name in PREPARED_SKIN for item in (name, np.asarray(arrays[name]))))
+
+
+def save_bases(path: str | Path, bases: Bases, *, scan_skin: bool = True) -> None:
+    """Write ``bases`` to an HDF5 file (overwrites); with ``scan_skin`` also the prepared scan skin (lookup grid,
+    quadrics, kernel of the default ScanFieldEstimator), so that scans need not rebuild it."""
+    content_id = bases_id(bases)
     with h5py.File(path, "w") as h5:
-        h5.attrs.update(format=FORMAT, schema_version=SCHEMA_VERSION, model_id=bases.model_id, bases_id=bases_id(bases))
+        h5.attrs.update(format=FORMAT, schema_version=SCHEMA_VERSION, model_id=bases.model_id, bases_id=content_id)
         if bases.calibration:
             h5.attrs["calibration"] = bases.calibration
         if bases.thermal is not None:
@@ -121,6 +132,15 @@ def save_bases(path: str | Path, bases: Bases) -> None:
                 else:
                     model.attrs[item.name] = value
 
+        if scan_skin:
+            from hood_decomp.core.scan.scan_field import ScanFieldEstimator
+
+            arrays = ScanFieldEstimator().fit(bases.skin).prepared_skin()
+            group = h5.create_group("scan_skin")
+            group.attrs["prepared_id"] = prepared_id(content_id, arrays)
+            for name, values in arrays.items():
+                group.create_dataset(name, data=values, compression="gzip", compression_opts=1, shuffle=True)
+
 
 # --- reading -----------------------------------------------------------------------------------------------------
 def load_bases(path: str | Path) -> Bases:
@@ -135,9 +155,9 @@ def load_bases(path: str | Path) -> Bases:
             shown = found if isinstance(found, str) and len(found) < 60 else type(found).__name__
             raise BasisError(f"{path} is not a hood_decomp bases file (format {shown!r})")
         version = read.attr("/", "schema_version", "int")
-        if version != SCHEMA_VERSION:
-            raise BasisError(f"{path} has bases schema version {version}, this reader knows {SCHEMA_VERSION} "
-                             "(rebuild it with `hood-decomp bases`)")
+        if version not in READABLE_VERSIONS:
+            raise BasisError(f"{path} has bases schema version {version}, this reader knows "
+                             f"{' and '.join(map(str, READABLE_VERSIONS))} (rebuild it with `hood-decomp bases`)")
         model_id = read.attr("/", "model_id", "str")
         names = read.strings("parameters/names", "P")
         n_bilateral = read.attr("parameters", "n_bilateral", "int")
@@ -198,6 +218,7 @@ def load_bases(path: str | Path) -> Bases:
             if reduced is None:
                 raise BasisError(f"{path}: a thermal response needs the reduced model, which the file lacks")
             thermal = tuple(read.array(f"thermal/{name}", dims) for name, dims in _THERMAL_DIMS.items())
+        has_scan_skin = version >= 3 and "scan_skin" in h5
 
     for what, other in (("skin", skin.model_id), ("PCA basis", pca.model_id_), ("hierarchical basis", hier.model_id_),
                         ("reduced model", None if reduced is None else reduced.model_id)):
@@ -207,7 +228,33 @@ def load_bases(path: str | Path) -> Bases:
     if bases_id(bases) != stored_id:
         raise BasisError(f"{path}: content does not match its bases_id {stored_id!r} (the file was altered after "
                          "it was written: a rewritten model_id or array); rebuild it with `hood-decomp bases`")
+    if has_scan_skin:  # read when the first scan of this skin needs it (not for a field or a decomposition)
+        from hood_decomp.core.scan.scan_field import register_prepared_skin
+
+        register_prepared_skin(skin, lambda: load_scan_skin(path, stored_id, skin.n_nodes))
     return bases
+
+
+def load_scan_skin(path: str | Path, content_id: str, n_nodes: int) -> dict[str, np.ndarray]:
+    """The prepared scan skin of the bases file ``path`` whose ``bases_id`` is ``content_id`` and skin has ``n_nodes``
+    nodes (ScanFieldEstimator.prepared_skin arrays). Raises BasisError when the file changed since (another
+    bases_id), the group is malformed (kinds, named shapes, finiteness) or its content does not match its
+    ``prepared_id``; index ranges are checked by ``ScanFieldEstimator.fit``."""
+    from hood_decomp.core.scan.scan_field import PREPARED_SKIN
+
+    path = Path(path)
+    with open_hdf5(path, "bases file", BasisError) as h5:
+        read = Reader(h5, path, BasisError)
+        if read.attr("/", "bases_id", "str") != content_id:
+            raise BasisError(f"{path} changed since it was loaded (another bases_id); load it again")
+        read.bind("N", n_nodes, "skin/points")
+        read.bind("N1", n_nodes + 1, "skin/points plus one")
+        arrays = {name: read.array(f"scan_skin/{name}", dims, kind) for name, (dims, kind) in PREPARED_SKIN.items()}
+        stored = read.attr("scan_skin", "prepared_id", "str")
+    if prepared_id(content_id, arrays) != stored:
+        raise BasisError(f"{path}: scan_skin does not match its prepared_id {stored!r} (altered after it was "
+                         "written); rebuild the file with `hood-decomp bases`")
+    return arrays
 
 
 def _indices(read: Reader, name: str, dims: tuple[str, ...], lowest: int, dim: str) -> np.ndarray:

@@ -25,7 +25,7 @@ from hood_decomp.core.types import (
     ParameterEstimate,
     SkinSurface,
 )
-from hood_decomp.ros.pointcloud import cloud_channel, cloud_to_xyz, xyz_to_cloud
+from hood_decomp.ros.pointcloud import cloud_channel, cloud_to_xyz, finite_rows, xyz_to_cloud
 
 MM_PER_M = 1000.0
 M_PER_MM = 1.0 / MM_PER_M
@@ -276,7 +276,8 @@ def scan_to_mm(cloud: Any, marker_field: str, markers_nominal_mm: Mapping[int, n
     (or empty) scan.
     """
     points = cloud_to_xyz(cloud, scale=MM_PER_M, drop_nan=False)
-    finite = np.isfinite(points).all(axis=1)
+    finite = finite_rows(points)
+    finite = np.ones(len(points), dtype=bool) if finite is None else finite
     surface = np.ones(len(points), dtype=bool)
     markers = nominal = None
     if markers_nominal_mm and marker_field in {field.name for field in cloud.fields}:
@@ -289,7 +290,7 @@ def scan_to_mm(cloud: Any, marker_field: str, markers_nominal_mm: Mapping[int, n
     keep = surface & finite
     if not keep.any():
         keep = surface
-    return (points if keep.all() else points[keep]), markers, nominal
+    return (points if keep.all() else np.compress(keep, points, axis=0)), markers, nominal
 
 
 def points_to_cloud(points_mm: np.ndarray, header: Any, channels: Mapping[str, np.ndarray] | None = None) -> Any:

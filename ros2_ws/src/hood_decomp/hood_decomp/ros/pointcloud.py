@@ -82,6 +82,29 @@ def _points_view(cloud: Any, names: tuple[str, ...], kinds: tuple[int, ...]) -> 
     return raw.view(dtype)
 
 
+def _xyz_view(cloud: Any, points: np.ndarray) -> np.ndarray | None:
+    """(height, width, 3) view of x, y, z in the cloud's buffer when they are one datatype, adjacent and in order
+    (the usual layout), so that one strided copy reads all three; None otherwise."""
+    fields = points.dtype.fields
+    base = fields["x"][0]
+    offset = fields["x"][1]
+    if any(fields[name][0] != base or fields[name][1] != offset + k * base.itemsize for k, name in enumerate(XYZ)):
+        return None
+    height, width = points.shape
+    return np.ndarray((height, width, 3), dtype=base, buffer=memoryview(cloud.data).cast("B"), offset=offset,
+                      strides=(int(cloud.row_step), int(cloud.point_step), base.itemsize))  # fmt: skip
+
+
+def finite_rows(points: np.ndarray) -> np.ndarray | None:
+    """Rows (N, 3) with all coordinates finite as an (N,) bool mask, or None when every row is (one flat pass; the
+    mask, three column passes, only when a point is NaN or infinite)."""
+    if np.isfinite(points.reshape(-1)).all():
+        return None
+    check = points[:, 0] + points[:, 1]
+    check += points[:, 2]  # any NaN or inf coordinate makes the sum non-finite (float32 data cannot overflow it)
+    return np.isfinite(check)
+
+
 def cloud_to_xyz(cloud: Any, *, scale: float = 1.0, drop_nan: bool = True) -> np.ndarray:
     """Read the points of a PointCloud2.
 
@@ -95,13 +118,19 @@ def cloud_to_xyz(cloud: Any, *, scale: float = 1.0, drop_nan: bool = True) -> np
     """
     points = _points_view(cloud, XYZ, FLOATS)
     out = np.empty((points.size, 3), dtype=np.float64)
-    for axis, name in enumerate(XYZ):
-        # The one copy: strided (possibly big-endian, float32) -> native float64, scaled in the same pass.
-        np.multiply(points[name], scale, out=out.reshape(*points.shape, 3)[:, :, axis])
+    xyz = _xyz_view(cloud, points) if points.size else None
+    # The one copy: strided (possibly big-endian, float32) -> native float64; then scaled in place, in float64.
+    if xyz is not None:
+        out.reshape(*points.shape, 3)[...] = xyz
+    else:  # x, y, z apart or of different types: one strided copy per coordinate
+        for axis, name in enumerate(XYZ):
+            out.reshape(*points.shape, 3)[:, :, axis] = points[name]
+    if scale != 1.0:
+        out *= scale
     if drop_nan:
-        finite = np.isfinite(out).all(axis=1)
-        if not finite.all():
-            out = out[finite]
+        finite = finite_rows(out)
+        if finite is not None:
+            out = np.compress(finite, out, axis=0)  # 3x faster than boolean indexing of (N, 3) rows
     return out
 
 

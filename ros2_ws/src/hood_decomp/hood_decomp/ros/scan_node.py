@@ -79,11 +79,13 @@ class ScanNode(HoodNode):
         return ""
 
     def configure_node(self) -> None:
-        from hood_decomp.core.scan.scan_field import prepared_estimator
+        from hood_decomp.core.scan.scan_field import prepared_estimator, warm_up
 
         # one-time preparation of each variant's skin: the scan-field estimator and the cloud's xyz
         self.prepared = {bases.model_id: (prepared_estimator(bases.skin), messages.SkinClouds(bases.skin))
                          for bases in self.variant_bases.values()}
+        for estimator, _ in self.prepared.values():
+            warm_up(estimator)  # the first scan then runs at steady-state speed (issue 19)
         self.field_pub = self.publisher(DisplacementField, "hood_decomp/displacement", latest=True)
         self.cloud_pub = self.publisher(PointCloud2, "hood_decomp/displacement_cloud")
 

@@ -15,10 +15,16 @@ from hood_decomp.core.scan.fusion import (
     view_field,
 )
 from hood_decomp.core.scan.registration import RegistrationResult, register_scan, rigid_from_markers
-from hood_decomp.core.scan.scan_field import ScanFieldEstimator, field_from_scan, prepared_estimator
+from hood_decomp.core.scan.scan_field import (
+    ScanFieldEstimator,
+    field_from_scan,
+    prepared_estimator,
+    register_prepared_skin,
+    warm_up,
+)
 
 __all__ = [
     "FusedField", "RegistrationResult", "ScanFieldEstimator", "ScanView", "ViewResult", "check_pose",
-    "field_from_scan", "fuse_fields", "fuse_views", "pose_difference", "prepared_estimator", "register_scan",
-    "rigid_from_markers", "view_field",
+    "field_from_scan", "fuse_fields", "fuse_views", "pose_difference", "prepared_estimator",
+    "register_prepared_skin", "register_scan", "rigid_from_markers", "view_field", "warm_up",
 ]

@@ -30,17 +30,21 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
-from scipy import ndimage
-from scipy.spatial import cKDTree
 
+from hood_decomp.core.scan import kernels
 from hood_decomp.core.scan.registration import RegistrationResult, register_scan
 from hood_decomp.core.types import DisplacementField, FieldErrorModel, SkinSurface
 from hood_decomp.errors import ScanError
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 logger = logging.getLogger(__name__)
 
@@ -56,6 +60,14 @@ _QUADRIC_NEIGHBOURS = 13
 SMOOTHING_BIAS_CORRELATION = 1000.0
 # Upper triangle of a symmetric 3x3 matrix: xx xy xz yy yz zz.
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+#: The prepared skin's arrays (ScanFieldEstimator.prepared_skin): named dimensions (N nodes, N1 = N + 1, G grid cells,
+#: Z kernel entries; digits fixed) and kind.
+PREPARED_SKIN: dict[str, tuple[tuple[str, ...], str]] = {
+    "spacing": (("1",), "float"), "radius": (("1",), "float"), "gate2": (("N",), "float"),
+    "quadric": (("N", "5"), "float"), "node_radius": (("N",), "float"), "grid_origin": (("3",), "float"),
+    "grid_cell": (("1",), "float"), "grid_shape": (("3",), "integer"), "grid_table": (("G",), "integer"),
+    "kernel_indptr": (("N1",), "integer"), "kernel_indices": (("Z",), "integer"), "kernel_data": (("Z",), "float"),
+}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -74,9 +86,46 @@ class PointDistances:
     tangent: np.ndarray
 
 
-def _unique_edges(triangles: np.ndarray) -> np.ndarray:
-    edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
-    return np.unique(edges, axis=0)
+def _unique_edges(triangles: np.ndarray, n: int) -> np.ndarray:
+    """(E, 2) node pairs (low, high) of the triangles' (T, 3) edges, each once, in row-major order. A sparse matrix
+    of the half-edges sums the duplicates by a counting sort over rows (np.unique(axis=0) sorts rows of pairs,
+    about 15 times slower at 1.1M half-edges)."""
+    a, b = triangles.ravel(), np.roll(triangles, -1, axis=1).ravel()
+    pairs = sp.csr_matrix((np.ones(a.size, np.int32), (np.minimum(a, b), np.maximum(a, b))), shape=(n, n)).tocoo()
+    return np.column_stack([pairs.row, pairs.col]).astype(np.int64)
+
+
+def _check_prepared(prepared: Mapping[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
+    """The arrays of a prepared skin for a skin of ``n`` nodes, checked (shapes, kinds, finiteness, index ranges);
+    raises ScanError naming the first problem."""
+    missing = sorted(set(PREPARED_SKIN) - set(prepared))
+    if missing:
+        raise ScanError(f"prepared skin lacks {', '.join(missing)}")
+    arrays = {name: np.asarray(prepared[name]) for name in PREPARED_SKIN}
+    sizes = {"N": n, "N1": n + 1, "G": int(np.prod(arrays["grid_shape"])) if arrays["grid_shape"].size == 3 else -1,
+             "Z": arrays["kernel_indices"].size}  # fmt: skip
+    for name, (dims, kind) in PREPARED_SKIN.items():
+        array = arrays[name]
+        expected = tuple(int(d) if d.isdigit() else sizes[d] for d in dims)
+        if array.shape != expected:
+            raise ScanError(f"prepared skin {name} has shape {array.shape}, expected {expected} ({', '.join(dims)})")
+        if kind == "integer" and array.dtype.kind not in "iu":
+            raise ScanError(f"prepared skin {name} holds {array.dtype}, expected integers")
+        if kind == "float" and not np.all(np.isfinite(array)):
+            raise ScanError(f"prepared skin {name} holds non-finite values")
+    positive = ("spacing", "radius", "grid_cell", "node_radius", "grid_shape")
+    bad = [name for name in positive if np.any(arrays[name] <= 0)] + (["gate2"] if np.any(arrays["gate2"] < 0) else [])
+    if np.any(arrays["kernel_data"] < 0) or np.any(arrays["kernel_data"] > 1):  # biweight values
+        bad.append("kernel_data")
+    indptr, indices, table = arrays["kernel_indptr"], arrays["kernel_indices"], arrays["grid_table"]
+    if indptr[0] != 0 or indptr[-1] != indices.size or np.any(np.diff(indptr) < 0):
+        bad.append("kernel_indptr")
+    for name, values in (("kernel_indices", indices), ("grid_table", table)):
+        if values.size and (values.min() < 0 or values.max() >= n):
+            bad.append(name)
+    if bad:
+        raise ScanError(f"prepared skin for {n} nodes has out-of-range {', '.join(bad)}")
+    return arrays
 
 
 def _tangent_frames(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -88,32 +137,6 @@ def _tangent_frames(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     t1 = np.cross(helper, normals)
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
     return t1, np.cross(normals, t1)
-
-
-def _solve_3x3(m: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Batched symmetric 3x3 solve by the adjugate: solutions (K, 3) and the (0, 0) entry of the inverse (K,).
-
-    m: (K, 6) upper triangle [m00, m01, m02, m11, m12, m22]; rhs: (K, 3). Singular systems give NaN.
-    """
-    m00, m01, m02, m11, m12, m22 = m.T
-    c00 = m11 * m22 - m12 * m12
-    c01 = m02 * m12 - m01 * m22
-    c02 = m01 * m12 - m02 * m11
-    c11 = m00 * m22 - m02 * m02
-    c12 = m01 * m02 - m00 * m12
-    c22 = m00 * m11 - m01 * m01
-    det = m00 * c00 + m01 * c01 + m02 * c02
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv_det = np.where(np.abs(det) > 1e-12 * np.abs(m00 * m11 * m22) + 1e-300, 1.0 / det, np.nan)
-    r0, r1, r2 = rhs.T
-    solution = np.column_stack(
-        [
-            (c00 * r0 + c01 * r1 + c02 * r2) * inv_det,
-            (c01 * r0 + c11 * r1 + c12 * r2) * inv_det,
-            (c02 * r0 + c12 * r1 + c22 * r2) * inv_det,
-        ]
-    )
-    return solution, c00 * inv_det
 
 
 class ScanFieldEstimator:
@@ -152,25 +175,34 @@ class ScanFieldEstimator:
         self.edge_widening = edge_widening
 
     # ------------------------------------------------------------------------------------------------ preparation
-    def fit(self, skin: SkinSurface) -> ScanFieldEstimator:
-        """Prepare the nominal skin: (N, 3) points and unit normals, (T, 3) triangles, mm."""
+    def fit(self, skin: SkinSurface, prepared: Mapping[str, np.ndarray] | None = None) -> ScanFieldEstimator:
+        """Prepare the nominal skin: (N, 3) points and unit normals, (T, 3) triangles, mm.
+
+        prepared: the arrays of :meth:`prepared_skin` of an estimator with the same options fitted to this skin (as
+        stored in a bases file): the lookup grid, quadrics, gates and kernel are then taken from it, not rebuilt.
+        """
         points = np.asarray(skin.points, dtype=np.float64)
         normals = np.asarray(skin.normals, dtype=np.float64)
         n = points.shape[0]
         if points.ndim != 2 or points.shape[1] != 3 or n < 4 or normals.shape != points.shape:
             raise ScanError(f"skin must have (N>=4, 3) points and normals; got {points.shape} and {normals.shape}")
         normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
-        edges = _unique_edges(np.asarray(skin.triangles, dtype=np.int64))
-        edge_length = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
-        spacing = float(np.median(edge_length))
-        longest = np.zeros(n)
-        np.maximum.at(longest, edges[:, 0], edge_length)
-        np.maximum.at(longest, edges[:, 1], edge_length)
+        if prepared is None:
+            edges = _unique_edges(np.asarray(skin.triangles, dtype=np.int64), n)
+            edge_length = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
+            spacing = float(np.median(edge_length))
+            longest = np.zeros(n)
+            np.maximum.at(longest, edges[:, 0], edge_length)
+            np.maximum.at(longest, edges[:, 1], edge_length)
+        else:
+            prepared = _check_prepared(prepared, n)
+            spacing = float(prepared["spacing"][0])
 
         self.skin_ = skin
         self.spacing_mm_ = spacing
         self.radius_mm_ = float(self.radius_mm) if self.radius_mm is not None else 2.5 * spacing
         self.center_ = points.mean(axis=0)
+        self.skin_size_mm_ = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))  # bounding-box diagonal
         self.points_ = points
         tangent1, tangent2 = _tangent_frames(normals)
         self.frames_ = np.stack([tangent1, tangent2, normals], axis=1)  # (N, 3, 3) rows t1, t2, n
@@ -178,13 +210,27 @@ class ScanFieldEstimator:
         # A point belongs to node j when it lies within this tangential distance (grid lookups may be off by about
         # one spacing, hence the generous factor); beyond it, it is past a free edge. So a point on the surface's
         # own continuation up to about 2.5 spacings past a free edge still counts as skin.
-        self.gate2_ = (1.6 * longest + 0.5 * spacing) ** 2
-        tree = cKDTree(points)
-        self.quadric_ = self._fit_quadrics(tree)
-        table = np.column_stack([self.frames_.reshape(n, 9), self.quadric_, self.gate2_])
-        self.node_table32_ = table.astype(np.float32)
-        self._build_grid()
-        self.kernel_ = self._build_kernel(tree)
+        if prepared is None:
+            self.gate2_ = (1.6 * longest + 0.5 * spacing) ** 2
+            from scipy.spatial import cKDTree  # preparing a skin only
+
+            tree = cKDTree(points)
+            self.quadric_ = self._fit_quadrics(tree)
+            self._build_grid()
+            self.kernel_ = self._build_kernel(tree)
+        else:
+            if abs(float(prepared["radius"][0]) - self.radius_mm_) > 1e-9 * self.radius_mm_:
+                raise ScanError(f"prepared skin has radius {float(prepared['radius'][0])} mm; this estimator uses "
+                                f"{self.radius_mm_} mm")
+            self.gate2_, self.quadric_ = prepared["gate2"], prepared["quadric"]
+            self._set_grid(prepared["grid_origin"], float(prepared["grid_cell"][0]), prepared["grid_shape"],
+                           prepared["grid_table"])  # fmt: skip
+            self.node_radius_mm_ = prepared["node_radius"]
+            kernel = (prepared["kernel_data"], prepared["kernel_indices"], prepared["kernel_indptr"])
+            self.kernel_ = sp.csr_matrix(kernel, shape=(n, n))
+        # What a located point reads of its node, in one row: position in grid units, frame, quadric, squared gate.
+        grid_position = (points - self.grid_origin_) / self.grid_cell_mm_
+        self.node_table_ = np.column_stack([grid_position, self.frames_.reshape(n, 9), self.quadric_, self.gate2_])
         # Nodes within half the radius: a node needs scan points this close, or it sits in a gap of the scan and a
         # value there would be interpolated across the gap rather than measured.
         near = self.kernel_.copy()
@@ -243,14 +289,17 @@ class ScanFieldEstimator:
         keys = np.floor((self.points_ - lo) / cell).astype(np.int64)
         table = np.full(tuple(shape), -1, dtype=np.int64)
         table[keys[:, 0], keys[:, 1], keys[:, 2]] = np.arange(self.points_.shape[0])
+        from scipy import ndimage  # preparing a skin only (a stored one needs none of it)
+
         nearest = ndimage.distance_transform_edt(table < 0, return_distances=False, return_indices=True)
-        self.grid_origin_ = lo
-        self.grid_cell_mm_ = float(cell)
-        self.grid_shape_ = shape
+        self._set_grid(lo, float(cell), shape, table[tuple(nearest)].ravel().astype(np.int32))
+
+    def _set_grid(self, origin: np.ndarray, cell_mm: float, shape: np.ndarray, table: np.ndarray) -> None:
+        self.grid_origin_ = np.asarray(origin, dtype=np.float64)
+        self.grid_cell_mm_ = cell_mm
+        self.grid_shape_ = np.asarray(shape, dtype=np.int64)
         self.grid_strides_ = np.array([shape[1] * shape[2], shape[2], 1], dtype=np.float64)
-        # Node positions in grid units, one contiguous array per axis (gathered per axis in _locate_chunk).
-        self.grid_points_ = tuple(np.ascontiguousarray((self.points_[:, k] - lo[k]) / cell) for k in range(3))
-        self.grid_table_ = table[tuple(nearest)].ravel().astype(np.int32)
+        self.grid_table_ = np.ascontiguousarray(table, dtype=np.int32)
 
     def _build_kernel(self, tree: cKDTree) -> sp.csr_matrix:
         """(N, N) sparse biweight kernel w_ij = (1 - (|x_i - x_j| / r_i)^2)^2 over node pairs closer than r_i.
@@ -287,66 +336,95 @@ class ScanFieldEstimator:
             dist = np.concatenate([dist, np.linalg.norm(self.points_[wide_i] - self.points_[wide_j], axis=1)])
         i = np.concatenate([i, np.arange(n)])
         j = np.concatenate([j, np.arange(n)])
-        dist = np.concatenate([dist, np.zeros(n)])
-        weight = (1.0 - (dist / radius[i]) ** 2) ** 2
-        return sp.csr_matrix((weight, (i, j)), shape=(n, n))
+        pattern = sp.csr_matrix((np.ones(i.size), (i, j)), shape=(n, n))
+        rows = np.repeat(np.arange(n), np.diff(pattern.indptr))
+        dist = np.linalg.norm(self.points_[pattern.indices] - self.points_[rows], axis=1)
+        pattern.data = (1.0 - (dist / radius[rows]) ** 2) ** 2
+        return pattern
+
+    def prepared_skin(self) -> dict[str, np.ndarray]:
+        """What :meth:`fit` builds slowly, as arrays (names and shapes: ``PREPARED_SKIN``) to store with the bases
+        and give back to ``fit(skin, prepared=...)``: grid, quadrics, gates, kernel (CSR) and node radii."""
+        self._check_fitted()
+        return {
+            "spacing": np.array([self.spacing_mm_]), "radius": np.array([self.radius_mm_]),
+            "gate2": self.gate2_, "quadric": self.quadric_, "node_radius": self.node_radius_mm_,
+            "grid_origin": self.grid_origin_, "grid_cell": np.array([self.grid_cell_mm_]),
+            "grid_shape": self.grid_shape_, "grid_table": self.grid_table_,
+            "kernel_indptr": self.kernel_.indptr.astype(np.int64),
+            "kernel_indices": self.kernel_.indices.astype(np.int32), "kernel_data": self.kernel_.data,
+        }  # fmt: skip
 
     # ------------------------------------------------------------------------------------------------ per scan
     def _check_fitted(self) -> None:
         if not hasattr(self, "kernel_"):
             raise ScanError("ScanFieldEstimator is not fitted: call fit(skin) first")
 
-    def _locate(
-        self, points: np.ndarray, transform: np.ndarray | None = None
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Points (M, 3) on the skin: their rows (K,), nodes (K,), tangent coordinates u, v (K,) and distances (K,).
-
-        Large scans are split into one chunk per core and located in threads (numpy releases the GIL in these loops).
-        """
-        workers = min(os.cpu_count() or 1, 4, points.shape[0] // _CHUNK_POINTS)
-        if workers < 2:
-            return self._locate_chunk(points, transform)
-        bounds = np.linspace(0, points.shape[0], workers + 1).astype(np.int64)
-        with ThreadPoolExecutor(workers) as pool:
-            parts = list(pool.map(lambda k: self._locate_chunk(points[bounds[k] : bounds[k + 1]], transform),
-                                  range(workers)))  # fmt: skip
-        rows = np.concatenate([part[0] + bounds[k] for k, part in enumerate(parts)])
-        return rows, *(np.concatenate([part[i] for part in parts]) for i in range(1, 5))
-
-    def _locate_chunk(
-        self, points: np.ndarray, transform: np.ndarray | None = None
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """One chunk of :meth:`_locate`.
+    def _scan_points(
+        self, points: np.ndarray, transform: np.ndarray | None = None, *, moments: bool = False, workers: int = 0
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """Points (M, 3) on the skin: their rows (K,) int64, nodes (K,) int32, tangent coordinates u, v (K,) and
+        distances (K,) (float32, mm), and with ``moments`` the per-node cell sums (N, 9) of [1, u, v, uu, uv, vv, d,
+        du, dv] (else None).
 
         transform: optional (4, 4) applied to the points first (scanner -> part frame); it is folded into the one
         affine map to grid units, so the part-frame points are never formed. Points outside the grid are clamped
         onto its border cells, whose nodes lie farther away than the gates allow: the gates drop them (and NaN points)
-        without a separate mask. Offsets from the node are formed in float64 and then handled in float32 (a few mm,
-        so 1e-6 mm resolution).
+        without a separate mask.
+        The points go in blocks of ``kernels.BLOCK_POINTS`` (no temporary larger than a block); each thread
+        (``workers``, 0 = one per core up to 4) owns a contiguous run of blocks, its part of the output and its own
+        cell sums.
         """
+        m = points.shape[0]
         rotation, shift = (np.eye(3), np.zeros(3)) if transform is None else (transform[:3, :3], transform[:3, 3])
         scale = 1.0 / self.grid_cell_mm_
-        to_grid, offset_grid = rotation * scale, (shift - self.grid_origin_) * scale
-        # Column by column (no BLAS: a threaded BLAS call on an (M, 3) x (3, 3) product is slower, and erratic on a busy
-        # machine): grid coordinates, their cell, the cell's node.
-        x, y, z = points[:, 0], points[:, 1], points[:, 2]
-        cell = [x * to_grid[k, 0] + y * to_grid[k, 1] + z * to_grid[k, 2] + offset_grid[k] for k in range(3)]
-        flat = np.zeros(points.shape[0])
-        for k in range(3):
-            index = np.floor(cell[k])
-            np.fmax(index, 0.0, out=index)  # fmax/fmin, unlike clip, also send NaN to a border cell
-            np.fmin(index, self.grid_shape_[k] - 1.0, out=index)
-            flat += index * self.grid_strides_[k]
-        j = self.grid_table_[flat.astype(np.int64)].astype(np.int64)
-        o = [((cell[k] - self.grid_points_[k][j]) * self.grid_cell_mm_).astype(np.float32) for k in range(3)]
-        node = self.node_table32_[j]  # one gather: frame rows t1, t2, n (9), quadric (5), squared gate (1)
-        u = node[:, 0] * o[0] + node[:, 1] * o[1] + node[:, 2] * o[2]
-        v = node[:, 3] * o[0] + node[:, 4] * o[1] + node[:, 5] * o[2]
-        w = node[:, 6] * o[0] + node[:, 7] * o[1] + node[:, 8] * o[2]
-        d = w - (node[:, 9] * u + node[:, 10] * v + node[:, 11] * u * u + node[:, 12] * u * v + node[:, 13] * v * v)
-        with np.errstate(invalid="ignore"):
-            ok = np.flatnonzero((np.abs(d) <= self.max_distance_mm) & (u * u + v * v <= node[:, 14]))
-        return ok, j[ok], u[ok], v[ok], d[ok]
+        affine = np.column_stack([rotation * scale, (shift - self.grid_origin_) * scale])
+        hi = self.grid_shape_.astype(np.float64) - 1.0
+        block = kernels.BLOCK_POINTS
+        n_blocks = -(-m // block)
+        if workers <= 0:
+            workers = min(os.cpu_count() or 1, 4, m // _CHUNK_POINTS)
+        workers = max(1, min(workers, n_blocks))
+        out = (np.empty(m, np.int64), np.empty(m, np.int32), np.empty(m, np.float32), np.empty(m, np.float32),
+               np.empty(m, np.float32))  # fmt: skip
+        n = self.points_.shape[0]
+        cells = [np.zeros((n, 9)) if moments else None for _ in range(workers)]
+        first = np.linspace(0, n_blocks, workers + 1).astype(np.int64) * block
+
+        def run(w: int) -> int:
+            position = int(first[w])
+            for start in range(int(first[w]), min(int(first[w + 1]), m), block):
+                position += kernels.locate_block(
+                    points, start, min(start + block, m), affine, hi, self.grid_strides_, self.grid_table_,
+                    self.grid_cell_mm_, self.node_table_, float(self.max_distance_mm), *(a[position:] for a in out),
+                    cells[w])  # fmt: skip
+            return position - int(first[w])
+
+        if workers == 1:
+            counts = [run(0)]
+        else:
+            with ThreadPoolExecutor(workers) as pool:
+                counts = list(pool.map(run, range(workers)))
+        total = counts[0]
+        for w in range(1, workers):  # close the gaps between the threads' parts (moving down, so in place)
+            for a in out:
+                a[total : total + counts[w]] = a[first[w] : first[w] + counts[w]]
+            total += counts[w]
+            if moments:
+                cells[0] += cells[w]
+        return (*(a[:total] for a in out), cells[0])
+
+    def _locate(
+        self, points: np.ndarray, transform: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Rows, nodes, u, v and distances of the points on the skin (:meth:`_scan_points`, threaded)."""
+        return self._scan_points(points, transform)[:5]
+
+    def _locate_chunk(
+        self, points: np.ndarray, transform: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`_locate` in one thread."""
+        return self._scan_points(points, transform, workers=1)[:5]
 
     def point_distances(self, points_mm: np.ndarray) -> PointDistances:
         """Signed distance of each scan point (M, 3), mm, part frame, to the nominal skin; see PointDistances."""
@@ -375,47 +453,21 @@ class ScanFieldEstimator:
         gradient[on] = n - dq_du[:, None] * t1 - dq_dv[:, None] * t2
         return gradient
 
-    def _cell_moments(self, j: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """(N, 9) sums per node cell of [1, u, v, uu, uv, vv, d, du, dv] (u, v in the cell node's frame, mm)."""
-        n = self.points_.shape[0]
-        columns = (None, u, v, u * u, u * v, v * v, d, d * u, d * v)
-        return np.column_stack([np.bincount(j, weights=col, minlength=n + 1)[:n] for col in columns])
-
-    def _raw_moments(self, cells: np.ndarray, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
-        """Raw 3D moments (K, 14) [1, p (3), p p^T (6, upper), d, d p (3)] about the skin centroid from per-cell sums
-        (K, 9) of the cells ``rows``.
+    def _raw_moments(self, cells: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """Raw 3D moments (K, 14) [1, p (3), p p^T (6, upper), d, d p (3)] about the skin centroid from the per-cell
+        sums (N, 9) of the cells ``rows`` (K,).
 
         A point of cell j is taken at x_j + u t1_j + v t2_j: its offset along n_j (below a millimetre) moves it in
         node i's tangent plane by that times the small angle between n_i and n_j, which is negligible.
         """
-        s1 = np.einsum("nk,nkd->nd", cells[:, :3], self.moment_basis_[rows])
-        s2 = np.einsum("nk,nkc->nc", cells[:, :6], self.second_basis_[rows])
-        d1 = np.einsum("nk,nkd->nd", cells[:, 6:9], self.moment_basis_[rows])
-        return np.column_stack([cells[:, 0], s1, s2, cells[:, 6], d1])
+        return kernels.raw_moments(cells, self.moment_basis_, self.second_basis_, rows)
 
     def _node_fits(self, mixed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Weighted plane fits d = a + b_u u + b_v v per node from kernel-mixed raw moments (N, 14): each node's 3x3
         normal equations in its own tangent frame.
         Returns coefficients (N, 3) [a mm, b_u, b_v], weighted point count (N,) and intercept variance inflation (N,).
         """
-        s0, s1, s2, d0, d1 = mixed[:, 0], mixed[:, 1:4], mixed[:, 4:10], mixed[:, 10], mixed[:, 11:14]
-        ts = np.einsum("nkd,nd->nk", self.frames_[:, :2], s1)
-        td = np.einsum("nkd,nd->nk", self.frames_[:, :2], d1)
-        quad = np.einsum("nkc,nc->nk", self.tangent_quad_, s2)
-        t1x, t2x = self.t1_dot_x_, self.t2_dot_x_
-        system = np.column_stack(
-            [
-                s0,
-                ts[:, 0] - s0 * t1x,
-                ts[:, 1] - s0 * t2x,
-                quad[:, 0] - 2 * ts[:, 0] * t1x + s0 * t1x * t1x,
-                quad[:, 1] - ts[:, 0] * t2x - t1x * ts[:, 1] + s0 * t1x * t2x,
-                quad[:, 2] - 2 * ts[:, 1] * t2x + s0 * t2x * t2x,
-            ]
-        )
-        rhs = np.column_stack([d0, td[:, 0] - d0 * t1x, td[:, 1] - d0 * t2x])
-        coef, inv00 = _solve_3x3(system, rhs)
-        return coef, s0, s0 * inv00
+        return kernels.node_fits(mixed, self.frames_, self.tangent_quad_, self.t1_dot_x_, self.t2_dot_x_)
 
     def field(self, points_mm: np.ndarray, transform: np.ndarray | None = None) -> DisplacementField:
         """The signed normal displacement (N,) mm of every skin node from scan points (M, 3), mm, in the part frame
@@ -424,27 +476,27 @@ class ScanFieldEstimator:
         NaN where the scan gives no support; ``noise_rms`` is the RMS of the inlier residuals along the normal.
         """
         self._check_fitted()
-        _, j, u, v, d = self._locate(np.asarray(points_mm, dtype=np.float64), transform)
+        _, j, u, v, d, cells = self._scan_points(np.asarray(points_mm, dtype=np.float64), transform, moments=True)
         n = self.points_.shape[0]
         if j.size == 0:
             return DisplacementField(self.skin_.model_id, np.full(n, np.nan), 0.0, float("nan"))
-        cells = self._cell_moments(j, u, v, d)
-        mixed = self.kernel_ @ self._raw_moments(cells)
+        mixed = self.kernel_ @ self._raw_moments(cells, np.arange(n))
         coef, _, _ = self._node_fits(mixed)
         logger.info("first pass: %d points on the skin", j.size)
         # Second pass: drop points far from their own node's fit and take their sums out of the cells and, through
         # the few kernel columns of those cells, out of the mixed moments.
-        c = coef[j]
-        residual = d - (c[:, 0] + c[:, 1] * u + c[:, 2] * v)
-        finite = np.isfinite(residual)
-        spread = np.abs(residual[finite][:: max(1, int(finite.sum()) // 100_000)])  # 1e5 residuals fix the scale
+        residual = kernels.plane_residuals(j, u, v, d, coef)
+        sample = residual[:: max(1, j.size // 100_000)]  # 1e5 residuals fix the scale
+        spread = np.abs(sample[np.isfinite(sample)])
         sigma = 1.4826 * float(np.median(spread)) if spread.size else np.inf
         drop = np.flatnonzero(np.abs(residual) > self.outlier_sigma * max(sigma, 1e-6))
         if drop.size:
-            removed = self._cell_moments(j[drop], u[drop], v[drop], d[drop])
+            removed = np.zeros_like(cells)
+            kernels.add_moments(j[drop], u[drop], v[drop], d[drop], 1.0, removed)
             rows = np.unique(j[drop])
-            cells = cells - removed
-            mixed = mixed - self.kernel_columns_[:, rows] @ self._raw_moments(removed[rows], rows)
+            cells -= removed
+            mixed -= self.kernel_columns_[:, rows] @ self._raw_moments(removed, rows)
+            residual[drop] = np.nan
         coef, weight, inflation = self._node_fits(mixed)
         nearby = self.near_kernel_ @ cells[:, 0]
         supported = (
@@ -454,9 +506,8 @@ class ScanFieldEstimator:
             & np.isfinite(coef[:, 0])
         )
         value = np.where(supported, coef[:, 0], np.nan)
-        inlier = finite.copy()
-        inlier[drop] = False
-        noise = float(np.sqrt(np.mean(residual[inlier] ** 2))) if inlier.any() else float("nan")
+        inliers = int(np.count_nonzero(np.isfinite(residual)))
+        noise = float(np.sqrt(np.nansum(np.square(residual, dtype=np.float64)) / inliers)) if inliers else float("nan")
         logger.info("second pass: %d inliers, %d of %d nodes seen", j.size - drop.size, supported.sum(), n)
         errors = self._error_model(cells[:, 0], weight, inflation, supported, noise)
         return DisplacementField(self.skin_.model_id, value, float(supported.mean()), noise, errors)
@@ -482,38 +533,68 @@ class ScanFieldEstimator:
 
 
 _PREPARED: dict[tuple, ScanFieldEstimator] = {}
+_STORED: dict[tuple, Callable[[], Mapping[str, np.ndarray]]] = {}
+
+
+def register_prepared_skin(skin: SkinSurface, load: Callable[[], Mapping[str, np.ndarray]]) -> None:
+    """Offer a stored prepared skin for ``skin`` (default estimator options): ``load()`` returns the arrays of
+    :meth:`ScanFieldEstimator.prepared_skin` (e.g. read from a bases file, io/bases.py) and is called only when a
+    scan of this skin is first turned into a field, instead of rebuilding the grid, quadrics and kernel."""
+    _STORED[(skin.model_id, skin.n_nodes)] = load
 
 
 def prepared_estimator(skin: SkinSurface, **options: float | None) -> ScanFieldEstimator:
     """A fitted :class:`ScanFieldEstimator` for ``skin``, reused across calls with the same skin and options.
 
     The preparation (grid, kernel, quadrics) costs far more than one scan; callers that hold a skin for many scans
-    (the scan node, the CLI) get it once. Keyed by ``model_id``, node count and the options; keeps the last 4.
+    (the scan node, the CLI) get it once, from a registered stored preparation (:func:`register_prepared_skin`)
+    where there is one for the default options. Keyed by ``model_id``, node count and the options; keeps the last 4.
     """
     key = (skin.model_id, skin.n_nodes, tuple(sorted(options.items())))
     if key not in _PREPARED:
         if len(_PREPARED) >= 4:
             _PREPARED.pop(next(iter(_PREPARED)))
-        _PREPARED[key] = ScanFieldEstimator(**options).fit(skin)
+        stored = _STORED.get((skin.model_id, skin.n_nodes)) if not options else None
+        _PREPARED[key] = ScanFieldEstimator(**options).fit(skin, prepared=None if stored is None else stored())
     return _PREPARED[key]
 
 
-def _check_points(points_mm: np.ndarray, skin: SkinSurface) -> np.ndarray:
-    """Validate a raw scan (M, 3) mm; returns its finite rows. Raises ScanError naming the problem."""
+def warm_up(estimator: ScanFieldEstimator, points: int = 1_000_000) -> None:
+    """Run the fitted estimator's whole scan path once on a scan-sized cloud of its own skin, so that the first real
+    scan runs at steady-state speed: the compiled kernels are loaded (or compiled, the first time after an install),
+    the threads, the allocator's buffers of a scan's size and the sparse products are exercised.
+
+    The cloud: about ``points`` points, each skin node repeated with small tangential offsets (a third of a mesh
+    spacing), every 50th pushed 1 mm off along its normal (so the outlier pass runs too); as long as one scan.
+    """
+    estimator._check_fitted()
+    nodes, frames = estimator.points_, estimator.frames_
+    copies = max(1, -(-points // nodes.shape[0]))
+    angle = 2.0 * np.pi * np.arange(copies) / copies
+    step = estimator.spacing_mm_ / 3.0
+    cos, sin = np.cos(angle)[:, None, None], np.sin(angle)[:, None, None]
+    cloud = (nodes[None] + step * (cos * frames[None, :, 0] + sin * frames[None, :, 1])).reshape(-1, 3)
+    cloud[::50] += np.tile(frames[:, 2], (copies, 1))[::50]
+    estimator.field(cloud)
+    estimator.point_distances(cloud[:20_000])
+
+
+def _check_points(points_mm: np.ndarray, skin_size: float) -> np.ndarray:
+    """Validate a raw scan (M, 3) mm of a part whose skin's bounding-box diagonal is ``skin_size`` mm; returns its
+    finite rows. Raises ScanError naming the problem."""
     points = np.asarray(points_mm, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ScanError(f"scan points must be an (M, 3) array in mm; got shape {points.shape}")
     if points.shape[0] == 0:
         raise ScanError("scan is empty: 0 points")
-    finite = np.isfinite(points[:, 0] + points[:, 1] + points[:, 2])  # any NaN or inf makes the sum non-finite
-    if not finite.any():
-        raise ScanError(f"scan has no finite points: all {points.shape[0]} points are NaN or infinite")
-    if not finite.all():
-        points = points[finite]
+    if not np.isfinite(points).all():  # one flat pass; the row mask only for a scan with non-finite points
+        finite = np.isfinite(points[:, 0] + points[:, 1] + points[:, 2])  # any NaN or inf makes the sum non-finite
+        if not finite.any():
+            raise ScanError(f"scan has no finite points: all {points.shape[0]} points are NaN or infinite")
+        points = np.compress(finite, points, axis=0)
     # Unit check on robust extents: a part seen partly still spans a good fraction of its own size.
     lo, hi = np.percentile(points[:: max(1, points.shape[0] // 50000)], [1, 99], axis=0)
     scan_size = float(np.linalg.norm(hi - lo))
-    skin_size = float(np.linalg.norm(np.ptp(skin.points, axis=0)))
     ratio = scan_size / skin_size
     if 2e-4 <= ratio <= 1e-2:
         raise ScanError(
@@ -560,8 +641,8 @@ def field_from_scan(
     registration's pose covariance) (paper: the condensed signed distance field) and the RegistrationResult.
     Raises ScanError for an empty or all-NaN scan, a scan in metres, no overlap with the part or too little coverage.
     """
-    points = _check_points(points_mm, skin)
     est = estimator if estimator is not None else prepared_estimator(skin)
+    points = _check_points(points_mm, est.skin_size_mm_)
     registration = register_scan(
         points,
         est,

@@ -1,0 +1,308 @@
+"""The scan path's per-point and per-node loops, compiled with numba where it is installed, in numpy otherwise.
+
+Both paths do the same arithmetic in the same order (float64 throughout, the located u, v, d stored as float32 and
+the cell sums taken of those stored values), so they give the same field to rounding (test: 1e-9 mm). The numpy
+path is chosen with ``HOOD_DECOMP_PURE_NUMPY=1`` or when numba is missing; :func:`use_compiled` switches at run time.
+
+Per point (:func:`locate_block`): grid coordinates from one affine map, the cell's node, the offset in the node's
+frame, the quadric distance, the gates; the points that pass are written to preallocated block buffers and (when
+``cells`` is given) their moments [1, u, v, uu, uv, vv, d, du, dv] are added to their node's cell sums, in one pass.
+Per node (:func:`raw_moments`, :func:`node_fits`): the cell sums to raw 3D moments, and the closed-form 3x3 plane fit.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import threading
+
+import numpy as np
+
+#: numba is optional (the numpy path gives the same numbers) and imported only when a kernel first runs: it costs
+#: about 0.3 s of start-up that a verb without scans need not pay
+HAVE_NUMBA = importlib.util.find_spec("numba") is not None
+#: points per block: a block's temporaries (about 20 float64 columns) stay within a few MB of cache
+BLOCK_POINTS = 131_072
+_COMPILED = HAVE_NUMBA and os.environ.get("HOOD_DECOMP_PURE_NUMPY", "") not in ("1", "true", "yes")
+_JIT: dict[str, object] = {}
+_JIT_LOCK = threading.Lock()
+
+
+def use_compiled(enabled: bool) -> bool:
+    """Select the compiled (True, if numba is installed) or the numpy path; returns the previous choice."""
+    global _COMPILED
+    previous = _COMPILED
+    _COMPILED = bool(enabled) and HAVE_NUMBA
+    return previous
+
+
+def compiled() -> bool:
+    """Whether the compiled path is in use."""
+    return _COMPILED
+
+
+# --------------------------------------------------------------------------------------------------- numpy path
+def _locate_block_numpy(points, start, stop, affine, hi, strides, table, cell_mm, nodes, max_d,
+                        out_row, out_j, out_u, out_v, out_d, cells):  # fmt: skip
+    x, y, z = points[start:stop, 0], points[start:stop, 1], points[start:stop, 2]
+    g = [x * affine[k, 0] + y * affine[k, 1] + z * affine[k, 2] + affine[k, 3] for k in range(3)]
+    flat = np.zeros(stop - start)
+    for k in range(3):
+        index = np.floor(g[k])
+        np.fmax(index, 0.0, out=index)  # fmax/fmin, unlike clip, also send NaN to a border cell
+        np.fmin(index, hi[k], out=index)
+        flat += index * strides[k]
+    j = table[flat.astype(np.int64)]
+    node = nodes[j]  # one gather: node position in grid units (3), frame rows t1, t2, n (9), quadric (5), gate (1)
+    o0, o1, o2 = ((g[k] - node[:, k]) * cell_mm for k in range(3))
+    u = node[:, 3] * o0 + node[:, 4] * o1 + node[:, 5] * o2
+    v = node[:, 6] * o0 + node[:, 7] * o1 + node[:, 8] * o2
+    w = node[:, 9] * o0 + node[:, 10] * o1 + node[:, 11] * o2
+    d = w - (node[:, 12] * u + node[:, 13] * v + node[:, 14] * u * u + node[:, 15] * u * v + node[:, 16] * v * v)
+    with np.errstate(invalid="ignore"):
+        ok = np.flatnonzero((np.abs(d) <= max_d) & (u * u + v * v <= node[:, 17]))
+    count = ok.size
+    out_row[:count] = ok + start
+    out_j[:count] = j[ok]
+    out_u[:count] = u[ok]
+    out_v[:count] = v[ok]
+    out_d[:count] = d[ok]
+    if cells is not None:
+        _add_moments_numpy(out_j[:count], out_u[:count], out_v[:count], out_d[:count], 1.0, cells)
+    return count
+
+
+def _add_moments_numpy(j, u32, v32, d32, sign, cells):
+    n = cells.shape[0]
+    u, v, d = u32.astype(np.float64), v32.astype(np.float64), d32.astype(np.float64)
+    for k, column in enumerate((None, u, v, u * u, u * v, v * v, d, d * u, d * v)):
+        sums = np.bincount(j, weights=column, minlength=n)
+        if sign > 0:
+            cells[:, k] += sums
+        else:
+            cells[:, k] -= sums
+
+
+def _plane_residuals_numpy(j, u, v, d, coef, out):
+    for start in range(0, j.size, BLOCK_POINTS):
+        part = slice(start, start + BLOCK_POINTS)
+        c = coef[j[part]]
+        out[part] = d[part] - (c[:, 0] + c[:, 1] * u[part] + c[:, 2] * v[part])
+
+
+def _plane_system(s0, ts0, ts1, q0, q1, q2, d0, td0, td1, a, b):
+    """One node's plane-fit normal equations in its tangent frame from raw moments about the centroid (node offset
+    a = t1.x, b = t2.x), solved by the adjugate: cofactors c00..c22, determinant, m00 m11 m22 (the singularity scale)
+    and the right-hand side. Elementwise: numpy arrays on the numpy path, scalars in the compiled loop."""
+    m00 = s0
+    m01 = ts0 - s0 * a
+    m02 = ts1 - s0 * b
+    m11 = q0 - 2 * ts0 * a + s0 * a * a
+    m12 = q1 - ts0 * b - a * ts1 + s0 * a * b
+    m22 = q2 - 2 * ts1 * b + s0 * b * b
+    c00 = m11 * m22 - m12 * m12
+    c01 = m02 * m12 - m01 * m22
+    c02 = m01 * m12 - m02 * m11
+    det = m00 * c00 + m01 * c01 + m02 * c02
+    return (c00, c01, c02, m00 * m22 - m02 * m02, m01 * m02 - m00 * m12, m00 * m11 - m01 * m01, det, m00 * m11 * m22,
+            d0, td0 - d0 * a, td1 - d0 * b)  # fmt: skip
+
+
+def _raw_moments_numpy(cells, basis, second, rows):
+    out = np.empty((rows.size, 14))
+    c = cells[rows]
+    out[:, 0] = c[:, 0]
+    out[:, 1:4] = np.einsum("nk,nkd->nd", c[:, :3], basis[rows])
+    out[:, 4:10] = np.einsum("nk,nkc->nc", c[:, :6], second[rows])
+    out[:, 10] = c[:, 6]
+    out[:, 11:14] = np.einsum("nk,nkd->nd", c[:, 6:9], basis[rows])
+    return out
+
+
+def _node_fits_numpy(mixed, frames, tangent_quad, t1x, t2x, coef, weight, inflation):
+    s0, s1, s2, d0, d1 = mixed[:, 0], mixed[:, 1:4], mixed[:, 4:10], mixed[:, 10], mixed[:, 11:14]
+    ts = np.einsum("nkd,nd->nk", frames[:, :2], s1)
+    td = np.einsum("nkd,nd->nk", frames[:, :2], d1)
+    quad = np.einsum("nkc,nc->nk", tangent_quad, s2)
+    c00, c01, c02, c11, c12, c22, det, scale, r0, r1, r2 = _plane_system(
+        s0, ts[:, 0], ts[:, 1], quad[:, 0], quad[:, 1], quad[:, 2], d0, td[:, 0], td[:, 1], t1x, t2x)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_det = np.where(np.abs(det) > 1e-12 * np.abs(scale) + 1e-300, 1.0 / det, np.nan)
+    coef[:, 0] = (c00 * r0 + c01 * r1 + c02 * r2) * inv_det
+    coef[:, 1] = (c01 * r0 + c11 * r1 + c12 * r2) * inv_det
+    coef[:, 2] = (c02 * r0 + c12 * r1 + c22 * r2) * inv_det
+    weight[:] = s0
+    inflation[:] = s0 * (c00 * inv_det)
+
+
+# ------------------------------------------------------------------------------------------------ compiled path
+def _locate_block_loop(points, start, stop, affine, hi, strides, table, cell_mm, nodes, max_d,
+                       out_row, out_j, out_u, out_v, out_d, cells):  # fmt: skip
+    count = 0
+    for p in range(start, stop):
+        x, y, z = points[p, 0], points[p, 1], points[p, 2]
+        g0 = x * affine[0, 0] + y * affine[0, 1] + z * affine[0, 2] + affine[0, 3]
+        g1 = x * affine[1, 0] + y * affine[1, 1] + z * affine[1, 2] + affine[1, 3]
+        g2 = x * affine[2, 0] + y * affine[2, 1] + z * affine[2, 2] + affine[2, 3]
+        flat = 0.0
+        flat += _cell(g0, hi[0]) * strides[0]
+        flat += _cell(g1, hi[1]) * strides[1]
+        flat += _cell(g2, hi[2]) * strides[2]
+        j = table[np.int64(flat)]
+        node = nodes[j]
+        o0 = (g0 - node[0]) * cell_mm
+        o1 = (g1 - node[1]) * cell_mm
+        o2 = (g2 - node[2]) * cell_mm
+        u = node[3] * o0 + node[4] * o1 + node[5] * o2
+        v = node[6] * o0 + node[7] * o1 + node[8] * o2
+        w = node[9] * o0 + node[10] * o1 + node[11] * o2
+        d = w - (node[12] * u + node[13] * v + node[14] * u * u + node[15] * u * v + node[16] * v * v)
+        if abs(d) <= max_d and u * u + v * v <= node[17]:
+            out_row[count] = p
+            out_j[count] = j
+            out_u[count] = u
+            out_v[count] = v
+            out_d[count] = d
+            if cells is not None:
+                _add_one(cells, j, np.float64(out_u[count]), np.float64(out_v[count]), np.float64(out_d[count]), 1.0)
+            count += 1
+    return count
+
+
+def _cell(g, hi):
+    index = np.floor(g)
+    if not index >= 0.0:  # NaN too, as np.fmax does
+        index = 0.0
+    if index > hi:
+        index = hi
+    return index
+
+
+def _add_one(cells, j, u, v, d, sign):
+    cells[j, 0] += sign
+    cells[j, 1] += sign * u
+    cells[j, 2] += sign * v
+    cells[j, 3] += sign * (u * u)
+    cells[j, 4] += sign * (u * v)
+    cells[j, 5] += sign * (v * v)
+    cells[j, 6] += sign * d
+    cells[j, 7] += sign * (d * u)
+    cells[j, 8] += sign * (d * v)
+
+
+def _add_moments_loop(j, u32, v32, d32, sign, cells):
+    for p in range(j.size):
+        _add_one(cells, j[p], np.float64(u32[p]), np.float64(v32[p]), np.float64(d32[p]), sign)
+
+
+def _plane_residuals_loop(j, u, v, d, coef, out):
+    for p in range(j.size):
+        i = j[p]
+        out[p] = np.float64(d[p]) - (coef[i, 0] + coef[i, 1] * np.float64(u[p]) + coef[i, 2] * np.float64(v[p]))
+
+
+def _raw_moments_loop(cells, basis, second, rows):
+    out = np.empty((rows.size, 14))
+    for r in range(rows.size):
+        i = rows[r]
+        out[r, 0] = cells[i, 0]
+        for dim in range(3):
+            out[r, 1 + dim] = cells[i, 0] * basis[i, 0, dim] + cells[i, 1] * basis[i, 1, dim] + cells[i, 2] * basis[
+                i, 2, dim]
+            out[r, 11 + dim] = cells[i, 6] * basis[i, 0, dim] + cells[i, 7] * basis[i, 1, dim] + cells[i, 8] * basis[
+                i, 2, dim]
+        for c in range(6):
+            total = 0.0
+            for k in range(6):
+                total += cells[i, k] * second[i, k, c]
+            out[r, 4 + c] = total
+        out[r, 10] = cells[i, 6]
+    return out
+
+
+def _node_fits_loop(mixed, frames, tangent_quad, t1x, t2x, coef, weight, inflation):
+    for i in range(mixed.shape[0]):
+        s0, d0 = mixed[i, 0], mixed[i, 10]
+        ts0 = frames[i, 0, 0] * mixed[i, 1] + frames[i, 0, 1] * mixed[i, 2] + frames[i, 0, 2] * mixed[i, 3]
+        ts1 = frames[i, 1, 0] * mixed[i, 1] + frames[i, 1, 1] * mixed[i, 2] + frames[i, 1, 2] * mixed[i, 3]
+        td0 = frames[i, 0, 0] * mixed[i, 11] + frames[i, 0, 1] * mixed[i, 12] + frames[i, 0, 2] * mixed[i, 13]
+        td1 = frames[i, 1, 0] * mixed[i, 11] + frames[i, 1, 1] * mixed[i, 12] + frames[i, 1, 2] * mixed[i, 13]
+        q0 = 0.0
+        q1 = 0.0
+        q2 = 0.0
+        for c in range(6):
+            q0 += tangent_quad[i, 0, c] * mixed[i, 4 + c]
+            q1 += tangent_quad[i, 1, c] * mixed[i, 4 + c]
+            q2 += tangent_quad[i, 2, c] * mixed[i, 4 + c]
+        c00, c01, c02, c11, c12, c22, det, scale, r0, r1, r2 = _plane_system(s0, ts0, ts1, q0, q1, q2, d0, td0, td1,
+                                                                             t1x[i], t2x[i])  # fmt: skip
+        inv_det = 1.0 / det if abs(det) > 1e-12 * abs(scale) + 1e-300 else np.nan
+        coef[i, 0] = (c00 * r0 + c01 * r1 + c02 * r2) * inv_det
+        coef[i, 1] = (c01 * r0 + c11 * r1 + c12 * r2) * inv_det
+        coef[i, 2] = (c02 * r0 + c12 * r1 + c22 * r2) * inv_det
+        weight[i] = s0
+        inflation[i] = s0 * (c00 * inv_det)
+
+
+def _kernel(name: str):
+    """The compiled loop ``name`` when the compiled path is on (numba imported and the loops compiled, or loaded from
+    numba's cache, on first use), else the numpy function of the same job."""
+    if not _COMPILED:
+        return globals()[name.replace("_loop", "_numpy")]
+    with _JIT_LOCK:  # the first scan's threads arrive here together
+        if not _JIT:
+            from numba import njit
+
+            module = globals()
+            for helper in ("_cell", "_add_one", "_plane_system"):  # called from the loops: compiled inline into them
+                module[helper] = njit(nogil=True, cache=True, inline="always")(module[helper])
+            for loop in ("_locate_block_loop", "_add_moments_loop", "_plane_residuals_loop", "_raw_moments_loop",
+                         "_node_fits_loop"):  # fmt: skip
+                _JIT[loop] = njit(nogil=True, cache=True)(module[loop])
+    return _JIT[name]
+
+
+# ------------------------------------------------------------------------------------------------ the interface
+def locate_block(points: np.ndarray, start: int, stop: int, affine: np.ndarray, hi: np.ndarray, strides: np.ndarray,
+                 table: np.ndarray, cell_mm: float, nodes: np.ndarray, max_d: float,
+                 out_row: np.ndarray, out_j: np.ndarray, out_u: np.ndarray, out_v: np.ndarray, out_d: np.ndarray,
+                 cells: np.ndarray | None) -> int:  # fmt: skip
+    """Locate points[start:stop] (M, 3) mm; returns how many passed the gates.
+
+    affine: (3, 4) map of a point to grid units (rotation, registration and cell size folded in); hi (3,) the last
+    cell index per axis; strides (3,) of the flat grid; table: flat grid -> nearest node (int32); nodes: (N, 18)
+    per node [position in grid units (3), t1, t2, n (9), quadric c0..c4 (5), squared tangential gate (1)];
+    max_d: largest |distance|, mm. The passing points' rows (int64), nodes (int32), u, v, d (float32, mm) go to the
+    first ``count`` entries of the out buffers (each at least stop - start long); with ``cells`` (N, 9) float64
+    their moments are added to it.
+    """
+    return int(_kernel("_locate_block_loop")(points, start, stop, affine, hi, strides, table, cell_mm, nodes, max_d,
+                   out_row, out_j, out_u, out_v, out_d, cells))  # fmt: skip
+
+
+def add_moments(j: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, sign: float, cells: np.ndarray) -> None:
+    """cells (N, 9) += sign * per-node sums of [1, u, v, uu, uv, vv, d, du, dv] of the points (K,) at nodes j."""
+    _kernel("_add_moments_loop")(j, u, v, d, float(sign), cells)
+
+
+def plane_residuals(j: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, coef: np.ndarray) -> np.ndarray:
+    """Residuals (K,) float32 mm of the points (nodes j, u, v, d (K,)) from their own node's plane coef (N, 3)."""
+    out = np.empty(j.size, np.float32)
+    _kernel("_plane_residuals_loop")(j, u, v, d, coef, out)
+    return out
+
+
+def raw_moments(cells: np.ndarray, basis: np.ndarray, second: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Raw 3D moments (K, 14) of the cells ``rows`` (K,) from their sums (N, 9); see ScanFieldEstimator."""
+    return _kernel("_raw_moments_loop")(cells, basis, second, rows)
+
+
+def node_fits(mixed: np.ndarray, frames: np.ndarray, tangent_quad: np.ndarray, t1x: np.ndarray,
+              t2x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """Per node the weighted plane fit from mixed raw moments (N, 14): coefficients (N, 3) [a mm, b_u, b_v], weight
+    (N,) and intercept variance inflation (N,); the 3x3 normal equations solved in closed form (adjugate), NaN where
+    singular."""
+    n = mixed.shape[0]
+    coef, weight, inflation = np.empty((n, 3)), np.empty(n), np.empty(n)
+    _kernel("_node_fits_loop")(mixed, frames, tangent_quad, t1x, t2x, coef, weight, inflation)
+    return coef, weight, inflation

@@ -1,0 +1,165 @@
+"""The block-wise scan path against a plain per-node reference, and its compiled path against its numpy path."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hood_decomp.core.scan import kernels
+from hood_decomp.core.scan.scan_field import ScanFieldEstimator, warm_up
+from hood_decomp.core.types import SkinSurface
+from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
+from tests.skins import along_normals, crowned_patch, smooth_field
+
+
+@pytest.fixture(scope="module")
+def skin() -> SkinSurface:
+    return crowned_patch(41, 35, hole_radius_mm=110.0)
+
+
+@pytest.fixture(scope="module")
+def estimator(skin) -> ScanFieldEstimator:
+    return ScanFieldEstimator().fit(skin)
+
+
+@pytest.fixture(scope="module")
+def scan_points(skin) -> np.ndarray:
+    """A registered 0.05 mm scan with 2 % outliers (the second pass drops points) and some NaN rows, part frame."""
+    truth = smooth_field(skin, amplitude_mm=1.0)
+    scan = synthesize_scan(skin, along_normals(skin, truth),
+                           ScannerConfig(n_points=60_000, noise_mm=0.05, outlier_fraction=0.02), 4)  # fmt: skip
+    points = scan.points @ scan.true_transform[:3, :3].T + scan.true_transform[:3, 3]
+    points[::997] = np.nan
+    return points
+
+
+def _weighted_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Weighted least squares d = a + b u + c v by numpy's lstsq on sqrt(w)-scaled rows: coefficients, sum of
+    weights, and the intercept's variance inflation sum(w) * (A^T W A)^-1_00."""
+    design = np.column_stack([np.ones_like(u), u, v])
+    root = np.sqrt(w)
+    coef = np.linalg.lstsq(design * root[:, None], d * root, rcond=None)[0]
+    normal = design.T @ (design * w[:, None])
+    return coef, float(w.sum()), float(w.sum() * np.linalg.inv(normal)[0, 0])
+
+
+def _reference_field(est: ScanFieldEstimator, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Node values and supported mask by the algorithm written out per node: for node i, every located point of every
+    cell j with kernel weight K_ij, placed at x_j + u t1_j + v t2_j and expressed in node i's tangent frame, fitted
+    by a weighted plane; then points with residual (to their own cell node's plane) beyond outlier_sigma robust
+    standard deviations dropped, and refitted."""
+    located = est.point_distances(points)
+    on = np.flatnonzero(located.node >= 0)
+    node, u, v, d = located.node[on], located.tangent[on, 0], located.tangent[on, 1], located.distance[on]
+    # the stored precision of the per-point values (float32), as the estimator keeps them
+    u, v, d = (a.astype(np.float32).astype(np.float64) for a in (u, v, d))
+    frames, x = est.frames_, est.points_
+    position = x[node] + u[:, None] * frames[node, 0] + v[:, None] * frames[node, 1]
+    kernel = est.kernel_.tocsr()
+    members = [np.flatnonzero(node == j) for j in range(x.shape[0])]
+    n = x.shape[0]
+
+    def fit(keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        coef, weight, inflation = np.full((n, 3), np.nan), np.zeros(n), np.full(n, np.inf)
+        for i in range(n):
+            cols = kernel.indices[kernel.indptr[i] : kernel.indptr[i + 1]]
+            vals = kernel.data[kernel.indptr[i] : kernel.indptr[i + 1]]
+            rows = [members[j][keep[members[j]]] for j in cols]
+            w = np.concatenate([np.full(r.size, k) for r, k in zip(rows, vals, strict=True)])
+            rows = np.concatenate(rows)
+            if rows.size < 3:
+                continue
+            rel = position[rows] - x[i]
+            coef[i], weight[i], inflation[i] = _weighted_plane(rel @ frames[i, 0], rel @ frames[i, 1], d[rows], w)
+        return coef, weight, inflation
+
+    everything = np.ones(node.size, bool)
+    coef, _, _ = fit(everything)
+    residual = d - (coef[node, 0] + coef[node, 1] * u + coef[node, 2] * v)
+    sigma = 1.4826 * np.median(np.abs(residual[np.isfinite(residual)]))
+    keep = ~(np.abs(residual) > est.outlier_sigma * sigma)
+    coef, weight, inflation = fit(keep)
+    counts = np.array([np.count_nonzero(keep[m]) for m in members], dtype=float)
+    nearby = est.near_kernel_ @ counts
+    supported = ((weight >= est.min_points) & (inflation <= est.max_inflation)
+                 & (nearby >= max(1.0, est.min_points / 4)) & np.isfinite(coef[:, 0]))  # fmt: skip
+    return coef[:, 0], supported
+
+
+def test_field_equals_a_per_node_reference(estimator, scan_points):
+    """Fails if the fused binning, the raw-moment mixing, the closed-form 3x3 fits or the outlier pass of the block
+    path compute anything but the per-node weighted plane fits written out plainly (to 1e-9 mm)."""
+    expected, supported = _reference_field(estimator, scan_points)
+    field = estimator.field(scan_points)
+    value = field.normal_displacement
+    assert supported.sum() > 0.8 * supported.size
+    np.testing.assert_array_equal(np.isfinite(value), supported)
+    np.testing.assert_allclose(value[supported], expected[supported], rtol=0, atol=1e-9)
+
+
+@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed: only the numpy path exists")
+def test_compiled_path_equals_the_numpy_path(estimator, scan_points):
+    """Fails if the compiled kernels and the numpy path differ by more than 1e-9 mm anywhere (values, node std,
+    noise), with a transform folded in, several threads and blocks, NaN rows and outliers."""
+    rotation = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    transform = np.eye(4)
+    transform[:3, :3], transform[:3, 3] = rotation.T, [5.0, -3.0, 2.0]
+    scanner = (scan_points - transform[:3, 3]) @ rotation.T  # the same points in a scanner frame
+    many = np.concatenate([scanner] * 5)  # more than one block, two threads
+    fields = []
+    for compiled in (True, False):
+        previous = kernels.use_compiled(compiled)
+        try:
+            assert kernels.compiled() is compiled
+            fields.append(estimator.field(many, transform))
+            located = estimator._scan_points(many, transform, moments=True, workers=2)
+        finally:
+            kernels.use_compiled(previous)
+        fields.append(located)
+    fast, fast_located, slow, slow_located = fields
+    for a, b in zip(fast_located[:5], slow_located[:5], strict=True):  # rows, nodes, u, v, d: bit for bit
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_allclose(fast_located[5], slow_located[5], rtol=1e-12, atol=1e-9)
+    np.testing.assert_array_equal(np.isnan(fast.normal_displacement), np.isnan(slow.normal_displacement))
+    np.testing.assert_allclose(fast.normal_displacement, slow.normal_displacement, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(fast.error_model.node_std, slow.error_model.node_std, rtol=0, atol=1e-9)
+    assert abs(fast.noise_rms - slow.noise_rms) < 1e-9
+    assert np.isfinite(fast.normal_displacement).mean() > 0.8
+
+
+def test_warm_up_leaves_the_estimator_unchanged(skin, scan_points):
+    """Fails if warming the scan path up (the scan node does it before it serves) changes any later field, or if it
+    fails on a fitted estimator."""
+    estimator = ScanFieldEstimator().fit(skin)
+    before = estimator.field(scan_points)
+    warm_up(estimator)
+    after = estimator.field(scan_points)
+    np.testing.assert_array_equal(after.normal_displacement, before.normal_displacement)
+    np.testing.assert_array_equal(after.error_model.node_std, before.error_model.node_std)
+
+
+@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed: only the numpy path exists")
+def test_first_compiled_use_from_many_threads_at_once():
+    """Fails if the first use of the compiled kernels from several threads at once (a node's first scan runs in
+    threads) compiles them twice and raises (a fresh interpreter, eight threads released together)."""
+    import subprocess
+    import sys
+
+    script = (
+        "import threading\n"
+        "from hood_decomp.core.scan import kernels\n"
+        "barrier = threading.Barrier(8)\n"
+        "errors = []\n"
+        "def first():\n"
+        "    barrier.wait()\n"
+        "    try:\n"
+        "        kernels._kernel('_locate_block_loop')\n"
+        "    except Exception as error:\n"
+        "        errors.append(repr(error))\n"
+        "threads = [threading.Thread(target=first) for _ in range(8)]\n"
+        "[t.start() for t in threads]\n"
+        "[t.join() for t in threads]\n"
+        "assert not errors, errors\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]

@@ -1,0 +1,111 @@
+"""The prepared scan skin stored in a bases file: used instead of a rebuild, equal to a fresh preparation, and an
+altered or forged one refused; version 2 files (without it) still load."""
+
+from __future__ import annotations
+
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+
+from hood_decomp.core.method.bases import build_bases
+from hood_decomp.core.scan import scan_field
+from hood_decomp.core.scan.scan_field import ScanFieldEstimator, field_from_scan
+from hood_decomp.errors import BasisError, ScanError
+from hood_decomp.io.bases import bases_id, load_bases, prepared_id, save_bases
+from tests.toy_models import full_factorial, make_ensemble, make_reduced_model, make_skin
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    skin = make_skin(24, 16)
+    model = make_reduced_model(skin, seed=8)
+    states, rank = full_factorial(6)
+    bases = build_bases(make_ensemble(model, states, rank), skin, model, n_components=10, epsilon=0.01)
+    path = tmp_path_factory.mktemp("bases") / "bases.h5"
+    save_bases(path, bases)
+    return bases, path
+
+
+@pytest.fixture(scope="module")
+def points():
+    """A scan of the toy skin's nominal surface (0.05 mm noise), part frame."""
+    rng = np.random.default_rng(3)
+    x, y = rng.uniform(0.0, 1500.0, 150_000), rng.uniform(0.0, 1000.0, 150_000)
+    z = 40.0 * np.sin(np.pi * y / 1000.0) + 0.01 * x + rng.normal(0.0, 0.05, x.size)
+    return np.column_stack([x, y, z])
+
+
+@pytest.fixture()
+def fresh_cache(monkeypatch):
+    """No prepared estimator or stored preparation from other tests."""
+    monkeypatch.setattr(scan_field, "_PREPARED", {})
+    monkeypatch.setattr(scan_field, "_STORED", {})
+
+
+def _no_rebuild(monkeypatch):
+    def refuse(*_args, **_kwargs):
+        raise AssertionError("the prepared skin was rebuilt")
+
+    monkeypatch.setattr(ScanFieldEstimator, "_build_grid", refuse)
+    monkeypatch.setattr(ScanFieldEstimator, "_fit_quadrics", refuse)
+
+
+def test_stored_scan_skin_is_used_and_equals_a_fresh_preparation(saved, points, fresh_cache, monkeypatch):
+    """Fails if a scan of a loaded bases rebuilds the grid or quadrics instead of reading them from the file, or if
+    the stored preparation gives another field than a fresh ScanFieldEstimator().fit (1e-12 mm)."""
+    bases, path = saved
+    expected = ScanFieldEstimator().fit(bases.skin).field(points)
+    loaded = load_bases(path)
+    _no_rebuild(monkeypatch)
+    field, _ = field_from_scan(loaded.skin, points)
+    assert field.coverage > 0.9
+    np.testing.assert_array_equal(np.isnan(field.normal_displacement), np.isnan(expected.normal_displacement))
+    np.testing.assert_allclose(field.normal_displacement, expected.normal_displacement, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(field.error_model.node_std, expected.error_model.node_std, rtol=1e-12)
+
+
+def test_altered_scan_skin_is_refused(saved, points, fresh_cache, tmp_path):
+    """Fails if an edited lookup-grid entry of the stored preparation reaches a field (it must fail its
+    prepared_id on first use)."""
+    bases, path = saved
+    altered = tmp_path / "altered.h5"
+    shutil.copy(path, altered)
+    with h5py.File(altered, "r+") as h5:
+        table = h5["scan_skin/grid_table"]
+        table[0] = (table[0] + 1) % bases.skin.n_nodes  # still a valid node: only the fingerprint tells
+    loaded = load_bases(altered)  # bases_id does not cover the derived preparation: the bases load
+    with pytest.raises(BasisError, match="prepared_id"):
+        field_from_scan(loaded.skin, points)
+
+
+def test_forged_scan_skin_with_a_recomputed_id_is_range_checked(saved, points, fresh_cache, tmp_path):
+    """Fails if a forger who recomputes prepared_id can put a node index out of range into the kernel (a crash or
+    a wrong read instead of a named refusal)."""
+    bases, path = saved
+    forged = tmp_path / "forged.h5"
+    shutil.copy(path, forged)
+    with h5py.File(forged, "r+") as h5:
+        h5["scan_skin/kernel_indices"][3] = 10**6
+        arrays = {name: h5[f"scan_skin/{name}"][()] for name in scan_field.PREPARED_SKIN}
+        h5["scan_skin"].attrs["prepared_id"] = prepared_id(bases_id(bases), arrays)
+    loaded = load_bases(forged)
+    with pytest.raises(ScanError, match="out-of-range kernel_indices"):
+        field_from_scan(loaded.skin, points)
+
+
+def test_version_2_file_loads_and_scans_with_a_rebuilt_skin(saved, points, fresh_cache, tmp_path):
+    """Fails if a schema-2 bases file (no prepared skin) is refused, or if the prepared skin enters bases_id (the
+    same bases must keep the same id with and without it)."""
+    bases, path = saved
+    old = tmp_path / "v2.h5"
+    save_bases(old, bases, scan_skin=False)
+    with h5py.File(old, "r+") as h5:
+        h5.attrs["schema_version"] = 2
+        stored = h5.attrs["bases_id"]
+    with h5py.File(path, "r") as h5:
+        assert h5.attrs["bases_id"] == stored and "scan_skin" in h5
+    loaded = load_bases(old)
+    field, _ = field_from_scan(loaded.skin, points)
+    assert field.coverage > 0.9
