@@ -41,6 +41,9 @@ DEFAULT_ALPHA = 0.01
 DEFAULT_SMOOTH_DEGREE = 2
 #: node variance floor, mm^2: round-off of a noise-free field must not count as a model defect
 VARIANCE_FLOOR_MM2 = 1e-16
+#: node variance floor of the test's one-ring part, mm^2 (1 nm): a noise-free field sent as float32 metres is
+#: quantised by up to ~1e-7 mm, more where it is larger, and such round-off is no local effect
+LOCAL_FLOOR_MM2 = 1e-12
 #: a column of the fitted design or of the smooth modes whose part outside the others is below this fraction of its
 #: norm is left out (the modes and the basis fields may share directions, e.g. a rigid tilt)
 RANK_RTOL = 1e-6
@@ -357,7 +360,7 @@ def check_residual(
     p_value = float(f.sf(statistic / m, m, nu))
     if rings is not None and errors.bias_correlation <= 0:
         node_variance_mm2 = np.zeros(residual.size)
-        node_variance_mm2[seen] = noise * weight + model2
+        node_variance_mm2[seen] = np.maximum(noise * weight + model2, LOCAL_FLOOR_MM2)
         p_value = min(1.0, 2.0 * min(p_value, local_p_value(rings, residual, node_variance_mm2, nu)))
     return ModelCheck(statistic, m, nu, p_value, float(alpha), p_value >= alpha, scale, source, n_effective, bias)
 
