@@ -40,6 +40,12 @@ def running(coarse_hood, tmp_path_factory):
     connected = peer.connected(["hood_decomp/displacement"], ["hood_decomp/boundary_state", "hood_decomp/effects"],
                                60.0, subscribers=2) and peer.wait(
         lambda: peer.node.count_subscribers("hood_decomp/boundary_state") >= 2, 30.0)
+    # DDS matches each side on its own: wait until the nodes' own subscriptions count our publisher too (their
+    # heartbeats say so), or the first fields may be lost to a subscription that does not know it yet
+    diagnostics = received["/diagnostics"]
+    connected = connected and peer.wait(lambda: all(
+        int(latest_heartbeat(diagnostics, node).get("publishers /hood_decomp/displacement", 0)) >= 1
+        for node in ("hood_decomp_estimator", "hood_decomp_decomposition")), 30.0)
     yield peer, received, processes, connected, logs
     peer.close()
     stop_nodes(processes)
@@ -111,9 +117,13 @@ def test_a_controller_that_subscribes_late_gets_the_last_results(running):
     late = {topic: peer.collect(topic, cls, latest) for topic, cls in (
         ("hood_decomp/boundary_state", BoundaryState), ("hood_decomp/boundary_correction", BoundaryCorrection),
         ("hood_decomp/effects", EffectFields))}
-    assert peer.wait(lambda: all(late.values()), 30.0), {topic: len(got) for topic, got in late.items()}
+    # the publishers keep queue_depth results (no live subscriber loses one), so a late subscriber may receive the
+    # earlier result too, before the last
+    assert peer.wait(lambda: all(got and got[-1].part_id == "part-5" for got in late.values()), 30.0), {
+        topic: [m.part_id for m in got] for topic, got in late.items()}
     for topic, got in late.items():
-        assert [(m.header.stamp.sec, m.part_id) for m in got] == [(5, "part-5")], topic
+        received = [(m.header.stamp.sec, m.part_id) for m in got]
+        assert received in ([(5, "part-5")], [(1, "part-1"), (5, "part-5")]), topic
 
 
 def test_a_move_applied_at_half_is_named_by_the_next_inspection(coarse_hood, running):
