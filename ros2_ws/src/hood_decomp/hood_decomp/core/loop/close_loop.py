@@ -60,7 +60,7 @@ from scipy.stats import chi2, f
 
 from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solve_members
 from hood_decomp.core.loop.candidates import CandidateFields, augment_reduced
-from hood_decomp.core.method.bases import Bases, analyse_estimate, build_bases, estimate_field
+from hood_decomp.core.method.bases import Bases, analyse_estimate, build_bases, estimate_field, fitted_unknowns
 from hood_decomp.core.method.contact_estimation import ContactEstimator
 from hood_decomp.core.method.estimation import DEFAULT_MIN_COVERAGE
 from hood_decomp.core.method.residual import (
@@ -211,11 +211,6 @@ class CloseLoopResult:
 
 
 # --- residual of a set of fields ---------------------------------------------------------------------------------
-def _n_unknowns(estimate: ParameterEstimate) -> int:
-    """Fitted unknowns of a contact-aware estimate: the bilateral states and the touching pads' positions."""
-    return int(np.count_nonzero(~np.asarray(estimate.lifted, bool)))
-
-
 def _decide(estimates: Sequence[ParameterEstimate], alpha: float) -> tuple[float, bool]:
     """The decision over F fields by the one within-model test each estimate carries
     (:func:`hood_decomp.core.method.residual.check_residual`): the smallest p-value, Bonferroni-adjusted over the
@@ -297,7 +292,7 @@ def trace_effect(
     weights = 1.0 / np.asarray(noise, float) ** 2
     rss0 = np.array([np.nansum(e.residual**2) for e in current])
     n_seen = np.array([np.count_nonzero(np.isfinite(e.residual)) for e in current])
-    dof0 = n_seen - np.array([_n_unknowns(e) for e in current])
+    dof0 = n_seen - np.array([fitted_unknowns(e) for e in current])
     dof1 = max(float(np.sum(dof0 - 1)), 1.0)
     q = len(fields)
     excess = float(weights @ rss0 - dof0.sum())

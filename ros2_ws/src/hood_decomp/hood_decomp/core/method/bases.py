@@ -141,6 +141,11 @@ def estimate_field(
     return bases.contact_estimator(min_coverage, temperature_k).estimate(field)
 
 
+def fitted_unknowns(estimate: ParameterEstimate) -> int:
+    """Unknowns a contact-aware estimate fitted: the bilateral states and the touching pads' positions."""
+    return int(np.count_nonzero(~np.asarray(estimate.lifted, bool)))
+
+
 def analyse_estimate(bases: Bases, estimate: ParameterEstimate, noise_mm: float | None, alpha: float = DEFAULT_ALPHA
                      ) -> ResidualAnalysis:
     """Residual statistics and exceeding regions of one estimate, decided by the one within-model test the estimate
@@ -156,7 +161,7 @@ def analyse_estimate(bases: Bases, estimate: ParameterEstimate, noise_mm: float 
     if estimate.method == "pca":
         n_params, model_mm = bases.pca.n_components_, bases.pca.training_residual_rms_
     else:
-        n_params, model_mm = int(np.count_nonzero(~np.asarray(estimate.lifted, bool))), 0.0
+        n_params, model_mm = fitted_unknowns(estimate), 0.0
     check = dataclasses.replace(estimate.check, alpha=alpha, within_model=estimate.check.p_value >= alpha)
     return analyse_residual(bases.skin, estimate.residual, n_params, noise_mm, model_mm, alpha, check=check)
 
