@@ -1,10 +1,12 @@
 """The InspectPart action against a client written here in plain rclpy, with the real scan and estimator nodes as
 processes (Fast DDS, loopback): goal, feedback, result, cancel, ClosePart, timeout with fewer views than expected,
-and a view without a pose refused by name. Truth: the FE state the synthetic scanner scanned and the scanner's true
-poses (sent on scan/pose, and once as a static transform on /tf_static)."""
+a view without a pose refused by name, tolerance zones, the verification of a half-done move, and two variants served
+by one node. Truth: the FE state the synthetic scanner scanned, its FE field, and the scanner's true poses (sent on
+scan/pose, and once as a static transform on /tf_static)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -25,6 +27,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from tf2_msgs.msg import TFMessage
 
+from hood_decomp.core.types import ToleranceZone
+from hood_decomp.io.bases import save_bases
 from hood_decomp.ros import messages
 from hood_decomp.ros.launcher import start_nodes, stop_nodes
 from hood_decomp.ros.participant import Participant
@@ -35,21 +39,67 @@ from tests.multiview import scanned_part
 pytestmark = pytest.mark.ros
 
 TRUTH = {"HINGE_Y": -0.3, "LOCK_L": 0.4}
+ZONE_HALF_WIDTH_MM = 150.0
+
+
+def _box(points: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Skin nodes within ZONE_HALF_WIDTH_MM of ``centre`` in x and y (the zone's region, chosen here)."""
+    return np.flatnonzero(np.all(np.abs(points[:, :2] - centre[:2]) <= ZONE_HALF_WIDTH_MM, axis=1))
+
+
+@dataclasses.dataclass(frozen=True)
+class Zoned:
+    """The bases the nodes serve: the coarse hood with two zones (default variant) and the 20 x 20 hood (the same
+    surface on another mesh, another model_id) with one (variant H20); ``truth`` the scanned part's FE normal
+    displacement (N,) mm."""
+
+    default_path: object
+    h20_path: object
+    h20_model_id: str
+    zones: tuple[ToleranceZone, ...]
+    truth: np.ndarray
 
 
 @pytest.fixture(scope="module")
-def cell(coarse_hood, tmp_path_factory):
-    """The scan and estimator nodes, a plain rclpy client, three partial views of one part (with markers)."""
+def zoned(coarse_hood, tmp_path_factory):
+    """Zone "lock_corner" around the largest deviation of the scanned part, limits half of it (out of tolerance);
+    zone "centre" with +-5 mm (in tolerance); the H20 variant's one zone "whole" of +-5 mm."""
+    from hood_decomp.core.fe.ensemble import solve_members
+    from tests.hood20 import hood20
+
+    state = np.array([TRUTH.get(name, 0.0) for name in coarse_hood.reduced.names])
+    truth = solve_members(coarse_hood.reduced, state[None]).normal_displacement[0]  # what scanned_part scans
+    points = coarse_hood.skin.points
+    peak = int(np.argmax(np.abs(truth)))
+    half = 0.5 * abs(truth[peak])
+    zones = (ToleranceZone("lock_corner", _box(points, points[peak]), -half, half, 0.5, "{}"),
+             ToleranceZone("centre", _box(points, points.mean(axis=0)), -5.0, 5.0, 0.5, "{}"))
+    directory = tmp_path_factory.mktemp("zoned_bases")
+    default_path, h20_path = directory / "hood.h5", directory / "hood20.h5"
+    save_bases(default_path, dataclasses.replace(coarse_hood.bases, tolerance_zones=zones))
+    h20 = hood20()
+    whole = ToleranceZone("whole", np.arange(h20.skin.n_nodes), -5.0, 5.0, 0.5, "{}")
+    save_bases(h20_path, dataclasses.replace(h20.bases, tolerance_zones=(whole,)))
+    return Zoned(default_path, h20_path, h20.bases.model_id, zones, truth)
+
+
+@pytest.fixture(scope="module")
+def cell(coarse_hood, zoned, tmp_path_factory):
+    """The scan and estimator nodes (serving the default variant and H20), a plain rclpy client, three partial
+    views of one part (with markers)."""
     member, scans = scanned_part(coarse_hood, TRUTH, 30, marker_noise_mm=0.01, n_holes=0)
     directory = tmp_path_factory.mktemp("inspection")
     _, markers = messages.calibration_to_params(np.eye(4), {int(i): p for s in scans
                                                             for i, p in zip(s.marker_ids, s.markers_nominal,
                                                                             strict=True)})
     params = directory / "params.yaml"
-    params.write_text("hood_decomp_scan:\n  ros__parameters:\n"
+    params.write_text(f"/**:\n  ros__parameters:\n    variants: [\"H20={zoned.h20_path}\"]\n"
+                      "hood_decomp_scan:\n  ros__parameters:\n"
                       f"    marker_positions: {json.dumps(markers)}\n    marker_field: marker_id\n"
-                      "    result_timeout_s: 60.0\n")
-    processes = start_nodes(coarse_hood.bases_path, params_file=params, nodes=("scan_node", "estimator_node"),
+                      "    result_timeout_s: 60.0\n"
+                      # three 60k-point views state 0.02 mm on LOCK_L: let the robot act on it
+                      "hood_decomp_estimator:\n  ros__parameters:\n    max_std_mm: 0.05\n")
+    processes = start_nodes(zoned.default_path, params_file=params, nodes=("scan_node", "estimator_node"),
                             log_dir=directory)
     peer = Participant("inspection_client")
     client = ActionClient(peer.node, InspectPart, "hood_decomp/inspect_part")
@@ -92,9 +142,9 @@ def _send_view(peer, scan, frame: str, sec: int, pose: str = "topic") -> None:
     peer.publishers["scan/points"].publish(cloud)
 
 
-def _goal(peer, client, part_id: str, views: int, timeout_s: float = 0.0):
+def _goal(peer, client, part_id: str, views: int, timeout_s: float = 0.0, variant: str = ""):
     feedback = []
-    goal = InspectPart.Goal(part_id=part_id, expected_views=views,
+    goal = InspectPart.Goal(part_id=part_id, variant=variant, expected_views=views,
                             timeout=Duration(sec=int(timeout_s), nanosec=int((timeout_s % 1) * 1e9)))
     sent = client.send_goal_async(goal, feedback_callback=lambda m: feedback.append(m.feedback))
     assert peer.wait(sent.done, 30.0)
@@ -213,3 +263,77 @@ def test_a_goal_for_a_variant_not_served_is_rejected(cell):
     sent = client.send_goal_async(InspectPart.Goal(part_id="rhd-0001", variant="RHD", expected_views=1))
     assert peer.wait(sent.done, 30.0)
     assert not sent.result().accepted
+
+
+def _inspect(peer, client, part_id: str, scans, first_sec: int, variant: str = ""):
+    """One inspection of the views ``scans`` (poses on scan/pose), stamped first_sec, first_sec + 1, ..."""
+    handle, _ = _goal(peer, client, part_id, len(scans), variant=variant)
+    for k, scan in enumerate(scans):
+        _send_view(peer, scan, f"camera_{part_id}_{k}", first_sec + k)
+    return _result(peer, handle).result
+
+
+def test_a_zone_out_of_tolerance_is_nok_with_its_worst_deviation(cell, zoned, coarse_hood):
+    """Fails if the zone around the part's largest deviation (limits half of it) is not NOK, if its worst deviation
+    differs from the one of the scanned FE field over the zone's nodes by more than 0.03 mm (scan noise 0.02 mm per
+    point, smoothed) or its node lies more than one zone half-width away, if the zone within +-5 mm is not OK, or if
+    zones_ok, the limits (m) or the coverage are not carried to the result."""
+    peer, client, _, scans, _, _, ready, _ = cell
+    assert ready
+    result = _inspect(peer, client, "hood-0201", scans, 601)
+    assert result.success, result.message
+    corner, centre = result.zones
+    assert (corner.name, centre.name) == ("lock_corner", "centre") and not result.zones_ok
+    zone = zoned.zones[0]
+    truth = zoned.truth[zone.nodes]
+    excess = np.maximum(zone.lower_mm - truth, truth - zone.upper_mm)
+    worst = int(np.argmax(excess))
+    assert not corner.ok and "zone lock_corner NOK" in result.message, result.message
+    assert abs(corner.worst_deviation * 1000 - truth[worst]) < 0.03, (corner.worst_deviation * 1000, truth[worst])
+    distance = np.linalg.norm(coarse_hood.skin.points[corner.worst_node] - coarse_hood.skin.points[zone.nodes[worst]])
+    assert distance < ZONE_HALF_WIDTH_MM, distance
+    assert corner.upper == pytest.approx(zone.upper_mm / 1000) and corner.lower == pytest.approx(zone.lower_mm / 1000)
+    assert corner.coverage > 0.5 and centre.ok and centre.coverage > 0.5
+    assert abs(centre.worst_deviation * 1000) < 5.0
+
+
+def test_a_move_applied_at_half_the_correction_is_named_partial(cell, coarse_hood):
+    """Fails if the second inspection of a part, scanned after every applicable boundary was moved by half of the
+    correction the first inspection sent, does not carry the estimator's verification in the action result with the
+    moved boundaries PARTIAL, their measured change within 4 stated stds of half the correction and the slip named
+    in the result's message; or if the first inspection carries a verification (there was no earlier correction)."""
+    peer, client, _, scans, _, _, ready, _ = cell
+    assert ready
+    first = _inspect(peer, client, "hood-0301", scans, 701)
+    assert first.success and not first.verification.names, first.message
+    sent = first.boundary_correction
+    assert all(sent.applicable[sent.names.index(name)] for name in TRUTH), sent.reason
+    moved = dict(TRUTH)
+    for name, correction, applicable in zip(sent.names, sent.corrections, sent.applicable, strict=True):
+        if applicable:
+            moved[name] = moved.get(name, 0.0) + 0.5 * correction * 1000
+    _, after = scanned_part(coarse_hood, moved, 50, marker_noise_mm=0.01, n_holes=0)
+    second = _inspect(peer, client, "hood-0301", after, 711)
+    assert second.success, second.message
+    verification = second.verification
+    assert verification.part_id == "hood-0301" and list(verification.names) == list(sent.names)
+    outcomes = dict(zip(verification.names, verification.outcome, strict=True))
+    for name in TRUTH:
+        k = verification.names.index(name)
+        assert outcomes[name] == verification.PARTIAL, (name, outcomes[name], verification.summary)
+        predicted, measured, std = verification.predicted[k], verification.measured[k], verification.std_dev[k]
+        assert predicted == pytest.approx(sent.corrections[k])
+        assert abs(measured - 0.5 * predicted) <= max(4 * std, 1e-5), (name, measured, predicted, std)
+    assert not verification.all_achieved and "PARTIAL" in second.message, second.message
+
+
+def test_two_variants_are_served_by_one_node_selected_by_the_goal(cell, zoned, coarse_hood):
+    """Fails if the goal's variant does not select that variant's bases for fusion, estimation and zones (the result
+    would carry the default model's id and zones), or if a part within every zone's limits is not zones_ok."""
+    peer, client, _, scans, _, _, ready, _ = cell
+    assert ready
+    result = _inspect(peer, client, "h20-0001", scans, 801, variant="H20")
+    assert result.success and result.variant == "H20", result.message
+    assert result.model_id == zoned.h20_model_id != coarse_hood.bases.model_id
+    assert result.boundary_state.model_id == zoned.h20_model_id
+    assert [z.name for z in result.zones] == ["whole"] and result.zones_ok and result.zones[0].coverage > 0.8

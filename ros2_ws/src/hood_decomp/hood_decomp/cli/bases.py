@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -11,7 +12,7 @@ from hood_decomp.cli._common import check_output, finite, model_inputs, written_
 from hood_decomp.errors import EnsembleError
 
 if TYPE_CHECKING:
-    from hood_decomp.core.types import ReducedModel
+    from hood_decomp.core.types import ReducedModel, ToleranceZone
 
 HELP = "build the PCA and hierarchical bases from an ensemble"
 
@@ -31,23 +32,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="hierarchical tolerance: max allowed member error, mm (default 0.1, the paper's)")
     parser.add_argument("--model", type=Path, default=None,
                         help="model directory of the ensemble: its reduced FE model goes into the bases file for the "
-                        "contact-aware estimator (without it only the paper's 'pca' estimator is available)")
+                        "contact-aware estimator (without it only the paper's 'pca' estimator is available), and its "
+                        "tolerance_zones (acceptance criteria on the skin, docs/bases_schema.md)")
     parser.add_argument("--plots", type=Path, default=None, help="directory for the explained-variance plot (Fig. 8)")
 
 
-def _reduced_model(model_dir: Path | None, model_id: str) -> ReducedModel | None:
-    """The ReducedModel of the model in ``model_dir`` (None without one); EnsembleError when it is not the
-    ensemble's model (``model_id``)."""
+def _reduced_model(model_dir: Path | None,
+                   model_id: str) -> tuple[ReducedModel | None, tuple[ToleranceZone, ...]]:
+    """The ReducedModel and the tolerance zones of the model in ``model_dir`` (None and none without one);
+    EnsembleError when it is not the ensemble's model (``model_id``)."""
     if model_dir is None:
         logger.warning("bases: no --model: only the paper's 'pca' estimator will be available")
-        return None
+        return None, ()
     from hood_decomp.core.fe.solver import build_solver, reduce_model
-    from hood_decomp.io.model_files import load_model
+    from hood_decomp.io.model_files import load_model_with_zones
 
-    model = load_model(model_dir)
+    model, zones = load_model_with_zones(model_dir)
     if model.model_id != model_id:
         raise EnsembleError(f"model {model_dir} (model_id {model.model_id}) is not the ensemble's ({model_id})")
-    return reduce_model(build_solver(model))
+    return reduce_model(build_solver(model)), zones
 
 
 def run(args: argparse.Namespace) -> int:
@@ -60,9 +63,10 @@ def run(args: argparse.Namespace) -> int:
     if args.plots is not None:
         check_output(args.plots, inputs, "--plots", directory=True, writes=["explained_variance.png"])
     ensemble, skin = load_ensemble(args.ensemble, "training"), load_skin(args.ensemble)
-    reduced = _reduced_model(args.model, ensemble.model_id)
+    reduced, zones = _reduced_model(args.model, ensemble.model_id)
     components = 10 if args.components is None and args.explained_variance is None else args.components
-    bases = build_bases(ensemble, skin, reduced, components, args.explained_variance, args.epsilon)
+    bases = dataclasses.replace(build_bases(ensemble, skin, reduced, components, args.explained_variance, args.epsilon),
+                                tolerance_zones=zones)
     with written_whole(out) as temporary:
         save_bases(temporary, bases)
     if args.plots is not None:
@@ -71,5 +75,5 @@ def run(args: argparse.Namespace) -> int:
         plot_explained_variance(bases.pca.explained_variance_ratio_, args.plots / "explained_variance.png")
     print(f"wrote {args.out}: {bases.pca.n_components_} PCA components, "
           f"{len(bases.hierarchical.effect_names_)} hierarchical effects at epsilon {args.epsilon} mm, "
-          f"reduced model {'included' if reduced is not None else 'absent'}")
+          f"reduced model {'included' if reduced is not None else 'absent'}, {len(zones)} tolerance zone(s)")
     return 0

@@ -443,3 +443,43 @@ class MoveVerification:
     def all_achieved(self) -> bool:
         commanded = self.outcome != self.NOT_COMMANDED
         return bool(np.all(self.outcome[commanded] == self.ACHIEVED))
+
+
+@dataclass(frozen=True)
+class ToleranceZone:
+    """An acceptance criterion on the skin (``tolerance_zones`` in model.yaml): the normal displacement of every
+    node of the zone must lie in [lower_mm, upper_mm], judged only when at least ``min_coverage`` of its nodes are seen.
+
+    name: the zone's name. nodes: (M,) int64, M >= 1, indices of the zone's skin nodes (the bases' node order).
+    lower_mm < upper_mm: allowed normal displacement, mm. min_coverage: 0..1. region: the zone's definition in part
+    coordinates as model.yaml gave it (JSON text: box and/or sphere, mm), for people.
+    """
+
+    name: str
+    nodes: np.ndarray
+    lower_mm: float
+    upper_mm: float
+    min_coverage: float
+    region: str
+
+
+@dataclass(frozen=True)
+class ZoneVerdict:
+    """The verdict on one :class:`ToleranceZone` for one field.
+
+    ok: at least ``min_coverage`` of the zone seen and every seen node within [lower_mm, upper_mm].
+    worst_deviation_mm: the seen node's normal displacement farthest outside the limits (or, when all are inside,
+    nearest to one), NaN when no node of the zone is seen; worst_node: its skin index (-1 when none is seen).
+    coverage: seen fraction of the zone's nodes. outside: how many seen nodes lie outside the limits. reason: why
+    not ok, "" when ok.
+    """
+
+    name: str
+    ok: bool
+    lower_mm: float
+    upper_mm: float
+    worst_deviation_mm: float
+    worst_node: int
+    coverage: float
+    outside: int
+    reason: str

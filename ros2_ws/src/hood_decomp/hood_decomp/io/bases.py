@@ -16,13 +16,16 @@ import numpy as np
 from hood_decomp.core.method.bases import Bases
 from hood_decomp.core.method.hierarchical import HIERARCHICAL_FITTED_ARRAYS, HierarchicalBasis
 from hood_decomp.core.method.pca import PCA_FITTED_ARRAYS, PCABasis
-from hood_decomp.core.types import ReducedModel, SkinSurface, fingerprint
+from hood_decomp.core.types import ReducedModel, SkinSurface, ToleranceZone, fingerprint
 from hood_decomp.errors import BasisError
 from hood_decomp.io.hdf5 import Reader, open_hdf5
 
 FORMAT = "hood_decomp.bases"
-SCHEMA_VERSION = 3  # 3: optional /scan_skin (prepared scan skin); 2: bases_id checked on load; 1 had none (refused)
-READABLE_VERSIONS = (2, 3)
+# 4: with /tolerance_zones (written only then, so an older reader refuses the file instead of ignoring its acceptance
+# criteria); 3: optional /scan_skin (prepared scan skin); 2: bases_id checked on load; 1 had none (refused)
+SCHEMA_VERSION = 3
+ZONES_SCHEMA_VERSION = 4
+READABLE_VERSIONS = (2, 3, 4)
 _STR = h5py.string_dtype()
 
 # The named dimensions of every array (docs/bases_schema.md): a digit is a fixed size.
@@ -84,14 +87,64 @@ def prepared_id(content_id: str, arrays: dict[str, np.ndarray]) -> str:
     return fingerprint(content_id, *(item for name in PREPARED_SKIN for item in (name, np.asarray(arrays[name]))))
 
 
+def zones_id(content_id: str, zones: tuple[ToleranceZone, ...]) -> str:
+    """The fingerprint of the tolerance zones of the bases whose ``bases_id`` is ``content_id``: names, regions,
+    limits, coverages and node sets, so an edited zone or one moved from another bases file is refused."""
+    items: list[np.ndarray | str] = [content_id]
+    for zone in zones:
+        items += [zone.name, zone.region, np.array([zone.lower_mm, zone.upper_mm, zone.min_coverage]),
+                  np.asarray(zone.nodes, dtype=np.int64)]
+    return fingerprint(*items)
+
+
+def _write_zones(h5: h5py.File, content_id: str, zones: tuple[ToleranceZone, ...]) -> None:
+    group = h5.create_group("tolerance_zones")
+    group.attrs["zones_id"] = zones_id(content_id, zones)
+    group.create_dataset("names", data=np.array([z.name for z in zones], dtype=object), dtype=_STR)
+    group.create_dataset("regions", data=np.array([z.region for z in zones], dtype=object), dtype=_STR)
+    for name in ("lower_mm", "upper_mm", "min_coverage"):
+        group.create_dataset(name, data=np.array([getattr(z, name) for z in zones], dtype=float))
+    group.create_dataset("node_indptr", data=np.cumsum([0, *(z.nodes.size for z in zones)]).astype(np.int64))
+    group.create_dataset("node_indices", data=np.concatenate([z.nodes for z in zones]).astype(np.int64),
+                         compression="gzip", compression_opts=1, shuffle=True)
+
+
+def _read_zones(read: Reader, content_id: str) -> tuple[ToleranceZone, ...]:
+    """The optional /tolerance_zones group: kinds, named shapes, finite limits with lower < upper, coverages in
+    0..1, every zone a non-empty set of skin nodes, and the content matching ``zones_id``."""
+    names = read.strings("tolerance_zones/names", "Z")
+    regions = read.strings("tolerance_zones/regions", "Z")
+    lower, upper, coverage = (read.array(f"tolerance_zones/{name}", ("Z",))
+                              for name in ("lower_mm", "upper_mm", "min_coverage"))
+    read.bind("Z1", len(names) + 1, "tolerance_zones names plus one")
+    indptr = read.array("tolerance_zones/node_indptr", ("Z1",), "integer").astype(np.int64)
+    indices = _indices(read, "tolerance_zones/node_indices", ("M",), 0, "N")
+    if indptr[0] != 0 or indptr[-1] != indices.size or np.any(np.diff(indptr) < 1):
+        raise BasisError(f"{read.path}: tolerance_zones/node_indptr must rise from 0 to {indices.size} by at least "
+                         "1 per zone (every zone holds a skin node)")
+    bad = [n for n, lo, hi, c in zip(names, lower, upper, coverage, strict=True) if not (lo < hi and 0 <= c <= 1)]
+    if bad:
+        raise BasisError(f"{read.path}: tolerance zone(s) {bad} need lower_mm < upper_mm and min_coverage in 0..1")
+    zones = tuple(ToleranceZone(name, indices[indptr[i]:indptr[i + 1]], float(lower[i]), float(upper[i]),
+                                float(coverage[i]), regions[i]) for i, name in enumerate(names))
+    stored = read.attr("tolerance_zones", "zones_id", "str")
+    if zones_id(content_id, zones) != stored:
+        raise BasisError(f"{read.path}: tolerance_zones do not match their zones_id {stored!r} (edited after they "
+                         "were written, or taken from other bases); rebuild the file with `hood-decomp bases --model`")
+    return zones
+
+
 def save_bases(path: str | Path, bases: Bases, *, scan_skin: bool = True) -> None:
     """Write ``bases`` to an HDF5 file (overwrites); with ``scan_skin`` also the prepared scan skin (lookup grid,
     quadrics, kernel of the default ScanFieldEstimator), so that scans need not rebuild it."""
     content_id = bases_id(bases)
     with h5py.File(path, "w") as h5:
-        h5.attrs.update(format=FORMAT, schema_version=SCHEMA_VERSION, model_id=bases.model_id, bases_id=content_id)
+        version = ZONES_SCHEMA_VERSION if bases.tolerance_zones else SCHEMA_VERSION
+        h5.attrs.update(format=FORMAT, schema_version=version, model_id=bases.model_id, bases_id=content_id)
         if bases.calibration:
             h5.attrs["calibration"] = bases.calibration
+        if bases.tolerance_zones:
+            _write_zones(h5, content_id, bases.tolerance_zones)
         if bases.thermal is not None:
             thermal = h5.create_group("thermal")
             for name, value in zip(_THERMAL_DIMS, bases.thermal, strict=True):
@@ -219,12 +272,14 @@ def load_bases(path: str | Path) -> Bases:
                 raise BasisError(f"{path}: a thermal response needs the reduced model, which the file lacks")
             thermal = tuple(read.array(f"thermal/{name}", dims) for name, dims in _THERMAL_DIMS.items())
         has_scan_skin = version >= 3 and "scan_skin" in h5
+        # optional (issue 17): acceptance criteria, outside bases_id, bound to it by their own zones_id
+        zones = _read_zones(read, stored_id) if "tolerance_zones" in h5 else ()
 
     for what, other in (("skin", skin.model_id), ("PCA basis", pca.model_id_), ("hierarchical basis", hier.model_id_),
                         ("reduced model", None if reduced is None else reduced.model_id)):
         if other is not None and other != model_id:
             raise BasisError(f"{path}: {what} model_id {other!r} differs from the file's {model_id!r}")
-    bases = Bases(model_id, skin, pca, hier, reduced, calibration, thermal)
+    bases = Bases(model_id, skin, pca, hier, reduced, calibration, thermal, zones)
     if bases_id(bases) != stored_id:
         raise BasisError(f"{path}: content does not match its bases_id {stored_id!r} (the file was altered after "
                          "it was written: a rewritten model_id or array); rebuild it with `hood-decomp bases`")

@@ -34,6 +34,14 @@ model.yaml (format hood_decomp.model, version 1)::
       - {label: HINGE_X, boundary: hinge_L, direction: x, range: [-1.0, 1.0]}   # mm
     candidates:                    # optional: user candidate effects of close-loop (core.loop.candidates)
       - {boundary: lock_L, kind: force, direction: y}
+    tolerance_zones:               # optional: acceptance criteria on the skin (core.method.tolerance); they are not
+                                   # the model (model_id and bases_id ignore them)
+      - name: front_edge
+        box: {min: [1100.0, -700.0, -50.0], max: [1250.0, 700.0, 300.0]}   # mm, part frame, bounds included
+        sphere: {center: [1175.0, 0.0, 150.0], radius: 400.0}             # mm; with a box: nodes inside both
+        lower_mm: -0.3             # allowed signed normal displacement, mm (lower < upper)
+        upper_mm: 0.3
+        min_coverage: 0.5          # optional (default 0.5): seen fraction of the zone needed for a verdict of OK
 
 Every problem is a ModelError naming the entry, what was expected and what was found: unknown keys (with the nearest
 known key: "did you mean 'force'?"), wrong types, non-finite numbers, names with control characters; YAML aliases are
@@ -43,6 +51,7 @@ refused (an alias bomb cannot expand) and messages never print more than 80 char
 from __future__ import annotations
 
 import difflib
+import json
 import math
 from dataclasses import fields
 from pathlib import Path
@@ -51,7 +60,19 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
-from hood_decomp.core.fe.model import GRAVITY, Boundary, Material, Parameter, Part, PartModel, Patch, validate_model
+from hood_decomp.core.fe.model import (
+    GRAVITY,
+    Boundary,
+    Material,
+    Parameter,
+    Part,
+    PartModel,
+    Patch,
+    skin_surface,
+    validate_model,
+)
+from hood_decomp.core.method.tolerance import zone_nodes
+from hood_decomp.core.types import ToleranceZone
 from hood_decomp.errors import MeshError, ModelError
 from hood_decomp.io.mesh import read_inp_mesh, read_mesh, write_mesh
 
@@ -137,8 +158,15 @@ def model_files(path: str | Path) -> list[Path]:
 
 
 def load_model(path: str | Path) -> PartModel:
-    """Read and validate a model (directory or model.yaml). Raises ModelError."""
+    """Read and validate a model (directory or model.yaml), its tolerance zones included. Raises ModelError."""
     return _read(path)[0]
+
+
+def load_model_with_zones(path: str | Path) -> tuple[PartModel, tuple[ToleranceZone, ...]]:
+    """The model (as :func:`load_model`) and its ``tolerance_zones`` resolved to nodes of its visible skin (the node
+    order of ``skin_surface(model)``, which is the bases'). Raises ModelError."""
+    model, _, zones = _read(path)
+    return model, zones
 
 
 def load_model_with_candidates(path: str | Path) -> tuple[PartModel, tuple[Candidate, ...]]:
@@ -146,18 +174,23 @@ def load_model_with_candidates(path: str | Path) -> tuple[PartModel, tuple[Candi
     read of model.yaml. Raises ModelError."""
     from hood_decomp.core.loop.candidates import candidates_from_document  # the loop loads only for who asks
 
-    model, document = _read(path)
+    model, document, _ = _read(path)
     return model, candidates_from_document(document.get("candidates"))
 
 
 # --- the schema: every key a model.yaml may hold (unknown keys are refused with the nearest known one) ------------
 TOP_KEYS = ("format", "version", "name", "mesh", "skin_part", "material", "gravity", "parts", "boundaries",
-            "parameters", "candidates", "parameter_states")
+            "parameters", "candidates", "parameter_states", "tolerance_zones")
 MATERIAL_KEYS = tuple(f.name for f in fields(Material))
 PART_KEYS = ("name", "thickness")
 BOUNDARY_KEYS = ("name", "kind", "dofs", "patch", "axis", "stiffness", "preload", "force")
 PATCH_KEYS = ("center", "radius", "nodes", "parts", "exclude_parts")
 PARAMETER_KEYS = ("label", "boundary", "direction", "range")
+ZONE_KEYS = ("name", "box", "sphere", "lower_mm", "upper_mm", "min_coverage")
+BOX_KEYS = ("min", "max")
+SPHERE_KEYS = ("center", "radius")
+#: a zone judged on less than this seen fraction of its nodes is not OK (model.yaml ``min_coverage`` overrides it)
+ZONE_MIN_COVERAGE = 0.5
 #: largest model.yaml read (a patch may list many nodes; a hood's file is ~3 kB)
 MAX_BYTES = 16 * 2**20
 #: a name is printable text without control characters, at most this long
@@ -204,8 +237,8 @@ def _document(path: Path) -> dict:
     return document
 
 
-def _read(path: str | Path) -> tuple[PartModel, dict]:
-    """The validated model and the parsed model.yaml document."""
+def _read(path: str | Path) -> tuple[PartModel, dict, tuple[ToleranceZone, ...]]:
+    """The validated model, the parsed model.yaml document and the tolerance zones on the model's skin."""
     path = model_path(path)
     document = _document(path)
     mesh_file = _mesh_file(path, _name(_required(document, "mesh", "model"), "model mesh"))
@@ -242,7 +275,13 @@ def _read(path: str | Path) -> tuple[PartModel, dict]:
         parameter_states=_name(document.get("parameter_states", "effective"), "parameter_states"),
     )
     validate_model(model)
-    return model, document
+    points = skin_surface(model).points
+    zones = tuple(_zone(entry, i, points) for i, entry in enumerate(_optional_list(document, "tolerance_zones")))
+    names = [zone.name for zone in zones]
+    twice = sorted({name for name in names if names.count(name) > 1})
+    if twice:
+        raise ModelError(f"tolerance_zones: zone names must be unique, {_show(twice)} repeated")
+    return model, document, zones
 
 
 def _mesh_file(path: Path, name: str) -> Path:
@@ -376,3 +415,43 @@ def _parameter(entry: dict, index: int) -> Parameter:
         lower=lower,
         upper=upper,
     )
+
+
+def _zone(entry: dict, index: int, points: np.ndarray) -> ToleranceZone:
+    """One ``tolerance_zones`` entry resolved to the skin nodes ``points`` (N, 3) mm; a zone that holds no skin node
+    is refused by name (a typo in a coordinate must not make a zone that is always OK)."""
+    _keys(entry, ZONE_KEYS, f"tolerance zone #{index}")
+    name = _name(_required(entry, "name", f"tolerance zone #{index}"), f"tolerance zone #{index} name")
+    what = f"tolerance zone {name!r}"
+    region: dict[str, Any] = {}
+    box = sphere = None
+    if entry.get("box") is not None:
+        _keys(entry["box"], BOX_KEYS, f"{what} box")
+        low = _numbers(_required(entry["box"], "min", f"{what} box"), 3, f"{what} box min")
+        high = _numbers(_required(entry["box"], "max", f"{what} box"), 3, f"{what} box max")
+        if not all(a < b for a, b in zip(low, high, strict=True)):
+            raise ModelError(f"{what} box: expected min < max on every axis, got min {list(low)} max {list(high)}")
+        box, region["box"] = (low, high), {"min": list(low), "max": list(high)}
+    if entry.get("sphere") is not None:
+        _keys(entry["sphere"], SPHERE_KEYS, f"{what} sphere")
+        centre = _numbers(_required(entry["sphere"], "center", f"{what} sphere"), 3, f"{what} sphere center")
+        radius = _finite(_required(entry["sphere"], "radius", f"{what} sphere"), f"{what} sphere radius")
+        if radius <= 0:
+            raise ModelError(f"{what} sphere radius: expected > 0 mm, got {radius}")
+        sphere, region["sphere"] = (centre, radius), {"center": list(centre), "radius": radius}
+    if box is None and sphere is None:
+        raise ModelError(f"{what}: expected a region, 'box' and/or 'sphere' (part frame, mm)")
+    lower = _finite(_required(entry, "lower_mm", what), f"{what} lower_mm")
+    upper = _finite(_required(entry, "upper_mm", what), f"{what} upper_mm")
+    if not lower < upper:
+        raise ModelError(f"{what}: expected lower_mm < upper_mm, got {lower} and {upper}")
+    coverage = _number(entry, "min_coverage", what, ZONE_MIN_COVERAGE)
+    if not 0.0 <= coverage <= 1.0:
+        raise ModelError(f"{what} min_coverage: expected 0..1, got {coverage}")
+    nodes = zone_nodes(points, box=box, sphere=sphere)
+    if not nodes.size:
+        low, high = (np.round(bound, 1).tolist() for bound in (points.min(axis=0), points.max(axis=0)))
+        raise ModelError(f"{what}: its region holds no node of the visible skin ({len(points)} nodes within "
+                         f"{low} .. {high} mm)")
+    return ToleranceZone(name=name, nodes=nodes, lower_mm=lower, upper_mm=upper, min_coverage=coverage,
+                         region=json.dumps(region))

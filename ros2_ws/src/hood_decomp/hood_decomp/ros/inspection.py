@@ -9,13 +9,17 @@ estimator's boundary state and correction for that part (docs/cell.md, DESIGN.md
 - The part closes when ``expected_views`` views are fused, when its timeout passes (the result says so: "timeout: 2
   of 3 views fused", ``timed_out``), or when ``hood_decomp/close_part`` (ClosePart) is called. A cancel closes it
   without a result field.
-- On closing, the views are fused (:func:`hood_decomp.core.scan.fusion.fuse_fields`) and the field is published on
-  ``hood_decomp/displacement`` with the goal's part id. The estimator node (another process) answers every field with
-  a BoundaryState and a BoundaryCorrection carrying that part id; the action waits for both (``result_timeout_s``)
-  and returns them in its result. A field the estimator refuses (too little coverage, another model) is answered
-  only on /diagnostics (an ERROR of ``hood_decomp/hood_decomp_estimator`` with the field's stamp): the action takes
-  that as the answer and its result names the reason. The scan node never estimates itself: one estimator, one set
-  of bases, one answer for the robot whether the field came from an inspection or a lone cloud.
+- On closing, the views are fused (:func:`hood_decomp.core.scan.fusion.fuse_fields`), the variant's tolerance zones
+  are judged on the fused field (:func:`hood_decomp.core.method.tolerance.zone_verdicts`: ``zones``, ``zones_ok``)
+  and the field is published on ``hood_decomp/displacement`` with the goal's part id. The estimator node (another
+  process) answers every field with a BoundaryState and a BoundaryCorrection carrying that part id and the field's
+  stamp (and first a MoveVerification when it sent a correction for that part before), then reports the field on
+  /diagnostics with the same stamp (``move_verified`` among its values when it verified a move). The action waits
+  for the state, the correction, that report and the verification it announces (``result_timeout_s``) and returns
+  them in its result. A field the estimator refuses (too little coverage, another model) is answered only on
+  /diagnostics (an ERROR with the field's stamp): the action takes that as the answer and its result names the
+  reason. The scan node never estimates itself: one estimator, one set of bases, one answer for the robot whether
+  the field came from an inspection or a lone cloud.
 
 Without an open goal, the node keeps one cloud, one field. One part is inspected at a time; a second goal while one
 is open is rejected.
@@ -33,10 +37,11 @@ from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.task import Future
 
+from hood_decomp.core.method.tolerance import zone_verdicts
 from hood_decomp.core.scan.fusion import ScanView, ViewResult, fuse_fields, view_field
 from hood_decomp.core.types import DisplacementField
 from hood_decomp.errors import HoodDecompError, ScanError
-from hood_decomp.ros.messages import M_PER_MM
+from hood_decomp.ros.messages import M_PER_MM, zone_verdicts_to_msg
 from hood_decomp.ros.poses import ResolvedPose
 
 ACTION = "hood_decomp/inspect_part"
@@ -67,26 +72,26 @@ class _Part:
 class InspectionServer:
     """The action server, the ClosePart service and the estimator's answers, attached to the scan node.
 
-    node: the scan node; skin_and_estimator: variant -> (SkinSurface, fitted ScanFieldEstimator) of that variant's
-    bases ("" the default; raises HoodDecompError naming the served ones for another); publish_field:
+    node: the scan node; bases_and_estimator: variant -> (Bases, fitted ScanFieldEstimator of its skin) of that
+    variant ("" the default; raises HoodDecompError naming the served ones for another); publish_field:
     (DisplacementField, header, part_id) -> None publishes the fused field the way the node publishes every field;
     parameter: name -> the node's current value of ``inspection_timeout_s`` (a goal's timeout when it states none)
     and ``result_timeout_s`` (module docstring), read when used; serving: () -> whether the node takes clouds (a goal
     is rejected otherwise); min_view_coverage: smallest skin fraction one view must show.
     """
 
-    def __init__(self, node: Any, *, skin_and_estimator: Callable[[str], tuple[Any, Any]],
+    def __init__(self, node: Any, *, bases_and_estimator: Callable[[str], tuple[Any, Any]],
                  publish_field: Callable[[DisplacementField, Any, str], None], parameter: Callable[[str], Any],
                  serving: Callable[[], bool], min_view_coverage: float = 0.02) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
         from hood_decomp_msgs.action import InspectPart
-        from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState
+        from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState, MoveVerification
         from hood_decomp_msgs.srv import ClosePart
 
         from hood_decomp.ros.node_common import topic_qos
 
         self.node = node
-        self.skin_and_estimator = skin_and_estimator
+        self.bases_and_estimator = bases_and_estimator
         self.publish_field = publish_field
         self.parameter = parameter
         self.serving = serving
@@ -95,9 +100,9 @@ class InspectionServer:
         self.part: _Part | None = None
         self._reserved = False
         self._numbers = itertools.count(1)
+        # stamp of a published field -> the estimator's answers so far / the future of the whole answer, while awaited
         self._answers: dict[str, dict[str, Any]] = {}
         self._waiting: dict[str, Future] = {}
-        self._stamps: dict[str, str] = {}  # stamp of a published field -> its part id, while its answer is awaited
         self._Action = InspectPart
         group = ReentrantCallbackGroup()  # the goal waits while the node's clouds keep coming in
         self.server = ActionServer(node, InspectPart, ACTION, execute_callback=self._execute,
@@ -109,7 +114,9 @@ class InspectionServer:
                                      lambda m: self._answer(m, "state"), qos, callback_group=group),
             node.create_subscription(BoundaryCorrection, "hood_decomp/boundary_correction",
                                      lambda m: self._answer(m, "correction"), qos, callback_group=group),
-            node.create_subscription(DiagnosticArray, "/diagnostics", self._refusal, 50, callback_group=group)]
+            node.create_subscription(MoveVerification, "hood_decomp/move_verification",
+                                     lambda m: self._answer(m, "verification"), qos, callback_group=group),
+            node.create_subscription(DiagnosticArray, "/diagnostics", self._report, 50, callback_group=group)]
 
     @property
     def active(self) -> bool:
@@ -129,7 +136,7 @@ class InspectionServer:
             self.node.get_logger().warning("InspectPart rejected: expected_views must be >= 1")
             return GoalResponse.REJECT
         try:
-            self.skin_and_estimator(request.variant)
+            self.bases_and_estimator(request.variant)
         except HoodDecompError as error:
             self.node.get_logger().warning(f"InspectPart rejected: {error}")
             return GoalResponse.REJECT
@@ -165,13 +172,13 @@ class InspectionServer:
             raise ScanError("the inspection closed before this cloud was taken; it was not used")
         number = len(part.views) + part.refused + 1
         name = f"view {number} of part {part.part_id} ({header.frame_id or 'no frame'}, " \
-               f"{header.stamp.sec}.{header.stamp.nanosec:09d})"
+               f"{_stamp(header.stamp)})"
         try:
             if view.scanner_pose is None:
                 raise ScanError(f"{name}: no pose from TF, scan/pose or the scanner_pose parameter "
                                 f"({'; '.join(pose.skipped) or 'no source'})")
-            skin, estimator = self.skin_and_estimator(part.variant)
-            result = view_field(skin, ScanView(view.points_mm, view.scanner_pose, view.markers_mm,
+            bases, estimator = self.bases_and_estimator(part.variant)
+            result = view_field(bases.skin, ScanView(view.points_mm, view.scanner_pose, view.markers_mm,
                                                view.markers_nominal_mm, name=name, pose_source=pose.source),
                                 estimator=estimator, min_coverage=self.min_view_coverage)
         except ScanError as error:
@@ -198,8 +205,8 @@ class InspectionServer:
                 "view_coverage": f"{result.field.coverage:.3f}", "fused_coverage": f"{coverage:.3f}"}
 
     def _feedback(self, part: _Part, last: str) -> float:
-        skin, _ = self.skin_and_estimator(part.variant)
-        coverage = fuse_fields([v.field for v in part.views], skin).coverage if part.views else 0.0
+        bases, _ = self.bases_and_estimator(part.variant)
+        coverage = fuse_fields([v.field for v in part.views], bases.skin).coverage if part.views else 0.0
         part.goal_handle.publish_feedback(self._Action.Feedback(
             views_received=len(part.views) + part.refused, views_refused=part.refused, coverage=float(coverage),
             last_view=last[:1000]))
@@ -207,25 +214,38 @@ class InspectionServer:
 
     # ------------------------------------------------------------------------------------------------- answers
     def _answer(self, message: Any, kind: str) -> None:
-        answers = self._answers.setdefault(message.part_id, {})
-        answers[kind] = message
-        while len(self._answers) > 50:
-            self._answers.pop(next(iter(self._answers)))
-        waiting = self._waiting.get(message.part_id)
+        """A state, correction or verification: kept when it answers a field this server awaits (by its stamp)."""
+        stamp = _stamp(message.header.stamp)
         with self._lock:
-            if waiting is not None and not waiting.done() and {"state", "correction"} <= set(answers):
-                waiting.set_result(answers)
+            if stamp in self._waiting:
+                self._answers[stamp][kind] = message
+                self._complete(stamp)
 
-    def _refusal(self, message: Any) -> None:
-        """An estimator's ERROR about a field this server awaits an answer for: the answer is the refusal."""
+    def _report(self, message: Any) -> None:
+        """The estimator's report of a field this server awaits: an ERROR is its refusal (the answer); an OK says it
+        is done with the field, and whether a verification belongs to the answer (``move_verified``)."""
         for status in message.status:
-            if status.level != status.ERROR or not status.name.endswith("_estimator"):
+            if not status.name.endswith("_estimator"):
                 continue
-            stamp = next((kv.value for kv in status.values if kv.key == "stamp"), None)
-            waiting = self._waiting.get(self._stamps.get(stamp, ""))
+            values = {kv.key: kv.value for kv in status.values}
+            stamp = values.get("stamp", "")
             with self._lock:
-                if waiting is not None and not waiting.done():
-                    waiting.set_result({"refused": status.message})
+                future = self._waiting.get(stamp)
+                if future is None or future.done():
+                    continue
+                if status.level == status.ERROR:
+                    future.set_result({"refused": status.message})
+                else:
+                    self._answers[stamp]["report"] = values
+                    self._complete(stamp)
+
+    def _complete(self, stamp: str) -> None:
+        """Resolve the awaited answer of ``stamp`` once it is whole; hold the lock."""
+        answers, future = self._answers[stamp], self._waiting[stamp]
+        whole = {"state", "correction", "report"} <= set(answers) and (
+            "move_verified" not in answers["report"] or "verification" in answers)
+        if whole and not future.done():
+            future.set_result(answers)
 
     def _timer(self, seconds: float, future: Future, value: object) -> Any:
         def fire() -> None:
@@ -266,17 +286,18 @@ class InspectionServer:
             result.message = f"{reason}: no view fused ({part.refused} refused)"
             goal_handle.abort()
             return result
-        skin, _ = self.skin_and_estimator(part.variant)
-        fused = fuse_fields([v.field for v in part.views], skin)
+        bases, _ = self.bases_and_estimator(part.variant)
+        fused = fuse_fields([v.field for v in part.views], bases.skin)
         result.model_id, result.coverage = fused.model_id, float(fused.coverage)
         result.noise_rms = float(fused.noise_rms) * M_PER_MM
+        verdicts = zone_verdicts(fused, bases.tolerance_zones)
+        result.zones, result.zones_ok = zone_verdicts_to_msg(verdicts), all(v.ok for v in verdicts)
+        zones = "; ".join(f"zone {v.name} NOK: {v.reason}" for v in verdicts if not v.ok)
         header = part.header
-        answer = self._waiting[part_id] = Future()
-        stamp = f"{header.stamp.sec}.{header.stamp.nanosec:09d}"
-        self._stamps[stamp] = part_id
-        known = self._answers.get(part_id, {})
-        if {"state", "correction"} <= set(known):
-            answer.set_result(known)
+        stamp = _stamp(header.stamp)
+        with self._lock:
+            answer = self._waiting[stamp] = Future()
+            self._answers[stamp] = {}
         self.publish_field(fused, header, part_id)
         result_timeout = self.parameter("result_timeout_s")
         timer = self._timer(result_timeout, answer, None)
@@ -285,19 +306,36 @@ class InspectionServer:
         finally:
             timer.cancel()
             self.node.destroy_timer(timer)
-            self._waiting.pop(part_id, None)
-            self._stamps.pop(stamp, None)
+            with self._lock:
+                self._waiting.pop(stamp, None)
+                partial = self._answers.pop(stamp, {})
         if answers is not None and "refused" in answers:
-            result.message = f"{reason}: {counted}, field published, the estimator refused it: {answers['refused']}"
+            result.message = _join(f"{reason}: {counted}, field published, the estimator refused it: "
+                                   f"{answers['refused']}", zones)
             goal_handle.abort()
             return result
-        if answers is None:
-            result.message = (f"{reason}: {counted}, field published, but no boundary state and correction for part "
-                              f"{part_id} within {result_timeout:g} s (is the estimator node running?)")
+        if answers is None and not {"state", "correction"} <= set(partial):
+            result.message = _join(f"{reason}: {counted}, field published, but no boundary state and correction for "
+                                   f"part {part_id} within {result_timeout:g} s (is the estimator node running?)",
+                                   zones)
             goal_handle.abort()
             return result
+        late = "" if answers is not None else (f"the estimator's report (and a verification it may announce) did not "
+                                               f"come within {result_timeout:g} s")
+        answers = answers or partial
         result.boundary_state, result.boundary_correction = answers["state"], answers["correction"]
+        if "verification" in answers:
+            result.verification = answers["verification"]
         result.success = True
-        result.message = f"{reason}: {counted}" if reason != "complete" else f"complete: {counted}"
+        result.message = _join(f"{reason}: {counted}", result.verification.summary, zones, late)
         goal_handle.succeed()
         return result
+
+
+def _stamp(stamp: Any) -> str:
+    """A header stamp as the estimator's diagnostics write it (``<sec>.<nanosec>``)."""
+    return f"{stamp.sec}.{stamp.nanosec:09d}"
+
+
+def _join(*parts: str) -> str:
+    return "; ".join(part for part in parts if part)

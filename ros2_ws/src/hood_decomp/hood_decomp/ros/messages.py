@@ -24,6 +24,7 @@ from hood_decomp.core.types import (
     MoveVerification,
     ParameterEstimate,
     SkinSurface,
+    ZoneVerdict,
 )
 from hood_decomp.ros.pointcloud import cloud_channel, cloud_to_xyz, finite_rows, xyz_to_cloud
 
@@ -214,6 +215,16 @@ def verification_to_msg(verification: MoveVerification, header: Any, part_id: st
         all_achieved=verification.all_achieved,
         summary=verification.summary,
     )
+
+
+def zone_verdicts_to_msg(verdicts: Sequence[ZoneVerdict]) -> list[Any]:
+    """core ZoneVerdicts (mm) -> hood_decomp_msgs/ZoneVerdict[] (m); a zone nobody saw has worst_node 0 and a NaN
+    worst_deviation (the message's index is unsigned)."""
+    from hood_decomp_msgs.msg import ZoneVerdict as Msg
+
+    return [Msg(name=v.name, ok=v.ok, lower=v.lower_mm * M_PER_MM, upper=v.upper_mm * M_PER_MM,
+                worst_deviation=v.worst_deviation_mm * M_PER_MM, worst_node=max(v.worst_node, 0),
+                coverage=float(v.coverage)) for v in verdicts]
 
 
 def decomposition_to_msg(decomposition: Decomposition, header: Any, part_id: str) -> Any:

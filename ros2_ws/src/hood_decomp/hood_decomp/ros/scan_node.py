@@ -64,7 +64,7 @@ class ScanNode(HoodNode):
             except ImportError as error:  # neither tf2_ros nor the workspace's tf2_msgs: say so, serve without TF
                 self.get_logger().error(f"no TF: {error} (build ros2_ws/src/tf2_msgs or install tf2_ros)")
         self.poses = PoseSources(sources)
-        self.inspection = InspectionServer(self, skin_and_estimator=self.skin_and_estimator,
+        self.inspection = InspectionServer(self, bases_and_estimator=self.bases_and_estimator,
                                            publish_field=self.publish_field, parameter=self.param,
                                            serving=lambda: self.state == "active")
 
@@ -93,10 +93,10 @@ class ScanNode(HoodNode):
         # reliable and best-effort scanner drivers both connect; each cloud is taken once
         self.subscription(PointCloud2, "scan/points", self.guarded("scan", self.on_cloud), any_reliability=True)
 
-    def skin_and_estimator(self, variant: str) -> tuple[Any, Any]:
-        """The skin and the prepared scan-field estimator of a part variant ("" = the default bases)."""
+    def bases_and_estimator(self, variant: str) -> tuple[Any, Any]:
+        """The bases and the prepared scan-field estimator of a part variant ("" = the default bases)."""
         bases = self.bases_for_variant(variant)
-        return bases.skin, self.prepared[bases.model_id][0]
+        return bases, self.prepared[bases.model_id][0]
 
     def on_cloud(self, msg: PointCloud2) -> dict[str, object]:
         from hood_decomp.core.scan.scan_field import field_from_scan
@@ -115,8 +115,8 @@ class ScanNode(HoodNode):
         if self.inspection.active:
             view = ScanView(points_mm, pose.pose_mm, markers_mm, markers_nominal_mm, pose_source=pose.source)
             return {**self.inspection.add_view(msg.header, view, pose), "points": points_mm.shape[0]}
-        skin, estimator = self.skin_and_estimator("")  # a lone cloud is of the default variant
-        field, registration = field_from_scan(skin, points_mm, scanner_pose=pose.pose_mm,
+        bases, estimator = self.bases_and_estimator("")  # a lone cloud is of the default variant
+        field, registration = field_from_scan(bases.skin, points_mm, scanner_pose=pose.pose_mm,
                                               markers_mm=markers_mm, markers_nominal_mm=markers_nominal_mm,
                                               min_coverage=self.param("min_coverage"), estimator=estimator)
         part_id = messages.part_id_of(msg)  # a cloud names no part: one id per stamp (an inspection names its own)

@@ -25,6 +25,7 @@ from hood_decomp.core.types import (
     ParameterEstimate,
     ReducedModel,
     SkinSurface,
+    ToleranceZone,
 )
 from hood_decomp.errors import BasisError, ModelIdMismatchError
 
@@ -49,6 +50,9 @@ class Bases:
     #: response of the part to 1 K of uniform temperature rise (skin normal (N,), pad springs (S,), skin 3D (N, 3), mm;
     #: core.fe.solver.physical_responses), carried by calibrated bases; None: no temperature term
     thermal: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    #: acceptance criteria on the skin (model.yaml ``tolerance_zones``, core.method.tolerance); not the model: they
+    #: do not enter ``bases_id`` (io.bases keeps them in an optional group with its own fingerprint)
+    tolerance_zones: tuple[ToleranceZone, ...] = ()
     # (min_coverage, temperature K) -> fitted ContactEstimator; filled on first use, not part of the bases' value
     _contact_estimators: dict[tuple[float, float], ContactEstimator] = dataclasses.field(
         default_factory=dict, init=False, repr=False, compare=False)
