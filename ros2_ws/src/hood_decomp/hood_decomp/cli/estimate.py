@@ -69,8 +69,18 @@ def bases_provenance(bases) -> dict:
         "id": record["id"], "entries": [e["name"] for e in record["entries"]], "loo_rms_mm": record["loo_rms_mm"]}}
 
 
+def zones_payload(verdicts) -> dict:
+    """The tolerance zones' verdicts (core.method.tolerance.zone_verdicts) as `estimate` writes them: ``zones`` (per
+    zone name, ok, lower_mm, upper_mm, worst_deviation_mm, worst_node, coverage, outside, reason) and ``zones_ok``."""
+    import dataclasses
+
+    return {"zones": [dataclasses.asdict(verdict) for verdict in verdicts],
+            "zones_ok": all(verdict.ok for verdict in verdicts)}
+
+
 def run(args: argparse.Namespace) -> int:
     from hood_decomp.core.method.bases import estimate_field
+    from hood_decomp.core.method.tolerance import zone_verdicts
 
     check_json(args)
     bases, field = read_bases_and_field(args)
@@ -78,5 +88,6 @@ def run(args: argparse.Namespace) -> int:
     payload = estimate_payload(estimate, bases.pca.n_bilateral_)
     payload.update(bases_provenance(bases), reference=None if args.reference is None else str(args.reference),
                    temperature_k=args.temperature_k)
+    payload.update(zones_payload(zone_verdicts(field, bases.tolerance_zones)))
     emit_json(payload, args.json)
     return 0
