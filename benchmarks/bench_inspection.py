@@ -5,6 +5,8 @@ The scan and estimator nodes as processes (Fast DDS, loopback) on the default ho
 the clock runs from publishing the last cloud to the result (the last view's field, the fusion, the fused field's
 publication, the estimator's state and correction). Prints a table and writes benchmarks/out/inspection.json:
     scripts/with-env nice python benchmarks/bench_inspection.py [--parts 5] [--points 500000]
+The same inspections run after the single-view latencies in one command with the three nodes:
+``benchmarks/bench_nodes.py --inspection-parts 5`` (benchmarks/RESULTS.md).
 """
 
 from __future__ import annotations
@@ -32,7 +34,6 @@ from hood_decomp.ros import messages  # noqa: E402
 from hood_decomp.ros.launcher import start_nodes, stop_nodes  # noqa: E402
 from hood_decomp.ros.participant import Participant  # noqa: E402
 from hood_decomp.ros.scan_bag import scan_cloud, transform_stamped  # noqa: E402
-from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan  # noqa: E402
 from tests.conftest import _hood_case  # noqa: E402
 
 OUT = ROOT / "benchmarks" / "out" / "inspection.json"
@@ -42,6 +43,52 @@ VIEWS = (((-0.55, -0.45), (12.0, -12.0)), ((0.55, -0.45), (12.0, 12.0)), ((-0.55
 
 def log(line: str) -> None:
     print(f"[bench_inspection {time.strftime('%H:%M:%S')}] {line}", file=sys.stderr, flush=True)
+
+
+def inspection_views(skin, displacement: np.ndarray, points: int) -> list:
+    """Four partial views (:data:`VIEWS`) of ``points`` points each of the part ``displacement`` (N, 3) mm."""
+    from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
+
+    return [synthesize_scan(skin, displacement, ScannerConfig(
+        n_points=points, noise_mm=0.02, marker_noise_mm=0.01, n_holes=1, view_center=aim, view_tilt_deg=tilt,
+        fov_deg=40.0, standoff_mm=1500.0), seed=k) for k, (aim, tilt) in enumerate(VIEWS)]
+
+
+def inspect_parts(peer, scans: list, parts: int, first_sec: int = 1000) -> tuple[list[float], list[dict]]:
+    """``parts`` inspections of the four views ``scans`` through the running scan and estimator nodes, each an
+    InspectPart goal of four views, three views sent 3 s apart, then the last; per part the seconds from publishing
+    the last cloud to the result, and the result's success, message and coverage."""
+    client = ActionClient(peer.node, InspectPart, "hood_decomp/inspect_part")
+    clouds = peer.publisher("scan/points", PointCloud2)
+    poses = peer.publisher("scan/pose", TransformStamped)
+    if not (peer.connected(["scan/points", "scan/pose"], [], 90.0) and peer.wait(client.server_is_ready, 90)):
+        raise RuntimeError("the InspectPart server or the scan node did not come up in 90 s")
+    latencies, results = [], []
+    for part in range(parts):
+        sent = client.send_goal_async(InspectPart.Goal(part_id=f"bench-{part}", expected_views=4))
+        if not (peer.wait(sent.done, 30.0) and sent.result().accepted):
+            raise RuntimeError(f"goal of part {part} not accepted")
+        for k, scan in enumerate(scans):
+            stamp = (first_sec + 10 * part + k) * 1_000_000_000
+            cloud = scan_cloud(scan, stamp)
+            cloud.header.frame_id = f"camera_{k}"
+            poses.publish(transform_stamped("hood", f"camera_{k}", scan.true_transform, stamp))
+            if k < 3:
+                clouds.publish(cloud)
+                peer.wait(lambda: False, 3.0)  # the node takes the view before the last one comes
+            else:
+                peer.wait(lambda: False, 0.2)
+                start = time.perf_counter()
+                clouds.publish(cloud)
+                future = sent.result().get_result_async()
+        if not peer.wait(future.done, 120.0):
+            raise RuntimeError(f"no result for part {part} in 120 s")
+        latencies.append(time.perf_counter() - start)
+        result = future.result().result
+        results.append({"success": result.success, "message": result.message, "coverage": result.coverage})
+        log(f"part {part}: {latencies[-1]:.3f} s from the last view to the result ({result.message})")
+    client.destroy()
+    return latencies, results
 
 
 def main() -> int:
@@ -58,9 +105,7 @@ def main() -> int:
     rng = np.random.default_rng(17)
     member = solve_members(case.reduced, rng.uniform(case.bases.pca.lower_, case.bases.pca.upper_)[None])
     log(f"scanning four views of {args.points} points")
-    scans = [synthesize_scan(case.skin, member.displacement[0], ScannerConfig(
-        n_points=args.points, noise_mm=0.02, marker_noise_mm=0.01, n_holes=1, view_center=aim, view_tilt_deg=tilt,
-        fov_deg=40.0, standoff_mm=1500.0), seed=k) for k, (aim, tilt) in enumerate(VIEWS)]
+    scans = inspection_views(case.skin, member.displacement[0], args.points)
     _, markers = messages.calibration_to_params(np.eye(4), {int(i): p for s in scans
                                                             for i, p in zip(s.marker_ids, s.markers_nominal,
                                                                             strict=True)})
@@ -69,36 +114,9 @@ def main() -> int:
                       f"    marker_positions: {json.dumps(markers)}\n    marker_field: marker_id\n")
     processes = start_nodes(case.bases_path, params_file=params, nodes=("scan_node", "estimator_node"),
                             log_dir=tmp)
-    latencies, results = [], []
     try:
         with Participant("bench_inspection") as peer:
-            client = ActionClient(peer.node, InspectPart, "hood_decomp/inspect_part")
-            clouds = peer.publisher("scan/points", PointCloud2)
-            poses = peer.publisher("scan/pose", TransformStamped)
-            assert peer.connected(["scan/points", "scan/pose"], [], 90.0) and peer.wait(client.server_is_ready, 90)
-            for part in range(args.parts):
-                sent = client.send_goal_async(InspectPart.Goal(part_id=f"bench-{part}", expected_views=4))
-                assert peer.wait(sent.done, 30.0) and sent.result().accepted
-                future = None
-                for k, scan in enumerate(scans):
-                    stamp = (1000 + 10 * part + k) * 1_000_000_000
-                    cloud = scan_cloud(scan, stamp)
-                    cloud.header.frame_id = f"camera_{k}"
-                    poses.publish(transform_stamped("hood", f"camera_{k}", scan.true_transform, stamp))
-                    if k < 3:
-                        clouds.publish(cloud)
-                        peer.wait(lambda: False, 3.0)  # the node takes the view before the last one comes
-                    else:
-                        peer.wait(lambda: False, 0.2)
-                        start = time.perf_counter()
-                        clouds.publish(cloud)
-                        future = sent.result().get_result_async()
-                assert peer.wait(future.done, 120.0)
-                latencies.append(time.perf_counter() - start)
-                result = future.result().result
-                results.append({"success": result.success, "message": result.message, "coverage": result.coverage})
-                log(f"part {part}: {latencies[-1]:.3f} s from the last view to the result ({result.message})")
-            client.destroy()
+            latencies, results = inspect_parts(peer, scans, args.parts)
     finally:
         stop_nodes(processes)
         shutil.rmtree(tmp, ignore_errors=True)

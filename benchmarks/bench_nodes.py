@@ -8,6 +8,13 @@ drivers), each sent when the previous one was answered; target: N of N delivered
 
     scripts/with-env python benchmarks/bench_nodes.py --resolution default [--soak-seconds 300] [--best-effort 100]
 
+Latency is reported for the first scan (the nodes just activated) and as the median and max over all scans. With
+--inspection-parts N the same nodes then serve N four-view inspections of --inspection-points points per view
+(benchmarks/bench_inspection.py, last view to the InspectPart result), so one command gives both of issue 17's
+latency figures:
+
+    scripts/with-env python benchmarks/bench_nodes.py --resolution default --scans 10 --inspection-parts 5
+
 Bases are built once per resolution and cached in benchmarks/out/cache_<resolution>/. Prints a table and writes
 benchmarks/out/bench_nodes_<resolution>.json.
 """
@@ -87,6 +94,9 @@ def main() -> int:
     parser.add_argument("--soak-seconds", type=float, default=0.0, help="length of the one-scan-per-second run")
     parser.add_argument("--best-effort", type=int, default=0,
                         help="also send this many clouds from a best-effort publisher, one per answer")
+    parser.add_argument("--inspection-parts", type=int, default=0,
+                        help="then this many four-view inspections through the InspectPart action")
+    parser.add_argument("--inspection-points", type=int, default=500_000, help="points per inspection view")
     parser.add_argument("--oversize-points", type=int, default=0,
                         help="also send one cloud of this many points (e.g. 20000000) and check it is refused")
     args = parser.parse_args()
@@ -97,10 +107,18 @@ def main() -> int:
                                 dict(zip(reduced.names, rng.uniform(-0.8, 0.8, len(reduced.names)), strict=True)),
                                 ScannerConfig(n_points=args.points, noise_mm=0.02), seed=i) for i in range(3)]
     clouds = [scan_cloud(s.scan, 0) for s in scans]
+    views = []
+    if args.inspection_parts:
+        from bench_inspection import inspection_views
+
+        from hood_decomp.core.fe.ensemble import solve_members
+
+        state = rng.uniform(-0.8, 0.8, len(reduced.names))
+        views = inspection_views(skin, solve_members(reduced, state[None]).displacement[0], args.inspection_points)
     params = write_node_params(OUT / f"params_{args.resolution}.yaml", {
         "scanner_pose_mm": scans[0].scan.scanner_pose.tolist(),
-        "marker_positions_mm": {str(int(i)): p.tolist() for s in scans for i, p in
-                                zip(s.scan.marker_ids, s.scan.markers_nominal, strict=True)}})
+        "marker_positions_mm": {str(int(i)): p.tolist() for s in [*(s.scan for s in scans), *views] for i, p in
+                                zip(s.marker_ids, s.markers_nominal, strict=True)}})
     processes = start_nodes(bases_path.resolve(), params_file=params, log_dir=OUT)
     peer = Participant("bench_nodes", depth=100)
     peer.publisher("scan/points", PointCloud2)
@@ -181,6 +199,14 @@ def main() -> int:
             best_effort = {"sent": args.best_effort, "answered": len(seconds),
                            "state_latency_median_s": statistics.median(seconds) if seconds else None,
                            "state_latency_max_s": max(seconds) if seconds else None}
+        inspection = {}
+        if args.inspection_parts:
+            from bench_inspection import inspect_parts
+
+            seconds, results = inspect_parts(peer, views, args.inspection_parts)
+            inspection = {"parts": args.inspection_parts, "points_per_view": args.inspection_points,
+                          "latency_s": seconds, "median_s": statistics.median(seconds), "max_s": max(seconds),
+                          "results": results}
         oversize = {}
         if args.oversize_points:  # a cloud above the scan node's max_points: refused by name, the next one served
             big = scan_cloud(scans[0].scan, 0)
@@ -200,12 +226,13 @@ def main() -> int:
     finally:
         peer.close()
         stop_nodes(processes)
-    summary = {key: {"median_s": statistics.median(v), "max_s": max(v)} for key, v in latencies.items()}
+    summary = {key: {"first_s": v[0], "median_s": statistics.median(v), "max_s": max(v)}
+               for key, v in latencies.items()}
     print(f"Node latency, {args.resolution} resolution ({len(skin.points):,} skin nodes), {args.points:,}-point "
           f"scans, {platform.machine()}, {psutil.cpu_count()} cores")
-    print(f"{'from scan published to':32s} {'median s':>10s} {'max s':>10s}")
+    print(f"{'from scan published to':32s} {'first s':>10s} {'median s':>10s} {'max s':>10s}")
     for key, value in summary.items():
-        print(f"{key + ' received':32s} {value['median_s']:10.3f} {value['max_s']:10.3f}")
+        print(f"{key + ' received':32s} {value['first_s']:10.3f} {value['median_s']:10.3f} {value['max_s']:10.3f}")
     if soak:
         print(f"sustained 1 Hz for {soak['seconds']:.0f} s: {soak['scans']} scans, {soak['lost']} lost; node RSS MB "
               f"(scan, estimator, decomposition) per tenth of the run: {soak['rss_mb_every_tenth']}")
@@ -213,6 +240,10 @@ def main() -> int:
         print(f"best-effort publisher: {best_effort['answered']} of {best_effort['sent']} clouds delivered and "
               f"answered; boundary state median {best_effort['state_latency_median_s']} s, max "
               f"{best_effort['state_latency_max_s']} s")
+    if inspection:
+        print(f"inspection, 4 x {args.inspection_points:,} points, last view -> result: median "
+              f"{inspection['median_s']:.3f} s, max {inspection['max_s']:.3f} s over {args.inspection_parts} parts "
+              f"({sum(r['success'] for r in inspection['results'])} succeeded)")
     if oversize:
         print(f"oversize cloud of {oversize['points']:,} points ({oversize['bytes'] / 2**20:.0f} MB): "
               f"{oversize['refused'] or 'NOT refused'} after {oversize['seconds_to_diagnostic']} s; next scan "
@@ -220,7 +251,7 @@ def main() -> int:
     OUT.mkdir(exist_ok=True)
     (OUT / f"bench_nodes_{args.resolution}.json").write_text(json.dumps({
         "benchmark": "nodes", "resolution": args.resolution, "skin_nodes": len(skin.points), "points": args.points,
-        "latency": summary, "soak": soak, "best_effort": best_effort, "oversize": oversize,
+        "latency": summary, "soak": soak, "best_effort": best_effort, "inspection": inspection, "oversize": oversize,
         "cloud_bytes": len(serialize_message(clouds[0])),
         "date": time.strftime("%Y-%m-%d"), "machine": f"{platform.node()} {platform.machine()}"}, indent=2) + "\n")
     return 0

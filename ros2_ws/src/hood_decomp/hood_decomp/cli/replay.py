@@ -48,14 +48,18 @@ def run(args: argparse.Namespace) -> int:
             files = [p for p in (sidecar_params(args.bag, pathlib.Path(scratch)), args.params) if p is not None]
             processes = start_nodes(args.bases.resolve(), params_file=files)
         try:
-            result = replay_bag(args.bag, record=args.record, timeout_s=args.timeout, publish_clock=args.clock)
+            result = replay_bag(args.bag, record=args.record, timeout_s=args.timeout, publish_clock=args.clock,
+                                part=sidecar_part(args.bag))
         finally:
             stop_nodes(processes)
     summary = {"scans": result.scans, "answered": result.answered, "refused": result.refused,
                "unanswered": result.unanswered, "recorded": result.recorded, "seconds": round(result.seconds, 2),
-               "record": str(args.record) if args.record else None}
+               "record": str(args.record) if args.record else None, "inspection": result.inspection or None}
     if args.json:
         write_json(args.json, summary)
+    if result.inspection:
+        print(f"hood-decomp replay: part {result.inspection['part_id']}: {result.inspection['message']}",
+              file=sys.stderr)
     for stamp, reasons in result.refused.items():
         print(f"hood-decomp replay: scan {stamp} refused: {reasons[0]}", file=sys.stderr)
     for stamp in result.unanswered:
@@ -66,17 +70,40 @@ def run(args: argparse.Namespace) -> int:
     return 1 if result.unanswered or result.refused else 0
 
 
+def _sidecar(bag: pathlib.Path) -> dict:
+    from hood_decomp.io.bags import read_sidecar, sidecar_path
+
+    return read_sidecar(bag) if sidecar_path(bag).is_file() else {}
+
+
+def sidecar_part(bag: pathlib.Path):
+    """The multi-view part the bag's sidecar names (``part_id`` and ``expected_views``: a robot's views of one part,
+    replayed as one InspectPart), or None (every cloud is a part of its own)."""
+    from hood_decomp.ros.replay import ReplayPart
+
+    sidecar = _sidecar(bag)
+    if "part_id" not in sidecar or "expected_views" not in sidecar:
+        return None
+    part_id, views = sidecar["part_id"], sidecar["expected_views"]
+    if not isinstance(part_id, str) or isinstance(views, bool) or not isinstance(views, int) or not 1 <= views <= 1000:
+        raise BagError(f"sidecar of {bag}: part_id must be text and expected_views a whole number 1..1000, got "
+                       f"{part_id!r} and {views!r}")
+    return ReplayPart(part_id, views)
+
+
 def sidecar_params(bag: pathlib.Path, directory: pathlib.Path) -> pathlib.Path | None:
     """The cell calibration (scanner pose, reference markers) the bag's sidecar states, as a parameter file for the
-    scan node; None when the bag has no sidecar or it states no calibration (the nodes then use --params)."""
-    from hood_decomp.io.bags import read_sidecar, sidecar_path
+    scan node; None when the bag has no sidecar or it states neither (the nodes then use --params). A multi-view
+    bag states markers without a fixed scanner pose (each view's pose comes from the bag's TF and scan/pose)."""
+    import numpy as np
+
     from hood_decomp.ros.scan_bag import write_node_params
 
-    if not sidecar_path(bag).is_file():
+    sidecar = _sidecar(bag)
+    if "scanner_pose_mm" not in sidecar and "marker_positions_mm" not in sidecar:
         return None
-    sidecar = read_sidecar(bag)
     if "scanner_pose_mm" not in sidecar:
-        return None
+        sidecar = {**sidecar, "scanner_pose_mm": np.eye(4).tolist()}  # the identity: no fixed pose
     try:
         return write_node_params(directory / "sidecar_params.yaml", sidecar)
     except (AttributeError, KeyError, TypeError, ValueError) as error:

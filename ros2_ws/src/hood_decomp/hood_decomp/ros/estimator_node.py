@@ -90,6 +90,11 @@ class EstimatorNode(HoodNode):
 
     def configure_node(self) -> None:
         self.sent.clear()
+        for bases in self.variant_bases.values():  # fitted now, so the first field is answered at steady speed
+            if self.param("method") == "contact" and bases.reduced_model is not None:
+                bases.contact_estimator(self.param("min_coverage"))
+            else:
+                bases.residual_test()
         self.state_pub = self.publisher(BoundaryState, "hood_decomp/boundary_state", latest=True)
         self.correction_pub = self.publisher(BoundaryCorrection, "hood_decomp/boundary_correction", latest=True)
         self.verification_pub = self.publisher(MoveVerification, "hood_decomp/move_verification", latest=True)

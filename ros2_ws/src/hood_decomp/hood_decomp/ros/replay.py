@@ -4,6 +4,11 @@ Scans are published in bag order as the raw CDR bytes they were recorded with, o
 only when the previous one is answered (its boundary state and effect fields arrived, or a node reported an error with
 its stamp on /diagnostics), so the nodes are never fed faster than they can take. Every message the nodes publish is
 recorded, as it arrives, into an MCAP bag.
+
+A multi-view part (``part``: its id and expected views, from the bag's sidecar) is replayed as one inspection: an
+InspectPart goal first, then the bag's records in order (the robot's poses on /tf_static, /tf and scan/pose, each
+cloud 0.3 s after the poses before it, as a robot sends them), and the action's result is the part's answer: its
+clouds are the views of one part, not parts of their own.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ from contextlib import ExitStack
 from dataclasses import dataclass, field
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import TransformStamped
 from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState, DisplacementField, EffectFields
 from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock
@@ -41,6 +47,10 @@ ANSWERS = ("hood_decomp/boundary_state", "hood_decomp/effects")  # a good scan i
 # topics between the nodes: a message sent on one before its publisher matched every subscription is lost to it
 INTERNAL = ("hood_decomp/displacement", "hood_decomp/boundary_state")
 MATCH_TIMEOUT_S = 30.0
+#: what a multi-view part's replay publishes besides the clouds: the robot's poses
+POSE_TOPICS = ("/tf_static", "/tf", "scan/pose")
+#: how long a view's cloud follows the poses before it (the scan node looks its pose up when the cloud comes)
+POSE_LEAD_S = 0.3
 
 
 def _msgtype(cls: type) -> str:
@@ -81,18 +91,33 @@ class ReplayResult:
     unanswered: list[str] = field(default_factory=list)
     recorded: int = 0
     seconds: float = 0.0
+    #: a multi-view part's inspection: part_id, success, message, views_used, views_refused, zones_ok, view_reports
+    inspection: dict[str, object] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ReplayPart:
+    """A bag that holds one part in several views (sidecar ``part_id`` and ``expected_views``)."""
+
+    part_id: str
+    expected_views: int
 
 
 def replay_bag(bag: str | pathlib.Path, *, record: str | pathlib.Path | None = None, timeout_s: float = 60.0,
                startup_timeout_s: float = 60.0, settle_s: float = 3.0, publish_clock: bool = False,
-               answers: Sequence[str] = ANSWERS) -> ReplayResult:
+               answers: Sequence[str] = ANSWERS, part: ReplayPart | None = None) -> ReplayResult:
     """Publish the scans of ``bag`` into running nodes; record their output into ``record`` (a new bag directory).
 
-    timeout_s: longest wait for the answer to one scan; startup_timeout_s: longest wait for the nodes to appear;
-    settle_s: after the last scan, keep recording until nothing arrived for this long (late diagnostics, unpaired
-    effect fields). publish_clock: publish each scan's bag time on /clock first (for nodes with use_sim_time).
+    timeout_s: longest wait for the answer to one scan (a part: for the action's result after its last view);
+    startup_timeout_s: longest wait for the nodes to appear; settle_s: after the last scan, keep recording until
+    nothing arrived for this long (late diagnostics, unpaired effect fields). publish_clock: publish each scan's bag
+    time on /clock first (for nodes with use_sim_time). part: replay the bag as one multi-view inspection (module
+    docstring); its views count as answered when the action fused and estimated them, as refused when a view or
+    the part was refused, as unanswered when no result came.
     """
-    scans = [r for r in read_bag(bag, topics=[SCAN_TOPIC])]
+    scans = [r for r in read_bag(bag, topics=[SCAN_TOPIC, *(POSE_TOPICS if part is not None else ())])]
+    if part is not None and not any(r.topic == SCAN_TOPIC for r in scans):
+        scans = []
     if not scans:
         raise BagError(f"bag {bag} holds no messages on {SCAN_TOPIC}")
     result = ReplayResult()
@@ -106,7 +131,8 @@ def replay_bag(bag: str | pathlib.Path, *, record: str | pathlib.Path | None = N
 
         def on_output(topic: str, cls: type) -> Callable[[bytes], None]:
             def callback(raw: bytes) -> None:
-                last_arrival[0] = time.monotonic()
+                if topic != "/diagnostics":  # a heartbeat comes every second: it must not keep the settling open
+                    last_arrival[0] = time.monotonic()
                 if writer is not None:
                     writer.write(Record(topic, _msgtype(cls), peer.node.get_clock().now().nanoseconds, bytes(raw)))
                     result.recorded += 1
@@ -118,6 +144,8 @@ def replay_bag(bag: str | pathlib.Path, *, record: str | pathlib.Path | None = N
                         values = {kv.key: kv.value for kv in status.values}
                         if "heartbeat" in values:
                             heartbeats[status.name] = values
+                        else:
+                            last_arrival[0] = time.monotonic()
                         stamp = values.get("stamp")
                         if status.level == DiagnosticStatus.ERROR and stamp is not None:
                             result.refused.setdefault(stamp, []).append(f"{status.name}: {status.message}")
@@ -139,6 +167,9 @@ def replay_bag(bag: str | pathlib.Path, *, record: str | pathlib.Path | None = N
         if not peer.wait(lambda: _all_matched(peer, heartbeats), MATCH_TIMEOUT_S):
             logger.warning("the nodes did not report every subscription of %s matched within %.0f s (nodes without "
                            "a heartbeat?); replaying anyway", ", ".join(INTERNAL), MATCH_TIMEOUT_S)
+        if part is not None:
+            _replay_part(peer, part, scans, result, timeout_s)
+            scans = []
         for index, scan in enumerate(scans, start=1):
             key = _stamp_key(deserialize_message(scan.data, PointCloud2).header.stamp)
             if clock_pub is not None:
@@ -158,3 +189,52 @@ def replay_bag(bag: str | pathlib.Path, *, record: str | pathlib.Path | None = N
         peer.wait(lambda: time.monotonic() - last_arrival[0] > settle_s, settle_s + timeout_s)
     result.seconds = time.monotonic() - start
     return result
+
+
+def _replay_part(peer: Participant, part: ReplayPart, records: Sequence[Record], result: ReplayResult,
+                 timeout_s: float) -> None:
+    """One InspectPart of the bag's clouds with the robot's poses of the bag (module docstring); fills ``result``."""
+    from hood_decomp_msgs.action import InspectPart
+    from rclpy.action import ActionClient
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from tf2_msgs.msg import TFMessage
+
+    latched = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    publishers = {"/tf_static": peer.node.create_publisher(TFMessage, "/tf_static", latched),
+                  "/tf": peer.publisher("/tf", TFMessage), "scan/pose": peer.publisher("scan/pose", TransformStamped),
+                  SCAN_TOPIC: peer.publishers[SCAN_TOPIC]}
+    client = ActionClient(peer.node, InspectPart, "hood_decomp/inspect_part")
+    try:
+        if not (peer.connected(["/tf", "scan/pose"], [], MATCH_TIMEOUT_S) and peer.wait(client.server_is_ready,
+                                                                                        MATCH_TIMEOUT_S)):
+            raise BagError("no InspectPart server (hood_decomp/inspect_part) or pose subscriptions within "
+                           f"{MATCH_TIMEOUT_S:.0f} s: is the scan node running and active?")
+        sent = client.send_goal_async(InspectPart.Goal(part_id=part.part_id, expected_views=part.expected_views))
+        if not peer.wait(sent.done, MATCH_TIMEOUT_S) or not sent.result().accepted:
+            raise BagError(f"the scan node did not accept an inspection of part {part.part_id} (one open already?)")
+        keys = []
+        for record in records:
+            if record.topic == SCAN_TOPIC:
+                peer.wait(lambda: False, POSE_LEAD_S)
+                keys.append(_stamp_key(deserialize_message(record.data, PointCloud2).header.stamp))
+                result.scans += 1
+                logger.info("part %s: view %d (stamp %s) sent", part.part_id, len(keys), keys[-1])
+            publishers[record.topic].publish(record.data)
+        future = sent.result().get_result_async()
+        if not peer.wait(future.done, timeout_s + MATCH_TIMEOUT_S):
+            result.unanswered += keys
+            logger.info("part %s: NO RESULT within %.0f s", part.part_id, timeout_s + MATCH_TIMEOUT_S)
+            return
+    finally:
+        client.destroy()
+    answer = future.result().result
+    result.inspection = {"part_id": answer.part_id, "success": answer.success, "message": answer.message,
+                         "views_used": answer.views_used, "views_refused": answer.views_refused,
+                         "zones_ok": answer.zones_ok, "view_reports": list(answer.view_reports)}
+    refused = [line for line in answer.view_reports if line.startswith("refused")]
+    if answer.success and not refused:
+        result.answered += len(keys)
+    else:
+        for key in keys:
+            result.refused.setdefault(key, []).append(f"part {part.part_id}: {answer.message}")
+    logger.info("part %s: %s", part.part_id, answer.message)

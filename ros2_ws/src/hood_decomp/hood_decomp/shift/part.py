@@ -21,6 +21,7 @@ from hood_decomp.core.method.bases import Bases, analyse_estimate, decompose_fie
 from hood_decomp.core.method.correction import CorrectionPolicy, plan_correction
 from hood_decomp.core.method.residual import DEFAULT_ALPHA, ResidualAnalysis
 from hood_decomp.core.types import DisplacementField, ParameterEstimate
+from hood_decomp.errors import BagError
 from hood_decomp.io.history import PartRecord
 
 logger = logging.getLogger(__name__)
@@ -30,7 +31,9 @@ logger = logging.getLogger(__name__)
 class PartTask:
     """One part to process. kind: "cloud" (``data``: a serialised sensor_msgs/PointCloud2 from a bag, with the cell
     calibration ``scanner_pose_mm`` (4x4) and ``markers_mm`` (id -> (3,) mm) of its sidecar), "field" (a .vtu at
-    ``path``) or "scan" (a .ply at ``path``). source, part_id, message, stamp_ns: as the history keeps them."""
+    ``path``), "scan" (a .ply at ``path``) or "multiview" (a bag at ``path`` holding one part in several views: not
+    fused here, recorded as failed with the reason). source, part_id, message, stamp_ns: as the history keeps
+    them."""
 
     source: str
     part_id: str
@@ -94,6 +97,9 @@ def read_task_field(bases: Bases, task: PartTask, min_coverage: float) -> Displa
         from hood_decomp.io.scans import field_from_scan_file
 
         return field_from_scan_file(bases.skin, task.path, min_coverage)
+    if task.kind == "multiview":  # its views are not parts of their own, and their poses are in the bag's TF
+        raise BagError(f"bag {task.path} holds part {task.part_id} in several views (sidecar expected_views): the "
+                       "shift does not fuse views; inspect it through the nodes (hood-decomp replay BAG --bases B)")
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import PointCloud2
 

@@ -4,7 +4,10 @@ files (.vtu), given as paths or directories holding them, as :class:`~hood_decom
 A bag's clouds are its ``sensor_msgs/msg/PointCloud2`` messages on the sidecar's topic (all PointCloud2 topics when
 there is no sidecar), each registered with the sidecar's scanner pose and reference markers as the scan node does.
 A part's id is the sidecar's ``part_id`` for that scan when it states one, else ``<bag>#<message index>``; a file's
-part id is its stem. Tasks are produced lazily: a bag's clouds are read one at a time while the batch runs.
+part id is its stem. A bag whose sidecar names one part in several views (``part_id`` and ``expected_views`` > 1) is
+one part, which the shift does not fuse: it is recorded as failed with the reason (``hood-decomp replay`` inspects it
+through the nodes), never as one part per view. Tasks are produced lazily: a bag's clouds are read one at a time
+while the batch runs.
 """
 
 from __future__ import annotations
@@ -92,6 +95,11 @@ def iter_tasks(sources: Sequence[Source]) -> Iterator[PartTask]:
             yield PartTask(str(source.path), source.path.stem, 0, stat.st_mtime_ns, source.kind, str(source.path))
             continue
         sidecar = _sidecar(source.path)
+        views = sidecar.get("expected_views")
+        if sidecar.get("part_id") and isinstance(views, int) and not isinstance(views, bool) and views > 1:
+            yield PartTask(str(source.path), str(sidecar["part_id"]), 0, source.path.stat().st_mtime_ns, "multiview",
+                           str(source.path))
+            continue
         entries = sidecar.get("scans", []) if isinstance(sidecar.get("scans"), list) else []
         pose = sidecar.get("scanner_pose_mm")
         pose_flat = None if pose is None else tuple(float(v) for row in pose for v in row)
