@@ -130,3 +130,14 @@ def test_zones_round_trip_outside_bases_id_and_an_edit_is_refused(toy_bases, tmp
         source.copy("tolerance_zones", target)
     with pytest.raises(BasisError, match="zones_id"):
         load_bases(plain)
+
+
+def test_calibration_keeps_the_zones(toy_bases):
+    """Fails if bases rebuilt by calibration (`hood-decomp calibrate`) drop the tolerance zones of the bases they
+    were made from (a calibrated cell would silently stop judging its acceptance criteria)."""
+    from hood_decomp.core.loop.calibration import rebuild_bases
+
+    zones = (ToleranceZone("left", np.array([0, 3, 5]), -0.2, 0.4, 0.5, "{}"),)
+    rebuilt = rebuild_bases(dataclasses.replace(toy_bases, tolerance_zones=zones), toy_bases.reduced_model, '{"id": 1}')
+    assert [z.name for z in rebuilt.tolerance_zones] == ["left"]
+    assert rebuilt.tolerance_zones[0].nodes.tolist() == [0, 3, 5]

@@ -431,7 +431,7 @@ def rebuild_bases(bases: Bases, reduced: ReducedModel, calibration: str = "",
     """Both bases rebuilt from a (calibrated) reduced model: the full-factorial ensemble by exact contact and
     superposition, then PCA and hierarchical basis with the original bases' settings. ``calibration``: the JSON record
     the new bases carry (their bases_id changes with it; the model_id stays); ``physics``: its thermal response goes
-    into the bases (the temperature term)."""
+    into the bases (the temperature term). The tolerance zones (acceptance criteria on the same skin) are kept."""
     lower, upper = bases.pca.lower_, bases.pca.upper_
     commanded, rank = factorial_plan(lower, upper)
     logger.info("rebuilding the ensemble: %d members", len(commanded))
@@ -439,7 +439,7 @@ def rebuild_bases(bases: Bases, reduced: ReducedModel, calibration: str = "",
     rebuilt = build_bases(ensemble, bases.skin, reduced, bases.pca.n_components, bases.pca.explained_variance,
                           bases.hierarchical.epsilon_)
     thermal = None if physics is None else (physics.thermal_w, physics.thermal_z, physics.thermal_w3)
-    return replace(rebuilt, calibration=calibration, thermal=thermal)
+    return replace(rebuilt, calibration=calibration, thermal=thermal, tolerance_zones=bases.tolerance_zones)
 
 
 def relative_field(reduced: ReducedModel, field: DisplacementField, reference: DisplacementField,
