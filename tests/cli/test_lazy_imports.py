@@ -10,8 +10,9 @@ import subprocess
 import sys
 
 # Measured costs of each in a fresh process on the project's machine class (issue 19): scipy.stats 0.9-1.3 s, numba
-# 0.3-0.6 s plus 0.3 s of CPU loading its cache (the compiled path is repaid only from about 0.5M points,
-# core/scan/kernels.py), scipy.linalg 0.1-0.4 s, meshio 0.14 s; the rest a verb on a scan never needs.
+# 0.3-0.6 s plus about 0.6 s of CPU loading its cache and tearing down at exit (a one-off run repays it only from
+# about 2M points, core/scan/kernels.py), scipy.linalg 0.1-0.4 s, meshio 0.14 s; the rest a verb on a scan never
+# needs.
 NOT_FOR_A_SMALL_SCAN = ("scipy.stats", "numba", "scipy.linalg", "scipy.spatial", "scipy.ndimage", "scipy.optimize",
                         "meshio", "sklearn", "open3d", "matplotlib", "rclpy", "dask", "rosbags")  # fmt: skip
 

@@ -4,9 +4,11 @@ Both paths do the same arithmetic in the same order (float64 throughout, the loc
 the cell sums taken of those stored values), so they give the same field to rounding (test: 1e-9 mm). The numpy
 path is chosen with ``HOOD_DECOMP_PURE_NUMPY=1`` or when numba is missing; :func:`use_compiled` switches at run time.
 By default (``use_compiled(None)``) a scan takes the compiled path when the kernels are loaded in this process
-already (a node after its warm-up) or when it has at least ``COMPILED_MIN_POINTS`` points (:func:`for_points`):
-loading them (numba's import and its cache) costs about 0.3 s of CPU in a fresh process, which the numpy path's
-extra 0.45 s per million points (paper resolution) repays only from about half a million points on.
+already (:func:`load`: a node's warm-up) or when it has at least ``COMPILED_MIN_POINTS`` points (:func:`for_points`).
+In a fresh process (a one-off ``estimate --scan``) numba costs about 0.3 s of CPU to import and load its cache and
+another 0.3 s at exit (LLVM's teardown); the numpy path costs about 0.45 s of CPU more per million points, in
+threads that share the GIL where the compiled loops do not. Whole one-off runs measured (benchmarks/RESULTS.md,
+issue 19): at 1 M points the numpy path took 0.3-0.5 s less CPU, at 5 M the two were even.
 
 Per point (:func:`locate_block`): grid coordinates from one affine map, the cell's node, the offset in the node's
 frame, the quadric distance, the gates; the points that pass are written to preallocated block buffers and (when
@@ -28,7 +30,7 @@ HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 #: points per block: a block's temporaries (about 20 float64 columns) stay within a few MB of cache
 BLOCK_POINTS = 131_072
 #: a scan of at least this many points loads the compiled kernels when they are not loaded yet (module docstring)
-COMPILED_MIN_POINTS = 500_000
+COMPILED_MIN_POINTS = 2_000_000
 #: True: compiled path, False: numpy path, None: by size (:func:`for_points`)
 _MODE: bool | None = None if HAVE_NUMBA and os.environ.get("HOOD_DECOMP_PURE_NUMPY", "") not in ("1", "true",
                                                                                                  "yes") else False
@@ -48,6 +50,16 @@ def use_compiled(enabled: bool | None) -> bool | None:
 def compiled() -> bool:
     """Whether the compiled path may be used (forced, or chosen by size)."""
     return _MODE is not False
+
+
+def load() -> bool:
+    """Make the compiled path this process's choice for every later scan, whatever its size (for a long-lived
+    process: the scan node's warm-up): numba is imported and the loops prepared (read from numba's cache, or
+    compiled, at their first run). Returns False when the compiled path is switched off or numba is missing."""
+    if _MODE is False:
+        return False
+    _kernel("_locate_block_loop")
+    return True
 
 
 def for_points(points: int) -> bool:

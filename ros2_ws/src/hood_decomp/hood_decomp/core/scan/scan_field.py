@@ -577,6 +577,7 @@ def warm_up(estimator: ScanFieldEstimator, points: int = 1_000_000) -> None:
     spacing), every 50th pushed 1 mm off along its normal (so the outlier pass runs too); as long as one scan.
     """
     estimator._check_fitted()
+    kernels.load()  # a node serves many scans: the compiled path whatever their size
     nodes, frames = estimator.points_, estimator.frames_
     copies = max(1, -(-points // nodes.shape[0]))
     angle = 2.0 * np.pi * np.arange(copies) / copies
