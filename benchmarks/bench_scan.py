@@ -12,18 +12,25 @@ file; the nominal skin is one mesh PLY. On the same files:
 - hood_decomp per scan: ``field_from_scan`` (marker registration included) in a child process with the prepared
   skin read from the bases file: first call, median of the repeats, peak RSS of the scan step (VmHWM reset before
   it) and the field's RMS error against the truth on seen nodes.
+- hood_decomp cold run by phase: the same work as ``estimate --scan`` in a fresh process, timed per phase (imports,
+  bases load, prepared skin, PLY read, scan path with registration, estimate, JSON write; wall and CPU s), median
+  of the repeats: where a one-off run's time goes.
 Both hood_decomp runs accept any coverage (``min_coverage`` 0): 100k points cannot cover 188k paper nodes (the
 coverage is reported).
 
 The bases files carry a toy reduced model on the real skin (tests/toy_models.py: 3 parameters, 27 members): a
 paper-resolution FE ensemble needs about 9.5 GB, which this shared machine cannot spare; the scan step, the file
 reading and the prepared skin, which are what is measured, are those of the real skin. The time per scan is fitted
-as a + b * points (a: the per-node work) and the marginal cost per point is given at 1M and at 10M. The load average
-is recorded with every figure.
+as a + b * points over the sizes from 1M on (a: the per-node work); the marginal cost per point at 1M is the slope
+between the two smallest of those sizes, at the top the slope between the two largest (so 1M, 2M, ..., 5M, 10M
+gives 1M->2M against 5M->10M), and their ratio is checked against 1.15; the scan step's peak memory at the largest
+size against 1 GB. The load average is recorded with every figure.
 
 Prints a table and writes benchmarks/out/bench_scan.json. Run from the repository root inside the environment:
-    scripts/with-env python benchmarks/bench_scan.py [--repeats 5] [--uncapped-repeats 3] [--sizes 1e5,1e6,5e6,1e7]
-        [--resolutions default,paper] [--no-cloudcompare] [--work DIR]
+    scripts/with-env python benchmarks/bench_scan.py [--repeats 5] [--uncapped-repeats 3]
+        [--sizes 1e5,1e6,2e6,5e6,1e7] [--f2f-sizes 1e6,5e6] [--resolutions default,paper] [--no-cloudcompare]
+        [--work DIR] [--quick]
+``--quick`` (a short check on a loaded machine): default resolution, 1e5 and 1e6 points, 2 repeats, 1 uncapped.
 """
 
 from __future__ import annotations
@@ -55,16 +62,18 @@ def load() -> float:
 
 
 def timed_process(command: list[str], env: dict[str, str] | None = None) -> dict:
-    """Run ``command`` under /usr/bin/time -v: wall s, peak RSS MB, exit status, load at start and end."""
+    """Run ``command`` under /usr/bin/time -v: wall s, CPU s (user + system: on a loaded machine the steadier
+    figure), peak RSS MB, exit status, load at start and end."""
     start_load = load()
     done = subprocess.run(["/usr/bin/time", "-v", *command], capture_output=True, text=True, timeout=3600,
                           env={**os.environ, **(env or {})})  # fmt: skip
     wall = re.search(r"Elapsed \(wall clock\) time \(h:mm:ss or m:ss\): (?:(\d+):)?(\d+):([\d.]+)", done.stderr)
     rss = re.search(r"Maximum resident set size \(kbytes\): (\d+)", done.stderr)
+    cpu = sum(float(m) for m in re.findall(r"(?:User|System) time \(seconds\): ([\d.]+)", done.stderr))
     seconds = (int(wall.group(1) or 0) * 3600 + int(wall.group(2)) * 60 + float(wall.group(3))) if wall else np.nan
     if done.returncode != 0:
         log(f"FAILED ({done.returncode}): {' '.join(command)}\n{done.stdout[-1500:]}\n{done.stderr[-1500:]}")
-    return {"wall_s": seconds, "peak_rss_mb": int(rss.group(1)) / 1024 if rss else np.nan,
+    return {"wall_s": seconds, "cpu_s": cpu, "peak_rss_mb": int(rss.group(1)) / 1024 if rss else np.nan,
             "status": done.returncode, "load_start": start_load, "load_end": load()}  # fmt: skip
 
 
@@ -72,6 +81,7 @@ def summary(runs: list[dict]) -> dict:
     ok = [r for r in runs if r["status"] == 0]
     return {"runs": len(runs), "ok": len(ok), "median_wall_s": float(np.median([r["wall_s"] for r in ok])) if ok
             else None, "median_peak_rss_mb": float(np.median([r["peak_rss_mb"] for r in ok])) if ok else None,
+            "median_cpu_s": float(np.median([r["cpu_s"] for r in ok])) if ok else None,
             "walls_s": [r["wall_s"] for r in runs], "loads": [r["load_start"] for r in runs]}  # fmt: skip
 
 
@@ -136,6 +146,7 @@ def prepare(resolution: str, work: Path, max_points: int, sizes: list[int]) -> d
 # ------------------------------------------------------------------------------------------------ child
 def child(resolution_dir: str, cloud: str, repeats: int) -> None:
     """One scan size in a fresh process: per-scan timings, scan-step peak memory, accuracy. Prints one JSON line."""
+    from hood_decomp.core.scan import kernels
     from hood_decomp.core.scan.scan_field import field_from_scan, prepared_estimator
     from hood_decomp.io.bases import load_bases
     from hood_decomp.io.ply import read_scan
@@ -145,6 +156,7 @@ def child(resolution_dir: str, cloud: str, repeats: int) -> None:
     bases = load_bases(directory / "bases.h5")
     estimator = prepared_estimator(bases.skin)  # the prepared skin read from the file
     load_s = time.perf_counter() - t0
+    kernels.load()  # as the scan node does in its warm-up: the compiled path at every size (loaded at the first call)
     t0 = time.perf_counter()
     points = read_scan(cloud).points
     read_s = time.perf_counter() - t0
@@ -178,6 +190,66 @@ def child(resolution_dir: str, cloud: str, repeats: int) -> None:
     }))  # fmt: skip
 
 
+# What `hood-decomp estimate --bases B --scan S --json J` does (cli/estimate.py, cli/_common.py: read_fields), by
+# phase, in a fresh interpreter (python -c): nothing is imported before the first mark.
+PHASES_SCRIPT = """
+import time
+wall, cpu, out = time.perf_counter(), time.process_time(), {}
+def mark(name):
+    global wall, cpu
+    out[name] = [time.perf_counter() - wall, time.process_time() - cpu]
+    wall, cpu = time.perf_counter(), time.process_time()
+import json, sys
+from pathlib import Path
+from hood_decomp.cli import estimate as verb
+from hood_decomp.cli._common import write_json
+from hood_decomp.core.method.bases import estimate_field
+from hood_decomp.core.scan.fusion import fuse_views
+from hood_decomp.core.scan.scan_field import prepared_estimator
+from hood_decomp.io.bases import load_bases
+from hood_decomp.io.scans import scan_file_view
+mark("imports")
+bases = load_bases(sys.argv[1])
+mark("bases")
+prepared_estimator(bases.skin)
+mark("prepared_skin")
+view = scan_file_view(sys.argv[2])
+mark("read_ply")
+field = fuse_views(bases.skin, [view], min_coverage=0.0, min_view_coverage=0.0).field
+mark("scan_path")
+estimate = estimate_field(bases, field, "contact", 0.0, 0.0)
+mark("estimate")
+payload = verb.estimate_payload(estimate, bases.pca.n_bilateral_)
+payload.update(verb.bases_provenance(bases))
+write_json(Path(sys.argv[3]), payload)
+mark("json")
+print("PHASES", json.dumps({**out, "numba_loaded": "numba" in sys.modules}))
+"""
+
+
+def cold_phases(bases: Path, cloud: str, out: Path, repeats: int, env: dict[str, str] | None = None) -> dict:
+    """Median wall and CPU s per phase of :data:`PHASES_SCRIPT` over ``repeats`` fresh processes."""
+    runs = []
+    for _ in range(repeats):
+        done = subprocess.run([sys.executable, "-c", PHASES_SCRIPT, str(bases), cloud, str(out)], capture_output=True,
+                              text=True, timeout=3600, env={**os.environ, **(env or {})})  # fmt: skip
+        if done.returncode != 0:
+            log(f"phases FAILED: {done.stderr[-1500:]}")
+            continue
+        line = next(row for row in done.stdout.splitlines() if row.startswith("PHASES "))
+        runs.append(json.loads(line[len("PHASES "):]))
+    if not runs:
+        return {}
+    names = [name for name in runs[0] if name != "numba_loaded"]
+    result = {name: {"wall_s": float(np.median([r[name][0] for r in runs])),
+                     "cpu_s": float(np.median([r[name][1] for r in runs]))} for name in names}  # fmt: skip
+    result["total"] = {kind: float(np.median([sum(r[n][k] for n in names) for r in runs]))
+                       for k, kind in enumerate(("wall_s", "cpu_s"))}  # fmt: skip
+    result["numba_loaded"] = runs[0]["numba_loaded"]
+    result["runs"] = len(runs)
+    return result
+
+
 # ------------------------------------------------------------------------------------------------ main
 def cloudcompare(cloud: str, mesh: str, out: str, cap: bool) -> list[str]:
     return [CLOUDCOMPARE, "-SILENT", "-AUTO_SAVE", "OFF", "-C_EXPORT_FMT", "PLY", "-O", cloud, "-O", mesh,
@@ -185,38 +257,64 @@ def cloudcompare(cloud: str, mesh: str, out: str, cap: bool) -> list[str]:
 
 
 def linear_fit(points: np.ndarray, seconds: np.ndarray) -> dict:
-    b, a = np.polyfit(points, seconds, 1)
+    """a + b x points over the sizes from 1M on; marginal ns/point between neighbouring sizes, at the bottom (the two
+    smallest sizes >= 1M) and at the top (the two largest), and top / bottom."""
     order = np.argsort(points)
     p, t = points[order], seconds[order]
-    return {"a_s": float(a), "b_ns_per_point": float(b * 1e9),
-            "marginal_ns_per_point": {f"{int(p[k])}-{int(p[k + 1])}": float((t[k + 1] - t[k]) / (p[k + 1] - p[k]) * 1e9)
-                                      for k in range(len(p) - 1)}}  # fmt: skip
+    keep = p >= 1_000_000
+    p, t = (p[keep], t[keep]) if keep.sum() >= 2 else (p, t)
+    if p.size < 2:
+        return {}
+    b, a = np.polyfit(p, t, 1)
+    marginal = [(t[k + 1] - t[k]) / (p[k + 1] - p[k]) * 1e9 for k in range(p.size - 1)]
+    return {"a_s": float(a), "b_ns_per_point": float(b * 1e9), "sizes": [int(x) for x in p],
+            "marginal_ns_per_point": {f"{int(p[k])}-{int(p[k + 1])}": float(m) for k, m in enumerate(marginal)},
+            "marginal_bottom_ns": float(marginal[0]), "marginal_top_ns": float(marginal[-1]),
+            "top_over_bottom": float(marginal[-1] / marginal[0]) if marginal[0] > 0 else None}  # fmt: skip
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--uncapped-repeats", type=int, default=3, help="runs of uncapped CloudCompare at >= 5M")
-    parser.add_argument("--sizes", default="1e5,1e6,5e6,1e7")
+    parser.add_argument("--sizes", default="1e5,1e6,2e6,5e6,1e7")
+    parser.add_argument("--f2f-sizes", default="1e6,5e6", help="sizes of the file-to-file, cold-phase and "
+                        "CloudCompare runs (the per-scan runs take every size)")
     parser.add_argument("--resolutions", default="default,paper")
     parser.add_argument("--no-cloudcompare", action="store_true")
+    parser.add_argument("--quick", action="store_true", help="a short check: default resolution, 1e5 and 1e6 "
+                        "points, 2 repeats, 1 uncapped CloudCompare run")
     parser.add_argument("--work", default=None, help="work directory (default: a temporary one, removed)")
     parser.add_argument("--child", nargs=2, metavar=("RESOLUTION_DIR", "CLOUD"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
         child(*args.child, args.repeats)
         return 0
+    if args.quick:
+        args.resolutions, args.sizes, args.f2f_sizes = "default", "1e5,1e6", "1e6"
+        args.repeats, args.uncapped_repeats = 2, 1
     sizes = [int(float(s)) for s in args.sizes.split(",")]
+    f2f_sizes = {int(float(s)) for s in args.f2f_sizes.split(",")} & set(sizes)
     work = Path(args.work or tempfile.mkdtemp(prefix="bench_scan_"))
     have_cc = not args.no_cloudcompare and shutil.which(CLOUDCOMPARE) is not None
     results: dict = {"date": time.strftime("%Y-%m-%d %H:%M"), "cpus": os.cpu_count(), "sizes": sizes,
-                     "load_at_start": load(), "resolutions": {}}  # fmt: skip
+                     "f2f_sizes": sorted(f2f_sizes), "repeats": args.repeats, "load_at_start": load(),
+                     "resolutions": {}}  # fmt: skip
     hood = [shutil.which("hood-decomp")] if shutil.which("hood-decomp") else [sys.executable, "-m", "hood_decomp.cli"]
-    rows = []
+    out_dir = ROOT / "benchmarks" / "out"
+    out_dir.mkdir(exist_ok=True)
+    rows, f2f_rows = [], []
     try:
         for resolution in args.resolutions.split(","):
-            info = prepare(resolution, work, max(sizes), sizes)
             directory = work / resolution
+            if args.work and (directory / "bases.h5").exists() and all(
+                    (directory / f"cloud_{s}.ply").exists() for s in sizes):  # fmt: skip
+                info = json.loads((directory / "info.json").read_text())  # reuse a prepared work directory
+                info["clouds"] = {int(k): v for k, v in info["clouds"].items()}
+            else:
+                info = prepare(resolution, work, max(sizes), sizes)
+                (directory / "info.json").write_text(json.dumps(info, default=str))
+            bases = directory / "bases.h5"
             per_size = {}
             for size in sizes:
                 cloud = info["clouds"][size]["path"]
@@ -224,54 +322,90 @@ def main() -> int:
                 entry: dict = {"points": n}
                 done = subprocess.run([sys.executable, __file__, "--repeats", str(args.repeats), "--child",
                                        str(directory), cloud], capture_output=True, text=True, check=True)  # fmt: skip
-                entry["per_scan"] = json.loads(done.stdout.strip().splitlines()[-1])
-                estimate = [*hood, "estimate", "--bases", str(directory / "bases.h5"), "--scan", cloud,
-                            "--min-coverage", "0", "--json", str(directory / "estimate.json")]  # fmt: skip
-                entry["file_to_file"] = summary([timed_process(estimate) for _ in range(args.repeats)])
-                if have_cc:
-                    out = str(directory / "cc_out.ply")
-                    env = {"QT_QPA_PLATFORM": "offscreen"}
-                    for cap in (True, False):
-                        count = args.repeats if cap or size < 5_000_000 else args.uncapped_repeats
-                        runs = [timed_process(cloudcompare(cloud, str(directory / "mesh.ply"), out, cap), env)
-                                for _ in range(count)]  # fmt: skip
-                        entry["cloudcompare_capped" if cap else "cloudcompare_uncapped"] = summary(runs)
-                    Path(out).unlink(missing_ok=True)
+                entry["per_scan"] = ps = json.loads(done.stdout.strip().splitlines()[-1])
+                rows.append((resolution, n, ps["median_s"], ps["first_s"], ps["scan_peak_rss_mb"], ps["rms_error_mm"],
+                             ps["coverage"], float(np.median(ps["loads"]))))  # fmt: skip
+                log(f"{resolution} {n:,}: per scan {ps['median_s']:.3f} s (load {load()})")
+                if size in f2f_sizes:
+                    estimate = [*hood, "estimate", "--bases", str(bases), "--scan", cloud, "--min-coverage", "0",
+                                "--json", str(directory / "estimate.json")]  # fmt: skip
+                    runs, cc_runs, cc_u_runs = [], [], []
+                    cc_out = str(directory / "cc_out.ply")
+                    cc_env = {"QT_QPA_PLATFORM": "offscreen"}
+                    for k in range(args.repeats):  # interleaved run by run: both see the same load
+                        runs.append(timed_process(estimate))
+                        if have_cc:
+                            cc_runs.append(timed_process(cloudcompare(cloud, str(directory / "mesh.ply"), cc_out,
+                                                                      True), cc_env))  # fmt: skip
+                            if k < (args.repeats if size < 5_000_000 else args.uncapped_repeats):
+                                cc_u_runs.append(timed_process(cloudcompare(cloud, str(directory / "mesh.ply"), cc_out,
+                                                                            False), cc_env))  # fmt: skip
+                    Path(cc_out).unlink(missing_ok=True)
+                    entry["file_to_file"] = ff = summary(runs)
+                    if have_cc:
+                        entry["cloudcompare_capped"] = summary(cc_runs)
+                        entry["cloudcompare_uncapped"] = summary(cc_u_runs)
+                    entry["cold_phases"] = cold_phases(bases, cloud, directory / "phases.json", args.repeats)
+                    cc = entry.get("cloudcompare_capped", {}).get("median_wall_s")
+                    ccu = entry.get("cloudcompare_uncapped", {}).get("median_wall_s")
+                    f2f_rows.append((resolution, n, ff["median_wall_s"], ff["median_peak_rss_mb"], cc,
+                                     entry.get("cloudcompare_capped", {}).get("median_peak_rss_mb"), ccu,
+                                     float(np.median(ff["loads"])) if ff["loads"] else None, entry["cold_phases"],
+                                     ff["median_cpu_s"], entry.get("cloudcompare_capped", {}).get("median_cpu_s")))
+                    log(f"{resolution} {n:,}: file to file {ff['median_wall_s']} s, CC capped {cc}, uncapped {ccu} "
+                        f"(load {load()})")
                 per_size[size] = entry
-                ps, ff = entry["per_scan"], entry["file_to_file"]
-                cc = entry.get("cloudcompare_capped", {}).get("median_wall_s")
-                ccu = entry.get("cloudcompare_uncapped", {}).get("median_wall_s")
-                rows.append((resolution, n, ps["median_s"], ps["first_s"], ps["scan_peak_rss_mb"],
-                             ff["median_wall_s"], ff["median_peak_rss_mb"], cc, ccu, ps["rms_error_mm"],
-                             float(np.median(ps["loads"]))))  # fmt: skip
-                log(f"{resolution} {n:,}: per scan {ps['median_s']:.3f} s, file to file {ff['median_wall_s']:.2f} s, "
-                    f"CC capped {cc}, uncapped {ccu} (load {load()})")
             points = np.array([per_size[s]["points"] for s in sizes], dtype=float)
             info["fit"] = linear_fit(points, np.array([per_size[s]["per_scan"]["median_s"] for s in sizes]))
+            top = per_size[max(sizes)]["per_scan"]
+            info["linearity"] = {**info["fit"], "scan_peak_rss_mb_at_largest": top["scan_peak_rss_mb"],
+                                 "largest_points": top["points"]}  # fmt: skip
             info["sizes"] = per_size
             results["resolutions"][resolution] = info
-            out_dir = ROOT / "benchmarks" / "out"
-            out_dir.mkdir(exist_ok=True)
             (out_dir / "bench_scan.json").write_text(json.dumps(results, indent=1, default=str))
     finally:
         if args.work is None:
             shutil.rmtree(work, ignore_errors=True)
     results["load_at_end"] = load()
-    (ROOT / "benchmarks" / "out" / "bench_scan.json").write_text(json.dumps(results, indent=1, default=str))
+    (out_dir / "bench_scan.json").write_text(json.dumps(results, indent=1, default=str))
 
     def show(value: float | None, fmt: str) -> str:
         return "-" if value is None or not np.isfinite(value) else format(value, fmt)
 
-    print(f"{'resolution':<10} {'points':>11} {'scan s':>7} {'first s':>7} {'scan MB':>7} {'f2f s':>6} {'f2f MB':>6} "
-          f"{'CC5 s':>6} {'CC s':>7} {'RMS mm':>7} {'load':>5}")
+    print("Per scan (prepared skin loaded, compiled path as in a node; median of the repeats after a first call, "
+          "which loads numba):")
+    print(f"{'resolution':<10} {'points':>11} {'scan s':>7} {'first s':>7} {'scan MB':>7} {'RMS mm':>7} {'cover':>6} "
+          f"{'load':>5}")
     for r in rows:
         print(f"{r[0]:<10} {r[1]:>11,} {show(r[2], '.3f'):>7} {show(r[3], '.3f'):>7} {show(r[4], '.0f'):>7} "
-              f"{show(r[5], '.2f'):>6} {show(r[6], '.0f'):>6} {show(r[7], '.2f'):>6} {show(r[8], '.2f'):>7} "
-              f"{show(r[9], '.4f'):>7} {r[10]:>5}")
+              f"{show(r[5], '.4f'):>7} {show(r[6], '.3f'):>6} {r[7]:>5}")
+    print("\nFile to file, fresh processes (median wall s / CPU s / peak MB), CloudCompare C2M with -MAX_DIST 5 and "
+          "without (wall s); faster by wall time:")
+    print(f"{'resolution':<10} {'points':>11} {'hood-decomp':>20} {'CC -MAX_DIST 5':>20} {'CC uncapped':>11} "
+          f"{'faster':>22} {'load':>5}")
+    for r in f2f_rows:
+        verdict = "-" if r[2] is None or r[4] is None else (
+            f"hood-decomp {r[4] / r[2]:.2f} x" if r[2] < r[4] else f"CloudCompare {r[2] / r[4]:.2f} x")
+        print(f"{r[0]:<10} {r[1]:>11,} {show(r[2], '.2f'):>6} / {show(r[9], '.2f'):>5} / {show(r[3], '.0f'):>4} "
+              f"{show(r[4], '.2f'):>6} / {show(r[10], '.2f'):>5} / {show(r[5], '.0f'):>4} {show(r[6], '.2f'):>11} "
+              f"{verdict:>22} {show(r[7], '.1f'):>5}")
+    print("\nCold `estimate --scan` by phase (fresh process, median wall s / CPU s):")
+    for r in f2f_rows:
+        phases = r[8]
+        if phases:
+            text = ", ".join(f"{name} {v['wall_s']:.2f}/{v['cpu_s']:.2f}" for name, v in phases.items()
+                             if isinstance(v, dict))  # fmt: skip
+            print(f"{r[0]:<10} {r[1]:>11,}: {text}; numba loaded: {phases['numba_loaded']}")
     for resolution, info in results["resolutions"].items():
-        fit = info["fit"]
-        print(f"{resolution}: prepare skin {info['prepare_skin_s']:.2f} s; per scan = {fit['a_s'] * 1e3:.1f} ms + "
-              f"{fit['b_ns_per_point']:.1f} ns x points; marginal ns/point {fit['marginal_ns_per_point']}")
+        fit = info["linearity"]
+        if not fit.get("sizes"):
+            continue
+        ratio = fit["top_over_bottom"]
+        print(f"{resolution}: prepare skin {info['prepare_skin_s']:.2f} s; per scan over {fit['sizes']} points = "
+              f"{fit['a_s'] * 1e3:.1f} ms + {fit['b_ns_per_point']:.1f} ns x points; marginal "
+              f"{fit['marginal_bottom_ns']:.1f} ns/point at the bottom, {fit['marginal_top_ns']:.1f} at the top "
+              f"(ratio {show(ratio, '.2f')}, target <= 1.15); scan-step peak "
+              f"{fit['scan_peak_rss_mb_at_largest']:.0f} MB at {fit['largest_points']:,} points (target < 1024)")
     return 0
 
 

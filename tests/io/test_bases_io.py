@@ -49,6 +49,31 @@ def test_round_trip_keeps_every_array_and_result(saved):
     np.testing.assert_allclose(shares, [e.share for e in decompose_field(bases, field_of(skin, values)).effects])
 
 
+
+def test_loaded_bases_report_the_id_their_content_has(saved):
+    """Fails if the id `estimate` reports for loaded bases (remembered from the load's check, not hashed again) is not
+    the file's bases_id and the fingerprint of the content, or if another Bases object (calibrated, replaced) is
+    given the remembered id instead of its own."""
+    from hood_decomp.io.bases import bases_id, loaded_bases_id
+
+    _, _, bases, path = saved
+    loaded = load_bases(path)
+    with h5py.File(path, "r") as h5:
+        stored = h5.attrs["bases_id"]
+    assert loaded_bases_id(loaded) == stored == bases_id(loaded) == bases_id(bases)
+    other = replace(loaded, calibration='{"id": "x"}')
+    assert loaded_bases_id(other) == bases_id(other) != stored
+
+
+def test_float_arrays_are_stored_plain_and_indices_packed(saved):
+    """Fails if float arrays are gzip-compressed again (inflating them cost more than half of a one-off
+    `estimate --scan`'s file reading at paper resolution) or the scan skin's integer arrays are stored unpacked."""
+    _, _, _, path = saved
+    with h5py.File(path, "r") as h5:
+        assert h5["pca/components_3d"].compression is None and h5["scan_skin/kernel_data"].compression is None
+        assert h5["scan_skin/grid_table"].compression == "gzip"
+        assert h5["scan_skin/kernel_indices"].compression == "gzip"
+
 def test_file_holds_no_python_objects(saved):
     _, _, _, path = saved
     with h5py.File(path, "r") as h5:

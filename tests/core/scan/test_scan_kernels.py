@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -31,6 +34,12 @@ def scan_points(skin) -> np.ndarray:
     points = scan.points @ scan.true_transform[:3, :3].T + scan.true_transform[:3, 3]
     points[::997] = np.nan
     return points
+
+
+def _in_a_fresh_interpreter(script: str) -> None:
+    """Run ``script`` with ``python -c`` (the repository on the path); asserts it exits 0."""
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
 
 
 def _weighted_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float, float]:
@@ -142,10 +151,7 @@ def test_warm_up_leaves_the_estimator_unchanged(skin, scan_points):
 def test_first_compiled_use_from_many_threads_at_once():
     """Fails if the first use of the compiled kernels from several threads at once (a node's first scan runs in
     threads) compiles them twice and raises (a fresh interpreter, eight threads released together)."""
-    import subprocess
-    import sys
-
-    script = (
+    _in_a_fresh_interpreter(
         "import threading\n"
         "from hood_decomp.core.scan import kernels\n"
         "barrier = threading.Barrier(8)\n"
@@ -161,5 +167,23 @@ def test_first_compiled_use_from_many_threads_at_once():
         "[t.join() for t in threads]\n"
         "assert not errors, errors\n"
     )
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr[-2000:]
+
+
+@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed: only the numpy path exists")
+def test_a_fresh_process_loads_numba_for_large_scans_and_after_a_warm_up_only():
+    """Fails if a fresh process loads numba for a scan below COMPILED_MIN_POINTS (a one-off run pays ~0.6 s of CPU
+    for nothing), if a scan at the threshold does not take the compiled path, or if a node's warm-up leaves later
+    small scans on the numpy path (the node would then serve them about 3 times slower)."""
+    _in_a_fresh_interpreter(
+        "import sys\n"
+        "from hood_decomp.core.scan import kernels\n"
+        "from hood_decomp.core.scan.scan_field import ScanFieldEstimator, warm_up\n"
+        "from tests.skins import crowned_patch\n"
+        "estimator = ScanFieldEstimator().fit(crowned_patch(21, 17))\n"
+        "estimator.field(estimator.points_ + 0.01 * estimator.frames_[:, 2])\n"
+        "assert 'numba' not in sys.modules, 'a small scan loaded numba'\n"
+        "assert not kernels.for_points(kernels.COMPILED_MIN_POINTS - 1)\n"
+        "assert kernels.for_points(kernels.COMPILED_MIN_POINTS)\n"
+        "warm_up(estimator, points=20_000)\n"
+        "assert 'numba' in sys.modules and kernels.for_points(10), 'the warm-up did not load the compiled path'\n"
+    )

@@ -62,10 +62,10 @@ def bases_provenance(bases) -> dict:
     bases, else the calibration's id, entries and leave-one-out RMS, mm)."""
     import json
 
-    from hood_decomp.io.bases import bases_id
+    from hood_decomp.io.bases import loaded_bases_id
 
     record = json.loads(bases.calibration) if bases.calibration else None
-    return {"bases_id": bases_id(bases), "calibration": None if record is None else {
+    return {"bases_id": loaded_bases_id(bases), "calibration": None if record is None else {
         "id": record["id"], "entries": [e["name"] for e in record["entries"]], "loo_rms_mm": record["loo_rms_mm"]}}
 
 

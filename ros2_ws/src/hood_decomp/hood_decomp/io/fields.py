@@ -13,13 +13,16 @@ data.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 from xml.sax.saxutils import escape
 
-import meshio
 import numpy as np
 
 from hood_decomp.core.types import DisplacementField, FieldErrorModel, SkinSurface
 from hood_decomp.errors import FieldError, HoodDecompError
+
+if TYPE_CHECKING:  # meshio is imported where a .vtu is read or written: a scan's verb never loads it
+    import meshio
 
 
 def _ascii_codes(text: str) -> np.ndarray:
@@ -97,6 +100,8 @@ def write_field(
         raise FieldError(f"displacement has shape {vectors.shape}, expected ({skin.n_nodes}, 3)")
     field.errors.validate(skin.n_nodes)
     error_points, error_data = _error_model_items(field.errors)
+    import meshio
+
     mesh = meshio.Mesh(
         skin.points,
         [("triangle", np.asarray(skin.triangles))],
@@ -186,6 +191,8 @@ def read_vtu(path: Path, error: type[HoodDecompError]) -> meshio.Mesh:
     """meshio's .vtu reader with every failure as ``error`` naming the file. Its format reader is called directly:
     ``meshio.read`` prints the reader's error on stdout and ends the process with ``sys.exit(1)`` for a file it
     cannot read, which would bypass the command line's one-line errors."""
+    import meshio
+
     try:
         return meshio.vtu.read(str(path))
     except (Exception, SystemExit) as failure:  # any failure of a foreign reader means a bad file

@@ -56,12 +56,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2, f
 
 from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solve_members
 from hood_decomp.core.loop.candidates import CandidateFields, augment_reduced
 from hood_decomp.core.method.bases import Bases, analyse_estimate, build_bases, estimate_field, fitted_unknowns
 from hood_decomp.core.method.contact_estimation import ContactEstimator
+from hood_decomp.core.method.distributions import chi2_isf, f_sf
 from hood_decomp.core.method.estimation import DEFAULT_MIN_COVERAGE
 from hood_decomp.core.method.residual import (
     DEFAULT_ALPHA,
@@ -309,7 +309,7 @@ def trace_effect(
         reduction = max(float(weights @ (rss0 - rss)), 0.0)
         variance = max(float(weights @ rss) / dof1, 1e-300)
         statistic = reduction / q / variance
-        p_value = float(f.sf(statistic, q, dof1))
+        p_value = float(f_sf(statistic, q, dof1))
         scores.append(CandidateScore(
             name=name, kind=candidate.kind, unit=candidate.unit, description=candidate.description, rss_mm2=rss,
             weighted_rss=float(weights @ rss), explained=reduction / excess if excess > 0 else 0.0,
@@ -320,7 +320,7 @@ def trace_effect(
     significant = best.p_adjusted < alpha
     variance = max(best.weighted_rss / dof1, 1e-300)
     decisiveness = (scores[1].weighted_rss - best.weighted_rss) / variance if len(scores) > 1 else np.inf
-    threshold = float(chi2.isf(alpha, q))
+    threshold = float(chi2_isf(alpha, q))
     decisive = decisiveness > threshold
     _, within_after = _decide(rows[0][2], alpha)
     runner = scores[1].name if len(scores) > 1 else "-"
@@ -384,7 +384,7 @@ def _trace_pairs(
         fitted.append((PairScore(
             names=(first.name, second.name), rss_mm2=rss, weighted_rss=weighted,
             explained=float(weights @ (rss0 - rss)) / excess if excess > 0 else 0.0, f_statistic=statistic,
-            p_adjusted=min(1.0, float(f.sf(statistic, q, dof2)) * n_pairs),
+            p_adjusted=min(1.0, float(f_sf(statistic, q, dof2)) * n_pairs),
             within_after=_decide(estimates, alpha)[1], values=values, std=std,
         ), estimates))
         logger.info("trace pair %s + %s: weighted RSS %.1f", first.name, second.name, weighted)
@@ -393,7 +393,7 @@ def _trace_pairs(
     best = pairs[0]
     variance = max(best.weighted_rss / dof2, 1e-300)
     ratio = (pairs[1].weighted_rss - best.weighted_rss) / variance if len(pairs) > 1 else np.inf
-    threshold = float(chi2.isf(alpha, q))
+    threshold = float(chi2_isf(alpha, q))
     label = f"{best.names[0]} + {best.names[1]}"
     if best.within_after and best.p_adjusted < alpha and ratio > threshold:
         return pairs, fitted[0], (f"no single candidate brings the fields within the model; {label} together do "

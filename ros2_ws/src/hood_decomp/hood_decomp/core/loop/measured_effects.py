@@ -41,12 +41,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.stats import chi2
 
 from hood_decomp.core.fe.ensemble import solve_members
 from hood_decomp.core.loop.candidates import Candidate, CandidateFields, augment_reduced
 from hood_decomp.core.loop.close_loop import effect_range, extend_ensemble
 from hood_decomp.core.method.bases import Bases, build_bases
+from hood_decomp.core.method.distributions import chi2_sf
 from hood_decomp.core.method.residual import DEFAULT_ALPHA, skin_adjacency
 from hood_decomp.core.types import BoundaryCorrection, DisplacementField, Ensemble
 from hood_decomp.errors import FieldError
@@ -294,7 +294,7 @@ def analyse_recurring(
         u = leading_mode(y[learn], seen[learn])
         a, s = _fit(y[judge], seen[judge], u)
         statistic = float(np.nansum((a / s) ** 2))
-        p_value = float(chi2.sf(statistic, judge.size))
+        p_value = float(chi2_sf(statistic, judge.size))
         present = np.abs(a / s) > PRESENT_Z
         logger.info("recurring mode %d: chi2 %.1f over %d judging parts (p %.3g), present in %d", k + 1, statistic,
                     judge.size, p_value, int(present.sum()))
@@ -349,7 +349,7 @@ def analyse_recurring(
         residuals[parts] = fit.after
         y = np.where(seen, residuals, 0.0) / noise[:, None]
         excess = np.nansum(y**2, axis=1) - seen.sum(axis=1)
-        still = chi2.sf(np.nansum(y**2, axis=1), seen.sum(axis=1)) < alpha
+        still = chi2_sf(np.nansum(y**2, axis=1), seen.sum(axis=1)) < alpha
         active = np.flatnonzero(still & (excess > 0))
     if not modes:
         message = "no recurring residual mode beyond noise: nothing to add"

@@ -13,7 +13,6 @@ does not support turns round-off into parameter states of size 1e13.
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg
 
 from hood_decomp.core.types import Ensemble
 from hood_decomp.errors import BasisError
@@ -71,6 +70,8 @@ class PCABasis:
         # component count only the leading eigenpairs are computed (at least CURVE_LENGTH, for the Fig. 8 curve);
         # the total variance is the trace, so the ratios stay exact.
         gram = xc @ xc.T
+        import scipy.linalg  # fitting only: a verb that loads fitted bases does not pay its import
+
         total = float(np.trace(gram))
         if self.n_components is not None and self.n_components + 1 < m:
             count = min(m, max(self.n_components + 1, CURVE_LENGTH))

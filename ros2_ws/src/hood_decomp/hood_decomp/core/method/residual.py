@@ -25,10 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
-from scipy.stats import chi2, f, norm
-from scipy.stats import t as student_t
 
+from hood_decomp.core.method.distributions import chi2_sf, f_sf, norm_isf, t_sf
 from hood_decomp.core.types import FieldErrorModel, ModelCheck, SkinSurface
 from hood_decomp.errors import FieldError
 
@@ -99,7 +97,7 @@ class ResidualAnalysis:
 
 def chi2_within(sum_scaled: float, dof: int, alpha: float) -> tuple[float, bool]:
     """Upper-tail p-value of a chi-square statistic ``sum_scaled`` with ``dof`` degrees of freedom, and p >= alpha."""
-    p_value = float(chi2.sf(sum_scaled, max(dof, 1)))
+    p_value = float(chi2_sf(sum_scaled, max(dof, 1)))
     return p_value, p_value >= alpha
 
 
@@ -151,6 +149,8 @@ def find_regions(skin: SkinSurface, residual: np.ndarray, sigma: float, z: float
         return ()
     index = np.flatnonzero(exceeding)
     sub = adjacency[index][:, index]
+    from scipy.sparse.csgraph import connected_components  # loads scipy.linalg: only where a region is
+
     n_regions, labels = connected_components(sub, directed=False)
     areas = _nodal_areas(skin)
     regions = []
@@ -216,7 +216,7 @@ def analyse_residual(
     p_value, within = chi2_within(statistic, dof, alpha)
     if check is not None:
         p_value, within, alpha = check.p_value, check.within_model, check.alpha
-    z = float(norm.isf(alpha / (2.0 * n_seen)))
+    z = float(norm_isf(alpha / (2.0 * n_seen)))
     return ResidualAnalysis(
         residual=residual, rms_mm=float(np.sqrt(np.mean(r**2))), max_mm=float(np.max(np.abs(r))),
         mean_mm=float(np.mean(r)), n_seen=n_seen, n_params=int(n_params), noise_mm=sigma, noise_source=source,
@@ -351,13 +351,13 @@ def check_residual(
     if c.size == 0:
         if errors.kind == "none":
             return ModelCheck(0.0, 0, nu, 1.0, float(alpha), True, scale, source, n_effective, bias)
-        p_value = float(chi2.sf(scale * nu, nu))
+        p_value = float(chi2_sf(scale * nu, nu))
         return ModelCheck(scale * nu, 0, nu, p_value, float(alpha), p_value >= alpha, scale, source, n_effective,
                           bias)
     covariance = noise * smooth_cov + (model2 + bias) * np.eye(c.size) + projected @ projected.T
     statistic = float(c @ np.linalg.solve(covariance, c))
     m = c.size
-    p_value = float(f.sf(statistic / m, m, nu))
+    p_value = float(f_sf(statistic / m, m, nu))
     if rings is not None and errors.bias_correlation <= 0:
         node_variance_mm2 = np.zeros(residual.size)
         node_variance_mm2[seen] = np.maximum(noise * weight + model2, LOCAL_FLOOR_MM2)
@@ -387,7 +387,7 @@ def local_p_value(rings: sp.csr_matrix, residual: np.ndarray, variance_mm2: np.n
     if not usable.any():
         return 1.0
     z = np.abs(total[usable]) / np.sqrt(spread[usable])
-    return float(min(1.0, 2.0 * usable.sum() * student_t.sf(z.max(), nu)))
+    return float(min(1.0, 2.0 * usable.sum() * t_sf(z.max(), nu)))
 
 
 def split_level(scale: float, errors: FieldErrorModel, mean_variance: float) -> tuple[float, float]:
@@ -407,7 +407,7 @@ class ResidualTest:
     """The within-model test of :func:`check_residual` on one skin, prepared once (its smooth modes).
 
     alpha: false-alarm rate; degree: total degree of the smooth modes. ``fit(skin)`` -> self; fitted: modes_ (N, M),
-    points_, normals_ (N, 3), rings_ (N, N) the one-ring incidence. ``check(...)`` judges one residual.
+    points_, normals_ (N, 3), skin_; :meth:`rings` the one-ring incidence. ``check(...)`` judges one residual.
     """
 
     def __init__(self, alpha: float = DEFAULT_ALPHA, degree: int = DEFAULT_SMOOTH_DEGREE):
@@ -418,8 +418,17 @@ class ResidualTest:
         self.points_ = np.asarray(skin.points, float)
         self.normals_ = np.asarray(skin.normals, float)
         self.modes_ = smooth_modes(self.points_, self.degree)
-        self.rings_ = ring_incidence(skin)
+        self.skin_ = skin
+        self._rings: sp.csr_matrix | None = None
         return self
+
+    def rings(self) -> sp.csr_matrix:
+        """(N, N) the skin's one-ring incidence (:func:`ring_incidence`), built at the first check that uses it: only
+        a field without a bias correlation takes the local test; a scan's field never does, and building it costs a
+        one-off `estimate --scan` 0.06-0.12 s of CPU at paper resolution (2.3 M entries)."""
+        if self._rings is None:
+            self._rings = ring_incidence(self.skin_)
+        return self._rings
 
     def registration(self, errors: FieldErrorModel) -> np.ndarray | None:
         """(N, 6) field error per unit pose error of ``errors`` on this skin, None without a registration."""
@@ -428,5 +437,6 @@ class ResidualTest:
     def check(self, residual: np.ndarray, design: np.ndarray | None, errors: FieldErrorModel,
               model_mm: float = 0.0) -> ModelCheck:
         """:func:`check_residual` with this skin's modes and registration modes and this test's alpha."""
+        rings = self.rings() if errors.bias_correlation <= 0 else None  # check_residual's local test needs it then
         return check_residual(residual, design, errors, self.modes_, self.registration(errors), model_mm, self.alpha,
-                              self.rings_)
+                              rings)

@@ -3,6 +3,12 @@
 Both paths do the same arithmetic in the same order (float64 throughout, the located u, v, d stored as float32 and
 the cell sums taken of those stored values), so they give the same field to rounding (test: 1e-9 mm). The numpy
 path is chosen with ``HOOD_DECOMP_PURE_NUMPY=1`` or when numba is missing; :func:`use_compiled` switches at run time.
+By default (``use_compiled(None)``) a scan takes the compiled path when the kernels are loaded in this process
+already (:func:`load`: a node's warm-up) or when it has at least ``COMPILED_MIN_POINTS`` points (:func:`for_points`).
+In a fresh process (a one-off ``estimate --scan``) numba costs about 0.3 s of CPU to import and load its cache and
+another 0.3 s at exit (LLVM's teardown); the numpy path costs about 0.45 s of CPU more per million points, in
+threads that share the GIL where the compiled loops do not. Whole one-off runs measured (benchmarks/RESULTS.md,
+issue 19): at 1 M points the numpy path took 0.3-0.5 s less CPU, at 5 M the two were even.
 
 Per point (:func:`locate_block`): grid coordinates from one affine map, the cell's node, the offset in the node's
 frame, the quadric distance, the gates; the points that pass are written to preallocated block buffers and (when
@@ -23,22 +29,45 @@ import numpy as np
 HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 #: points per block: a block's temporaries (about 20 float64 columns) stay within a few MB of cache
 BLOCK_POINTS = 131_072
-_COMPILED = HAVE_NUMBA and os.environ.get("HOOD_DECOMP_PURE_NUMPY", "") not in ("1", "true", "yes")
+#: a scan of at least this many points loads the compiled kernels when they are not loaded yet (module docstring)
+COMPILED_MIN_POINTS = 2_000_000
+#: True: compiled path, False: numpy path, None: by size (:func:`for_points`)
+_MODE: bool | None = None if HAVE_NUMBA and os.environ.get("HOOD_DECOMP_PURE_NUMPY", "") not in ("1", "true",
+                                                                                                 "yes") else False
 _JIT: dict[str, object] = {}
 _JIT_LOCK = threading.Lock()
 
 
-def use_compiled(enabled: bool) -> bool:
-    """Select the compiled (True, if numba is installed) or the numpy path; returns the previous choice."""
-    global _COMPILED
-    previous = _COMPILED
-    _COMPILED = bool(enabled) and HAVE_NUMBA
+def use_compiled(enabled: bool | None) -> bool | None:
+    """Select the compiled (True, if numba is installed) or the numpy path (False) for every scan, or the choice by
+    size (None, the default; :func:`for_points`); returns the previous setting."""
+    global _MODE
+    previous = _MODE
+    _MODE = None if enabled is None and HAVE_NUMBA else bool(enabled) and HAVE_NUMBA
     return previous
 
 
 def compiled() -> bool:
-    """Whether the compiled path is in use."""
-    return _COMPILED
+    """Whether the compiled path may be used (forced, or chosen by size)."""
+    return _MODE is not False
+
+
+def load() -> bool:
+    """Make the compiled path this process's choice for every later scan, whatever its size (for a long-lived
+    process: the scan node's warm-up): numba is imported and the loops prepared (read from numba's cache, or
+    compiled, at their first run). Returns False when the compiled path is switched off or numba is missing."""
+    if _MODE is False:
+        return False
+    _kernel("_locate_block_loop")
+    return True
+
+
+def for_points(points: int) -> bool:
+    """Whether a scan of ``points`` points takes the compiled path: as set by :func:`use_compiled`, else when the
+    compiled kernels are loaded already or ``points`` >= ``COMPILED_MIN_POINTS``."""
+    if _MODE is None:
+        return bool(_JIT) or points >= COMPILED_MIN_POINTS
+    return _MODE
 
 
 # --------------------------------------------------------------------------------------------------- numpy path
@@ -244,10 +273,10 @@ def _node_fits_loop(mixed, frames, tangent_quad, t1x, t2x, coef, weight, inflati
         inflation[i] = s0 * (c00 * inv_det)
 
 
-def _kernel(name: str):
-    """The compiled loop ``name`` when the compiled path is on (numba imported and the loops compiled, or loaded from
-    numba's cache, on first use), else the numpy function of the same job."""
-    if not _COMPILED:
+def _kernel(name: str, fast: bool = True):
+    """The compiled loop ``name`` when ``fast`` and the compiled path is not switched off (numba imported and the
+    loops compiled, or loaded from numba's cache, on first use), else the numpy function of the same job."""
+    if not fast or _MODE is False:
         return globals()[name.replace("_loop", "_numpy")]
     with _JIT_LOCK:  # the first scan's threads arrive here together
         if not _JIT:
@@ -266,7 +295,7 @@ def _kernel(name: str):
 def locate_block(points: np.ndarray, start: int, stop: int, affine: np.ndarray, hi: np.ndarray, strides: np.ndarray,
                  table: np.ndarray, cell_mm: float, nodes: np.ndarray, max_d: float,
                  out_row: np.ndarray, out_j: np.ndarray, out_u: np.ndarray, out_v: np.ndarray, out_d: np.ndarray,
-                 cells: np.ndarray | None) -> int:  # fmt: skip
+                 cells: np.ndarray | None, fast: bool = True) -> int:  # fmt: skip
     """Locate points[start:stop] (M, 3) mm; returns how many passed the gates.
 
     affine: (3, 4) map of a point to grid units (rotation, registration and cell size folded in); hi (3,) the last
@@ -274,35 +303,38 @@ def locate_block(points: np.ndarray, start: int, stop: int, affine: np.ndarray, 
     per node [position in grid units (3), t1, t2, n (9), quadric c0..c4 (5), squared tangential gate (1)];
     max_d: largest |distance|, mm. The passing points' rows (int64), nodes (int32), u, v, d (float32, mm) go to the
     first ``count`` entries of the out buffers (each at least stop - start long); with ``cells`` (N, 9) float64
-    their moments are added to it.
+    their moments are added to it. ``fast``: the compiled path where it is not switched off (all functions here).
     """
-    return int(_kernel("_locate_block_loop")(points, start, stop, affine, hi, strides, table, cell_mm, nodes, max_d,
-                   out_row, out_j, out_u, out_v, out_d, cells))  # fmt: skip
+    return int(_kernel("_locate_block_loop", fast)(points, start, stop, affine, hi, strides, table, cell_mm, nodes,
+                                                   max_d, out_row, out_j, out_u, out_v, out_d, cells))  # fmt: skip
 
 
-def add_moments(j: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, sign: float, cells: np.ndarray) -> None:
+def add_moments(j: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, sign: float, cells: np.ndarray,
+                fast: bool = True) -> None:
     """cells (N, 9) += sign * per-node sums of [1, u, v, uu, uv, vv, d, du, dv] of the points (K,) at nodes j."""
-    _kernel("_add_moments_loop")(j, u, v, d, float(sign), cells)
+    _kernel("_add_moments_loop", fast)(j, u, v, d, float(sign), cells)
 
 
-def plane_residuals(j: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, coef: np.ndarray) -> np.ndarray:
+def plane_residuals(j: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, coef: np.ndarray,
+                    fast: bool = True) -> np.ndarray:
     """Residuals (K,) float32 mm of the points (nodes j, u, v, d (K,)) from their own node's plane coef (N, 3)."""
     out = np.empty(j.size, np.float32)
-    _kernel("_plane_residuals_loop")(j, u, v, d, coef, out)
+    _kernel("_plane_residuals_loop", fast)(j, u, v, d, coef, out)
     return out
 
 
-def raw_moments(cells: np.ndarray, basis: np.ndarray, second: np.ndarray, rows: np.ndarray) -> np.ndarray:
+def raw_moments(cells: np.ndarray, basis: np.ndarray, second: np.ndarray, rows: np.ndarray,
+                fast: bool = True) -> np.ndarray:
     """Raw 3D moments (K, 14) of the cells ``rows`` (K,) from their sums (N, 9); see ScanFieldEstimator."""
-    return _kernel("_raw_moments_loop")(cells, basis, second, rows)
+    return _kernel("_raw_moments_loop", fast)(cells, basis, second, rows)
 
 
 def node_fits(mixed: np.ndarray, frames: np.ndarray, tangent_quad: np.ndarray, t1x: np.ndarray,
-              t2x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+              t2x: np.ndarray, fast: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """Per node the weighted plane fit from mixed raw moments (N, 14): coefficients (N, 3) [a mm, b_u, b_v], weight
     (N,) and intercept variance inflation (N,); the 3x3 normal equations solved in closed form (adjugate), NaN where
     singular."""
     n = mixed.shape[0]
     coef, weight, inflation = np.empty((n, 3)), np.empty(n), np.empty(n)
-    _kernel("_node_fits_loop")(mixed, frames, tangent_quad, t1x, t2x, coef, weight, inflation)
+    _kernel("_node_fits_loop", fast)(mixed, frames, tangent_quad, t1x, t2x, coef, weight, inflation)
     return coef, weight, inflation

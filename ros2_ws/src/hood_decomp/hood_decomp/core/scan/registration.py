@@ -29,7 +29,6 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
-from scipy.linalg import eigh
 
 from hood_decomp.errors import ScanError
 
@@ -298,6 +297,8 @@ def _fine_alignment(
         jacobian = np.column_stack([np.cross(current[use][inlier] - center, gradient), gradient])
         information = jacobian.T @ jacobian / sigma**2
         regularised = information + 1e-12 * np.trace(information) * np.eye(6)
+        from scipy.linalg import eigh  # the datum fine alignment only
+
         variance, directions = eigh(motion_metric, regularised)
         keep = variance <= tolerance**2
         basis = directions[:, keep]

@@ -233,12 +233,15 @@ class ScanFieldEstimator:
         self.node_table_ = np.column_stack([grid_position, self.frames_.reshape(n, 9), self.quadric_, self.gate2_])
         # Nodes within half the radius: a node needs scan points this close, or it sits in a gap of the scan and a
         # value there would be interpolated across the gap rather than measured.
-        near = self.kernel_.copy()
-        near.data = (near.data >= 0.75**2).astype(np.float64)
-        near.eliminate_zeros()
-        self.near_kernel_ = near
-        self.kernel_columns_ = self.kernel_.tocsc()  # for taking a few cells' outliers back out
-        self.kernel_squared_ = self.kernel_.multiply(self.kernel_).tocsr()  # for the node variances
+        # Both built on the kernel's own pattern (no copy of it, no general sparse product: these ran 0.5 s of a
+        # one-off run's preparation at paper resolution).
+        kernel = self.kernel_
+        near = kernel.data >= 0.75**2
+        kept = np.concatenate([[0], np.cumsum(near)])[kernel.indptr]
+        self.near_kernel_ = sp.csr_matrix((np.ones(kept[-1]), kernel.indices[near], kept), shape=(n, n))
+        self.kernel_columns_ = kernel.tocsc()  # for taking a few cells' outliers back out
+        self.kernel_squared_ = sp.csr_matrix((kernel.data * kernel.data, kernel.indices, kernel.indptr),
+                                             shape=(n, n))  # for the node variances
         return self
 
     def _prepare_moment_maps(self, x: np.ndarray, t1: np.ndarray, t2: np.ndarray) -> None:
@@ -250,16 +253,18 @@ class ScanFieldEstimator:
         """
         self.moment_basis_ = np.stack([x, t1, t2], axis=1)  # (N, 3, 3)
 
-        def sym(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-            """Upper triangle (N, 6) of a b^T + b a^T."""
-            return np.stack([a[:, p] * b[:, q] + a[:, q] * b[:, p] for p, q in _UPPER], axis=1)
-
-        self.second_basis_ = np.stack([sym(x, x) / 2, sym(x, t1), sym(x, t2), sym(t1, t1) / 2, sym(t1, t2),
-                                       sym(t2, t2) / 2], axis=1)  # fmt: skip
+        # Filled in place: the (N, 6, 6) map is 54 MB at paper resolution, built on every one-off run.
+        second = np.empty((x.shape[0], 6, 6))
+        for k, (a, b) in enumerate(((x, x), (x, t1), (x, t2), (t1, t1), (t1, t2), (t2, t2))):
+            for c, (p, q) in enumerate(_UPPER):  # upper triangle of a b^T + b a^T
+                np.multiply(a[:, p], b[:, q], out=second[:, k, c])
+                second[:, k, c] += a[:, q] * b[:, p]
         # t_a^T S t_b = sum over the upper triangle of S times sym(t_a, t_b), diagonal entries counted once.
         diagonal = np.array([p == q for p, q in _UPPER])
-        self.tangent_quad_ = np.stack([sym(t1, t1), sym(t1, t2), sym(t2, t2)], axis=1)
+        self.tangent_quad_ = second[:, 3:].copy()
         self.tangent_quad_[:, :, diagonal] /= 2
+        second[:, [0, 3, 5]] /= 2
+        self.second_basis_ = second
         self.t1_dot_x_ = np.einsum("nd,nd->n", t1, x)
         self.t2_dot_x_ = np.einsum("nd,nd->n", t2, x)
 
@@ -361,7 +366,8 @@ class ScanFieldEstimator:
             raise ScanError("ScanFieldEstimator is not fitted: call fit(skin) first")
 
     def _scan_points(
-        self, points: np.ndarray, transform: np.ndarray | None = None, *, moments: bool = False, workers: int = 0
+        self, points: np.ndarray, transform: np.ndarray | None = None, *, moments: bool = False, workers: int = 0,
+        fast: bool | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
         """Points (M, 3) on the skin: their rows (K,) int64, nodes (K,) int32, tangent coordinates u, v (K,) and
         distances (K,) (float32, mm), and with ``moments`` the per-node cell sums (N, 9) of [1, u, v, uu, uv, vv, d,
@@ -373,9 +379,10 @@ class ScanFieldEstimator:
         without a separate mask.
         The points go in blocks of ``kernels.BLOCK_POINTS`` (no temporary larger than a block); each thread
         (``workers``, 0 = one per core up to 4) owns a contiguous run of blocks, its part of the output and its own
-        cell sums.
+        cell sums. ``fast``: the compiled kernels (None: by the scan's size, ``kernels.for_points``).
         """
         m = points.shape[0]
+        fast = kernels.for_points(m) if fast is None else fast
         rotation, shift = (np.eye(3), np.zeros(3)) if transform is None else (transform[:3, :3], transform[:3, 3])
         scale = 1.0 / self.grid_cell_mm_
         affine = np.column_stack([rotation * scale, (shift - self.grid_origin_) * scale])
@@ -397,7 +404,7 @@ class ScanFieldEstimator:
                 position += kernels.locate_block(
                     points, start, min(start + block, m), affine, hi, self.grid_strides_, self.grid_table_,
                     self.grid_cell_mm_, self.node_table_, float(self.max_distance_mm), *(a[position:] for a in out),
-                    cells[w])  # fmt: skip
+                    cells[w], fast)  # fmt: skip
             return position - int(first[w])
 
         if workers == 1:
@@ -453,21 +460,21 @@ class ScanFieldEstimator:
         gradient[on] = n - dq_du[:, None] * t1 - dq_dv[:, None] * t2
         return gradient
 
-    def _raw_moments(self, cells: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    def _raw_moments(self, cells: np.ndarray, rows: np.ndarray, fast: bool = True) -> np.ndarray:
         """Raw 3D moments (K, 14) [1, p (3), p p^T (6, upper), d, d p (3)] about the skin centroid from the per-cell
         sums (N, 9) of the cells ``rows`` (K,).
 
         A point of cell j is taken at x_j + u t1_j + v t2_j: its offset along n_j (below a millimetre) moves it in
         node i's tangent plane by that times the small angle between n_i and n_j, which is negligible.
         """
-        return kernels.raw_moments(cells, self.moment_basis_, self.second_basis_, rows)
+        return kernels.raw_moments(cells, self.moment_basis_, self.second_basis_, rows, fast)
 
-    def _node_fits(self, mixed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _node_fits(self, mixed: np.ndarray, fast: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Weighted plane fits d = a + b_u u + b_v v per node from kernel-mixed raw moments (N, 14): each node's 3x3
         normal equations in its own tangent frame.
         Returns coefficients (N, 3) [a mm, b_u, b_v], weighted point count (N,) and intercept variance inflation (N,).
         """
-        return kernels.node_fits(mixed, self.frames_, self.tangent_quad_, self.t1_dot_x_, self.t2_dot_x_)
+        return kernels.node_fits(mixed, self.frames_, self.tangent_quad_, self.t1_dot_x_, self.t2_dot_x_, fast)
 
     def field(self, points_mm: np.ndarray, transform: np.ndarray | None = None) -> DisplacementField:
         """The signed normal displacement (N,) mm of every skin node from scan points (M, 3), mm, in the part frame
@@ -476,28 +483,30 @@ class ScanFieldEstimator:
         NaN where the scan gives no support; ``noise_rms`` is the RMS of the inlier residuals along the normal.
         """
         self._check_fitted()
-        _, j, u, v, d, cells = self._scan_points(np.asarray(points_mm, dtype=np.float64), transform, moments=True)
+        points = np.asarray(points_mm, dtype=np.float64)
+        fast = kernels.for_points(points.shape[0])  # one choice for the whole scan
+        _, j, u, v, d, cells = self._scan_points(points, transform, moments=True, fast=fast)
         n = self.points_.shape[0]
         if j.size == 0:
             return DisplacementField(self.skin_.model_id, np.full(n, np.nan), 0.0, float("nan"))
-        mixed = self.kernel_ @ self._raw_moments(cells, np.arange(n))
-        coef, _, _ = self._node_fits(mixed)
+        mixed = self.kernel_ @ self._raw_moments(cells, np.arange(n), fast)
+        coef, _, _ = self._node_fits(mixed, fast)
         logger.info("first pass: %d points on the skin", j.size)
         # Second pass: drop points far from their own node's fit and take their sums out of the cells and, through
         # the few kernel columns of those cells, out of the mixed moments.
-        residual = kernels.plane_residuals(j, u, v, d, coef)
+        residual = kernels.plane_residuals(j, u, v, d, coef, fast)
         sample = residual[:: max(1, j.size // 100_000)]  # 1e5 residuals fix the scale
         spread = np.abs(sample[np.isfinite(sample)])
         sigma = 1.4826 * float(np.median(spread)) if spread.size else np.inf
         drop = np.flatnonzero(np.abs(residual) > self.outlier_sigma * max(sigma, 1e-6))
         if drop.size:
             removed = np.zeros_like(cells)
-            kernels.add_moments(j[drop], u[drop], v[drop], d[drop], 1.0, removed)
+            kernels.add_moments(j[drop], u[drop], v[drop], d[drop], 1.0, removed, fast)
             rows = np.unique(j[drop])
             cells -= removed
-            mixed -= self.kernel_columns_[:, rows] @ self._raw_moments(removed, rows)
+            mixed -= self.kernel_columns_[:, rows] @ self._raw_moments(removed, rows, fast)
             residual[drop] = np.nan
-        coef, weight, inflation = self._node_fits(mixed)
+        coef, weight, inflation = self._node_fits(mixed, fast)
         nearby = self.near_kernel_ @ cells[:, 0]
         supported = (
             (weight >= self.min_points)
@@ -568,6 +577,7 @@ def warm_up(estimator: ScanFieldEstimator, points: int = 1_000_000) -> None:
     spacing), every 50th pushed 1 mm off along its normal (so the outlier pass runs too); as long as one scan.
     """
     estimator._check_fitted()
+    kernels.load()  # a node serves many scans: the compiled path whatever their size
     nodes, frames = estimator.points_, estimator.frames_
     copies = max(1, -(-points // nodes.shape[0]))
     angle = 2.0 * np.pi * np.arange(copies) / copies
