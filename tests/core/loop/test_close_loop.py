@@ -258,6 +258,27 @@ def test_paper_experiment_with_a_pad_dragging_the_part_sideways(coarse_hood, can
     assert 0.15 < result.analyses_before[0].max_mm and result.analyses_after[0].rms_mm <= 1.5 * 0.01
 
 
+def test_close_loop_keeps_the_calibration_of_calibrated_bases(coarse_hood, candidates):
+    """Fails if close-loop's rebuilt bases drop the calibration they started from (record, thermal response, model
+    discrepancy): the after-estimates would then state the uncalibrated std and the file would no longer say which
+    calibration it came from. Bases with a stand-in calibration (a record and a small smooth discrepancy, 2 um)."""
+    from tests.skins import smooth_field
+
+    exact = simulate_setting(coarse_hood.solver, {"BUFFER_L": 1.0, "buffer_L.y": 0.3}).normal_displacement
+    smooth = smooth_field(coarse_hood.skin)
+    discrepancy = 0.002 * (smooth / np.abs(smooth).max())[:, None]
+    record = json.dumps({"id": "stand-in calibration", "loo_rms_mm": 0.02})
+    n, s = coarse_hood.skin.n_nodes, len(coarse_hood.reduced.k)
+    thermal = (np.zeros(n), np.zeros(s), np.zeros((n, 3)))
+    bases = dataclasses.replace(coarse_hood.bases, calibration=record, thermal=thermal, discrepancy=discrepancy)
+    result = close_loop(bases, [noisy(coarse_hood, exact, 0.01, 44)], candidates, ensemble=coarse_hood.ensemble)
+    assert result.status == "found", result.message
+    after = result.bases_after
+    assert after.calibration == record and after.thermal is thermal
+    np.testing.assert_array_equal(after.discrepancy, discrepancy)
+    assert after.residual_test().discrepancy_ is not None
+
+
 # --- command line ------------------------------------------------------------------------------------------------
 def test_cli_close_loop_end_to_end(coarse_hood, tmp_path, capsys):
     from hood_decomp.io.fields import write_field

@@ -47,14 +47,16 @@ def run(args: argparse.Namespace) -> int:
                 "and one per sheet group)", len(entries))
     physics = PhysicalResponses.from_solver(physical_responses(build_solver(model)),
                                             thickness_sensitivities(model, bases.reduced_model))
-    reduced, calibration = calibrate(bases.reduced_model, physics, entries, bases.skin)
+    reduced, calibration = calibrate(bases.reduced_model, physics, entries, bases.skin,
+                                     (bases.pca.lower_, bases.pca.upper_))
     record = calibration.record()
     record["settings_mm"] = {e.name: e.setting for e in read}
     record["from_bases_id"] = bases_id(bases)
-    calibrated = rebuild_bases(bases, reduced, json.dumps(record, sort_keys=True), physics)
+    calibrated = rebuild_bases(bases, reduced, json.dumps(record, sort_keys=True), physics, calibration.discrepancy)
     with written_whole(out) as temporary:
         save_bases(temporary, calibrated)
     print(f"wrote {out}: calibration {record['id']} from {len(entries)} entries, leave-one-out RMS "
           f"{record['loo_rms_mm']:.4f} mm (noise {record['noise_mm']:.4f} mm), correction rank {record['rank']}, "
+          f"model discrepancy rank {record['discrepancy']['rank']} RMS {record['discrepancy']['rms_mm']:.4f} mm, "
           f"bases_id {bases_id(calibrated)}")
     return 0

@@ -59,14 +59,16 @@ def estimate_payload(estimate, n_bilateral: int) -> dict:
 
 def bases_provenance(bases) -> dict:
     """Which bases and which calibration an estimate used: ``bases_id`` and ``calibration`` (null for uncalibrated
-    bases, else the calibration's id, entries and leave-one-out RMS, mm)."""
+    bases, else the calibration's id, entries, leave-one-out RMS, mm, and the model discrepancy the stated std
+    includes: its rank and RMS, mm; null for a record made before the discrepancy was stated)."""
     import json
 
     from hood_decomp.io.bases import loaded_bases_id
 
     record = json.loads(bases.calibration) if bases.calibration else None
     return {"bases_id": loaded_bases_id(bases), "calibration": None if record is None else {
-        "id": record["id"], "entries": [e["name"] for e in record["entries"]], "loo_rms_mm": record["loo_rms_mm"]}}
+        "id": record["id"], "entries": [e["name"] for e in record["entries"]], "loo_rms_mm": record["loo_rms_mm"],
+        "discrepancy": record.get("discrepancy")}}
 
 
 def zones_payload(verdicts) -> dict:

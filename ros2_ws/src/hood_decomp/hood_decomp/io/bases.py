@@ -70,6 +70,8 @@ def bases_id(bases: Bases) -> str:
         items += ["calibration", bases.calibration]
     if bases.thermal is not None:
         items += ["thermal", *bases.thermal]
+    if bases.discrepancy is not None:
+        items += ["discrepancy", bases.discrepancy]
     return fingerprint(*items)
 
 
@@ -172,6 +174,8 @@ def save_bases(path: str | Path, bases: Bases, *, scan_skin: bool = True) -> Non
             thermal = h5.create_group("thermal")
             for name, value in zip(_THERMAL_DIMS, bases.thermal, strict=True):
                 thermal.create_dataset(name, data=value)
+        if bases.discrepancy is not None:
+            h5.create_dataset("discrepancy", data=bases.discrepancy)
         skin = h5.create_group("skin")
         skin.attrs["model_id"] = bases.skin.model_id
         for name in ("points", "normals", "triangles"):
@@ -294,6 +298,8 @@ def load_bases(path: str | Path) -> Bases:
             if reduced is None:
                 raise BasisError(f"{path}: a thermal response needs the reduced model, which the file lacks")
             thermal = tuple(read.array(f"thermal/{name}", dims) for name, dims in _THERMAL_DIMS.items())
+        # optional (issue 16): calibrated bases' model discrepancy modes (N, D) mm
+        discrepancy = read.array("discrepancy", ("N", "D")) if "discrepancy" in h5 else None
         has_scan_skin = version >= 3 and "scan_skin" in h5
         # optional (issue 17): acceptance criteria, outside bases_id, bound to it by their own zones_id
         zones = _read_zones(read, stored_id) if "tolerance_zones" in h5 else ()
@@ -302,7 +308,7 @@ def load_bases(path: str | Path) -> Bases:
                         ("reduced model", None if reduced is None else reduced.model_id)):
         if other is not None and other != model_id:
             raise BasisError(f"{path}: {what} model_id {other!r} differs from the file's {model_id!r}")
-    bases = Bases(model_id, skin, pca, hier, reduced, calibration, thermal, zones)
+    bases = Bases(model_id, skin, pca, hier, reduced, calibration, thermal, zones, discrepancy)
     if bases_id(bases) != stored_id:
         raise BasisError(f"{path}: content does not match its bases_id {stored_id!r} (the file was altered after "
                          "it was written: a rewritten model_id or array); rebuild it with `hood-decomp bases`")

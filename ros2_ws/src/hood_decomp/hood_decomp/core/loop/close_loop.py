@@ -59,7 +59,14 @@ import numpy as np
 
 from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solve_members
 from hood_decomp.core.loop.candidates import CandidateFields, augment_reduced
-from hood_decomp.core.method.bases import Bases, analyse_estimate, build_bases, estimate_field, fitted_unknowns
+from hood_decomp.core.method.bases import (
+    Bases,
+    analyse_estimate,
+    build_bases,
+    estimate_field,
+    fitted_unknowns,
+    with_calibration_of,
+)
 from hood_decomp.core.method.contact_estimation import ContactEstimator
 from hood_decomp.core.method.distributions import chi2_isf, f_sf
 from hood_decomp.core.method.estimation import DEFAULT_MIN_COVERAGE
@@ -565,8 +572,9 @@ def close_loop(
     extended = extend_ensemble(old, reduced, new_lower, new_upper)
     timings["ensemble_s"] = time.perf_counter() - start
     start = time.perf_counter()
-    bases_after = build_bases(extended, bases.skin, reduced, n_components=bases.pca.n_components,
-                              explained_variance=bases.pca.explained_variance, epsilon=bases.hierarchical.epsilon_)
+    bases_after = with_calibration_of(build_bases(extended, bases.skin, reduced, n_components=bases.pca.n_components,
+                                                  explained_variance=bases.pca.explained_variance,
+                                                  epsilon=bases.hierarchical.epsilon_), bases)
     timings["bases_s"] = time.perf_counter() - start
     start = time.perf_counter()
     after = tuple(estimate_field(bases_after, fd, method, min_coverage) for fd in fields)

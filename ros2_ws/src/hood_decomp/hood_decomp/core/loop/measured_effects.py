@@ -45,7 +45,7 @@ import scipy.sparse as sp
 from hood_decomp.core.fe.ensemble import solve_members
 from hood_decomp.core.loop.candidates import Candidate, CandidateFields, augment_reduced
 from hood_decomp.core.loop.close_loop import effect_range, extend_ensemble
-from hood_decomp.core.method.bases import Bases, build_bases
+from hood_decomp.core.method.bases import Bases, build_bases, with_calibration_of
 from hood_decomp.core.method.distributions import chi2_sf
 from hood_decomp.core.method.residual import DEFAULT_ALPHA, skin_adjacency
 from hood_decomp.core.types import BoundaryCorrection, DisplacementField, Ensemble
@@ -385,8 +385,9 @@ def augmented_bases(bases: Bases, ensemble: Ensemble, modes: tuple[FoundMode, ..
     lower = np.insert(np.asarray(bases.pca.lower_, float), b, [-h for h in halves])
     upper = np.insert(np.asarray(bases.pca.upper_, float), b, halves)
     extended = extend_ensemble(ensemble, reduced, lower, upper)
-    return build_bases(extended, bases.skin, reduced, n_components=bases.pca.n_components,
-                       explained_variance=bases.pca.explained_variance, epsilon=bases.hierarchical.epsilon_)
+    return with_calibration_of(build_bases(extended, bases.skin, reduced, n_components=bases.pca.n_components,
+                                           explained_variance=bases.pca.explained_variance,
+                                           epsilon=bases.hierarchical.epsilon_), bases)
 
 
 def correction_without_effects(correction: BoundaryCorrection, effects: tuple[str, ...]) -> BoundaryCorrection:

@@ -53,6 +53,10 @@ class Bases:
     #: acceptance criteria on the skin (model.yaml ``tolerance_zones``, core.method.tolerance); not the model: they
     #: do not enter ``bases_id`` (io.bases keeps them in an optional group with its own fingerprint)
     tolerance_zones: tuple[ToleranceZone, ...] = ()
+    #: what the calibrated model still gets wrong on the skin, (N, k) mm: the model discrepancy delta = D z with
+    #: z ~ N(0, I_k) (core.loop.calibration.discrepancy_modes, from the calibration's leave-one-out residuals); the
+    #: estimates' covariance and the within-model test count it as a field error. None: uncalibrated (no term)
+    discrepancy: np.ndarray | None = None
     # (min_coverage, temperature K) -> fitted ContactEstimator; filled on first use, not part of the bases' value
     _contact_estimators: dict[tuple[float, float], ContactEstimator] = dataclasses.field(
         default_factory=dict, init=False, repr=False, compare=False)
@@ -64,9 +68,10 @@ class Bases:
         return self.pca.names_
 
     def residual_test(self) -> ResidualTest:
-        """The one within-model test on this skin (:class:`~.residual.ResidualTest`), prepared once."""
+        """The one within-model test on this skin with this model's discrepancy (:class:`~.residual.ResidualTest`),
+        prepared once."""
         if "test" not in self._tests:
-            self._tests.setdefault("test", ResidualTest().fit(self.skin))
+            self._tests.setdefault("test", ResidualTest().fit(self.skin, self.discrepancy))
         return self._tests["test"]
 
     def contact_estimator(self, min_coverage: float = DEFAULT_MIN_COVERAGE,
@@ -125,6 +130,15 @@ def build_bases(
         logger.info("PCA: %s", note)
     hierarchical = HierarchicalBasis(epsilon=epsilon).fit(ensemble)
     return Bases(ensemble.model_id, skin, pca, hierarchical, reduced_model)
+
+
+def with_calibration_of(rebuilt: Bases, source: Bases) -> Bases:
+    """``rebuilt`` (bases built again from ``source``'s model with an added effect, e.g. by close-loop) carrying
+    ``source``'s calibration: its record, thermal response and model discrepancy. An added effect does not make the
+    calibrated model less wrong where it was wrong, so the discrepancy stays; dropping it would shrink every stated
+    std back to the uncalibrated one."""
+    return dataclasses.replace(rebuilt, calibration=source.calibration, thermal=source.thermal,
+                               discrepancy=source.discrepancy)
 
 
 def estimate_field(

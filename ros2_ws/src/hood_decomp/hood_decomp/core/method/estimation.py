@@ -89,7 +89,8 @@ def judge(
     span: np.ndarray | None = None,
 ) -> tuple[ModelCheck, np.ndarray | None]:
     """The within-model test of a fit on ``design`` (N, p) (``test``'s when given, else the level test without
-    smooth modes) and the field's registration modes (N, 6) (None without a registration). span: (N, q) all the
+    smooth modes) and the low-rank field errors (N, k) the covariance adds (the field's registration modes and the
+    calibrated model's discrepancy modes, :meth:`ResidualTest.error_modes`; None without either). span: (N, q) all the
     fields the model can make, whose directions the smooth test leaves out (default: the design).
 
     Without a ``test`` the estimator has no skin, so a registration covariance cannot reach the nodes and is left
@@ -97,7 +98,7 @@ def judge(
     through the bases (estimate_field), which pass the skin's test. Close-loop's tracing estimates are made so."""
     if test is None:
         return check_residual(residual, design, errors, model_mm=model_mm), None
-    return test.check(residual, design if span is None else span, errors, model_mm), test.registration(errors)
+    return test.check(residual, design if span is None else span, errors, model_mm), test.error_modes(errors)
 
 
 def parameter_covariance(
@@ -108,7 +109,8 @@ def parameter_covariance(
 
     The sandwich G Sigma G^T with G = inverse X^T over the valid nodes and the node covariance Sigma = noise *
     diag(v g) + (model^2 + bias) I + U U^T (error model variances v, correlation sums g, the level ``scale`` split
-    into noise and the making's bias by :func:`split_level`, registration modes U (N, 6)): the correlation enters
+    into noise and the making's bias by :func:`split_level`, low-rank field errors U (N, k): the registration's and
+    the calibrated model's discrepancy, :meth:`ResidualTest.error_modes`): the correlation enters
     through g (exact for coefficients whose gain is smooth on the correlation scale). A uniform error model costs
     nothing beyond the normal matrix' inverse.
     """

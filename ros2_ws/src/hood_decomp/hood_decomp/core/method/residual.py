@@ -297,14 +297,18 @@ def check_residual(
     model_mm: float = 0.0,
     alpha: float = DEFAULT_ALPHA,
     rings: sp.csr_matrix | None = None,
+    smooth_mm2: np.ndarray | None = None,
 ) -> ModelCheck:
     """The one within-model test: is the residual what the field's error model explains?
 
     residual: (N,) mm, measured - reconstruction, NaN where unseen. design: (N, p) the columns the estimate fitted
     (the residual is orthogonal to them), None for none. errors: the field's error model (its *shape*: relative node
     variances and correlation; its registration covariance in absolute terms). modes: (N, M) smooth fields of the
-    skin (:func:`smooth_modes`); registration: (N, 6) the field error per unit pose error (U of
-    :meth:`FieldErrorModel.registration_modes`), None without one. model_mm: the basis' own error (white, mm).
+    skin (:func:`smooth_modes`); registration: (N, k) low-rank field errors e = U z, z ~ N(0, I_k), in absolute
+    terms: the field error per unit pose error (U of :meth:`FieldErrorModel.registration_modes`) and the calibrated
+    model's discrepancy modes (:attr:`ResidualTest.discrepancy_`), None without either. model_mm: the basis' own
+    error (white, mm). smooth_mm2: (N,) mm^2 the node variance of the field errors that are smooth on the ring scale
+    (the discrepancy's, sum of its modes squared), added to each one-ring mean's variance; None: none.
 
     A missing effect is smooth, noise is not (module docstring). The residual is split into its smooth part c (its
     coordinates in the modes after the fitted directions are taken out, M' of them) and the rough rest. The rough rest
@@ -361,7 +365,7 @@ def check_residual(
     if rings is not None and errors.bias_correlation <= 0:
         node_variance_mm2 = np.zeros(residual.size)
         node_variance_mm2[seen] = np.maximum(noise * weight + model2, LOCAL_FLOOR_MM2)
-        p_value = min(1.0, 2.0 * min(p_value, local_p_value(rings, residual, node_variance_mm2, nu)))
+        p_value = min(1.0, 2.0 * min(p_value, local_p_value(rings, residual, node_variance_mm2, nu, smooth_mm2)))
     return ModelCheck(statistic, m, nu, p_value, float(alpha), p_value >= alpha, scale, source, n_effective, bias)
 
 
@@ -370,7 +374,8 @@ def ring_incidence(skin: SkinSurface) -> sp.csr_matrix:
     return (skin_adjacency(skin) + sp.identity(skin.n_nodes, format="csr")).tocsr()
 
 
-def local_p_value(rings: sp.csr_matrix, residual: np.ndarray, variance_mm2: np.ndarray, nu: float) -> float:
+def local_p_value(rings: sp.csr_matrix, residual: np.ndarray, variance_mm2: np.ndarray, nu: float,
+                  smooth_mm2: np.ndarray | None = None) -> float:
     """p-value of the largest one-ring mean residual under the model.
 
     rings: (N, N) :func:`ring_incidence`. residual: (N,) mm, NaN where unseen. variance_mm2: (N,) each seen node's
@@ -378,11 +383,14 @@ def local_p_value(rings: sp.csr_matrix, residual: np.ndarray, variance_mm2: np.n
     the seen nodes of ring i has variance sum_j v_j / n_i^2 (the correlation sum stands for the nodes' mutual
     correlation, as in :func:`check_residual`); z_i = a_i / sd_i follows Student's t with nu degrees of freedom (the
     level is estimated), and the largest |z| over the n seen rings is Bonferroni-adjusted (conservative: the rings
-    overlap)."""
+    overlap). smooth_mm2: (N,) node variance of a field error that is smooth on the ring scale (fully correlated
+    within a ring, so a ring's sum has variance n_i sum_j s_j), None for none."""
     seen = np.isfinite(residual)
     count = rings @ seen.astype(float)
     total = rings @ np.where(seen, residual, 0.0)
     spread = rings @ np.where(seen, variance_mm2, 0.0)
+    if smooth_mm2 is not None:
+        spread = spread + count * (rings @ np.where(seen, smooth_mm2, 0.0))
     usable = seen & (count > 0) & (spread > 0)
     if not usable.any():
         return 1.0
@@ -406,15 +414,20 @@ def split_level(scale: float, errors: FieldErrorModel, mean_variance: float) -> 
 class ResidualTest:
     """The within-model test of :func:`check_residual` on one skin, prepared once (its smooth modes).
 
-    alpha: false-alarm rate; degree: total degree of the smooth modes. ``fit(skin)`` -> self; fitted: modes_ (N, M),
-    points_, normals_ (N, 3), skin_; :meth:`rings` the one-ring incidence. ``check(...)`` judges one residual.
+    alpha: false-alarm rate; degree: total degree of the smooth modes. ``fit(skin, discrepancy)`` -> self; fitted:
+    modes_ (N, M), points_, normals_ (N, 3), skin_, discrepancy_ (N, k) mm the calibrated model's discrepancy modes
+    (what the model still gets wrong: delta = D z, z ~ N(0, I_k); bases ``discrepancy``) or None for an uncalibrated
+    model; :meth:`rings` the one-ring incidence. ``check(...)`` judges one residual.
     """
 
     def __init__(self, alpha: float = DEFAULT_ALPHA, degree: int = DEFAULT_SMOOTH_DEGREE):
         self.alpha = alpha
         self.degree = degree
 
-    def fit(self, skin: SkinSurface) -> ResidualTest:
+    def fit(self, skin: SkinSurface, discrepancy: np.ndarray | None = None) -> ResidualTest:
+        if discrepancy is not None and (np.ndim(discrepancy) != 2 or np.shape(discrepancy)[0] != skin.n_nodes):
+            raise FieldError(f"discrepancy modes have shape {np.shape(discrepancy)}, expected ({skin.n_nodes}, k)")
+        self.discrepancy_ = None if discrepancy is None else np.asarray(discrepancy, float)
         self.points_ = np.asarray(skin.points, float)
         self.normals_ = np.asarray(skin.normals, float)
         self.modes_ = smooth_modes(self.points_, self.degree)
@@ -434,9 +447,18 @@ class ResidualTest:
         """(N, 6) field error per unit pose error of ``errors`` on this skin, None without a registration."""
         return errors.registration_modes(self.points_, self.normals_) if errors.has_pose else None
 
+    def error_modes(self, errors: FieldErrorModel) -> np.ndarray | None:
+        """(N, k) every low-rank field error in absolute terms: the registration's (:meth:`registration`) and the
+        model discrepancy's (``discrepancy_``); None without either. The estimate's covariance and the test take
+        both from here, so the number that leaves the system and the test agree."""
+        parts = [m for m in (self.registration(errors), self.discrepancy_) if m is not None]
+        return np.hstack(parts) if parts else None
+
     def check(self, residual: np.ndarray, design: np.ndarray | None, errors: FieldErrorModel,
               model_mm: float = 0.0) -> ModelCheck:
-        """:func:`check_residual` with this skin's modes and registration modes and this test's alpha."""
+        """:func:`check_residual` with this skin's modes, registration and discrepancy modes and this test's
+        alpha."""
+        smooth = None if self.discrepancy_ is None else np.sum(self.discrepancy_**2, axis=1)
         rings = self.rings() if errors.bias_correlation <= 0 else None  # check_residual's local test needs it then
-        return check_residual(residual, design, errors, self.modes_, self.registration(errors), model_mm, self.alpha,
-                              rings)
+        return check_residual(residual, design, errors, self.modes_, self.error_modes(errors), model_mm, self.alpha,
+                              rings, smooth)
