@@ -6,8 +6,12 @@ linear and geometrically nonlinear solve (:func:`hood_decomp.core.fe.geometric.s
 the nonlinear-minus-linear skin normal field of both solvers. CalculiX translations are cached in
 benchmarks/out/ccx_nlgeom_<state>.npz (a NLGEOM job takes 10-12 min on the shared machine).
 
-Usage: scripts/with-env python benchmarks/bench_nlgeom.py [--ccx-only]
-Prints a table and writes benchmarks/out/bench_nlgeom.json.
+It also gives HINGE_Y's linear buckling factor (the hinge motion alone), CalculiX *BUCKLE against
+:func:`hood_decomp.core.fe.geometric.buckling_factor`, and (``--ensemble``) the 729 training members linear and
+nonlinear with the hierarchical basis at 0.1 mm (HINGE_Y limited to ``--hinge-y``: the coarse hood buckles at +0.9 mm).
+
+Usage: scripts/with-env python benchmarks/bench_nlgeom.py [--ccx-only | --ensemble [--hinge-y 0.5]]
+Prints a table and writes benchmarks/out/bench_nlgeom.json (bench_nlgeom_ensemble.json).
 """
 
 from __future__ import annotations
@@ -26,12 +30,17 @@ OUT = Path(__file__).resolve().parent / "out"
 STATES = ((0.0, -1.0, -1.0, 1.0, 1.0, 0.0), (0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
 
 
+def ccx_path(model, state: np.ndarray) -> Path:
+    """Where the CalculiX translations of a member are cached."""
+    return OUT / f"ccx_nlgeom_{model.model_id}_{'_'.join(f'{v:+.2f}' for v in state)}.npz"
+
+
 def ccx_fields(model, state: np.ndarray, log: logging.Logger) -> dict[str, np.ndarray]:
     """CalculiX translations (n, 3) mm, linear and NLGEOM, of a member with all buffer nodes held (cached)."""
     from hood_decomp.core.fe.calculix import run_member_job, write_member_deck
 
     tag = "_".join(f"{v:+.2f}" for v in state)
-    path = OUT / f"ccx_nlgeom_{model.model_id}_{tag}.npz"
+    path = ccx_path(model, state)
     if path.exists():
         return dict(np.load(path))
     out = {}
@@ -120,9 +129,9 @@ def main() -> None:
             print(name, {k: v for k, v in result[name].items() if k != "interaction_pair_peak_mm"})
         return
     model = build_preset("hood-paper", "coarse")
-    for state in STATES:
-        ccx_fields(model, np.array(state), log)
     if args.ccx_only:
+        for state in STATES:
+            ccx_fields(model, np.array(state), log)
         return
     held = held_buffers(model)
     solver = build_solver(held)
@@ -133,6 +142,9 @@ def main() -> None:
     rows = []
     for state in STATES:
         state = np.array(state)
+        if not ccx_path(model, state).exists():
+            log.info("no CalculiX result for %s yet (run --ccx-only): skipped", state)
+            continue
         ccx = ccx_fields(model, state, log)
         prescribed = np.zeros(len(solver.constrained))
         for parameter, value in zip(held.parameters, state, strict=True):
@@ -157,7 +169,8 @@ def main() -> None:
                "ccx_nlgeom_s": float(ccx["nlgeom_s"])}
         rows.append(row)
         log.info("%s", row)
-    result = {"held_buffers": rows, "ours_s": time.perf_counter() - start}
+    result = {"held_buffers": rows, "ours_s": time.perf_counter() - start,
+              "hinge_y_buckling": buckling(model, held, log)}
     (OUT / "bench_nlgeom.json").write_text(json.dumps(result, indent=2) + "\n")
     print("| setting | linear peak ccx / ours (mm) | NL - linear ccx (mm) | NL - linear ours (mm) | difference of the "
           "two (mm) | correlation | NL member ours - ccx (mm) |\n|---|---|---|---|---|---|---|")
@@ -166,6 +179,40 @@ def main() -> None:
               f"{r['ccx_nl_minus_linear_max_mm']:.4f} | {r['ours_nl_minus_linear_max_mm']:.4f} | "
               f"{r['effect_difference_max_mm']:.4f} | {r['effect_correlation']:.3f} | "
               f"{r['nl_member_difference_max_mm']:.4f} |")
+    print(f"HINGE_Y linear buckling factor: {result['hinge_y_buckling']}")
+
+
+def buckling(model, held, log: logging.Logger) -> dict:
+    """HINGE_Y's linear buckling factor (the hinge motion alone, no loads): CalculiX *BUCKLE (S8R, buffers held;
+    cached) and hood_decomp's :func:`buckling_factor` with the buffers held and free."""
+    from dataclasses import replace
+
+    from hood_decomp.core.fe.calculix import _run_ccx, write_member_deck
+    from hood_decomp.core.fe.geometric import buckling_factor
+    from hood_decomp.core.fe.solver import build_solver
+
+    path = OUT / f"ccx_buckle_hinge_y_{model.model_id}.json"
+    if not path.exists():
+        quiet = replace(model, gravity=np.zeros(3), boundaries=tuple(
+            replace(b, force=1e-9) if b.kind == "force" else b for b in model.boundaries))
+        state = np.zeros(len(model.names))
+        state[model.names.index("HINGE_Y")] = 1.0
+        with tempfile.TemporaryDirectory() as directory:
+            text = write_member_deck(quiet, state, Path(directory) / "deck.inp", buffers="held", nlgeom=False
+                                     ).read_text().replace("*STEP\n*STATIC", "*STEP\n*BUCKLE\n3", 1)
+            text = "\n".join(line for line in text.split("*NODE PRINT")[0].splitlines()) + "\n*END STEP\n"
+            start = time.perf_counter()
+            dat = _run_ccx(text, "buckle", directory, 3600.0, None).with_suffix(".dat").read_text()
+        block = dat[dat.index("B U C K L I N G"):].splitlines()
+        factors = [float(line.split()[1]) for line in block if line.split()[:1] and line.split()[0].isdigit()][:3]
+        path.write_text(json.dumps({"factors": factors, "seconds": time.perf_counter() - start}) + "\n")
+    ccx = json.loads(path.read_text())
+    out = {"ccx_held": ccx["factors"], "ccx_s": ccx["seconds"]}
+    for name, part in (("ours_held", held), ("ours_free", model)):
+        solver = build_solver(part)
+        out[name] = buckling_factor(solver, solver.boundary_response("hinge_L", "y"))
+    log.info("HINGE_Y buckling factor: %s", out)
+    return out
 
 
 def held_buffers(model):
