@@ -1,4 +1,4 @@
-"""Geometric nonlinearity of the facet shell: Green-Lagrange membrane strains, solved by fixed-stiffness iteration.
+"""Geometric nonlinearity of the facet shell: Green-Lagrange membrane strains, solved by incremental Newton.
 
 The linear solver (:mod:`.solver`) keeps the small-strain membrane strain eps = sym(grad u). Here each facet triangle
 of the mesh (the same four half-weight triangles per quad as :func:`.shell.quad_stiffness`) gets the total-Lagrangian
@@ -12,10 +12,14 @@ whose membrane force N = t D eps does work on the displacement gradients: the in
 
 i.e. the initial-stress (geometric) stiffness K_G(N) = int G^T N G dA of the member's own membrane forces (stress
 stiffening and softening, the P-delta of the gas springs' in-plane push) plus the membrane stretching of large
-deflection. Bending stays the linear DKT (rotations of 1e-3 rad here). The member solves K u = F - f_nl(u) by
-iterating with the one factorisation of K (modified Newton, converging while the loads stay below the buckling load);
-the pad contact is re-solved exactly (:func:`.contact.solve_lcp`) in every iteration with f_nl as an extra load, so
-load, contact and geometry are consistent at convergence.
+deflection. Bending stays the linear DKT (rotations of 1e-3 rad here). A member solves K u + f_nl(u) = F + P f with
+the pad contact re-solved exactly (:func:`.contact.solve_lcp`) in every iteration, so load, contact and geometry are
+consistent at convergence (:class:`NonlinearSolver`: tangents K + d f_nl/du shared between members). The iteration
+with the linear K alone diverges on the hood (the gas spring patches' local membrane action). Opt-in: the linear
+path (:func:`.solver.reduce_model`, :func:`.ensemble.solve_members`) does not use this module.
+
+Checked against Euler's buckling load and Timoshenko's beam-column (tests/core/fe/test_geometric.py) and CalculiX
+NLGEOM on the coarse hood (benchmarks/bench_nlgeom.py).
 """
 
 from __future__ import annotations
