@@ -1,7 +1,7 @@
 """Fig. 11 of the paper on the geometrically nonlinear coarse hood-paper: the LOCK L & LOCK R interaction effect.
 
 An ensemble over the two locks only (3 x 3 members, the other parameters 0), linear and nonlinear
-(core/fe/geometric.py): about 40 s unloaded, 160-300 s on the shared machine, hence ``slow``.
+(core/fe/geometric.py): 35 s for both tests in a suite run at load ~10, 160-300 s at load 15-18, hence ``slow``.
 """
 
 from __future__ import annotations
