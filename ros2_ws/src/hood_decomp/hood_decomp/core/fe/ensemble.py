@@ -69,25 +69,17 @@ def solve_members(reduced: ReducedModel, commanded: np.ndarray) -> MemberBlock:
     if commanded.shape[1] != n_params:
         raise EnsembleError(f"expected {n_params} parameter columns {reduced.names}, got {commanded.shape[1]}")
     B = reduced.n_bilateral
-    U = n_params - B
     m, S = len(commanded), len(reduced.k)
     forces = np.zeros((m, S))
     compression = np.zeros((m, S))
-    effective = commanded.copy()
-    contact_fraction = np.zeros((m, U))
-    reactions = np.zeros((m, U))
+    z = np.zeros((m, S))
     for i, state in enumerate(commanded):
         contact = contact_state(reduced, state[:B], state[B:])
         forces[i] = contact.f
         compression[i] = contact.compression
-        for u in range(U):
-            springs = reduced.pad_of == u
-            touching = contact.f[springs] > 0
-            contact_fraction[i, u] = touching.mean()
-            reactions[i, u] = contact.f[springs].sum()
-            if not touching.any() and reduced.parameter_states == "effective":
-                # lifted: the part's position at the pad, where the pad would just touch (types.Ensemble)
-                effective[i, B + u] = np.min(contact.z[springs] - reduced.preload[springs])
+        z[i] = contact.z
+    effective, contact_fraction, reactions = contact_summary(commanded, forces, z, reduced.pad_of, reduced.preload,
+                                                             B, reduced.parameter_states)
     a = commanded[:, :B]
     normal = reduced.w0[None, :] + a @ reduced.R.T + forces @ reduced.G.T
     n = len(reduced.w0)
@@ -97,6 +89,31 @@ def solve_members(reduced: ReducedModel, commanded: np.ndarray) -> MemberBlock:
         + forces @ reduced.G_3d.reshape(3 * n, S).T
     ).reshape(m, n, 3)
     return MemberBlock(effective, contact_fraction, reactions, normal, vectors, forces, compression)
+
+
+def contact_summary(commanded: np.ndarray, forces: np.ndarray, z: np.ndarray, pad_of: np.ndarray,
+                    preload: np.ndarray, n_bilateral: int, parameter_states: str
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per member and pad: the recorded state, the fraction of springs in contact and the total reaction.
+
+    commanded: (m, P) mm; forces, z: (m, S) pad spring forces N and axial displacements mm; pad_of, preload: (S,).
+    Returns effective (m, P) mm (a lifted pad's state is the part's position there when ``parameter_states`` is
+    "effective", types.Ensemble), contact_fraction (m, U) and reactions (m, U) N.
+    """
+    U = commanded.shape[1] - n_bilateral
+    effective = commanded.copy()
+    contact_fraction = np.zeros((len(commanded), U))
+    reactions = np.zeros((len(commanded), U))
+    for u in range(U):
+        springs = pad_of == u
+        touching = forces[:, springs] > 0
+        contact_fraction[:, u] = touching.mean(axis=1)
+        reactions[:, u] = forces[:, springs].sum(axis=1)
+        if parameter_states == "effective":
+            # lifted: the part's position at the pad, where the pad would just touch
+            lifted = ~touching.any(axis=1)
+            effective[lifted, n_bilateral + u] = np.min(z[lifted][:, springs] - preload[springs], axis=1)
+    return effective, contact_fraction, reactions
 
 
 def iter_members(reduced: ReducedModel, commanded: np.ndarray, block: int = 128

@@ -202,6 +202,7 @@ class ShellSolver:
     def __init__(self, model: PartModel, K: sp.csr_matrix, constrained: np.ndarray, factor, backend: str,
                  timings: dict[str, float], pad_lattice: int = PAD_LATTICE) -> None:
         self.model = model
+        self.pad_lattice = pad_lattice
         self.K = K
         self.constrained = constrained
         n_dof = K.shape[0]
@@ -232,14 +233,22 @@ class ShellSolver:
             prescribed = np.asarray(prescribed, dtype=float).reshape(len(self.constrained), -1)
             rhs = rhs - self._K_fc @ prescribed
             u[self.constrained] = prescribed
-        u[self.free] = self._solve_free(rhs)
+        u[self.free] = self.solve_free(rhs)
         return u[:, 0] if squeeze else u
 
-    def _solve_free(self, rhs: np.ndarray) -> np.ndarray:
+    def solve_free(self, rhs: np.ndarray) -> np.ndarray:
+        """K_ff^-1 rhs on the free DOFs, (F,) or (F, k)."""
         out = self._factor(np.ascontiguousarray(rhs))
         if not np.all(np.isfinite(out)):
             raise SolverError("the factorised stiffness gave non-finite displacements (singular structure)")
         return out
+
+    def with_stiffness(self, K: sp.csr_matrix) -> ShellSolver:
+        """The same part, boundaries and pads with another stiffness K (6n, 6n), factorised (e.g. a tangent)."""
+        start = time.perf_counter()
+        factor, backend = _factorise(K[self.free][:, self.free])
+        timings = {"factorisation_s": time.perf_counter() - start}
+        return ShellSolver(self.model, K, self.constrained, factor, backend, timings, self.pad_lattice)
 
     def boundary_dofs(self, boundary: str, direction: str) -> np.ndarray:
         """Global DOF indices (translation ``direction`` of every patch node) of a boundary."""

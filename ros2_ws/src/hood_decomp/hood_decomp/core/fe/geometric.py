@@ -1,0 +1,392 @@
+"""Geometric nonlinearity of the facet shell: Green-Lagrange membrane strains, solved by incremental Newton.
+
+The linear solver (:mod:`.solver`) keeps the small-strain membrane strain eps = sym(grad u). Here each facet triangle
+of the mesh (the same four half-weight triangles per quad as :func:`.shell.quad_stiffness`) gets the total-Lagrangian
+membrane strain
+
+    eps = sym(grad u_loc) + 1/2 J^T J,     J = d u / d(x, y)   (3 x 2, all three translations, facet frame),
+
+whose membrane force N = t D eps does work on the displacement gradients: the internal force beyond the linear one is
+
+    f_nl(u) = sum_facets A [ B_m^T N_q + G^T N G u ],      N_q = t D (1/2 J^T J),  N = t D eps,
+
+i.e. the initial-stress (geometric) stiffness K_G(N) = int G^T N G dA of the member's own membrane forces (stress
+stiffening and softening, the P-delta of the gas springs' in-plane push) plus the membrane stretching of large
+deflection. Bending stays the linear DKT (rotations of 1e-3 rad here). A member solves K u + f_nl(u) = F + P f with
+the pad contact re-solved exactly (:func:`.contact.solve_lcp`) in every iteration, so load, contact and geometry are
+consistent at convergence (:class:`NonlinearSolver`: tangents K + d f_nl/du shared between members). The iteration
+with the linear K alone diverges on the hood (the gas spring patches' local membrane action). Opt-in: the linear
+path (:func:`.solver.reduce_model`, :func:`.ensemble.solve_members`) does not use this module.
+
+Checked against Euler's buckling load and Timoshenko's beam-column (tests/core/fe/test_geometric.py) and CalculiX
+NLGEOM on the coarse hood (benchmarks/bench_nlgeom.py).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from hood_decomp.core.fe.contact import solve_lcp
+from hood_decomp.core.fe.ensemble import MemberBlock, contact_summary
+from hood_decomp.core.fe.model import PartModel, skin_surface
+from hood_decomp.core.fe.shell import QUAD_SPLITS, local_frames
+from hood_decomp.core.fe.solver import ShellSolver
+from hood_decomp.core.types import Ensemble
+from hood_decomp.errors import SolverError
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FacetTriangles:
+    """The facet triangles of a mesh for the nonlinear membrane terms.
+
+    nodes: (T, 3) node indices. frame: (T, 3, 3) rows (e1, e2, n). grad: (T, 2, 3) 1/mm, d(shape function i)/d(x, y)
+    in the facet frame. thickness: (T,) mm. area: (T,) mm^2, the triangle's area x 1/2 (each quad is both diagonal
+    splits at half weight). D: (3, 3) MPa, plane-stress elasticity on (xx, yy, 2xy). scatter: (n, 3T) sums the
+    triangles' node values onto the nodes.
+    """
+
+    nodes: np.ndarray
+    frame: np.ndarray
+    grad: np.ndarray
+    thickness: np.ndarray
+    area: np.ndarray
+    D: np.ndarray
+    scatter: sp.csr_matrix
+
+
+def facet_triangles(model: PartModel) -> FacetTriangles:
+    """The four half-weight triangles of every quad of ``model`` (as the linear stiffness splits them)."""
+    nodes = model.cells[:, QUAD_SPLITS].reshape(-1, 3)
+    thickness = np.repeat(np.array([p.thickness for p in model.parts])[model.cell_part], len(QUAD_SPLITS))
+    frame, xy = local_frames(model.nodes[nodes])
+    x, y = xy[..., 0], xy[..., 1]
+    area2 = (x[:, 1] - x[:, 0]) * (y[:, 2] - y[:, 0]) - (x[:, 2] - x[:, 0]) * (y[:, 1] - y[:, 0])
+    b = np.stack([y[:, 1] - y[:, 2], y[:, 2] - y[:, 0], y[:, 0] - y[:, 1]], axis=1) / area2[:, None]
+    c = np.stack([x[:, 2] - x[:, 1], x[:, 0] - x[:, 2], x[:, 1] - x[:, 0]], axis=1) / area2[:, None]
+    E, nu = model.material.E, model.material.nu
+    D = E / (1 - nu**2) * np.array([[1, nu, 0], [nu, 1, 0], [0, 0, (1 - nu) / 2]])
+    scatter = sp.csr_matrix((np.ones(nodes.size), (nodes.ravel(), np.arange(nodes.size))),
+                            shape=(len(model.nodes), nodes.size))
+    return FacetTriangles(nodes, frame, np.stack([b, c], axis=1), thickness, 0.25 * area2, D, scatter)
+
+
+def _gradients(facets: FacetTriangles, translations: np.ndarray) -> np.ndarray:
+    """J (T, 3, 2, m): d(global translation component)/d(facet x, y) of nodal translations (n, 3, m)."""
+    return np.einsum("tai,ticm->tcam", facets.grad, translations[facets.nodes], optimize=True)
+
+
+def _quadratic(J: np.ndarray) -> np.ndarray:
+    """1/2 J^T J on (xx, yy, 2xy), (T, 3, m)."""
+    return np.stack([0.5 * (J[:, :, 0] ** 2).sum(1), 0.5 * (J[:, :, 1] ** 2).sum(1),
+                     (J[:, :, 0] * J[:, :, 1]).sum(1)], axis=1)
+
+
+def membrane_forces(facets: FacetTriangles, translations: np.ndarray, nonlinear: bool = True) -> np.ndarray:
+    """Membrane forces (T, 3, m) N/mm (Nxx, Nyy, Nxy in each facet frame) of nodal translations (n, 3, m) mm;
+    ``nonlinear`` adds the Green-Lagrange term 1/2 J^T J to the strain."""
+    J = _gradients(facets, translations)
+    local = np.einsum("tdc,tcam->tdam", facets.frame[:, :2], J)  # in-plane components' gradients
+    eps = np.stack([local[:, 0, 0], local[:, 1, 1], local[:, 0, 1] + local[:, 1, 0]], axis=1)
+    if nonlinear:
+        eps = eps + _quadratic(J)
+    return facets.thickness[:, None, None] * np.einsum("ij,tjm->tim", facets.D, eps)
+
+
+def nonlinear_forces(facets: FacetTriangles, translations: np.ndarray) -> np.ndarray:
+    """f_nl (n, 3, m) N: the internal force of nodal translations (n, 3, m) mm beyond the linear stiffness's."""
+    J = _gradients(facets, translations)
+    area = facets.area[:, None, None]
+    stress = area * membrane_forces(facets, translations)  # A N
+    stress_q = area * facets.thickness[:, None, None] * np.einsum("ij,tjm->tim", facets.D, _quadratic(J))  # A N_q
+    b, c = facets.grad[:, 0][:, :, None], facets.grad[:, 1][:, :, None]
+    # B_m^T N_q in the facet frame (node i, x and y), then to the global frame
+    fx = b * stress_q[:, None, 0] + c * stress_q[:, None, 2]
+    fy = c * stress_q[:, None, 1] + b * stress_q[:, None, 2]
+    force = np.einsum("tc,tim->ticm", facets.frame[:, 0], fx) + np.einsum("tc,tim->ticm", facets.frame[:, 1], fy)
+    # G^T N G u: node i gets g_xi (Nxx J_x + Nxy J_y) + g_yi (Nxy J_x + Nyy J_y)
+    NJx = stress[:, None, 0] * J[:, :, 0] + stress[:, None, 2] * J[:, :, 1]  # (T, 3, m)
+    NJy = stress[:, None, 2] * J[:, :, 0] + stress[:, None, 1] * J[:, :, 1]
+    force += b[:, :, None] * NJx[:, None] + c[:, :, None] * NJy[:, None]
+    m = translations.shape[2]
+    return (facets.scatter @ force.reshape(-1, 3 * m)).reshape(-1, 3, m)
+
+
+
+def tangent_increment(facets: FacetTriangles, translations: np.ndarray, n_nodes: int) -> sp.csr_matrix:
+    """d f_nl / du at nodal translations (n, 3) mm: (6n, 6n) CSR on the translation DOFs, N/mm.
+
+    Per facet A [B(u)^T t D B(u) - B_0^T t D B_0] + K_G(N(u)): B(u) is the membrane strain's derivative with the
+    facet axes e_x + J_x, e_y + J_y (B_0: e_x, e_y, the linear membrane already in K), K_G = int G^T N G dA x I_3.
+    """
+    J = _gradients(facets, translations[:, :, None])[..., 0]  # (T, 3, 2)
+    N = membrane_forces(facets, translations[:, :, None])[..., 0]  # (T, 3)
+    g = facets.grad  # (T, 2, 3)
+    tD = facets.thickness[:, None, None] * facets.D
+
+    def strain_matrix(ax: np.ndarray, ay: np.ndarray) -> np.ndarray:
+        """(T, 3, 9): rows xx, yy, 2xy; columns (node, component) for axes ax, ay (T, 3)."""
+        B = np.stack([g[:, 0, :, None] * ax[:, None, :], g[:, 1, :, None] * ay[:, None, :],
+                      g[:, 1, :, None] * ax[:, None, :] + g[:, 0, :, None] * ay[:, None, :]], axis=1)
+        return B.reshape(-1, 3, 9)
+
+    e1, e2 = facets.frame[:, 0], facets.frame[:, 1]
+    B0, B = strain_matrix(e1, e2), strain_matrix(e1 + J[:, :, 0], e2 + J[:, :, 1])
+    area = facets.area[:, None, None]
+    local = area * (np.einsum("tia,tij,tjb->tab", B, tD, B) - np.einsum("tia,tij,tjb->tab", B0, tD, B0))
+    local += _geometric_blocks(facets, N)
+    return _assemble(facets, local, n_nodes)
+
+
+def geometric_stiffness(facets: FacetTriangles, membrane: np.ndarray, n_nodes: int) -> sp.csr_matrix:
+    """Initial-stress stiffness K_G = int G^T N G dA x I_3, (6n, 6n) CSR on the translation DOFs, N/mm, of membrane
+    forces (T, 3) N/mm (:func:`membrane_forces`, facet frames): linear in N (a buckling eigenproblem's matrix)."""
+    return _assemble(facets, _geometric_blocks(facets, membrane), n_nodes)
+
+
+def buckling_factor(solver: ShellSolver, displacement: np.ndarray, modes: int = 3) -> float:
+    """Linear buckling: the smallest positive lambda at which K + lambda K_G(N(u)) turns singular, for a
+    displacement u (6n,) mm (the membrane forces of u scaled by lambda; its loads or boundary motions scaled alike).
+
+    Solved as the largest eigenvalue mu of -K^-1 K_G (ARPACK, ``modes`` eigenvalues), lambda = 1 / mu; inf when no
+    membrane force of u softens the structure.
+    """
+    import scipy.sparse.linalg as sla
+
+    model = solver.model
+    facets = facet_triangles(model)
+    N = membrane_forces(facets, displacement.reshape(-1, 6)[:, :3, None], nonlinear=False)[..., 0]
+    KG = geometric_stiffness(facets, N, len(model.nodes))[solver.free][:, solver.free]
+    size = len(solver.free)
+    operator = sla.LinearOperator((size, size), matvec=lambda v: -solver.solve_free(KG @ v))
+    mu = sla.eigs(operator, k=modes, which="LR", return_eigenvectors=False, tol=1e-8).real.max()
+    return float(1.0 / mu) if mu > 0 else float("inf")
+
+
+def _geometric_blocks(facets: FacetTriangles, N: np.ndarray) -> np.ndarray:
+    """(T, 9, 9) per-facet K_G on (node, global component) of membrane forces N (T, 3)."""
+    g = facets.grad
+    Nmat = np.stack([np.stack([N[:, 0], N[:, 2]], -1), np.stack([N[:, 2], N[:, 1]], -1)], -2)  # (T, 2, 2)
+    scalar = facets.area[:, None, None] * np.einsum("tai,tab,tbj->tij", g, Nmat, g)  # (T, 3, 3) node x node
+    return np.einsum("tij,cd->ticjd", scalar, np.eye(3)).reshape(-1, 9, 9)
+
+
+def _assemble(facets: FacetTriangles, local: np.ndarray, n_nodes: int) -> sp.csr_matrix:
+    """(6n, 6n) CSR of per-facet (T, 9, 9) blocks on the facets' nodes' translations."""
+    dofs = (6 * facets.nodes[:, :, None] + np.arange(3)).reshape(-1, 9)
+    rows = np.broadcast_to(dofs[:, :, None], local.shape).ravel()
+    cols = np.broadcast_to(dofs[:, None, :], local.shape).ravel()
+    return sp.coo_matrix((local.ravel(), (rows, cols)), shape=(6 * n_nodes, 6 * n_nodes)).tocsr()
+
+
+@dataclass(frozen=True)
+class NonlinearMembers:
+    """Geometrically nonlinear members (m of them).
+
+    translations: (m, n, 3) mm, every node. pad_forces: (m, S) N. pad_displacement: (m, S) mm, the pad springs' mean
+    axial displacement z. iterations: (m,) iterations to convergence (all tangents together).
+    """
+
+    translations: np.ndarray
+    pad_forces: np.ndarray
+    pad_displacement: np.ndarray
+    iterations: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Tangent:
+    """One factorised tangent K_T = K + increment and its linear responses (load + unit bilateral motions, unit pad
+    spring forces) and LCP matrix M = H + diag(1/k)."""
+
+    solver: ShellSolver
+    increment: sp.csr_matrix
+    linear: np.ndarray
+    pad_fields: np.ndarray
+    M: np.ndarray
+
+
+class NonlinearSolver:
+    """Geometrically nonlinear members of a factorised :class:`~.solver.ShellSolver` (same loads, boundaries and
+    pads): an incremental Newton method whose tangents are shared between members.
+
+    With a tangent K_T (factorised at a solved state), a member iterates K_T u = F(a) + P f - g(u),
+    g(u) = f_nl(u) - (K_T - K) u, from K_T's own linear responses, with the pad contact re-solved exactly (LCP on
+    K_T's compliance) in every iteration; at convergence K u + f_nl(u) = F(a) + P f with the contact conditions,
+    whichever tangent was used. A member starts from the solved state nearest to it (the reference state, all
+    parameters 0, is solved by Newton first) and walks to its own state in increments: when an increment does not
+    contract by ``contraction`` per iteration, a new tangent is factorised at the last solved increment (kept for the
+    members after it), and then the increment is halved.
+
+    tolerance: mm, largest change of any translation between iterations at convergence; min_step: the smallest
+    increment (fraction of the way) before SolverError (near or beyond a buckling load).
+    """
+
+    def __init__(self, solver: ShellSolver, tolerance: float = 1e-6, contraction: float = 0.5,
+                 min_step: float = 1.0 / 64, newton_steps: int = 20) -> None:
+        self.solver = solver
+        self.tolerance = tolerance
+        self.contraction = contraction
+        self.min_step = min_step
+        model = solver.model
+        n = len(model.nodes)
+        self.facets = facet_triangles(model)
+        self._translation = (np.arange(6 * n) % 6) < 3
+        self._pad_loads = solver.pads.loads.tocsr()
+        self._solved: list[tuple[np.ndarray, np.ndarray, _Tangent]] = []  # (state, displacement, its tangent)
+        self.factorisations = 0
+        u = solver.load_response()
+        for _ in range(newton_steps):
+            tangent = solver.with_stiffness((solver.K + self._increment(u)).tocsr())
+            self.factorisations += 1
+            correction = tangent.solve(solver.load - solver.K @ u - self._f_nl(u[:, None])[:, 0])
+            u = u + correction
+            if np.abs(correction).max() < tolerance:
+                break
+        else:
+            raise SolverError(f"the reference state did not converge in {newton_steps} Newton steps")
+        logger.info("reference state solved with %d Newton steps", self.factorisations)
+        self.reference = u
+        self._new_tangent(np.zeros(len(model.names)), u)
+
+    def _f_nl(self, u: np.ndarray) -> np.ndarray:
+        """f_nl (6n, m) N of displacements (6n, m) mm (zero on rotations)."""
+        n = len(self.solver.model.nodes)
+        out = np.zeros_like(u)
+        out[self._translation] = nonlinear_forces(self.facets, u[self._translation].reshape(n, 3, -1)).reshape(
+            3 * n, -1)
+        return out
+
+    def _increment(self, u: np.ndarray) -> sp.csr_matrix:
+        n = len(self.solver.model.nodes)
+        return tangent_increment(self.facets, u.reshape(n, 6)[:, :3], n)
+
+    def _new_tangent(self, state: np.ndarray, u: np.ndarray) -> _Tangent:
+        """Factorise the tangent at a solved (state, displacement) and keep it."""
+        model, n = self.solver.model, len(self.solver.model.nodes)
+        increment = self._increment(u)
+        tangent = self.solver.with_stiffness((self.solver.K + increment).tocsr())
+        self.factorisations += 1
+        columns = [tangent.load_response()] + [tangent.boundary_response(p.boundary, p.direction)
+                                                for p in model.bilateral]
+        pads = self.solver.pads
+        pad_fields = tangent.solve(pads.loads.toarray()) if len(pads.k) else np.zeros((6 * n, 0))
+        H = np.asarray(self._pad_loads.T @ pad_fields)
+        out = _Tangent(tangent, increment, np.stack(columns, axis=1), pad_fields,
+                       0.5 * (H + H.T) + np.diag(1.0 / pads.k))
+        self._solved.append((state.copy(), u.copy(), out))
+        return out
+
+    def _iterate(self, tangent: _Tangent, state: np.ndarray, u: np.ndarray, max_iter: int = 30, history: int = 6
+                 ) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """Converged (displacement (6n,), pad forces (S,), iterations) of ``state`` from ``u``, or None when the
+        iteration does not converge in ``max_iter`` or its change grows past 1/contraction x the smallest so far.
+
+        The fixed point x = T(x) of the correction x = -K_T^-1 g(u(x)) is accelerated by Anderson mixing over the
+        last ``history`` iterates (a secant update: the contact's kinks make T only piecewise smooth)."""
+        B = len(self.solver.model.bilateral)
+        pads = self.solver.pads
+        target = state[B:][pads.pad_of] + pads.preload
+        base = tangent.linear @ np.concatenate([[1.0], state[:B]])
+
+        def step(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            f = solve_lcp(tangent.M, self._pad_loads.T @ (base + x) - target)
+            u = base + x + tangent.pad_fields @ f
+            return tangent.solver.solve(tangent.increment @ u - self._f_nl(u[:, None])[:, 0]), u, f
+
+        x = tangent.solver.solve(tangent.increment @ u - self._f_nl(u[:, None])[:, 0])
+        xs, rs = [], []
+        best = np.inf
+        for iteration in range(1, max_iter + 1):
+            image, u, f = step(x)
+            r = image - x
+            change = float(np.abs(r).max())
+            if change < self.tolerance:
+                return u, f, iteration
+            if not np.isfinite(change) or change > best / self.contraction:
+                return None
+            best = min(best, change)
+            xs.append(x)
+            rs.append(r)
+            xs, rs = xs[-history - 1:], rs[-history - 1:]
+            if len(rs) > 1:
+                dR = np.stack([rs[i + 1] - rs[i] for i in range(len(rs) - 1)], axis=1)
+                dX = np.stack([xs[i + 1] - xs[i] for i in range(len(xs) - 1)], axis=1)
+                gamma = np.linalg.lstsq(dR, r, rcond=None)[0]
+                x = x + r - (dX + dR) @ gamma
+            else:
+                x = image
+        return None
+
+    def _solve_one(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        """One member: displacement (6n,) mm, pad forces (S,) N, iterations."""
+        start, u, tangent = min(self._solved, key=lambda solved: float(np.abs(solved[0] - state).sum()))
+        done, step, fresh, iterations, f = 0.0, 1.0, True, 0, None
+        while done < 1.0:
+            trial = min(1.0, done + step)
+            result = self._iterate(tangent, start + trial * (state - start), u)
+            if result is not None:
+                u, f, count = result
+                iterations += count
+                done, fresh = trial, False
+                continue
+            if not fresh:  # a Newton step: the tangent at the last solved increment
+                tangent, fresh = self._new_tangent(start + done * (state - start), u), True
+                continue
+            step /= 2
+            if step < self.min_step:
+                raise SolverError(f"geometrically nonlinear member {state.tolist()} stalls at {done:.3f} of the way "
+                                  "from the nearest solved state: the loads are near a buckling load")
+        if f is None:  # the member is a solved state itself
+            f = solve_lcp(tangent.M, self._pad_loads.T @ u - state[len(self.solver.model.bilateral):][
+                self.solver.pads.pad_of] - self.solver.pads.preload)
+        return u, f, iterations
+
+    def solve(self, commanded: np.ndarray) -> NonlinearMembers:
+        """Members with commanded states (m, P) mm (model.names order), one after the other."""
+        model = self.solver.model
+        commanded = np.atleast_2d(np.asarray(commanded, dtype=float))
+        if commanded.ndim != 2 or commanded.shape[1] != len(model.names) or not np.all(np.isfinite(commanded)):
+            raise SolverError(f"expected finite parameter states (m, {len(model.names)}), got {commanded.shape}")
+        n, m = len(model.nodes), len(commanded)
+        u = np.zeros((6 * n, m))
+        forces = np.zeros((m, len(self.solver.pads.k)))
+        iterations = np.zeros(m, dtype=np.int64)
+        for member, state in enumerate(commanded):
+            u[:, member], forces[member], iterations[member] = self._solve_one(state)
+            if (member + 1) % 50 == 0:
+                logger.info("nonlinear member %d/%d, %d tangents so far", member + 1, m, self.factorisations)
+        z = np.asarray(self._pad_loads.T @ u).T
+        translations = u[self._translation].reshape(n, 3, m).transpose(2, 0, 1)
+        return NonlinearMembers(translations, forces, z, iterations)
+
+    def members(self, commanded: np.ndarray) -> MemberBlock:
+        """Members (m, P) mm as the linear ensemble's :func:`.ensemble.solve_members` reports them (skin fields)."""
+        model = self.solver.model
+        solved = self.solve(commanded)
+        commanded = np.atleast_2d(np.asarray(commanded, dtype=float))
+        pads = self.solver.pads
+        B = len(model.bilateral)
+        effective, fraction, reactions = contact_summary(commanded, solved.pad_forces, solved.pad_displacement,
+                                                         pads.pad_of, pads.preload, B, model.parameter_states)
+        skin = solved.translations[:, model.skin_nodes]
+        normal = np.einsum("mna,na->mn", skin, skin_surface(model).normals)
+        compression = commanded[:, B:][:, pads.pad_of] + pads.preload - solved.pad_displacement
+        return MemberBlock(effective, fraction, reactions, normal, skin, solved.pad_forces, compression)
+
+
+def nonlinear_ensemble(solver: NonlinearSolver, commanded: np.ndarray, rank: np.ndarray, lower: np.ndarray,
+                       upper: np.ndarray) -> Ensemble:
+    """An in-memory Ensemble of geometrically nonlinear members (as :func:`.ensemble.simulate_ensemble`)."""
+    block = solver.members(commanded)
+    return Ensemble(
+        model_id=solver.solver.model.model_id, names=solver.solver.model.names,
+        n_bilateral=len(solver.solver.model.bilateral), lower=np.asarray(lower, dtype=float),
+        upper=np.asarray(upper, dtype=float), commanded=np.asarray(commanded, dtype=float),
+        effective=block.effective, contact_fraction=block.contact_fraction, reactions=block.reactions,
+        rank=np.asarray(rank, dtype=np.int64), normal_displacement=block.normal_displacement,
+        displacement=block.displacement)

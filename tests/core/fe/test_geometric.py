@@ -1,0 +1,102 @@
+"""Geometric nonlinearity of the facet shell (core/fe/geometric.py) against beam-column theory.
+
+A simply supported strip (1000 x 50 x 5 mm, nu = 0 so the plate strip is an Euler beam, EI = E b t^3 / 12) under an
+axial compression P at its free end and its own weight as the lateral load: Euler's buckling load pi^2 EI / L^2 and
+Timoshenko's exact midspan deflection of a uniformly loaded beam-column (Theory of Elastic Stability, eq. 1-34),
+delta = delta_0 * 12 (2 sec u - 2 - u^2) / (5 u^4), u = (L/2) sqrt(P / EI), are the independent references.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hood_decomp.core.fe.geometric import (
+    NonlinearSolver,
+    buckling_factor,
+    facet_triangles,
+    membrane_forces,
+    nonlinear_forces,
+    tangent_increment,
+)
+from hood_decomp.core.fe.model import Boundary, Material, Part, PartModel, Patch
+from hood_decomp.core.fe.solver import build_solver
+
+L, WIDTH, T, E = 1000.0, 50.0, 5.0, 210000.0
+EI = E * WIDTH * T**3 / 12.0
+P_EULER = np.pi**2 * EI / L**2  # 1080 N
+
+
+def _strip(axial: float, nx: int = 40) -> PartModel:
+    """The strip on nx x 2 quads: x = 0 pinned, x = L held in y and z, ``axial`` N pushing the end at x = L."""
+    x, y = np.linspace(0.0, L, nx + 1), np.linspace(0.0, WIDTH, 3)
+    nodes = np.array([[a, b, 0.0] for a in x for b in y])
+    index = np.arange(len(nodes)).reshape(nx + 1, 3)
+    cells = np.stack([index[:-1, :-1], index[1:, :-1], index[1:, 1:], index[:-1, 1:]], axis=-1).reshape(-1, 4)
+    start, end = tuple(int(i) for i in index[0]), tuple(int(i) for i in index[-1])
+    boundaries = (Boundary("pin", "fixed", Patch(nodes=start), dofs=("x", "y", "z")),
+                  Boundary("roller", "fixed", Patch(nodes=end), dofs=("y", "z")),
+                  Boundary("push", "force", Patch(nodes=end), axis=(-1.0, 0.0, 0.0), force=axial))
+    return PartModel(name="strip", nodes=nodes, cells=cells, cell_part=np.zeros(len(cells), dtype=np.int64),
+                     parts=(Part("strip", T),), material=Material(E=E, nu=0.0), boundaries=boundaries,
+                     parameters=(), skin_part="strip")
+
+
+def test_euler_buckling_load_of_a_strip() -> None:
+    """Fails if the initial-stress stiffness K_G = int G^T N G dA (sign, area, membrane force from the CST) gives a
+    critical load of the strip more than 0.5 % from Euler's pi^2 EI / L^2."""
+    model = _strip(axial=1.0)
+    solver = build_solver(model)
+    facets = facet_triangles(model)
+    u = solver.load_response() - build_solver(_strip(axial=1e-12)).load_response()  # the push alone
+    N = membrane_forces(facets, u.reshape(-1, 6)[:, :3, None], nonlinear=False)[..., 0]
+    # the CST carries the push as a uniaxial N = -P / b (facet frames differ: trace and determinant)
+    np.testing.assert_allclose((N[:, 0] + N[:, 1]) * WIDTH, -1.0, rtol=1e-6)
+    np.testing.assert_allclose(N[:, 0] * N[:, 1] - N[:, 2] ** 2, 0.0, atol=1e-9 / WIDTH**2)
+    critical = buckling_factor(solver, u)
+    assert critical == pytest.approx(P_EULER, rel=0.005)
+
+
+@pytest.mark.parametrize("fraction", [0.3, 0.6])
+def test_beam_column_amplification(fraction: float) -> None:
+    """Fails if the nonlinear member (Green-Lagrange membrane forces, the tangent, the incremental Newton of
+    NonlinearSolver) does not amplify the strip's weight deflection as Timoshenko's beam-column within 0.5 %, or if
+    it changes the linear deflection without the push (no membrane force: nothing to amplify, within 1e-3)."""
+    P = fraction * P_EULER
+    linear = build_solver(_strip(axial=1e-12))
+    plain = NonlinearSolver(linear, tolerance=1e-9).reference.reshape(-1, 6)[:, 2]
+    w0 = linear.load_response().reshape(-1, 6)[:, 2]
+    mid = np.argmin(np.abs(linear.model.nodes[:, 0] - L / 2) + np.abs(linear.model.nodes[:, 1] - WIDTH / 2))
+    assert abs(plain[mid] / w0[mid] - 1.0) < 1e-3
+    pushed = NonlinearSolver(build_solver(_strip(axial=P)), tolerance=1e-9).reference.reshape(-1, 6)[:, 2]
+    u = 0.5 * L * np.sqrt(P / EI)
+    expected = 12.0 * (2.0 / np.cos(u) - 2.0 - u**2) / (5.0 * u**4)
+    assert pushed[mid] / w0[mid] == pytest.approx(expected, rel=0.005)
+
+
+def test_nonlinear_force_is_the_gradient_of_the_green_lagrange_energy() -> None:
+    """Fails if f_nl is not the derivative of the membrane energy 1/2 int N . eps (Green-Lagrange eps) beyond the
+    linear membrane, or if the tangent is not the derivative of f_nl (central differences on random motions)."""
+    model = _strip(axial=1.0, nx=6)
+    facets = facet_triangles(model)
+    rng = np.random.default_rng(3)
+    u, v = rng.normal(size=(2, len(model.nodes), 3, 1)) * np.array([0.3, 1.0])[:, None, None, None]
+    compliance = np.linalg.inv(facets.D)
+
+    def energy(w: np.ndarray) -> float:
+        N = membrane_forces(facets, w)[..., 0]
+        return 0.5 * float(np.sum(facets.area * np.einsum("ti,ij,tj->t", N, compliance, N) / facets.thickness))
+
+    def linear_work(w: np.ndarray, dw: np.ndarray) -> float:
+        strain = np.einsum("ij,tjm->tim", compliance, membrane_forces(facets, dw, nonlinear=False))[..., 0]
+        return float(np.sum(facets.area * np.einsum("ti,ti->t", membrane_forces(facets, w, nonlinear=False)[..., 0],
+                                                    strain) / facets.thickness))
+
+    h = 1e-6
+    derivative = (energy(u + h * v) - energy(u - h * v)) / (2 * h)
+    assert derivative == pytest.approx(linear_work(u, v) + float(np.sum(nonlinear_forces(facets, u) * v)), rel=1e-6)
+    step = (nonlinear_forces(facets, u + h * v) - nonlinear_forces(facets, u - h * v))[..., 0] / (2 * h)
+    v6 = np.zeros((len(model.nodes), 6))
+    v6[:, :3] = v[..., 0]
+    tangent = (tangent_increment(facets, u[..., 0], len(model.nodes)) @ v6.ravel()).reshape(-1, 6)
+    np.testing.assert_allclose(tangent[:, :3], step, atol=1e-6 * np.abs(step).max())
