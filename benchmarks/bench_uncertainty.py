@@ -1,7 +1,7 @@
 """Calibration of the stated uncertainty and of the one within-model test, on data the estimator's path did not make.
 
-Harness (i), measurement, on the default hood (issue 15). Truth: random states in the declared ranges, solved exactly
-by the bases' own FE model (contact included); then
+Harness (i), measurement, on the default hood (issue 15; ``--resolution coarse`` for the large counts).
+Truth: random states in the declared ranges, solved exactly by the bases' own FE model (contact included); then
 - ``noise``: the true field plus white node noise 0.01-0.05 mm, the noise stated as the field's error model;
 - ``scan``: the synthetic structured-light scanner (Phong-smooth displaced skin, range noise 0.01-0.05 mm, outliers,
   dropouts and 0-8 holes, the scanner 0.5 deg / 5 mm off its calibration) registered by 8 fixture markers whose
@@ -15,7 +15,8 @@ part position); the false-alarm rate of the test (alpha 1 %); the gate-open rate
 applied correction when the gate is open.
 
 Prints a table and writes benchmarks/out/uncertainty.json (rewritten as it goes). Run from the repository root:
-    scripts/with-env nice python benchmarks/bench_uncertainty.py [--noise N] [--scans N] [--per-level N]
+    scripts/with-env nice python benchmarks/bench_uncertainty.py [--resolution R] [--noise N] [--scans N]
+        [--per-level N] [--levels MM ...]
 """
 
 from __future__ import annotations
@@ -93,17 +94,22 @@ def summary(rows: list[dict], names: tuple[str, ...]) -> dict:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--resolution", choices=("default", "coarse"), default="default")
     parser.add_argument("--noise", type=int, default=1000, help="noise-only fields")
     parser.add_argument("--scans", type=int, default=200, help="scans of harness (i)")
     parser.add_argument("--per-level", type=int, default=20, help="undeclared-effect scans per hinge_R.z level")
-    parser.add_argument("--points", type=int, default=500_000, help="scan points on the skin")
+    parser.add_argument("--points", type=int, default=None,
+                        help="scan points on the skin (default: 500,000 at default resolution, 120,000 at coarse)")
+    parser.add_argument("--levels", type=float, nargs="+", default=LEVELS_MM, help="hinge_R.z levels, mm")
     parser.add_argument("--seed", type=int, default=15)
     parser.add_argument("--out", type=Path, default=OUT, help="JSON written as the run goes")
     args = parser.parse_args()
+    if args.points is None:
+        args.points = 500_000 if args.resolution == "default" else 120_000
     rng = np.random.default_rng(args.seed)
-    log("building the default hood, its ensemble and bases")
+    log(f"building the {args.resolution} hood, its ensemble and bases")
     with tempfile.TemporaryDirectory() as tmp:
-        case = _hood_case("default", Path(tmp))
+        case = _hood_case(args.resolution, Path(tmp))
     bases, reduced, skin = case.bases, case.reduced, case.skin
     names = bases.names
     lo, hi = bases.pca.lower_, bases.pca.upper_
@@ -157,7 +163,7 @@ def main() -> int:
     solver = case.solver
     unit = simulate_setting(solver, {"hinge_R.z": 1.0}).displacement - simulate_setting(solver, {}).displacement
     curve = []
-    for level in LEVELS_MM if args.per_level else ():  # --per-level 0: no detection curve
+    for level in args.levels if args.per_level else ():  # --per-level 0: no detection curve
         detected = detected_inflated = safe = 0
         worst = 0.0
         for _ in range(args.per_level):

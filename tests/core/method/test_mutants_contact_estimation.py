@@ -72,9 +72,10 @@ def linearised_fit(model: ReducedModel, state: np.ndarray, values: np.ndarray, h
     (3, [-0.4, 0.6, -0.3, 0.4, -1.0]),
 ])
 def test_noisy_partial_field_matches_the_linearised_least_squares(skin, n_bilateral, state):
-    """Fails if values or std of a noisy, partly seen field differ from the reference fit of the true contact state
+    """Fails if values of a noisy, partly seen field differ from the reference fit of the true contact state
     (bilateral states, touching pads' commanded positions, lifted pads' part positions), for 4 and 3 bilateral
-    parameters (the pad columns follow the bilateral ones)."""
+    parameters (the pad columns follow the bilateral ones), or if the stated variance is below that fit's or more
+    than (0.2 um)^2 above it (a fifth of the node noise)."""
     model = make_reduced_model(skin, seed=0, n_bilateral=n_bilateral, springs_per_pad=3)
     state = np.array(state)
     # With this noise draw the true contact state is the one selected for every case (with other draws a lifted pad
@@ -89,7 +90,10 @@ def test_noisy_partial_field_matches_the_linearised_least_squares(skin, n_bilate
     expected_lifted[n_bilateral:] = [p not in touching for p in range(2)]
     np.testing.assert_array_equal(estimate.lifted, expected_lifted)
     np.testing.assert_allclose(estimate.values, reference, atol=1e-9)
-    np.testing.assert_allclose(estimate.std, std, rtol=1e-6)
+    # the stated variance is the true state's least-squares variance plus the spread over the contact states the
+    # field also supports (a lifted pad against a light touch differs by ~1e-4 mm here, a tenth of the node noise)
+    extra = estimate.std**2 - std**2
+    assert np.all(extra >= -1e-9 * std**2) and np.all(extra <= (0.2e-3) ** 2), extra
     assert estimate.residual_rms == pytest.approx(1e-3, rel=0.2)
 
 

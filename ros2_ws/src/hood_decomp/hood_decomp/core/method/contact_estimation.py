@@ -234,6 +234,7 @@ class ContactEstimator:
         measured = noise2 > 0  # a noisy field: its noise level stated by noise_rms or by its error model
         min_force = self.measured_min_pad_force_n if measured else 0.0
         out_values, covariance, lifted = self._report(best, theta, theta_cov, min_force)
+        covariance = covariance + self._between_states(candidates.values(), best, out_values, noise2, min_force)
         return ParameterEstimate(
             model_id=model.model_id,
             names=tuple(model.names),
@@ -252,6 +253,27 @@ class ContactEstimator:
             covariance=covariance,
             check=check,
         )
+
+    def _between_states(self, candidates, best: _Candidate, values: np.ndarray, noise2: float,
+                        min_force_n: float) -> np.ndarray:
+        """(B + U, B + U) mm^2: the spread of the values over the contact states the field supports (Akaike weights
+        exp(-(rss / noise^2 + 2 p) / 2) relative to the best), around the reported values. Zero without a noise
+        level (a noise-free field decides its contact state)."""
+        n = values.size
+        if noise2 <= 0:
+            return np.zeros((n, n))
+        score = {id(c): c.rss / noise2 + 2.0 * c.theta.size for c in candidates}
+        low = score[id(best)]
+        spread, total = np.zeros((n, n)), 1.0
+        for cand in candidates:
+            weight = np.exp(-0.5 * (score[id(cand)] - low))
+            if cand is best or weight < 1e-6:
+                continue
+            other, _, _ = self._report(cand, cand.theta, noise2 * cand.normal_inverse, min_force_n)
+            diff = np.nan_to_num(other - values)
+            spread += weight * np.outer(diff, diff)
+            total += weight
+        return spread / total
 
     def _margins(self, cand: _Candidate) -> np.ndarray:
         """(S,) mm, how far each spring is from changing state: compression f / k of an active spring, the gap of a
