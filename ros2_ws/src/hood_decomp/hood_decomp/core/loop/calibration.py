@@ -439,7 +439,7 @@ def rebuild_bases(bases: Bases, reduced: ReducedModel, calibration: str = "",
     rebuilt = build_bases(ensemble, bases.skin, reduced, bases.pca.n_components, bases.pca.explained_variance,
                           bases.hierarchical.epsilon_)
     thermal = None if physics is None else (physics.thermal_w, physics.thermal_z, physics.thermal_w3)
-    return replace(rebuilt, calibration=calibration, thermal=thermal)
+    return replace(rebuilt, calibration=calibration, thermal=thermal, measured_effects=bases.measured_effects)
 
 
 def relative_field(reduced: ReducedModel, field: DisplacementField, reference: DisplacementField,

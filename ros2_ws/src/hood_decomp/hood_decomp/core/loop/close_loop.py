@@ -53,7 +53,7 @@ import itertools
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.stats import chi2, f
@@ -567,6 +567,7 @@ def close_loop(
     start = time.perf_counter()
     bases_after = build_bases(extended, bases.skin, reduced, n_components=bases.pca.n_components,
                               explained_variance=bases.pca.explained_variance, epsilon=bases.hierarchical.epsilon_)
+    bases_after = replace(bases_after, measured_effects=bases.measured_effects)
     timings["bases_s"] = time.perf_counter() - start
     start = time.perf_counter()
     after = tuple(estimate_field(bases_after, fd, method, min_coverage) for fd in fields)

@@ -49,6 +49,10 @@ class Bases:
     #: response of the part to 1 K of uniform temperature rise (skin normal (N,), pad springs (S,), skin 3D (N, 3), mm;
     #: core.fe.solver.physical_responses), carried by calibrated bases; None: no temperature term
     thermal: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    #: the parameters that are measured effects (core.loop.measured_effects): basis fields learned from recurring
+    #: residuals, without a boundary to adjust; every estimate marks them (ParameterEstimate.measured_effect) and no
+    #: correction moves them (core.method.correction.plan_correction)
+    measured_effects: tuple[str, ...] = ()
     # (min_coverage, temperature K) -> fitted ContactEstimator; filled on first use, not part of the bases' value
     _contact_estimators: dict[tuple[float, float], ContactEstimator] = dataclasses.field(
         default_factory=dict, init=False, repr=False, compare=False)
@@ -137,8 +141,12 @@ def estimate_field(
         if temperature_k != 0.0 and np.shape(field.normal_displacement) == bases.pca.mean_field_.shape:
             thermal = bases.at_temperature(temperature_k).w0 - bases.reduced_model.w0
             field = dataclasses.replace(field, normal_displacement=field.normal_displacement - thermal)
-        return estimate_pca(bases.pca, field, min_coverage, bases.residual_test())
-    return bases.contact_estimator(min_coverage, temperature_k).estimate(field)
+        estimate = estimate_pca(bases.pca, field, min_coverage, bases.residual_test())
+    else:
+        estimate = bases.contact_estimator(min_coverage, temperature_k).estimate(field)
+    if not bases.measured_effects:
+        return estimate
+    return dataclasses.replace(estimate, measured_effect=np.isin(estimate.names, bases.measured_effects))
 
 
 def fitted_unknowns(estimate: ParameterEstimate) -> int:
