@@ -84,6 +84,7 @@ class EstimatorNode(HoodNode):
         self.sent: OrderedDict[str, _Sent] = OrderedDict()
         self.state_pub = self.correction_pub = self.verification_pub = None
         self.writer: HistoryWriter | None = None
+        self.bases_paths: dict[str, str] = {}  # model_id -> its bases file
         self.bases_ids: dict[str, str] = {}  # model_id -> fingerprint of its bases file (the history's bases_id)
         self.received = 0
 
@@ -112,7 +113,8 @@ class EstimatorNode(HoodNode):
         self.correction_pub = self.publisher(BoundaryCorrection, "hood_decomp/boundary_correction", latest=True)
         self.verification_pub = self.publisher(MoveVerification, "hood_decomp/move_verification", latest=True)
         paths = {"": self.param("bases"), **parse_entries(list(self.param("variants")), "PATH")}
-        self.bases_ids = {self.variant_bases[variant].model_id: bases_file_id(path) for variant, path in paths.items()}
+        self.bases_paths = {self.variant_bases[variant].model_id: path for variant, path in paths.items()}
+        self.bases_ids.clear()
 
     def activate_node(self) -> None:
         self.subscription(DisplacementField, "hood_decomp/displacement", self.guarded("estimation", self.on_field))
@@ -163,12 +165,18 @@ class EstimatorNode(HoodNode):
         base = PartRecord(source=f"live:{self.get_fully_qualified_name()}@{stamp_ns}", part_id=part_id,
                           message=self.received, stamp_ns=stamp_ns,
                           shift=f"live {self.get_name()}", model_id=estimate.model_id,
-                          bases_id=self.bases_ids.get(estimate.model_id, ""), method=estimate.method)
+                          bases_id=self.bases_id(estimate.model_id), method=estimate.method)
         analysis = analyse_estimate(bases, estimate, noise_level(field.noise_rms)[0])
         problem = writer.append(inspection_record(base, estimate, analysis, correction))
         if problem:
             self.report_history(problem, stamp)
         return {"history_written": not problem, "history_pending": len(writer.pending)}
+
+    def bases_id(self, model_id: str) -> str:
+        """The fingerprint of the bases file serving ``model_id``, read once (only when a history is written)."""
+        if model_id not in self.bases_ids:
+            self.bases_ids[model_id] = bases_file_id(self.bases_paths[model_id])
+        return self.bases_ids[model_id]
 
     def on_deactivate(self, state: Any) -> Any:
         self.retry_history()  # what is still pending stays in memory for the next activation
