@@ -129,8 +129,8 @@ def _bags(hood: Hood, directory: pathlib.Path, n: int) -> None:
     from hood_decomp.synthetic.scenarios import ScenarioScan
 
     config = ScannerConfig(n_points=500_000, noise_mm=0.02)
-    plan = plan_shift(hood.reduced.names, ProcessModel(drift_label=None, step_label=None), n, seed=7)
-    items = []
+    plan = plan_shift(hood.reduced.names, ProcessModel(drift_label=None, step_label=None), n, seed=3)
+    items = []  # the first n parts of the fields' shift (same plan and seed): the same parts as scans
     for i in range(n):
         part = make_part(plan, i, hood.truth, hood.skin)
         truth = dict(zip(hood.reduced.names, (float(v) for v in part.truth), strict=True))
