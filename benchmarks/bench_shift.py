@@ -145,7 +145,7 @@ def throughput(n_fields: int, n_bags: int) -> dict:
     hood = Hood("default")
     work = pathlib.Path(tempfile.mkdtemp(prefix="bench_shift_"))
     save_bases(work / "bases.h5", hood.bases)
-    plan = plan_shift(hood.reduced.names, ProcessModel(drift_label=None, step_label=None), n_fields, seed=3)
+    plan = plan_shift(hood.reduced.names, ProcessModel(drift_label=None, step_label=None), max(n_fields, 1), seed=3)
     (work / "fields").mkdir()
     for i in range(n_fields):
         part = make_part(plan, i, hood.truth, hood.skin)
@@ -156,6 +156,8 @@ def throughput(n_fields: int, n_bags: int) -> dict:
     _bags(hood, work / "bags", n_bags)
     rows = []
     for kind, directory, count in (("fields", work / "fields", n_fields), ("bags", work / "bags", n_bags)):
+        if count == 0:  # --fields 0 or --bags 0: that input not measured in this run
+            continue
         sources = find_sources([directory])
         for workers in (1, 2):
             load_before = os.getloadavg()[0]
@@ -258,7 +260,11 @@ def main() -> int:
     if args.only in (None, "recurring"):
         result["recurring"] = recurring(args.recurring)
     if args.only in (None, "throughput"):
-        result["throughput"] = throughput(args.fields, args.bags)
+        measured = throughput(args.fields, args.bags)
+        # rows of other (input, parts) from earlier runs are kept: a 1,000-field run and a bag run may be separate
+        kept = [row for row in result.get("throughput", {}).get("rows", [])
+                if (row["input"], row["parts"]) not in {(r["input"], r["parts"]) for r in measured["rows"]}]
+        result["throughput"] = {"rows": kept + measured["rows"], "load_average": measured["load_average"]}
     path.write_text(json.dumps(json_ready(result), indent=2) + "\n")
     print(f"\nwrote {path}")
     return 0
