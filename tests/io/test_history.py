@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import sqlite3
+import threading
 
 import numpy as np
 import pytest
@@ -101,8 +102,8 @@ def test_csv_export(tmp_path):
 
 def test_writer_keeps_parts_through_a_lock_and_a_bad_path(tmp_path):
     """Fails if the live writer (the estimator node's) loses a part while the database is locked by another
-    connection or its path cannot be opened, writes a part twice, reports no reason, or keeps more than max_pending
-    parts without counting the dropped ones."""
+    connection or its path cannot be opened, writes a part twice, reports no reason, cannot be flushed from another
+    thread, or keeps more than max_pending parts without counting the dropped ones."""
     path = tmp_path / "live.sqlite"
     writer = HistoryWriter(path, timeout_s=0.05)
     assert writer.append(_record(1)) == "" and writer.written == 1
@@ -113,8 +114,16 @@ def test_writer_keeps_parts_through_a_lock_and_a_bad_path(tmp_path):
     lock.execute("COMMIT")
     lock.close()
     assert writer.append(_record(3)) == "" and not writer.pending
+    # the node's retry timer runs in another executor thread than its subscription: the same open writer must work
+    # there (a connection bound to its creating thread raised ProgrammingError and killed the timer)
+    writer.pending.append(_record(4))
+    answers: list[str] = []
+    worker = threading.Thread(target=lambda: answers.append(writer.flush()))
+    worker.start()
+    worker.join(30)
+    assert answers == [""]
     with History(path) as history:
-        assert [r.part_id for r in history.records()] == ["p1", "p2", "p3"]
+        assert [r.part_id for r in history.records()] == ["p1", "p2", "p3", "p4"]
 
     directory = tmp_path / "a_directory"
     directory.mkdir()

@@ -17,6 +17,7 @@ import csv
 import dataclasses
 import hashlib
 import sqlite3
+import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -175,7 +176,9 @@ class History:
         if not new and not self.path.is_file():
             raise HistoryError(f"history {self.path} is not a file")
         try:
-            self._db = sqlite3.connect(self.path, timeout=self.timeout_s)
+            # any thread may use it (a node's timer and subscription run in different executor threads); the
+            # caller serialises its use (HistoryWriter holds a lock)
+            self._db = sqlite3.connect(self.path, timeout=self.timeout_s, check_same_thread=False)
             self._db.execute("PRAGMA foreign_keys = ON")
             if new:
                 with self._db:
@@ -358,7 +361,8 @@ class HistoryWriter:
     path that is not writable, a file that is no history) stays pending and is written, oldest first, by the next
     :meth:`append` or :meth:`flush` that succeeds. At most ``max_pending`` records wait; beyond that the oldest are
     dropped and counted in ``dropped`` (a bounded memory for a database that never comes back).
-    timeout_s: how long one write waits for another writer's lock."""
+    timeout_s: how long one write waits for another writer's lock. Thread-safe: one lock serialises every call
+    (a node's timer and its subscription run in different executor threads)."""
 
     def __init__(self, path: str | Path, timeout_s: float = 0.5, max_pending: int = 1000) -> None:
         self.path = Path(path)
@@ -368,17 +372,23 @@ class HistoryWriter:
         self.written = 0
         self.dropped = 0
         self._history: History | None = None
+        self._lock = threading.RLock()
 
     def append(self, record: PartRecord) -> str:
         """Queue ``record`` and write everything pending; "" when all is written, else why not (one line)."""
-        self.pending.append(record)
-        while len(self.pending) > self.max_pending:
-            self.pending.popleft()
-            self.dropped += 1
-        return self.flush()
+        with self._lock:
+            self.pending.append(record)
+            while len(self.pending) > self.max_pending:
+                self.pending.popleft()
+                self.dropped += 1
+            return self.flush()
 
     def flush(self) -> str:
         """Write every pending record; "" when all is written, else why not (the rest stays pending)."""
+        with self._lock:
+            return self._flush()
+
+    def _flush(self) -> str:
         try:
             if self._history is None:
                 self._history = History(self.path, self.timeout_s).open()
@@ -392,9 +402,10 @@ class HistoryWriter:
         return ""
 
     def close(self) -> None:
-        if self._history is not None:
-            self._history.close()
-            self._history = None
+        with self._lock:
+            if self._history is not None:
+                self._history.close()
+                self._history = None
 
 
 def _csv_value(value: object) -> object:

@@ -17,6 +17,7 @@ and the correction (``measured_effect``) and never corrected.
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 from typing import Any, NamedTuple
 
@@ -84,6 +85,7 @@ class EstimatorNode(HoodNode):
         self.sent: OrderedDict[str, _Sent] = OrderedDict()
         self.state_pub = self.correction_pub = self.verification_pub = None
         self.writer: HistoryWriter | None = None
+        self.history_lock = threading.RLock()  # the retry timer and the subscription run in different threads
         self.bases_paths: dict[str, str] = {}  # model_id -> its bases file
         self.bases_ids: dict[str, str] = {}  # model_id -> fingerprint of its bases file (the history's bases_id)
         self.received = 0
@@ -122,6 +124,10 @@ class EstimatorNode(HoodNode):
 
     def history_writer(self) -> HistoryWriter | None:
         """The writer of the ``history`` parameter's database (None when empty); a new path takes the pending parts."""
+        with self.history_lock:
+            return self._history_writer()
+
+    def _history_writer(self) -> HistoryWriter | None:
         path = self.param("history")
         if self.writer is not None and str(self.writer.path) != path:
             self.writer.close()
@@ -142,11 +148,11 @@ class EstimatorNode(HoodNode):
                                 history_dropped=writer.dropped)
 
     def retry_history(self) -> None:
-        writer = self.history_writer()
-        if writer is not None and writer.pending:
-            problem = writer.flush()
-            if problem:
-                self.report_history(problem)
+        with self.history_lock:
+            writer = self.history_writer()
+            problem = writer.flush() if writer is not None and writer.pending else ""
+        if problem:
+            self.report_history(problem)
 
     def record(self, msg: DisplacementField, field: CoreField, estimate: ParameterEstimate,
                correction: CoreCorrection, part_id: str) -> dict[str, object]:
@@ -167,7 +173,8 @@ class EstimatorNode(HoodNode):
                           shift=f"live {self.get_name()}", model_id=estimate.model_id,
                           bases_id=self.bases_id(estimate.model_id), method=estimate.method)
         analysis = analyse_estimate(bases, estimate, noise_level(field.noise_rms)[0])
-        problem = writer.append(inspection_record(base, estimate, analysis, correction))
+        with self.history_lock:
+            problem = writer.append(inspection_record(base, estimate, analysis, correction))
         if problem:
             self.report_history(problem, stamp)
         return {"history_written": not problem, "history_pending": len(writer.pending)}
