@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import csv
 import sqlite3
+import threading
 
 import numpy as np
 import pytest
 
 from hood_decomp.errors import HistoryError
-from hood_decomp.io.history import History, PartRecord
+from hood_decomp.io.history import History, HistoryWriter, PartRecord
 
 
 def _record(i: int, source: str = "bag_a", status: str = "ok", n: int = 5) -> PartRecord:
@@ -97,3 +98,40 @@ def test_csv_export(tmp_path):
     assert float(rows[1]["A_mm"]) == pytest.approx(0.2) and rows[1]["B_std_mm"] == ""
     assert rows[0]["B_lifted"] == "1" and float(rows[0]["share_A"]) == pytest.approx(0.7)
     assert rows[0]["within_model"] == "0" and rows[1]["within_model"] == "1"
+
+
+def test_writer_keeps_parts_through_a_lock_and_a_bad_path(tmp_path):
+    """Fails if the live writer (the estimator node's) loses a part while the database is locked by another
+    connection or its path cannot be opened, writes a part twice, reports no reason, cannot be flushed from another
+    thread, or keeps more than max_pending parts without counting the dropped ones."""
+    path = tmp_path / "live.sqlite"
+    writer = HistoryWriter(path, timeout_s=0.05)
+    assert writer.append(_record(1)) == "" and writer.written == 1
+    lock = sqlite3.connect(path, isolation_level=None)
+    lock.execute("BEGIN EXCLUSIVE")
+    problem = writer.append(_record(2))
+    assert "locked" in problem and "1 parts pending" in problem
+    lock.execute("COMMIT")
+    lock.close()
+    assert writer.append(_record(3)) == "" and not writer.pending
+    # the node's retry timer runs in another executor thread than its subscription: the same open writer must work
+    # there (a connection bound to its creating thread raised ProgrammingError and killed the timer)
+    writer.pending.append(_record(4))
+    answers: list[str] = []
+    worker = threading.Thread(target=lambda: answers.append(writer.flush()))
+    worker.start()
+    worker.join(30)
+    assert answers == [""]
+    with History(path) as history:
+        assert [r.part_id for r in history.records()] == ["p1", "p2", "p3", "p4"]
+
+    directory = tmp_path / "a_directory"
+    directory.mkdir()
+    bad = HistoryWriter(directory, max_pending=2)
+    for i in range(4):
+        assert "is not a file" in bad.append(_record(10 + i))
+    assert [r.part_id for r in bad.pending] == ["p12", "p13"] and bad.dropped == 2
+    bad.path = tmp_path / "later.sqlite"  # the path fixed (the node's parameter set anew)
+    assert bad.flush() == ""
+    with History(bad.path) as history:
+        assert [r.part_id for r in history.records()] == ["p12", "p13"]

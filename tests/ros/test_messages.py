@@ -170,6 +170,25 @@ def test_boundary_correction_mm_to_m(typestore):
     assert back.corrections == pytest.approx([-0.8, 0.1]) and not back.safe_to_apply
     assert back.std == pytest.approx([0.002, 0.07]) and list(back.applicable) == [True, False]
     assert list(decoded.remaining) == pytest.approx([-0.0003, 0.0]) and back.remaining == pytest.approx([-0.3, 0.0])
+    assert list(decoded.measured_effect) == [] and back.measured_effect is None
+
+
+def test_measured_effect_flags_travel_in_state_and_correction(typestore):
+    """Fails if the per-parameter measured-effect flag (a parameter without a boundary) is lost or shifted on its way
+    through BoundaryState and BoundaryCorrection (as rosbags decodes a recorded message, and back to the core)."""
+    import dataclasses
+
+    estimate = dataclasses.replace(_estimate(), measured_effect=np.array([True, False]))
+    decoded = rosbags_decode(typestore, messages.estimate_to_msg(estimate, Header(), "P-4"))
+    assert list(decoded.measured_effect) == [True, False]
+    back = messages.msg_to_estimate(messages.estimate_to_msg(estimate, Header(), "P-4"))
+    assert list(back.measured_effect) == [True, False] and list(back.boundary) == [False, True]
+    correction = BoundaryCorrection(model_id="m1", names=("measured_1", "HINGE_X"), corrections=np.array([0.0, 0.1]),
+                                    safe_to_apply=True, reason="", measured_effect=np.array([True, False]))
+    decoded = rosbags_decode(typestore, messages.correction_to_msg(correction, Header(), "P-4"))
+    assert list(decoded.measured_effect) == [True, False]
+    assert list(messages.msg_to_correction(messages.correction_to_msg(correction, Header(), "P-4"))
+                .measured_effect) == [True, False]
 
 
 def test_effect_fields_mm_to_m(typestore):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from hood_decomp.core.loop.candidates import candidate_fields, enumerate_candidates
-from hood_decomp.core.loop.measured_effects import analyse_recurring, augmented_bases, correction_without_effects
+from hood_decomp.core.loop.measured_effects import analyse_recurring, augmented_bases
 from hood_decomp.core.method.bases import analyse_estimate, estimate_field
 from hood_decomp.core.method.correction import plan_correction
 from hood_decomp.core.types import DisplacementField
@@ -119,5 +119,6 @@ def test_bases_rebuilt_with_the_measured_effect():
         without = _estimate(DisplacementField(case.skin.model_id, parts[i].field.normal_displacement
                                               - plan.amplitude[i] * truth, 1.0, 0.02))[0].values
         assert np.abs(np.delete(estimate.values, column) - without).max() <= 0.03, i
-    correction = correction_without_effects(plan_correction(estimate), (name,))
+    assert rebuilt.measured_effects == (name,) and estimate.measured_effect[column]
+    correction = plan_correction(estimate)
     assert correction.corrections[column] == 0.0 and f"{name} is a measured effect" in correction.reason

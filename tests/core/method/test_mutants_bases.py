@@ -182,7 +182,8 @@ def test_the_estimator_cache_is_not_part_of_the_value(toy):
     assert fresh == bases
     assert "_contact_estimators" not in repr(bases)
     with pytest.raises(TypeError):
-        Bases(bases.model_id, bases.skin, bases.pca, bases.hierarchical, None, "", None, (), None, {})  # type: ignore[call-arg]
+        Bases(bases.model_id, bases.skin, bases.pca, bases.hierarchical, None, "", None, (), None, (),  # type: ignore[call-arg]
+              {})
     with pytest.raises(dataclasses.FrozenInstanceError):
         bases.model_id = "x"  # type: ignore[misc]
 

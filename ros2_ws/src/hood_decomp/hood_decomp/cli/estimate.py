@@ -35,8 +35,14 @@ def estimate_payload(estimate, n_bilateral: int) -> dict:
     (``covariance_mm2``: label -> label -> mm^2), ``lifted`` for the unilateral boundaries, residual RMS and max
     (mm), coverage, within_model with the one test behind it (``within_model_test``: p_value, alpha, statistic,
     dof, noise_scale, noise_source: "residual" when the field states no error model and the noise level is
-    estimated from the residual with ``denominator_dof`` degrees of freedom) and method."""
+    estimated from the residual with ``denominator_dof`` degrees of freedom) and method. ``measured_effects``
+    names the parameters without a boundary (measured effects: their value is an amplitude); ``correction`` is what
+    the estimator node would send the robot with the default policy (core.method.correction.plan_correction: the
+    move per boundary, mm, never one for a measured effect or a lifted buffer; safe_to_apply, applicable, reason)."""
+    from hood_decomp.core.method.correction import plan_correction
+
     names = estimate.names
+    correction = plan_correction(estimate)
     covariance = estimate.covariance
     check = estimate.check
     return {
@@ -54,6 +60,11 @@ def estimate_payload(estimate, n_bilateral: int) -> dict:
         "coverage": estimate.coverage,
         "within_model": estimate.within_model,
         "method": estimate.method,
+        "measured_effects": [name for name, boundary in zip(names, estimate.boundary, strict=True) if not boundary],
+        "correction": {
+            "corrections_mm": dict(zip(names, correction.corrections, strict=True)),
+            "applicable": dict(zip(names, correction.applicable, strict=True)),
+            "safe_to_apply": correction.safe_to_apply, "reason": correction.reason},
     }
 
 

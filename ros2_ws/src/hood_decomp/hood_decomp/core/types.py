@@ -298,6 +298,9 @@ class ParameterEstimate:
         and, for a light-touch pad, the range its commanded position may take); std = sqrt(diag). None when unknown
         (an estimate decoded from a message without it).
     check: the :class:`ModelCheck` behind ``within_model`` (None when unknown).
+    measured_effect: (P,) bool, True for a measured effect (a parameter without a boundary: a basis field learned from
+        recurring residuals, :mod:`hood_decomp.core.loop.measured_effects`); its value is an amplitude, never a
+        boundary to move. None means every parameter is a boundary (bases without measured effects).
     """
 
     model_id: str
@@ -316,6 +319,14 @@ class ParameterEstimate:
     method: str
     covariance: np.ndarray | None = None
     check: ModelCheck | None = None
+    measured_effect: np.ndarray | None = None
+
+    @property
+    def boundary(self) -> np.ndarray:
+        """(P,) bool: True where the parameter is a boundary the robot can move (not a measured effect)."""
+        if self.measured_effect is None:
+            return np.ones(len(self.names), dtype=bool)
+        return ~np.asarray(self.measured_effect, bool)
 
 
 @dataclass(frozen=True)
@@ -399,6 +410,8 @@ class BoundaryCorrection:
     model with enough coverage); None when unknown (decoded from a message without it).
     remaining: (P,) mm, the part of the move to nominal that a per-cycle step limit left for the next cycle (0 where
     the correction is the whole move); None means nothing was left.
+    measured_effect: (P,) bool, True for a measured effect (no boundary: its correction is always 0 and never
+        applicable); None means every parameter is a boundary.
     """
 
     model_id: str
@@ -409,6 +422,7 @@ class BoundaryCorrection:
     std: np.ndarray | None = None
     applicable: np.ndarray | None = None
     remaining: np.ndarray | None = None
+    measured_effect: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

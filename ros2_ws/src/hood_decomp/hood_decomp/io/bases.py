@@ -22,10 +22,11 @@ from hood_decomp.errors import BasisError
 from hood_decomp.io.hdf5 import Reader, open_hdf5
 
 FORMAT = "hood_decomp.bases"
-# 4: with /tolerance_zones (written only then, so an older reader refuses the file instead of ignoring its acceptance
-# criteria); 3: optional /scan_skin (prepared scan skin); 2: bases_id checked on load; 1 had none (refused)
+# 4: may hold /tolerance_zones and /parameters/measured_effects (written only then, so that a reader that does not
+# know them refuses the file rather than ignoring its acceptance criteria or correcting a parameter without a
+# boundary); 3: optional /scan_skin (prepared scan skin); 2: bases_id checked on load; 1 had none (refused)
 SCHEMA_VERSION = 3
-ZONES_SCHEMA_VERSION = 4
+FEATURES_SCHEMA_VERSION = 4
 READABLE_VERSIONS = (2, 3, 4)
 _STR = h5py.string_dtype()
 
@@ -72,6 +73,8 @@ def bases_id(bases: Bases) -> str:
         items += ["thermal", *bases.thermal]
     if bases.discrepancy is not None:
         items += ["discrepancy", bases.discrepancy]
+    if bases.measured_effects:
+        items += ["measured_effects", "\x00".join(bases.measured_effects)]
     return fingerprint(*items)
 
 
@@ -164,7 +167,7 @@ def save_bases(path: str | Path, bases: Bases, *, scan_skin: bool = True) -> Non
     quadrics, kernel of the default ScanFieldEstimator), so that scans need not rebuild it."""
     content_id = bases_id(bases)
     with h5py.File(path, "w") as h5:
-        version = ZONES_SCHEMA_VERSION if bases.tolerance_zones else SCHEMA_VERSION
+        version = FEATURES_SCHEMA_VERSION if bases.tolerance_zones or bases.measured_effects else SCHEMA_VERSION
         h5.attrs.update(format=FORMAT, schema_version=version, model_id=bases.model_id, bases_id=content_id)
         if bases.calibration:
             h5.attrs["calibration"] = bases.calibration
@@ -183,6 +186,8 @@ def save_bases(path: str | Path, bases: Bases, *, scan_skin: bool = True) -> Non
         params = h5.create_group("parameters")
         params.create_dataset("names", data=np.array(bases.names, dtype=object), dtype=_STR)
         params.attrs["n_bilateral"] = bases.pca.n_bilateral_
+        if bases.measured_effects:
+            params.create_dataset("measured_effects", data=np.array(bases.measured_effects, dtype=object), dtype=_STR)
 
         pca = h5.create_group("pca")
         _write_arrays(pca, bases.pca, PCA_FITTED_ARRAYS)
@@ -303,12 +308,19 @@ def load_bases(path: str | Path) -> Bases:
         has_scan_skin = version >= 3 and "scan_skin" in h5
         # optional (issue 17): acceptance criteria, outside bases_id, bound to it by their own zones_id
         zones = _read_zones(read, stored_id) if "tolerance_zones" in h5 else ()
+        measured: tuple[str, ...] = ()
+        if "parameters/measured_effects" in h5:
+            measured = read.strings("parameters/measured_effects", "M")
+            strays = [name for name in measured if name not in names[:n_bilateral]]
+            if not measured or strays or len(set(measured)) != len(measured):
+                raise BasisError(f"{path}: parameters/measured_effects {list(measured)} must name distinct bilateral "
+                                 f"parameters of {list(names[:n_bilateral])} (at least one when present)")
 
     for what, other in (("skin", skin.model_id), ("PCA basis", pca.model_id_), ("hierarchical basis", hier.model_id_),
                         ("reduced model", None if reduced is None else reduced.model_id)):
         if other is not None and other != model_id:
             raise BasisError(f"{path}: {what} model_id {other!r} differs from the file's {model_id!r}")
-    bases = Bases(model_id, skin, pca, hier, reduced, calibration, thermal, zones, discrepancy)
+    bases = Bases(model_id, skin, pca, hier, reduced, calibration, thermal, zones, discrepancy, measured)
     if bases_id(bases) != stored_id:
         raise BasisError(f"{path}: content does not match its bases_id {stored_id!r} (the file was altered after "
                          "it was written: a rewritten model_id or array); rebuild it with `hood-decomp bases`")

@@ -14,13 +14,19 @@ found and the ones this reader reads. A file that is no SQLite database or no ho
 from __future__ import annotations
 
 import csv
+import dataclasses
+import hashlib
 import sqlite3
+import threading
+from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from hood_decomp.core.method.residual import ResidualAnalysis
+from hood_decomp.core.types import BoundaryCorrection, ParameterEstimate
 from hood_decomp.errors import HistoryError
 
 SCHEMA_VERSION = 1
@@ -122,11 +128,40 @@ def _none_if_nan(value: float) -> float | None:
     return None if value is None or not np.isfinite(value) else float(value)
 
 
-class History:
-    """An open results history (``with History(path) as history: ...``); creates the file when it does not exist."""
+def bases_file_id(path: str | Path) -> str:
+    """Fingerprint of a bases file's bytes (16 hex digits): the ``bases_id`` a history row names."""
+    digest = hashlib.sha256()
+    with Path(path).open("rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()[:16]
 
-    def __init__(self, path: str | Path) -> None:
+
+def inspection_record(base: PartRecord, estimate: ParameterEstimate, analysis: ResidualAnalysis,
+                      correction: BoundaryCorrection, effects: tuple[tuple[str, float], ...] = (),
+                      keep_residual: bool = True) -> PartRecord:
+    """The history row of one inspected part: ``base`` (source, part id, message, stamp, shift, model and bases id,
+    method) completed by its estimate, within-model analysis, correction and decomposition ``effects`` (name,
+    share). The one place a result becomes a row: the shift's workers and the estimator node both call it."""
+    check = estimate.check
+    return dataclasses.replace(
+        base, status="ok", error="", coverage=float(estimate.coverage), noise_mm=analysis.noise_mm,
+        residual_rms_mm=analysis.rms_mm, residual_max_mm=analysis.max_mm, residual_mean_mm=analysis.mean_mm,
+        chi2=float("nan") if check is None else check.statistic, dof=0 if check is None else check.dof,
+        p_value=analysis.p_value, within_model=analysis.within_model, safe_to_apply=correction.safe_to_apply,
+        reason=correction.reason, names=tuple(estimate.names), values=np.asarray(estimate.values, float),
+        std=np.asarray(estimate.std, float), lifted=np.asarray(estimate.lifted, bool),
+        corrections=np.asarray(correction.corrections, float), effects=tuple(effects),
+        residual=np.asarray(estimate.residual, np.float32) if keep_residual else None)
+
+
+class History:
+    """An open results history (``with History(path) as history: ...``); creates the file when it does not exist.
+    timeout_s: how long a write waits for another writer's lock before it fails (sqlite3.OperationalError)."""
+
+    def __init__(self, path: str | Path, timeout_s: float = 30.0) -> None:
         self.path = Path(path)
+        self.timeout_s = timeout_s
         self._db: sqlite3.Connection | None = None
 
     def __enter__(self) -> History:
@@ -141,7 +176,9 @@ class History:
         if not new and not self.path.is_file():
             raise HistoryError(f"history {self.path} is not a file")
         try:
-            self._db = sqlite3.connect(self.path, timeout=30.0)
+            # any thread may use it (a node's timer and subscription run in different executor threads); the
+            # caller serialises its use (HistoryWriter holds a lock)
+            self._db = sqlite3.connect(self.path, timeout=self.timeout_s, check_same_thread=False)
             self._db.execute("PRAGMA foreign_keys = ON")
             if new:
                 with self._db:
@@ -316,6 +353,59 @@ class History:
                 row.extend(_csv_value(shares.get(e, "")) for e in effects)
                 writer.writerow(row)
         return path
+
+
+class HistoryWriter:
+    """Appends records to the history at ``path`` as they come (the estimator node's live history), never losing
+    one to a database that cannot be written for a while: a record that could not be written (a locked database, a
+    path that is not writable, a file that is no history) stays pending and is written, oldest first, by the next
+    :meth:`append` or :meth:`flush` that succeeds. At most ``max_pending`` records wait; beyond that the oldest are
+    dropped and counted in ``dropped`` (a bounded memory for a database that never comes back).
+    timeout_s: how long one write waits for another writer's lock. Thread-safe: one lock serialises every call
+    (a node's timer and its subscription run in different executor threads)."""
+
+    def __init__(self, path: str | Path, timeout_s: float = 0.5, max_pending: int = 1000) -> None:
+        self.path = Path(path)
+        self.timeout_s = timeout_s
+        self.pending: deque[PartRecord] = deque()
+        self.max_pending = max_pending
+        self.written = 0
+        self.dropped = 0
+        self._history: History | None = None
+        self._lock = threading.RLock()
+
+    def append(self, record: PartRecord) -> str:
+        """Queue ``record`` and write everything pending; "" when all is written, else why not (one line)."""
+        with self._lock:
+            self.pending.append(record)
+            while len(self.pending) > self.max_pending:
+                self.pending.popleft()
+                self.dropped += 1
+            return self.flush()
+
+    def flush(self) -> str:
+        """Write every pending record; "" when all is written, else why not (the rest stays pending)."""
+        with self._lock:
+            return self._flush()
+
+    def _flush(self) -> str:
+        try:
+            if self._history is None:
+                self._history = History(self.path, self.timeout_s).open()
+            while self.pending:
+                self._history.add(self.pending[0])  # a part written before (a rerun) is not written twice
+                self.pending.popleft()
+                self.written += 1
+        except (HistoryError, sqlite3.Error, OSError) as error:
+            self.close()  # reopened at the next attempt: the file may have been replaced or fixed
+            return f"history {self.path} not written ({len(self.pending)} parts pending): {error}"
+        return ""
+
+    def close(self) -> None:
+        with self._lock:
+            if self._history is not None:
+                self._history.close()
+                self._history = None
 
 
 def _csv_value(value: object) -> object:

@@ -6,10 +6,18 @@ correction for the fixture adjustment robot with ``safe_to_apply`` and its reaso
 each move capped to the boundary's maximum step per cycle (the rest left for the next cycle, and said so). The node
 remembers the last estimate and correction per part id; the next inspection of that part compares the measured change
 with the predicted one and names a failed or slipped move. All results are published transient-local.
+
+With the parameter ``history`` (a path), every estimate is also appended to that results history (SQLite,
+docs/history_schema.md) through the writer the shift uses (hood_decomp.io.history): a database that cannot be written
+(a bad path, a lock held too long by a reader) is an ERROR on /diagnostics, the node keeps serving, and the parts
+wait in memory until the database can be written again (retried with the next part and every few seconds).
+A measured effect (a parameter without a boundary, of bases rebuilt by the shift) is flagged in the boundary state
+and the correction (``measured_effect``) and never corrected.
 """
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 from typing import Any, NamedTuple
 
@@ -19,11 +27,15 @@ from rclpy.parameter import Parameter
 
 from hood_decomp.core.method.correction import CorrectionPolicy, limit_steps, plan_correction, verify_move
 from hood_decomp.core.types import BoundaryCorrection as CoreCorrection
+from hood_decomp.core.types import DisplacementField as CoreField
 from hood_decomp.core.types import ParameterEstimate
+from hood_decomp.io.history import HistoryWriter, PartRecord, bases_file_id, inspection_record
 from hood_decomp.ros import messages
-from hood_decomp.ros.node_common import HoodNode, declare, declare_list, parse_entries, spin
+from hood_decomp.ros.node_common import ERROR, HoodNode, declare, declare_list, parse_entries, spin
 
 METHODS = ("contact", "pca")
+#: seconds between two retries of a history that could not be written
+HISTORY_RETRY_S = 5.0
 
 
 class _Sent(NamedTuple):
@@ -66,8 +78,17 @@ class EstimatorNode(HoodNode):
                 "robot's repeatability; the std of a noise-free field is 0)", 0.0, 10.0)
         declare(self, "remembered_parts", 1000, "parts whose last correction is kept for the verification of the "
                 "next inspection (oldest forgotten first)", 1, 1_000_000)
+        declare(self, "history", "", "results history (SQLite file, created when missing) every estimate is "
+                "appended to, as hood-decomp shift writes it (docs/history_schema.md); empty: none")
+        declare(self, "history_max_pending", 1000, "parts kept in memory while the history cannot be written (the "
+                "oldest beyond are dropped and counted)", 1, 1_000_000)
         self.sent: OrderedDict[str, _Sent] = OrderedDict()
         self.state_pub = self.correction_pub = self.verification_pub = None
+        self.writer: HistoryWriter | None = None
+        self.history_lock = threading.RLock()  # the retry timer and the subscription run in different threads
+        self.bases_paths: dict[str, str] = {}  # model_id -> its bases file
+        self.bases_ids: dict[str, str] = {}  # model_id -> fingerprint of its bases file (the history's bases_id)
+        self.received = 0
 
     def check_parameter(self, parameter: Parameter) -> str:
         if parameter.name == "method" and parameter.value not in METHODS:
@@ -98,16 +119,91 @@ class EstimatorNode(HoodNode):
         self.state_pub = self.publisher(BoundaryState, "hood_decomp/boundary_state", latest=True)
         self.correction_pub = self.publisher(BoundaryCorrection, "hood_decomp/boundary_correction", latest=True)
         self.verification_pub = self.publisher(MoveVerification, "hood_decomp/move_verification", latest=True)
+        paths = {"": self.param("bases"), **parse_entries(list(self.param("variants")), "PATH")}
+        self.bases_paths = {self.variant_bases[variant].model_id: path for variant, path in paths.items()}
+        self.bases_ids.clear()
 
     def activate_node(self) -> None:
         self.subscription(DisplacementField, "hood_decomp/displacement", self.guarded("estimation", self.on_field))
+        self.timer(HISTORY_RETRY_S, self.retry_history)
+
+    def history_writer(self) -> HistoryWriter | None:
+        """The writer of the ``history`` parameter's database (None when empty); a new path takes the pending parts."""
+        with self.history_lock:
+            return self._history_writer()
+
+    def _history_writer(self) -> HistoryWriter | None:
+        path = self.param("history")
+        if self.writer is not None and str(self.writer.path) != path:
+            self.writer.close()
+            pending, self.writer = self.writer.pending, None
+            if path:
+                self.writer = HistoryWriter(path)
+                self.writer.pending.extend(pending)
+        elif self.writer is None and path:
+            self.writer = HistoryWriter(path)
+        if self.writer is not None:
+            self.writer.max_pending = self.param("history_max_pending")
+        return self.writer
+
+    def report_history(self, problem: str, stamp: Any = None) -> None:
+        writer = self.writer
+        self.get_logger().error(problem)
+        self.diagnostics.report(ERROR, problem, stamp, history=str(writer.path), history_pending=len(writer.pending),
+                                history_dropped=writer.dropped)
+
+    def retry_history(self) -> None:
+        with self.history_lock:
+            writer = self.history_writer()
+            problem = writer.flush() if writer is not None and writer.pending else ""
+        if problem:
+            self.report_history(problem)
+
+    def record(self, msg: DisplacementField, field: CoreField, estimate: ParameterEstimate,
+               correction: CoreCorrection, part_id: str) -> dict[str, object]:
+        """Append the part to the live history (when one is named); its key-values for the OK diagnostic."""
+        writer = self.history_writer()
+        if writer is None:
+            return {}
+        from hood_decomp.core.method.bases import analyse_estimate
+        from hood_decomp.core.method.residual import noise_level
+
+        bases = self.bases_for_model(msg.model_id)
+        stamp = msg.header.stamp
+        stamp_ns = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+        # each inspection is its own source (node and field stamp): a part inspected again after a correction gets a
+        # row per inspection, the same field received twice (republished) one row
+        base = PartRecord(source=f"live:{self.get_fully_qualified_name()}@{stamp_ns}", part_id=part_id,
+                          message=self.received, stamp_ns=stamp_ns,
+                          shift=f"live {self.get_name()}", model_id=estimate.model_id,
+                          bases_id=self.bases_id(estimate.model_id), method=estimate.method)
+        analysis = analyse_estimate(bases, estimate, noise_level(field.noise_rms)[0])
+        with self.history_lock:
+            problem = writer.append(inspection_record(base, estimate, analysis, correction))
+        if problem:
+            self.report_history(problem, stamp)
+        return {"history_written": not problem, "history_pending": len(writer.pending)}
+
+    def bases_id(self, model_id: str) -> str:
+        """The fingerprint of the bases file serving ``model_id``, read once (only when a history is written)."""
+        if model_id not in self.bases_ids:
+            self.bases_ids[model_id] = bases_file_id(self.bases_paths[model_id])
+        return self.bases_ids[model_id]
+
+    def on_deactivate(self, state: Any) -> Any:
+        self.retry_history()  # what is still pending stays in memory for the next activation
+        if self.writer is not None:
+            self.writer.close()
+        return super().on_deactivate(state)
 
     def on_field(self, msg: DisplacementField) -> dict[str, object]:
         from hood_decomp.core.method.bases import estimate_field
 
         policy = self.policy()
-        estimate = estimate_field(self.bases_for_model(msg.model_id), messages.msg_to_field(msg),
-                                  method=self.param("method"), min_coverage=policy.min_coverage)
+        self.received += 1
+        field = messages.msg_to_field(msg)
+        estimate = estimate_field(self.bases_for_model(msg.model_id), field, method=self.param("method"),
+                                  min_coverage=policy.min_coverage)
         correction = limit_steps(plan_correction(estimate, policy), self.step_limits(estimate.names))
         part_id = messages.part_id_of(msg)
         values: dict[str, object] = {"part_id": part_id}
@@ -124,6 +220,7 @@ class EstimatorNode(HoodNode):
             self.sent.popitem(last=False)
         self.state_pub.publish(messages.estimate_to_msg(estimate, msg.header, part_id))
         self.correction_pub.publish(messages.correction_to_msg(correction, msg.header, part_id))
+        values.update(self.record(msg, field, estimate, correction, part_id))  # after publishing: the robot first
         return {**values, "residual_rms_mm": f"{estimate.residual_rms:.4f}", "within_model": estimate.within_model,
                 "safe_to_apply": correction.safe_to_apply, "reason": correction.reason}
 

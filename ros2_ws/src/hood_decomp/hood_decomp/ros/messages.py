@@ -44,6 +44,16 @@ def _numpy(values: Any, scale: float = 1.0) -> np.ndarray:
     return np.asarray(values, dtype=np.float64) * scale
 
 
+def _flags(values: np.ndarray | None) -> list[bool]:
+    """Per-parameter flags for a bool[] field; None (no parameter flagged by its source) is the empty list."""
+    return [] if values is None else [bool(v) for v in values]
+
+
+def _unflag(values: Any) -> np.ndarray | None:
+    """A bool[] field back to (P,) bool, or None when empty (a sender without the field, or nothing flagged)."""
+    return np.asarray(values, dtype=bool) if len(values) else None
+
+
 def part_id_of(msg: Any) -> str:
     """The part id a message carries, or one made from its header stamp (``stamp-<sec>.<nanosec>``) when it has none
     (a scan cloud, an older sender, a bag recorded before part ids): every node that sees the same stamp makes the same
@@ -126,6 +136,7 @@ def estimate_to_msg(estimate: ParameterEstimate, header: Any, part_id: str) -> A
         alpha=float("nan") if estimate.check is None else estimate.check.alpha,
         noise_scale=float("nan") if estimate.check is None else estimate.check.noise_scale,
         noise_source="" if estimate.check is None else estimate.check.noise_source,
+        measured_effect=_flags(estimate.measured_effect),
     )
 
 
@@ -159,6 +170,7 @@ def msg_to_estimate(msg: Any) -> ParameterEstimate:
         method="message",
         covariance=covariance,
         check=check,
+        measured_effect=_unflag(msg.measured_effect),
     )
 
 
@@ -179,6 +191,7 @@ def correction_to_msg(correction: BoundaryCorrection, header: Any, part_id: str)
         remaining=(np.zeros(len(correction.names)) if correction.remaining is None
                    else np.asarray(correction.remaining, float) * M_PER_MM).tolist(),
         applicable=[] if correction.applicable is None else [bool(v) for v in correction.applicable],
+        measured_effect=_flags(correction.measured_effect),
     )
 
 
@@ -193,6 +206,7 @@ def msg_to_correction(msg: Any) -> BoundaryCorrection:
         std=_numpy(msg.std_dev, MM_PER_M) if len(msg.std_dev) else None,
         applicable=np.asarray(msg.applicable, dtype=bool) if len(msg.applicable) else None,
         remaining=_numpy(msg.remaining, MM_PER_M) if len(msg.remaining) else None,
+        measured_effect=_unflag(msg.measured_effect),
     )
 
 

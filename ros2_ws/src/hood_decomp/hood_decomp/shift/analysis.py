@@ -117,7 +117,8 @@ def analysis_json(analysis: ShiftAnalysis, summary: Any) -> dict[str, Any]:
                   "failed": len(summary.failed), "seconds": summary.seconds, "workers": summary.workers,
                   "parts_per_s": summary.rate},
         "boundaries": {
-            chart.name: {"centre_mm": chart.centre, "sigma_mm": chart.sigma, "lcl_mm": chart.lcl, "ucl_mm": chart.ucl,
+            chart.name: {"centre_mm": chart.centre, "sigma_mm": chart.sigma, "sigma_estimate_mm": chart.sigma_estimate,
+                         "lcl_mm": chart.lcl, "ucl_mm": chart.ucl,
                          "baseline_parts": chart.baseline_end,
                          "alarms": {rule: [records[i].part_id for i in chart.alarms[rule]] for rule in RULES},
                          "first_alarm": None if chart.first_alarm() is None else

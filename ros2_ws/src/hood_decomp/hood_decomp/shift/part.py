@@ -9,7 +9,6 @@ status "failed" naming it, so one bad part never stops a batch. Each worker proc
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +21,7 @@ from hood_decomp.core.method.correction import CorrectionPolicy, plan_correction
 from hood_decomp.core.method.residual import DEFAULT_ALPHA, ResidualAnalysis
 from hood_decomp.core.types import DisplacementField, ParameterEstimate
 from hood_decomp.errors import BagError
-from hood_decomp.io.history import PartRecord
+from hood_decomp.io.history import PartRecord, bases_file_id, inspection_record
 
 logger = logging.getLogger(__name__)
 
@@ -63,15 +62,6 @@ class Options:
     keep_residual: bool = True
 
 
-def bases_id(path: str | Path) -> str:
-    """Fingerprint of a bases file's bytes (16 hex digits): which bases a result came from."""
-    digest = hashlib.sha256()
-    with Path(path).open("rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()[:16]
-
-
 _BASES: dict[tuple[str, int, int], tuple[Bases, str]] = {}
 
 
@@ -83,7 +73,7 @@ def worker_bases(path: str) -> tuple[Bases, str]:
     key = (str(Path(path).resolve()), stat.st_size, stat.st_mtime_ns)
     if key not in _BASES:
         _BASES.clear()
-        _BASES[key] = (load_bases(path), bases_id(path))
+        _BASES[key] = (load_bases(path), bases_file_id(path))
     return _BASES[key]
 
 
@@ -142,14 +132,6 @@ def process_task(task: PartTask, bases_path: str, options: Options) -> PartRecor
     except Exception as error:  # a bad part is recorded, never fatal to the batch
         logger.warning("part %s of %s failed: %s", task.part_id, task.source, error)
         return dataclasses.replace(base, status="failed", error=f"{type(error).__name__}: {error}".splitlines()[0])
-    return dataclasses.replace(
-        base, model_id=bases.model_id, bases_id=identity, coverage=field.coverage, noise_mm=analysis.noise_mm,
-        residual_rms_mm=analysis.rms_mm, residual_max_mm=analysis.max_mm, residual_mean_mm=analysis.mean_mm,
-        chi2=estimate.check.statistic, dof=estimate.check.dof, p_value=analysis.p_value,
-        within_model=analysis.within_model,
-        safe_to_apply=correction.safe_to_apply, reason=correction.reason, names=tuple(estimate.names),
-        values=np.asarray(estimate.values, float), std=np.asarray(estimate.std, float),
-        lifted=np.asarray(estimate.lifted, bool), corrections=np.asarray(correction.corrections, float),
-        effects=tuple((e.name, float(e.share)) for e in decomposition.effects),
-        residual=np.asarray(estimate.residual, np.float32) if options.keep_residual else None,
-    )
+    base = dataclasses.replace(base, model_id=bases.model_id, bases_id=identity)
+    return inspection_record(base, estimate, analysis, correction,
+                             tuple((e.name, float(e.share)) for e in decomposition.effects), options.keep_residual)

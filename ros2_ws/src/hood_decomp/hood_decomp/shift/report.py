@@ -48,9 +48,10 @@ def build_report(analysis: ShiftAnalysis, bases: Any, summary: Any, out: Path) -
 
     section = report.section("Control charts per boundary")
     section.text("Individuals charts with limits from a baseline period (centre, 1/2/3 sigma; sigma the larger of the "
-                 "moving-range and the sample estimate of the baseline), the Western Electric run rules and an EWMA "
-                 "(lambda 0.2, L 2.86) for slow drifts. Lifted buffers (a position bound, not a state), failed parts "
-                 "and parts outside the model (their estimates carry the missing effect) are left out.")
+                 "moving-range and the sample estimate of the baseline, times its 90 % upper-confidence allowance for "
+                 "a baseline of that length), the Western Electric rules (the run rule with Nelson's 9 points) and "
+                 "an EWMA (lambda 0.2, L 2.86) for slow drifts. Lifted buffers (a position bound, not a state), "
+                 "failed parts and parts outside the model (their estimates carry the missing effect) are left out.")
     rows = []
     for chart in analysis.charts:
         first = chart.first_alarm()

@@ -524,7 +524,7 @@ def rebuild_bases(bases: Bases, reduced: ReducedModel, calibration: str = "",
                           bases.hierarchical.epsilon_)
     thermal = None if physics is None else (physics.thermal_w, physics.thermal_z, physics.thermal_w3)
     return replace(rebuilt, calibration=calibration, thermal=thermal, discrepancy=discrepancy,
-                   tolerance_zones=bases.tolerance_zones)
+                   tolerance_zones=bases.tolerance_zones, measured_effects=bases.measured_effects)
 
 
 def relative_field(reduced: ReducedModel, field: DisplacementField, reference: DisplacementField,

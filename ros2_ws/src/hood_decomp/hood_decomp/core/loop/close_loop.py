@@ -65,7 +65,7 @@ from hood_decomp.core.method.bases import (
     build_bases,
     estimate_field,
     fitted_unknowns,
-    with_calibration_of,
+    rebuilt_like,
 )
 from hood_decomp.core.method.contact_estimation import ContactEstimator
 from hood_decomp.core.method.distributions import chi2_isf, f_sf
@@ -572,7 +572,7 @@ def close_loop(
     extended = extend_ensemble(old, reduced, new_lower, new_upper)
     timings["ensemble_s"] = time.perf_counter() - start
     start = time.perf_counter()
-    bases_after = with_calibration_of(build_bases(extended, bases.skin, reduced, n_components=bases.pca.n_components,
+    bases_after = rebuilt_like(build_bases(extended, bases.skin, reduced, n_components=bases.pca.n_components,
                                                   explained_variance=bases.pca.explained_variance,
                                                   epsilon=bases.hierarchical.epsilon_), bases)
     timings["bases_s"] = time.perf_counter() - start

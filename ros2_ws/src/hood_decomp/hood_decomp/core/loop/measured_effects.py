@@ -45,10 +45,10 @@ import scipy.sparse as sp
 from hood_decomp.core.fe.ensemble import solve_members
 from hood_decomp.core.loop.candidates import Candidate, CandidateFields, augment_reduced
 from hood_decomp.core.loop.close_loop import effect_range, extend_ensemble
-from hood_decomp.core.method.bases import Bases, build_bases, with_calibration_of
+from hood_decomp.core.method.bases import Bases, build_bases, rebuilt_like
 from hood_decomp.core.method.distributions import chi2_sf
 from hood_decomp.core.method.residual import DEFAULT_ALPHA, skin_adjacency
-from hood_decomp.core.types import BoundaryCorrection, DisplacementField, Ensemble
+from hood_decomp.core.types import DisplacementField, Ensemble
 from hood_decomp.errors import FieldError
 
 logger = logging.getLogger(__name__)
@@ -375,8 +375,9 @@ def effect_fields(bases: Bases, modes: tuple[FoundMode, ...]) -> CandidateFields
 def augmented_bases(bases: Bases, ensemble: Ensemble, modes: tuple[FoundMode, ...]) -> Bases:
     """Bases rebuilt with measured effects as parameters without a boundary (range +- the close-loop margin over
     their per-part amplitudes): the ensemble gains their min/max layers, the PCA and the hierarchical basis are built
-    again. The estimator then reports each effect's amplitude as a parameter; :func:`correction_without_effects`
-    keeps the correction from moving a boundary for it."""
+    again. The rebuilt bases name the effects (``Bases.measured_effects``, with those of ``bases``): every estimate
+    marks them and reports each effect's amplitude as a parameter, and
+    :func:`~hood_decomp.core.method.correction.plan_correction` never moves a boundary for them."""
     fields = effect_fields(bases, modes)
     names = [mode.name for mode in modes]
     reduced = augment_reduced(bases.reduced_model, fields, names)
@@ -385,16 +386,6 @@ def augmented_bases(bases: Bases, ensemble: Ensemble, modes: tuple[FoundMode, ..
     lower = np.insert(np.asarray(bases.pca.lower_, float), b, [-h for h in halves])
     upper = np.insert(np.asarray(bases.pca.upper_, float), b, halves)
     extended = extend_ensemble(ensemble, reduced, lower, upper)
-    return with_calibration_of(build_bases(extended, bases.skin, reduced, n_components=bases.pca.n_components,
-                                           explained_variance=bases.pca.explained_variance,
-                                           epsilon=bases.hierarchical.epsilon_), bases)
-
-
-def correction_without_effects(correction: BoundaryCorrection, effects: tuple[str, ...]) -> BoundaryCorrection:
-    """``correction`` with no move for measured effects (no boundary to adjust), saying so in its reason."""
-    mask = np.isin(np.asarray(correction.names), list(effects))
-    if not mask.any():
-        return correction
-    notes = [f"{name} is a measured effect: no boundary to move" for name in np.asarray(correction.names)[mask]]
-    return replace(correction, corrections=np.where(mask, 0.0, correction.corrections),
-                   reason="; ".join(filter(None, [correction.reason, *notes])))
+    rebuilt = build_bases(extended, bases.skin, reduced, n_components=bases.pca.n_components,
+                          explained_variance=bases.pca.explained_variance, epsilon=bases.hierarchical.epsilon_)
+    return replace(rebuilt_like(rebuilt, bases), measured_effects=(*bases.measured_effects, *names))

@@ -57,6 +57,10 @@ class Bases:
     #: z ~ N(0, I_k) (core.loop.calibration.discrepancy_modes, from the calibration's leave-one-out residuals); the
     #: estimates' covariance and the within-model test count it as a field error. None: uncalibrated (no term)
     discrepancy: np.ndarray | None = None
+    #: the parameters that are measured effects (core.loop.measured_effects): basis fields learned from recurring
+    #: residuals, without a boundary to adjust; every estimate marks them (ParameterEstimate.measured_effect) and no
+    #: correction moves them (core.method.correction.plan_correction)
+    measured_effects: tuple[str, ...] = ()
     # (min_coverage, temperature K) -> fitted ContactEstimator; filled on first use, not part of the bases' value
     _contact_estimators: dict[tuple[float, float], ContactEstimator] = dataclasses.field(
         default_factory=dict, init=False, repr=False, compare=False)
@@ -132,13 +136,15 @@ def build_bases(
     return Bases(ensemble.model_id, skin, pca, hierarchical, reduced_model)
 
 
-def with_calibration_of(rebuilt: Bases, source: Bases) -> Bases:
-    """``rebuilt`` (bases built again from ``source``'s model with an added effect, e.g. by close-loop) carrying
-    ``source``'s calibration: its record, thermal response and model discrepancy. An added effect does not make the
-    calibrated model less wrong where it was wrong, so the discrepancy stays; dropping it would shrink every stated
-    std back to the uncalibrated one."""
+def rebuilt_like(rebuilt: Bases, source: Bases) -> Bases:
+    """``rebuilt`` (bases built again from ``source``'s model with an added effect, e.g. by close-loop or the shift's
+    measured effects) carrying what ``source`` states beyond its model: its calibration (record, thermal response and
+    model discrepancy), its tolerance zones and its measured effects. An added effect does not make the calibrated
+    model less wrong where it was wrong, so the discrepancy stays; dropping it would shrink every stated std back to
+    the uncalibrated one. Dropping a measured effect's flag would let a correction move it."""
     return dataclasses.replace(rebuilt, calibration=source.calibration, thermal=source.thermal,
-                               discrepancy=source.discrepancy)
+                               discrepancy=source.discrepancy, tolerance_zones=source.tolerance_zones,
+                               measured_effects=source.measured_effects)
 
 
 def estimate_field(
@@ -155,8 +161,12 @@ def estimate_field(
         if temperature_k != 0.0 and np.shape(field.normal_displacement) == bases.pca.mean_field_.shape:
             thermal = bases.at_temperature(temperature_k).w0 - bases.reduced_model.w0
             field = dataclasses.replace(field, normal_displacement=field.normal_displacement - thermal)
-        return estimate_pca(bases.pca, field, min_coverage, bases.residual_test())
-    return bases.contact_estimator(min_coverage, temperature_k).estimate(field)
+        estimate = estimate_pca(bases.pca, field, min_coverage, bases.residual_test())
+    else:
+        estimate = bases.contact_estimator(min_coverage, temperature_k).estimate(field)
+    if not bases.measured_effects:
+        return estimate
+    return dataclasses.replace(estimate, measured_effect=np.isin(estimate.names, bases.measured_effects))
 
 
 def fitted_unknowns(estimate: ParameterEstimate) -> int:

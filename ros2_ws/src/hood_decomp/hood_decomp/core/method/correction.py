@@ -4,10 +4,11 @@ The correction brings every boundary back to nominal (the negated estimate). It 
 named, when acting on it could make things worse: too little of the part was seen, the one within-model test says the
 model does not explain the part, an estimate lies outside its declared range, or an uncertainty (the full error
 model's, :mod:`hood_decomp.core.method.estimation`) is too large to act on. Which boundaries may still be applied is
-stated per boundary. A lifted unilateral
-boundary (a buffer that lost contact) has no observable commanded position: it gets no correction, and the reason
-says so. A per-cycle maximum step caps each move (:func:`limit_steps`, the rest left for the next cycle), and the
-next inspection of the part tells whether the move happened (:func:`verify_move`).
+stated per boundary. A lifted unilateral boundary (a buffer that lost contact) has no observable commanded position:
+it gets no correction, and the reason says so. A measured effect (a parameter without a boundary,
+:attr:`ParameterEstimate.measured_effect`) is never corrected: there is nothing to move, only an amplitude to report.
+A per-cycle maximum step caps each move (:func:`limit_steps`, the rest left for the next cycle), and the next
+inspection of the part tells whether the move happened (:func:`verify_move`).
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ def plan_correction(estimate: ParameterEstimate, policy: CorrectionPolicy = Corr
     """
     values, std = np.asarray(estimate.values, float), np.asarray(estimate.std, float)
     lifted = np.asarray(estimate.lifted, bool)
+    effect = ~estimate.boundary
     problems: list[str] = []
     if not estimate.coverage >= policy.min_coverage:
         problems.append(f"coverage {estimate.coverage:.2f} below minimum {policy.min_coverage:.2f}")
@@ -56,27 +58,31 @@ def plan_correction(estimate: ParameterEstimate, policy: CorrectionPolicy = Corr
                         "so no boundary can be named and no estimate trusted")
     trusted = not problems
     applicable = np.zeros(len(estimate.names), dtype=bool)
-    for i, (name, value, sigma, low, high, is_lifted) in enumerate(zip(
-            estimate.names, values, std, estimate.lower, estimate.upper, lifted, strict=True)):
+    for i, (name, value, sigma, low, high, is_lifted, is_effect) in enumerate(zip(
+            estimate.names, values, std, estimate.lower, estimate.upper, lifted, effect, strict=True)):
         if is_lifted:
             continue
         in_range = low - policy.range_tolerance_mm <= value <= high + policy.range_tolerance_mm
-        if not in_range:
+        if not in_range:  # a measured effect beyond its learned range is extrapolation too: no estimate trusted
             problems.append(f"{name} = {value:.3f} mm outside its range [{low:g}, {high:g}] mm")
+        if is_effect:  # nothing to move: its uncertainty gates no move
+            continue
         if not sigma <= policy.max_std_mm:
             problems.append(f"{name} uncertainty {sigma:.3f} mm above {policy.max_std_mm:g} mm")
         applicable[i] = trusted and in_range and sigma <= policy.max_std_mm
     notes = [f"{name} lifted: commanded position not observable, not corrected"
              for name, is_lifted in zip(estimate.names, lifted, strict=True) if is_lifted]
-    corrections = np.where(lifted, 0.0, -values)
+    notes += [f"{name} is a measured effect: no boundary to move" for name in np.asarray(estimate.names)[effect]]
+    still = lifted | effect
     return BoundaryCorrection(
         model_id=estimate.model_id,
         names=tuple(estimate.names),
-        corrections=corrections,
+        corrections=np.where(still, 0.0, -values),
         safe_to_apply=not problems,
         reason="; ".join(problems + notes),
-        std=np.where(lifted, 0.0, std),
+        std=np.where(still, 0.0, std),
         applicable=applicable,
+        measured_effect=None if estimate.measured_effect is None else effect,
     )
 
 
