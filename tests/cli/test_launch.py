@@ -29,7 +29,11 @@ def test_launch_with_a_params_file_brings_the_node_to_active(coarse_hood, tmp_pa
                "--params", str(SHIPPED_PARAMS), "--nodes", "estimator_node"]
     log = tmp_path / "launch.log"
     with open(log, "wb") as output:
-        process = subprocess.Popen(command, stderr=output, stdout=subprocess.DEVNULL, env=dict(os.environ), cwd=ROOT)
+        # Ctrl-C as at a terminal: a suite started in the background by a non-interactive shell inherits SIGINT
+        # ignored, and Python then keeps it ignored; its own session, so that nothing it started can outlive the test
+        process = subprocess.Popen(command, stderr=output, stdout=subprocess.DEVNULL, env=dict(os.environ), cwd=ROOT,
+                                   start_new_session=True,
+                                   preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 120.0
         while "Ctrl-C stops the nodes" not in log.read_text() and process.poll() is None:
@@ -39,5 +43,10 @@ def test_launch_with_a_params_file_brings_the_node_to_active(coarse_hood, tmp_pa
         assert "hood-decomp launch: estimator_node active" in text, text
     finally:
         process.send_signal(signal.SIGINT)
-        code = process.wait(30)
+        try:
+            code = process.wait(30)
+        except subprocess.TimeoutExpired:
+            # a launch (and its nodes) left running would answer the next tests' nodes in the same ROS domain
+            os.killpg(process.pid, signal.SIGKILL)
+            raise
     assert code == 0, log.read_text()
