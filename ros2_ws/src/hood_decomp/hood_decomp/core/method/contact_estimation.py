@@ -19,6 +19,7 @@ seen nodes is formed once per field, so a candidate costs O((B + S)^3), not O(N)
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -254,7 +255,7 @@ class ContactEstimator:
             check=check,
         )
 
-    def _between_states(self, candidates, best: _Candidate, values: np.ndarray, noise2: float,
+    def _between_states(self, candidates: Iterable[_Candidate], best: _Candidate, values: np.ndarray, noise2: float,
                         min_force_n: float) -> np.ndarray:
         """(B + U, B + U) mm^2: the spread of the values over the contact states the field supports (Akaike weights
         exp(-(rss / noise^2 + 2 p) / 2) relative to the best), around the reported values. Zero without a noise
@@ -262,11 +263,10 @@ class ContactEstimator:
         n = values.size
         if noise2 <= 0:
             return np.zeros((n, n))
-        score = {id(c): c.rss / noise2 + 2.0 * c.theta.size for c in candidates}
-        low = score[id(best)]
+        low = best.rss / noise2 + 2.0 * best.theta.size
         spread, total = np.zeros((n, n)), 1.0
         for cand in candidates:
-            weight = np.exp(-0.5 * (score[id(cand)] - low))
+            weight = np.exp(-0.5 * (cand.rss / noise2 + 2.0 * cand.theta.size - low))
             if cand is best or weight < 1e-6:
                 continue
             other, _, _ = self._report(cand, cand.theta, noise2 * cand.normal_inverse, min_force_n)
