@@ -273,6 +273,32 @@ def _inspect(peer, client, part_id: str, scans, first_sec: int, variant: str = "
     return _result(peer, handle).result
 
 
+def test_the_nodes_state_the_same_std_as_the_core_path_for_a_multi_view_part(cell, coarse_hood):
+    """Fails if the boundary state's std of a three-view part, through the scan node's fusion, the DisplacementField
+    message and the estimator node, differs by more than 1 % from the std the core path states for the same views
+    fused in this process (fuse_views, estimate_field): e.g. when the message drops the views' registration errors
+    and the estimator falls back to their one-pose summary, which on this part is 5 % or more larger for at least
+    one parameter (checked here, so the comparison can tell the two apart)."""
+    from hood_decomp.core.method.bases import estimate_field
+    from hood_decomp.core.scan.fusion import ScanView, fuse_views
+
+    peer, client, _, scans, _, _, ready, _ = cell
+    assert ready
+    result = _inspect(peer, client, "hood-0017", scans, 1701)
+    assert result.success and result.views_used == 3, result.message
+    views = [ScanView(s.points, s.true_transform, s.markers, s.markers_nominal, name=f"view {k}", pose_source="file")
+             for k, s in enumerate(scans)]
+    fused = fuse_views(coarse_hood.skin, views).field
+    assert len(fused.errors.view_poses) == 3
+    core = estimate_field(coarse_hood.bases, fused)
+    one_pose = estimate_field(coarse_hood.bases, dataclasses.replace(
+        fused, error_model=dataclasses.replace(fused.errors, view_poses=())))
+    assert np.max(one_pose.std / core.std) > 1.05, one_pose.std / core.std
+    state = result.boundary_state
+    assert tuple(state.names) == core.names
+    np.testing.assert_allclose(np.asarray(state.std_dev) * 1000, core.std, rtol=0.01)
+
+
 def test_a_zone_out_of_tolerance_is_nok_with_its_worst_deviation(cell, zoned, coarse_hood):
     """Fails if the zone around the part's largest deviation (limits half of it) is not NOK, if its worst deviation
     differs from the one of the scanned FE field over the zone's nodes by more than 0.03 mm (scan noise 0.02 mm per

@@ -129,6 +129,91 @@ def test_field_error_model_travels_in_metres(typestore):
     assert plain.error_model.kind == "none"
 
 
+def _two_view_field() -> tuple[DisplacementField, np.ndarray, np.ndarray]:
+    """Two overlapping views of the toy skin, each with white node noise and its own registration covariance about
+    its own centre, fused by fuse_fields; with the exact registration covariance of the fused node values (N, N),
+    computed here by hand from its definition (sum over views of w_v J_v C_v J_v^T w_v, J the rigid-body modes),
+    and that of the one-pose summary (all views' covariances summed about one centre, every node moved together)."""
+    from hood_decomp.core.scan.fusion import fuse_fields
+
+    skin = make_skin(12, 8)
+    n = skin.n_nodes
+    x = skin.points[:, 0]
+    fields, covariances, centers, variances = [], [], [], []
+    for v, (seen, noise) in enumerate(((x <= 1000.0, 0.02), (x >= 500.0, 0.03))):
+        rng = np.random.default_rng(v)
+        root = rng.normal(size=(6, 6)) * np.array([2e-5, 2e-5, 2e-5, 0.02, 0.02, 0.02])[:, None]
+        covariances.append(root @ root.T)
+        centers.append(skin.points[seen].mean(axis=0))
+        std = np.where(seen, noise, np.nan)
+        errors = FieldErrorModel("scan", std, np.ones(n), 0.0, covariances[-1], centers[-1])
+        fields.append(DisplacementField("toy", np.where(seen, 0.1 * v, np.nan), float(seen.mean()), noise, errors))
+        variances.append(np.where(seen, noise**2, np.inf))
+    fused = fuse_fields(fields, skin)
+
+    def modes(center: np.ndarray) -> np.ndarray:  # (N, 6) normal motion per unit twist [omega, t] about center
+        return np.hstack([np.cross(skin.points - center, skin.normals), skin.normals])
+
+    # weights from each view's own node variance (noise + its registration at the node), by hand
+    node_pose = [np.einsum("ij,jk,ik->i", modes(c), cov, modes(c)) for c, cov in zip(centers, covariances,
+                                                                                     strict=True)]
+    precision = np.array([1.0 / (s + p) for s, p in zip(variances, node_pose, strict=True)])
+    weight = precision / precision.sum(axis=0)
+    exact = sum(w[:, None] * modes(c) @ cov @ modes(c).T * w[None, :]
+                for w, c, cov in zip(weight, centers, covariances, strict=True))
+    common = np.mean(centers, axis=0)
+    summary_modes = modes(common)
+    summary = summary_modes @ fused.errors.pose_covariance @ summary_modes.T
+    assert np.allclose(fused.errors.pose_center, common) and exact.shape == (n, n)
+    return fused, exact, summary
+
+
+def test_a_fused_field_keeps_each_views_registration_error_through_the_message(typestore):
+    """Fails if the message drops the views' registration errors of a fused field (the estimator node would see the
+    one-pose summary, the old conservative behaviour: here 5 % or more off on the node variances), if their units
+    (rad, mm -> m) or layout (V x 39, V x N) are wrong, or if the registration covariance of the node values
+    after the round trip (serialised by rclpy, decoded also by rosbags' independent CDR reader) differs from the one
+    computed by hand from the views' covariances and fusion weights by more than 1e-5 (relative)."""
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    fused, exact, summary = _two_view_field()
+    n = fused.normal_displacement.shape[0]
+    skin = make_skin(12, 8)
+    msg = messages.field_to_msg(fused, Header(), "P-17")
+    decoded = rosbags_decode(typestore, msg)
+    assert (len(decoded.view_poses), len(decoded.view_weight)) == (78, 2 * n)
+    for source in (deserialize_message(serialize_message(msg), hd_msg.DisplacementField), decoded):
+        back = messages.msg_to_field(source).error_model
+        back.validate(n)
+        m = back.registration_modes(skin.points, skin.normals)
+        scale = np.abs(exact).max()
+        np.testing.assert_allclose(m @ m.T, exact, rtol=0.0, atol=1e-5 * scale)
+    node_exact, node_summary = np.diag(exact), np.diag(summary)
+    assert np.max(np.abs(node_summary / node_exact - 1.0)) > 0.05  # what dropping the views would look like
+
+
+def test_a_field_without_views_keeps_its_one_pose_and_bad_view_arrays_are_named(typestore):
+    """Fails if a message without view arrays (one view, an older sender) does not come back with its one pose
+    covariance as its registration error, or if view arrays of inconsistent lengths are accepted (or crash with
+    anything but a FieldError naming the two fields). Also through rosbags' CDR reader: an empty float64[] after a
+    4-byte length is padded by Fast CDR and not by rosbags, so a layout that puts one there does not decode."""
+    from hood_decomp.errors import FieldError
+
+    fused, _, summary = _two_view_field()
+    skin = make_skin(12, 8)
+    msg = messages.field_to_msg(fused, Header(), "P-17")
+    msg.view_poses, msg.view_weight = [], []
+    assert messages.msg_to_field(rosbags_decode(typestore, msg)).error_model.view_poses == ()
+    back = messages.msg_to_field(msg).error_model
+    assert back.view_poses == ()
+    m = back.registration_modes(skin.points, skin.normals)
+    np.testing.assert_allclose(m @ m.T, summary, rtol=0.0, atol=1e-9 * np.abs(summary).max())
+    bad = messages.field_to_msg(fused, Header(), "P-17")
+    bad.view_weight = bad.view_weight[:-1]
+    with pytest.raises(FieldError, match="view_poses and view_weight must hold"):
+        messages.msg_to_field(bad)
+
+
 def _estimate() -> ParameterEstimate:
     return ParameterEstimate(
         model_id="m1", names=("HINGE_X", "BUFFER_L"), values=np.array([0.5, -0.2]), std=np.array([0.001, 0.002]),

@@ -84,7 +84,9 @@ class FieldErrorModel:
         registration error per view, each reaching only the nodes that view saw, with that view's fusion weight:
         :class:`ViewPoseError` per view. When present, :meth:`registration_modes` is built from them (N, 6 V) and
         ``pose_covariance`` about ``pose_center`` is only a conservative one-pose summary (the sum of the views'
-        covariances moved to a common centre) for consumers that carry a single pose (messages, field files).
+        covariances moved to a common centre) for consumers that carry a single pose (field files). The
+        DisplacementField message carries the views (``view_weight``, ``view_poses``), so a node downstream propagates
+        them as the fusing process does.
     """
 
     kind: str

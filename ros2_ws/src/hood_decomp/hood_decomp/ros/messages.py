@@ -24,8 +24,10 @@ from hood_decomp.core.types import (
     MoveVerification,
     ParameterEstimate,
     SkinSurface,
+    ViewPoseError,
     ZoneVerdict,
 )
+from hood_decomp.errors import FieldError
 from hood_decomp.ros.pointcloud import cloud_channel, cloud_to_xyz, finite_rows, xyz_to_cloud
 
 MM_PER_M = 1000.0
@@ -66,12 +68,16 @@ def part_id_of(msg: Any) -> str:
 
 
 def field_to_msg(field: DisplacementField, header: Any, part_id: str) -> Any:
-    """core DisplacementField (mm) -> hood_decomp_msgs/DisplacementField (m) of the part ``part_id``."""
+    """core DisplacementField (mm) -> hood_decomp_msgs/DisplacementField (m) of the part ``part_id``, with its error
+    model; a fused field's per-view registration errors (``FieldErrorModel.view_poses``) travel as they are
+    (``view_weight``, ``view_poses``), so the estimator node propagates them exactly as the fusing process would (V
+    views of N nodes add 4 V N + 312 V bytes)."""
     from hood_decomp_msgs.msg import DisplacementField as Msg
 
     errors = field.errors
     # the twist covariance [omega rad, t mm] in metres: the translation rows/columns scale by 1e-3
     unit = np.array([1.0, 1.0, 1.0, M_PER_MM, M_PER_MM, M_PER_MM])
+    views = errors.view_poses
     return Msg(
         header=header,
         model_id=field.model_id,
@@ -86,13 +92,18 @@ def field_to_msg(field: DisplacementField, header: Any, part_id: str) -> Any:
         pose_covariance=(np.asarray(errors.pose_covariance, float) * np.outer(unit, unit)).ravel().tolist(),
         pose_center=(np.asarray(errors.pose_center, float) * M_PER_MM).tolist(),
         bias_correlation=float(errors.bias_correlation),
+        view_weight=_float32_array(np.concatenate([np.asarray(v.weight, float) for v in views]) if views
+                                   else np.zeros(0)),
+        view_poses=[float(c) for v in views for c in np.concatenate([
+            (np.asarray(v.covariance, float) * np.outer(unit, unit)).ravel(), np.asarray(v.center, float) * M_PER_MM])],
     )
 
 
 def msg_to_field(msg: Any) -> DisplacementField:
     """hood_decomp_msgs/DisplacementField (m) -> core DisplacementField (mm), with its error model (an empty
-    ``error_model`` string, from a sender that predates it, is "none"). The error model is checked where the field
-    is used (a bad one is a FieldError naming the problem)."""
+    ``error_model`` string, from a sender that predates it, is "none"; empty view arrays, from one view or an older
+    sender, leave the one pose of ``pose_covariance``). View arrays of inconsistent lengths are a FieldError here; the
+    rest of the error model is checked where the field is used (a bad one is a FieldError naming the problem)."""
     unit = np.array([1.0, 1.0, 1.0, MM_PER_M, MM_PER_M, MM_PER_M])
     kind = msg.error_model or "none"
     errors = FieldErrorModel.none() if kind == "none" else FieldErrorModel(
@@ -103,6 +114,7 @@ def msg_to_field(msg: Any) -> DisplacementField:
         pose_covariance=_numpy(msg.pose_covariance).reshape(6, 6) * np.outer(unit, unit),
         pose_center=_numpy(msg.pose_center, MM_PER_M),
         bias_correlation=float(msg.bias_correlation),
+        view_poses=_view_poses(msg, len(msg.normal_displacement), unit),
     )
     return DisplacementField(
         model_id=msg.model_id,
@@ -111,6 +123,21 @@ def msg_to_field(msg: Any) -> DisplacementField:
         noise_rms=float(msg.noise_rms) * MM_PER_M,
         error_model=errors,
     )
+
+
+def _view_poses(msg: Any, n_nodes: int, unit: np.ndarray) -> tuple[ViewPoseError, ...]:
+    """The per-view registration errors of a fused field's message (mm), or () when it carries none (one view, an
+    older sender: ``pose_covariance`` is the field's). Raises FieldError when the two arrays disagree on the number of
+    views V (V x 39 and V x N values)."""
+    poses, weight = msg.view_poses, msg.view_weight
+    n_views = len(poses) // 39
+    if (len(poses), len(weight)) != (39 * n_views, n_views * n_nodes):
+        raise FieldError(f"view_poses and view_weight must hold V x 39 and V x N values (N = {n_nodes} nodes); got "
+                         f"{len(poses)} and {len(weight)}")
+    poses = _numpy(poses).reshape(n_views, 39)
+    weights = _numpy(weight).reshape(n_views, n_nodes)
+    return tuple(ViewPoseError(p[:36].reshape(6, 6) * np.outer(unit, unit), p[36:] * MM_PER_M, w)
+                 for p, w in zip(poses, weights, strict=True))
 
 
 def estimate_to_msg(estimate: ParameterEstimate, header: Any, part_id: str) -> Any:

@@ -17,8 +17,8 @@ point noise and their registrations are):
   correlation length, sum_k Cov_ik / (s_i s_k) over the views' independent noise);
 - one registration error per view, reaching the nodes through the view's weight: U = [w_1 U_1, ..., w_V U_V] (N, 6V)
   (:class:`hood_decomp.core.types.ViewPoseError`), correlated over all nodes of one view and independent between
-  views. A single-pose summary (the sum of the views' pose covariances about a common centre, never smaller on any
-  node) goes where only one pose fits (messages, field files).
+  views; the DisplacementField message carries them as they are. A single-pose summary (the sum of the views' pose
+  covariances about a common centre, never smaller on any node) goes where only one pose fits (field files).
 
 A node no view saw stays NaN; so the fused coverage is the union of the views' coverages.
 Units: mm, rad; transforms (4, 4) map scanner points to the part frame, x_part = R x_scan + t.
