@@ -14,23 +14,30 @@ Reported:
 - the fraction of fused parameters inside their stated 95 % interval (|error| <= 1.96 std; parameters whose contact
   state the estimate got right, as bench_uncertainty), also with the one-pose summary of the registration errors the
   DisplacementField message carries (what the estimator node sees in an inspection);
+- with ``--nodes``, the same parts through the real scan and estimator nodes (processes, Fast DDS on loopback): an
+  InspectPart goal per part, each view's cloud (points and marker centres, metres) with its robot pose on scan/pose;
+  the result's boundary state against the same truth (fraction inside the stated 95 % interval, max |error|/std) and
+  its stds against the in-process (core path) stds of the same part;
 - the pose-off view: its marker-fit pose error against the truth in units of the fit's stated pose std (per twist
   component, and Mahalanobis d2: with the marker noise estimated from the fit's residual, d2 / 6 ~ F(6, 3K - 6)),
   and the robot pose's error in the same units.
 
 Prints a table and writes benchmarks/out/multiview.json (rewritten as it goes). Run from the repository root:
     scripts/with-env nice python benchmarks/bench_multiview.py [--parts 200] [--resolution coarse] [--points 60000]
+        [--nodes]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -70,6 +77,95 @@ def pose_error_twist(estimated: np.ndarray, true: np.ndarray, center: np.ndarray
     return np.concatenate([omega, t])
 
 
+class NodePath:
+    """The scan and estimator nodes as processes serving ``bases_path``, with the fixture's markers as the cell
+    calibration, and a plain rclpy InspectPart client: :meth:`send` a part's views, :meth:`result` its boundary
+    state (values and stds, mm)."""
+
+    def __init__(self, bases_path: Path, markers: dict[int, np.ndarray], directory: Path) -> None:
+        from geometry_msgs.msg import TransformStamped
+        from hood_decomp_msgs.action import InspectPart
+        from rclpy.action import ActionClient
+        from sensor_msgs.msg import PointCloud2
+
+        from hood_decomp.ros import messages
+        from hood_decomp.ros.launcher import start_nodes
+        from hood_decomp.ros.participant import Participant
+
+        _, marker_params = messages.calibration_to_params(np.eye(4), markers)
+        params = directory / "params.yaml"
+        params.write_text("hood_decomp_scan:\n  ros__parameters:\n"
+                          f"    marker_positions: {json.dumps(marker_params)}\n    marker_field: marker_id\n"
+                          "    result_timeout_s: 120.0\n")
+        self.processes = start_nodes(bases_path, params_file=params, nodes=("scan_node", "estimator_node"),
+                                     log_dir=directory)
+        self.peer = Participant("bench_multiview")
+        self.goal_type = InspectPart.Goal
+        self.client = ActionClient(self.peer.node, InspectPart, "hood_decomp/inspect_part")
+        self.clouds = self.peer.publisher("scan/points", PointCloud2)
+        self.poses = self.peer.publisher("scan/pose", TransformStamped)
+        if not (self.peer.connected(["scan/points", "scan/pose"], [], 90.0)
+                and self.peer.wait(self.client.server_is_ready, 90.0)):
+            raise RuntimeError(f"the scan node's InspectPart server did not come up in 90 s (logs in {directory})")
+
+    def send(self, part: int, scans: list, poses: list[np.ndarray]) -> object:
+        """An InspectPart goal of len(scans) views, then each view's robot pose and cloud; returns the goal."""
+        from hood_decomp.ros.scan_bag import scan_cloud, transform_stamped
+
+        sent = self.client.send_goal_async(self.goal_type(part_id=f"bench-{part}", expected_views=len(scans)))
+        if not (self.peer.wait(sent.done, 30.0) and sent.result().accepted):
+            raise RuntimeError(f"goal of part {part} not accepted")
+        for k, (scan, pose) in enumerate(zip(scans, poses, strict=True)):
+            stamp = (1000 + 10 * part + k) * 1_000_000_000
+            self.poses.publish(transform_stamped("hood", f"camera_{k}", pose, stamp))
+            self.peer.wait(lambda: False, 0.3)  # the pose first: the node looks it up when the cloud comes
+            cloud = scan_cloud(scan, stamp)
+            cloud.header.frame_id = f"camera_{k}"
+            self.clouds.publish(cloud)
+        return sent.result()
+
+    def result(self, handle: object, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The part's boundary state: values, stds (mm) and lifted flags in the order ``names``."""
+        future = handle.get_result_async()
+        if not self.peer.wait(future.done, 600.0):
+            raise RuntimeError("no InspectPart result in 600 s")
+        result = future.result().result
+        state = result.boundary_state
+        if not result.success or tuple(state.names) != tuple(names):
+            raise RuntimeError(f"inspection failed: {result.message}")
+        return (np.asarray(state.values) * 1000.0, np.asarray(state.std_dev) * 1000.0,
+                np.asarray(state.lifted, bool))
+
+    def close(self) -> None:
+        from hood_decomp.ros.launcher import stop_nodes
+
+        self.client.destroy()
+        self.peer.close()
+        stop_nodes(self.processes)
+
+
+@contextlib.contextmanager
+def node_path(enabled: bool, bases_path: Path, skin, directory: Path, rng: np.random.Generator
+              ) -> Iterator[NodePath | None]:
+    """The running nodes when ``enabled`` (the fixture's markers found by a calibration pass of every candidate
+    view), else None."""
+    if not enabled:
+        yield None
+        return
+    markers: dict[int, np.ndarray] = {}
+    for aim, tilt in VIEWS:
+        scan = synthesize_scan(skin, np.zeros((skin.n_nodes, 3)), ScannerConfig(
+            n_points=2000, marker_noise_mm=0.0, view_center=aim, view_tilt_deg=tilt, fov_deg=40.0,
+            standoff_mm=1500.0), seed=int(rng.integers(1 << 30)))
+        markers.update({int(i): p for i, p in zip(scan.marker_ids, scan.markers_nominal, strict=True)})
+    log(f"starting the scan and estimator nodes ({len(markers)} fixture markers)")
+    nodes = NodePath(bases_path, markers, directory)
+    try:
+        yield nodes
+    finally:
+        nodes.close()
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--parts", type=int, default=200)
@@ -78,11 +174,21 @@ def main() -> int:
     parser.add_argument("--fov", type=float, default=40.0, help="full field-of-view angle of a view, deg")
     parser.add_argument("--seed", type=int, default=17)
     parser.add_argument("--out", type=Path, default=OUT)
+    parser.add_argument("--nodes", action="store_true",
+                        help="also run each part through the scan and estimator nodes (InspectPart)")
     args = parser.parse_args()
     rng = np.random.default_rng(args.seed)
     log(f"building the {args.resolution} hood, its ensemble and bases")
     with tempfile.TemporaryDirectory() as tmp:
         case = _hood_case(args.resolution, Path(tmp))
+        with node_path(args.nodes, case.bases_path, case.skin, Path(tmp), np.random.default_rng(0)) as nodes:
+            results = run_parts(args, rng, case, nodes)
+    print_table(results["summary"], case.bases.names)
+    return 0
+
+
+def run_parts(args: argparse.Namespace, rng: np.random.Generator, case, nodes: NodePath | None) -> dict:
+    """Run ``args.parts`` parts (module docstring); the results, summarised and saved every 10 parts."""
     bases, reduced, skin = case.bases, case.reduced, case.skin
     names, n_b = bases.names, case.reduced.n_bilateral
     lo, hi = bases.pca.lower_, bases.pca.upper_
@@ -115,11 +221,15 @@ def main() -> int:
             views.append(ScanView(scan.points, pose, scan.markers, scan.markers_nominal, name=f"view {k + 1}",
                                   pose_source="robot"))
             scans.append(scan)
+        # the nodes work on the part while this process fuses it in-process (the core path)
+        handle = None if nodes is None else nodes.send(part, scans, [v.scanner_pose for v in views])
         fused = fuse_views(skin, views, estimator=est)
         seen = np.array([np.isfinite(v.field.normal_displacement) for v in fused.views])
         union = float(seen.any(axis=0).mean())
-        merged_points = np.vstack([s.points @ s.true_transform[:3, :3].T + s.true_transform[:3, 3] for s in scans])
-        merged = est.field(merged_points)
+        merged_coverage = None
+        if nodes is None:  # an independent coverage check, skipped beside the nodes (one more scan step per part)
+            merged_coverage = est.field(np.vstack([s.points @ s.true_transform[:3, :3].T + s.true_transform[:3, 3]
+                                                   for s in scans])).coverage
         estimate = estimate_field(bases, fused.field)
         error = estimate.values - truth
         same = estimate.lifted == true_lifted
@@ -137,9 +247,17 @@ def main() -> int:
         fit_twist = pose_error_twist(off.registration.transform, scans[off_view].true_transform, center)
         robot_twist = pose_error_twist(views[off_view].scanner_pose, scans[off_view].true_transform, center)
         pose_std = np.sqrt(np.diag(covariance))
-        results["parts"].append({
+        node: dict = {}
+        if handle is not None:
+            values, std, lifted = nodes.result(handle, names)
+            node = {"node_rms_mm": float(np.sqrt(np.mean((values - truth) ** 2))),
+                    "node_z": [None if not (ok and np.isfinite(v)) else float(v)
+                               for v, ok in zip((values - truth) / std, lifted == true_lifted, strict=True)],
+                    "node_std_over_core": (std / estimate.std).tolist(),
+                    "node_value_minus_core_mm": (values - estimate.values).tolist()}
+        results["parts"].append({**node,
             "views": n_views, "markers": [v.registration.n_markers for v in fused.views], "off_view": off_view,
-            "fused_coverage": fused.field.coverage, "union_coverage": union, "merged_coverage": merged.coverage,
+            "fused_coverage": fused.field.coverage, "union_coverage": union, "merged_coverage": merged_coverage,
             "view_coverage": [v.field.coverage for v in fused.views],
             "fused_rms_mm": float(np.sqrt(np.mean(error**2))), "single_rms_mm": single_rms,
             "z": [None if not np.isfinite(v) else float(v) for v in z],
@@ -156,9 +274,8 @@ def main() -> int:
             s = results["summary"]
             log(f"part {part + 1}: {(time.time() - start) / (part + 1):.1f} s per part; fused RMS "
                 f"{s['fused_rms_mm']:.4f} mm vs single {s['mean_single_rms_mm']:.4f} mm; inside 95 % "
-                f"{s['inside_95']:.3f}")
-    print_table(results["summary"], names)
-    return 0
+                f"{s['inside_95']:.3f}" + (f", through the nodes {s['node_inside_95']:.3f}" if nodes else ""))
+    return results
 
 
 def summarise(parts: list[dict], names: tuple[str, ...]) -> dict:
@@ -167,12 +284,32 @@ def summarise(parts: list[dict], names: tuple[str, ...]) -> dict:
     single_z = np.array([[np.nan if v is None else v for v in sz] for p in parts for sz in p["single_z"]])
     one_pose_z = np.array([[np.nan if v is None else v for v in p["z_one_pose"]] for p in parts])
     coverage_gap = np.array([p["fused_coverage"] - p["union_coverage"] for p in parts])
-    merged_gap = np.array([p["merged_coverage"] - p["union_coverage"] for p in parts])
+    merged_gap = np.array([p["merged_coverage"] - p["union_coverage"] for p in parts
+                           if p["merged_coverage"] is not None] or [np.nan])
     fit_z = np.array([p["pose_fit_z"] for p in parts])
     d2 = np.array([p["pose_fit_d2"] for p in parts])
     # the fit's marker noise is estimated from its residual (3K - 6 dof), so d2 / 6 follows F(6, 3K - 6)
     dof = np.array([3 * p["markers"][p["off_view"]] - 6 for p in parts])
+    nodes = {}
+    if "node_z" in parts[0]:  # the same parts through the scan and estimator nodes
+        node_z = np.array([[np.nan if v is None else v for v in p["node_z"]] for p in parts])
+        node_finite = np.isfinite(node_z)
+        ratio = np.array([p["node_std_over_core"] for p in parts])
+        nodes = {
+            "node_inside_95": float(np.mean(np.abs(node_z[node_finite]) <= Z95)), "node_n_z": int(node_finite.sum()),
+            "node_inside_95_per_parameter": {name: float(np.mean(np.abs(node_z[node_finite[:, k], k]) <= Z95))
+                                             for k, name in enumerate(names)},
+            "node_max_abs_z_per_parameter": {name: float(np.max(np.abs(node_z[node_finite[:, k], k])))
+                                             for k, name in enumerate(names)},
+            "core_max_abs_z_per_parameter": {name: float(np.max(np.abs(z[finite[:, k], k])))
+                                             for k, name in enumerate(names)},
+            "node_rms_mm": float(np.mean([p["node_rms_mm"] for p in parts])),
+            "node_std_over_core_median": float(np.median(ratio)),
+            "node_std_over_core_range": [float(ratio.min()), float(ratio.max())],
+            "node_minus_core_max_abs_mm": float(np.max(np.abs([p["node_value_minus_core_mm"] for p in parts]))),
+        }
     return {
+        **nodes,
         "n_parts": len(parts), "views": np.bincount([p["views"] for p in parts], minlength=6)[3:].tolist(),
         "max_abs_fused_minus_union": float(np.max(np.abs(coverage_gap))),
         "max_abs_merged_minus_union": float(np.max(np.abs(merged_gap))),
@@ -212,7 +349,19 @@ def print_table(s: dict, names: tuple[str, ...]) -> None:
         ("fused inside stated 95 % interval", f"{s['inside_95']:.3f} (n = {s['n_z']})"),
         *((f"  {name}", f"{s['inside_95_per_parameter'][name]:.3f}") for name in names),
         ("single views inside their stated 95 % interval (control)", f"{s['single_inside_95']:.3f}"),
-        ("fused, one-pose summary (what the message carries), inside 95 %", f"{s['one_pose_inside_95']:.3f}"),
+        ("fused, one-pose summary only (the message before it carried the views), inside 95 %",
+         f"{s['one_pose_inside_95']:.3f}"),
+        *((("through the nodes: inside stated 95 % interval", f"{s['node_inside_95']:.3f} (n = {s['node_n_z']})"),
+           *((f"  {name}: nodes / core inside 95 %; max |z| nodes / core",
+              f"{s['node_inside_95_per_parameter'][name]:.3f} / {s['inside_95_per_parameter'][name]:.3f}; "
+              f"{s['node_max_abs_z_per_parameter'][name]:.2f} / {s['core_max_abs_z_per_parameter'][name]:.2f}")
+             for name in names),
+           ("through the nodes: stated std / core std, median (min-max)",
+            f"{s['node_std_over_core_median']:.4f} ({s['node_std_over_core_range'][0]:.4f}-"
+            f"{s['node_std_over_core_range'][1]:.4f})"),
+           ("through the nodes: max |value - core value| (mm)", f"{s['node_minus_core_max_abs_mm']:.5f}"),
+           ("through the nodes: RMS parameter error (mm)", f"{s['node_rms_mm']:.4f}"))
+          if "node_inside_95" in s else ()),
         ("pose-off view: fit error max |z| / all |z| <= 3", f"{s['pose_fit_max_abs_z']:.2f} / "
                                                            f"{s['pose_fit_within_3_std']:.3f}"),
         ("pose-off view: Mahalanobis inside 95 % (F(6, 3K-6))", f"{s['pose_fit_d2_p95_rate']:.3f}"),
