@@ -56,8 +56,9 @@ _CHUNK_POINTS = 200_000
 _QUADRIC_NEIGHBOURS = 13
 # How far the smoothing bias is correlated, as an area of the skin (mm^2): one physical number for every mesh of a
 # part. As a node count (1000, tuned on the default hood's 59 mm^2 nodes) it stood for 6.4 times the area on the
-# coarse hood's 375 mm^2 nodes, and coarse scans' stds and test were 3-8 times too wide (97.4-99.95 % inside the 95 %
-# interval, no false alarm in 2,000; benchmarks/RESULTS.md, issue 15 run 5). Measured against the FE truth
+# coarse hood's 375 mm^2 nodes: the bias allowance was 30-130 times the bias' mean smooth projection there, stds up
+# to 1.6 times the RMS error (97.4-99.95 % inside the 95 % interval, no false alarm in 2,000 scans; benchmarks/
+# RESULTS.md, issue 15 run 5). Measured against the FE truth
 # (noise-free scans, the bias projected on the skin's degree-2 smooth fields, mean over the fields per state):
 # 17,000-83,000 mm^2 on the default hood (5 states), 3,700-9,000 mm^2 on the coarse one (8 states). Set where the
 # within-model test's false-alarm rate on 120 default scans came down (300 nodes: 12.5 %; 1000 nodes: none).
