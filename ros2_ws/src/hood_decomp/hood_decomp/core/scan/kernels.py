@@ -13,9 +13,10 @@ issue 19): at 1 M points the numpy path took 0.3-0.5 s less CPU, at 5 M the two 
 Per point (:func:`locate_block`): grid coordinates from one affine map, the cell's node, the offset in the node's
 frame, the quadric distance, the gates; the points that pass are written to preallocated block buffers and (when
 ``cells`` is given) their moments [1, u, v, uu, uv, vv, d, du, dv] are added to their node's cell sums, in one pass.
-Per node (:func:`raw_moments`, :func:`node_fits`): the cell sums to raw 3D moments, and the closed-form 3x3 plane fit,
-their 6 x 6 and 3 x 6 maps formed per node from its basis rows (:func:`_sym`), not stored. The second pass
-(:func:`outliers`): residuals, outliers and the noise sums in one pass, without an array of the scan's size.
+Per node (:func:`raw_moments`, :func:`node_fits`): the cell sums to raw 3D moments (the second moments formed from
+the node's basis rows, :func:`_second_moments`: no per-node map stored), and the closed-form 3x3 plane fit. The
+second pass (:func:`outliers`): residuals, outliers and the noise sums in one pass, without an array of the scan's
+size.
 """
 
 from __future__ import annotations
@@ -138,21 +139,28 @@ def _outliers_numpy(j, u, v, d, coef, limit, out_drop):
     return count, inliers, squares
 
 
-# Upper triangle of a symmetric 3x3 matrix (xx xy xz yy yz zz); the node basis rows (x about the centroid, t1, t2)
-# paired for the second moments in that order; the tangent pairs (t1 t1, t1 t2, t2 t2) as frame rows.
-_UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-_TANGENT_PAIRS = ((0, 0), (0, 1), (1, 1))
+def _second_moments(n, u, v, uu, uv, vv, x, t1, t2):
+    """The upper triangle (xx xy xz yy yz zz) of sum p p^T over a cell's points p = x + u t1 + v t2 from its sums
+    n, u, v, uu, uv, vv and its node's basis rows x (about the centroid), t1, t2: sum_e row_e g_e^T with
+    g = (n x + u t1 + v t2, u x + uu t1 + uv t2, v x + uv t1 + vv t2). Formed per node (no (N, 6, 6) map: 54 MB at
+    paper resolution). Elementwise: rows indexable by component, (3, K) arrays on the numpy path, (3,) compiled."""
+    g0 = (n * x[0] + u * t1[0] + v * t2[0], n * x[1] + u * t1[1] + v * t2[1], n * x[2] + u * t1[2] + v * t2[2])
+    g1 = (u * x[0] + uu * t1[0] + uv * t2[0], u * x[1] + uu * t1[1] + uv * t2[1], u * x[2] + uu * t1[2] + uv * t2[2])
+    g2 = (v * x[0] + uv * t1[0] + vv * t2[0], v * x[1] + uv * t1[1] + vv * t2[1], v * x[2] + uv * t1[2] + vv * t2[2])
+    return (x[0] * g0[0] + t1[0] * g1[0] + t2[0] * g2[0], x[0] * g0[1] + t1[0] * g1[1] + t2[0] * g2[1],
+            x[0] * g0[2] + t1[0] * g1[2] + t2[0] * g2[2], x[1] * g0[1] + t1[1] * g1[1] + t2[1] * g2[1],
+            x[1] * g0[2] + t1[1] * g1[2] + t2[1] * g2[2], x[2] * g0[2] + t1[2] * g1[2] + t2[2] * g2[2])
 
 
-def _sym(a, b, p, q, half):
-    """Entry (p, q) of a b^T + b a^T, halved when ``half``: with a, b the basis rows of a pair this maps the cell sums
-    to second moments (a point at x + u t1 + v t2 has p p^T = sum over pairs of its [1, u, v, uu, uv, vv] times
-    these, equal rows halved), and with the tangent rows t_a, t_b and ``half`` on the diagonal entries it gives
-    t_a^T S t_b as a sum over the upper triangle of S. Built per use (no (N, 6, 6) map: 54 MB at paper
-    resolution). Elementwise: a, b (3, N) on the numpy path (component first), (3,) in the compiled loops."""
-    value = a[p] * b[q] + a[q] * b[p]
-    return value * 0.5 if half else value
+def _tangent_forms(s, t1, t2):
+    """t1^T S t1, t1^T S t2, t2^T S t2 of the symmetric S given by its upper triangle s (xx xy xz yy yz zz).
+    Elementwise as :func:`_second_moments`."""
+    a = (s[0] * t1[0] + s[1] * t1[1] + s[2] * t1[2], s[1] * t1[0] + s[3] * t1[1] + s[4] * t1[2],
+         s[2] * t1[0] + s[4] * t1[1] + s[5] * t1[2])  # S t1
+    b = (s[0] * t2[0] + s[1] * t2[1] + s[2] * t2[2], s[1] * t2[0] + s[3] * t2[1] + s[4] * t2[2],
+         s[2] * t2[0] + s[4] * t2[1] + s[5] * t2[2])  # S t2
+    return (t1[0] * a[0] + t1[1] * a[1] + t1[2] * a[2], t1[0] * b[0] + t1[1] * b[1] + t1[2] * b[2],
+            t2[0] * b[0] + t2[1] * b[1] + t2[2] * b[2])
 
 
 def _plane_system(s0, ts0, ts1, q0, q1, q2, d0, td0, td1, a, b):
@@ -182,11 +190,8 @@ def _raw_moments_numpy(cells, basis, rows):
     for dim in range(3):
         out[:, 1 + dim] = c[0] * b[0, dim] + c[1] * b[1, dim] + c[2] * b[2, dim]
         out[:, 11 + dim] = c[6] * b[0, dim] + c[7] * b[1, dim] + c[8] * b[2, dim]
-    for col, (p, q) in enumerate(_UPPER):
-        total = np.zeros(rows.size)
-        for k, (e, f) in enumerate(_PAIRS):
-            total += c[k] * _sym(b[e], b[f], p, q, e == f)
-        out[:, 4 + col] = total
+    for col, value in enumerate(_second_moments(*c[:6], b[0], b[1], b[2])):
+        out[:, 4 + col] = value
     out[:, 10] = c[6]
     return out
 
@@ -195,11 +200,8 @@ def _node_fits_numpy(mixed, frames, t1x, t2x, coef, weight, inflation):
     s0, s1, d0, d1 = mixed[:, 0], mixed[:, 1:4], mixed[:, 10], mixed[:, 11:14]
     ts = np.einsum("nkd,nd->nk", frames[:, :2], s1)
     td = np.einsum("nkd,nd->nk", frames[:, :2], d1)
-    tangents, s2 = frames[:, :2].transpose(1, 2, 0).copy(), mixed[:, 4:10].T.copy()  # contiguous per component
-    quad = np.zeros((3, mixed.shape[0]))
-    for k, (e, f) in enumerate(_TANGENT_PAIRS):
-        for col, (p, q) in enumerate(_UPPER):
-            quad[k] += _sym(tangents[e], tangents[f], p, q, p == q) * s2[col]
+    tangents = frames[:, :2].transpose(1, 2, 0).copy()  # contiguous per component
+    quad = _tangent_forms(mixed[:, 4:10].T.copy(), tangents[0], tangents[1])
     c00, c01, c02, c11, c12, c22, det, scale, r0, r1, r2 = _plane_system(
         s0, ts[:, 0], ts[:, 1], quad[0], quad[1], quad[2], d0, td[:, 0], td[:, 1], t1x, t2x)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -305,12 +307,10 @@ def _raw_moments_loop(cells, basis, rows):
                 i, 2, dim]
             out[r, 11 + dim] = cells[i, 6] * basis[i, 0, dim] + cells[i, 7] * basis[i, 1, dim] + cells[i, 8] * basis[
                 i, 2, dim]
+        second = _second_moments(cells[i, 0], cells[i, 1], cells[i, 2], cells[i, 3], cells[i, 4], cells[i, 5],
+                                 basis[i, 0], basis[i, 1], basis[i, 2])  # fmt: skip
         for c in range(6):
-            total = 0.0
-            for k in range(6):
-                e, f = _PAIRS[k]
-                total += cells[i, k] * _sym(basis[i, e], basis[i, f], _UPPER[c][0], _UPPER[c][1], e == f)
-            out[r, 4 + c] = total
+            out[r, 4 + c] = second[c]
         out[r, 10] = cells[i, 6]
     return out
 
@@ -322,15 +322,7 @@ def _node_fits_loop(mixed, frames, t1x, t2x, coef, weight, inflation):
         ts1 = frames[i, 1, 0] * mixed[i, 1] + frames[i, 1, 1] * mixed[i, 2] + frames[i, 1, 2] * mixed[i, 3]
         td0 = frames[i, 0, 0] * mixed[i, 11] + frames[i, 0, 1] * mixed[i, 12] + frames[i, 0, 2] * mixed[i, 13]
         td1 = frames[i, 1, 0] * mixed[i, 11] + frames[i, 1, 1] * mixed[i, 12] + frames[i, 1, 2] * mixed[i, 13]
-        q0 = 0.0
-        q1 = 0.0
-        q2 = 0.0
-        t1, t2 = frames[i, 0], frames[i, 1]
-        for c in range(6):
-            p, q = _UPPER[c]
-            q0 += _sym(t1, t1, p, q, p == q) * mixed[i, 4 + c]
-            q1 += _sym(t1, t2, p, q, p == q) * mixed[i, 4 + c]
-            q2 += _sym(t2, t2, p, q, p == q) * mixed[i, 4 + c]
+        q0, q1, q2 = _tangent_forms(mixed[i, 4:10], frames[i, 0], frames[i, 1])
         c00, c01, c02, c11, c12, c22, det, scale, r0, r1, r2 = _plane_system(s0, ts0, ts1, q0, q1, q2, d0, td0, td1,
                                                                              t1x[i], t2x[i])  # fmt: skip
         inv_det = 1.0 / det if abs(det) > 1e-12 * abs(scale) + 1e-300 else np.nan
@@ -351,7 +343,8 @@ def _kernel(name: str, fast: bool = True):
             from numba import njit
 
             module = globals()
-            for helper in ("_cell", "_add_one", "_sym", "_plane_system"):  # called from the loops: compiled inline
+            # called from the loops: compiled inline into them
+            for helper in ("_cell", "_add_one", "_second_moments", "_tangent_forms", "_plane_system"):
                 module[helper] = njit(nogil=True, cache=True, inline="always")(module[helper])
             for loop in ("_locate_block_loop", "_add_moments_loop", "_plane_residuals_loop", "_outliers_loop",
                          "_raw_moments_loop", "_node_fits_loop"):  # fmt: skip
