@@ -114,10 +114,7 @@ class EstimatorNode(HoodNode):
     def configure_node(self) -> None:
         self.sent.clear()
         for bases in self.variant_bases.values():  # fitted now, so the first field is answered at steady speed
-            if self.param("method") == "contact" and bases.reduced_model is not None:
-                bases.contact_estimator(self.param("min_coverage"))
-            else:
-                bases.residual_test()
+            bases.prepare_estimation(self.param("method"), self.param("min_coverage"))
             try:
                 self.warm_up(bases)
             except HoodDecompError as error:  # the bases serve real fields all the same: said, not fatal
