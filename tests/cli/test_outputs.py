@@ -112,3 +112,14 @@ def test_a_failed_write_leaves_no_half_file_and_keeps_the_old_one(ws, capsys, mo
     umask = os.umask(0)
     os.umask(umask)
     assert fresh.stat().st_mode & 0o777 == 0o666 & ~umask  # not the temporary file's 0600
+
+
+@pytest.mark.parametrize("method", ["contact", "pca"])
+def test_an_estimator_that_cannot_be_fitted_while_the_field_is_read_still_fails_once_by_name(ws, capsys, method):
+    """`estimate` fits its estimator in a second thread while it reads the field. Fails if an error of that fit (a
+    part temperature for bases without a thermal response) is lost (exit 0, or a result written), reported twice, or
+    shown as a traceback instead of the one named line with exit status 2."""
+    out = ws / "estimate.json"
+    line = _refused(["estimate", "--bases", str(ws / "bases.h5"), "--field", str(ws / "field.vtu"), "--method",
+                     method, "--temperature-k", "5", "--json", str(out)], capsys, "thermal response")
+    assert not out.exists(), line

@@ -250,3 +250,42 @@ def test_effects_follow_the_boundary_state_of_their_field(coarse_hood, running):
         np.testing.assert_allclose(np.asarray(sent.contribution), expected.contribution, atol=1e-6)
         assert sent.share == pytest.approx(expected.share, abs=1e-6)
 
+
+
+WARM_UP_SCRIPT = """
+import json, sys
+import rclpy
+from rclpy.parameter import Parameter
+from hood_decomp.ros.estimator_node import EstimatorNode
+rclpy.init()
+node = EstimatorNode()
+node.set_parameters([Parameter("bases", value=sys.argv[1])])
+answered, answer = [], node.answer
+node.answer = lambda msg: answered.append(msg.part_id) or answer(msg)
+node.trigger_configure()
+print("WARM", json.dumps({"state": node.state, "answered": answered, "received": node.received,
+                          "remembered": list(node.sent)}))
+node.destroy_node()
+rclpy.shutdown()
+"""
+
+
+def test_the_estimator_node_answers_one_field_at_configure_and_keeps_nothing_of_it(coarse_hood):
+    """Fails if configuring the estimator node does not run one synthetic field through its own answer path (message
+    decoding, estimate, correction: the first real field would pay their first use, 0.1-0.5 s measured, issue 19),
+    or if that warm-up counts as a received field, is remembered as a part (a later move verification would compare
+    against it) or fails the configuration."""
+    import json
+    import os
+    import pathlib
+    import subprocess
+    import sys
+
+    root = pathlib.Path(__file__).resolve().parents[2]
+    done = subprocess.run([sys.executable, "-c", WARM_UP_SCRIPT, str(coarse_hood.bases_path)], cwd=root,
+                          capture_output=True, text=True, timeout=120, env=os.environ.copy())  # fmt: skip
+    line = next((row for row in done.stdout.splitlines() if row.startswith("WARM ")), None)
+    assert line is not None, done.stderr[-2000:]
+    found = json.loads(line[len("WARM "):])
+    assert found == {"state": "inactive", "answered": ["warm-up"], "received": 0, "remembered": []}, found
+    assert "warm-up of" not in done.stdout + done.stderr, "the warm-up failed (the node said so in its log)"

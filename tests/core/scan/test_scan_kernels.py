@@ -187,3 +187,34 @@ def test_a_fresh_process_loads_numba_for_large_scans_and_after_a_warm_up_only():
         "warm_up(estimator, points=20_000)\n"
         "assert 'numba' in sys.modules and kernels.for_points(10), 'the warm-up did not load the compiled path'\n"
     )
+
+
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.skipif(
+    not kernels.HAVE_NUMBA, reason="numba is not installed: only the numpy path exists"))])
+def test_the_fused_second_pass_drops_and_sums_what_a_residual_array_would(compiled):
+    """The second pass splits points by residual without forming a residual array (kernels.outliers). Fails if it
+    drops other points than those whose float32 residual exceeds the limit in magnitude, or if its inlier count or
+    sum of squares differs from those of the finite, kept residuals computed as one array in plain numpy (more than
+    one block, NaN planes, an infinite one)."""
+    rng = np.random.default_rng(3)
+    n, m = 500, 3 * kernels.BLOCK_POINTS + 17
+    coef = rng.normal(0.0, 0.2, (n, 3))
+    coef[7] = np.nan  # a node without a fit: its points' residuals are NaN, neither dropped nor counted
+    coef[11, 0] = np.inf  # an infinite one: dropped
+    j = rng.integers(0, n, m).astype(np.int32)
+    u, v = (rng.uniform(-2.0, 2.0, m).astype(np.float32) for _ in range(2))
+    d = (rng.normal(0.0, 0.05, m) + np.where(rng.random(m) < 0.01, 1.0, 0.0)).astype(np.float32)
+    residual = (d.astype(float) - (coef[j, 0] + coef[j, 1] * u.astype(float) + coef[j, 2] * v.astype(float)))
+    residual = residual.astype(np.float32).astype(float)  # stored as float32, as plane_residuals does
+    limit = 0.2
+    with np.errstate(invalid="ignore"):
+        expected_drop = np.flatnonzero(np.abs(residual) > limit)
+        kept = residual[np.isfinite(residual) & ~(np.abs(residual) > limit)]
+    previous = kernels.use_compiled(compiled)
+    try:
+        drop, inliers, squares = kernels.outliers(j, u, v, d, coef, limit, compiled)
+    finally:
+        kernels.use_compiled(previous)
+    np.testing.assert_array_equal(drop, expected_drop)
+    assert inliers == kept.size and 0 < inliers < m - drop.size
+    assert squares == pytest.approx(float(np.sum(kept * kept)), rel=1e-12)

@@ -6,6 +6,7 @@ Verbs import from here, never from each other. Library code (file formats, the m
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -13,11 +14,12 @@ import shutil
 import sys
 import tempfile
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from hood_decomp.errors import FieldError, ModelError, OutputError
+from hood_decomp.errors import FieldError, HoodDecompError, ModelError, OutputError
 from hood_decomp.io.json_values import json_ready
 
 if TYPE_CHECKING:  # only for annotations: a verb's --help does not load the method
@@ -291,13 +293,23 @@ def read_fields(inputs: Inputs | None, skin: SkinSurface, min_coverage: float,
     return fields
 
 
-def read_bases_and_field(args: argparse.Namespace) -> tuple[Bases, DisplacementField]:
+def read_bases_and_field(args: argparse.Namespace, meanwhile: Callable[[Bases], object] | None = None
+                         ) -> tuple[Bases, DisplacementField]:
     """The bases of --bases and the one field of --field or of the --scan views of one part (:func:`add_bases`,
-    :func:`add_inputs`)."""
+    :func:`add_inputs`). ``meanwhile(bases)``: work that needs only the bases, run in a second thread while the
+    field is read (a scan: its prepared skin and scan path), finished before this returns; a HoodDecompError there
+    is left to the caller's own call of that work, which raises it again."""
     from hood_decomp.io.bases import load_bases
 
     bases = load_bases(args.bases)
-    fields = read_fields(args.inputs, bases.skin, args.min_coverage, args.scanner_poses, one_part=True)
+    if meanwhile is None:
+        fields = read_fields(args.inputs, bases.skin, args.min_coverage, args.scanner_poses, one_part=True)
+    else:
+        with ThreadPoolExecutor(1) as pool:
+            pending = pool.submit(meanwhile, bases)
+            fields = read_fields(args.inputs, bases.skin, args.min_coverage, args.scanner_poses, one_part=True)
+            with contextlib.suppress(HoodDecompError):
+                pending.result()
     return bases, apply_reference(args, bases, fields[:1])[0]
 
 

@@ -92,12 +92,12 @@ def loaded_bases_id(bases: Bases) -> str:
 
 
 # --- writing -----------------------------------------------------------------------------------------------------
-def _write_array(group: h5py.Group, name: str, values: np.ndarray) -> None:
-    """Integer and boolean arrays gzip level 1 with shuffle (the lookup grid and the kernel's indices shrink 10-15
-    times); floats plain: they shrink by a quarter at most, and inflating them cost more than half of a one-off
-    `estimate --scan`'s file reading at paper resolution."""
+def _write_array(group: h5py.Group, name: str, values: np.ndarray, pack: bool = True) -> None:
+    """Integer and boolean arrays gzip level 1 with shuffle when ``pack``; floats plain: they shrink by a quarter at
+    most, and inflating them cost more than half of a one-off `estimate --scan`'s file reading at paper
+    resolution."""
     values = np.asarray(values)
-    packed = values.dtype.kind in "iub"
+    packed = pack and values.dtype.kind in "iub"
     group.create_dataset(name, data=values, **({"compression": "gzip", "compression_opts": 1, "shuffle": True}
                                                if packed else {}))
 
@@ -223,8 +223,8 @@ def save_bases(path: str | Path, bases: Bases, *, scan_skin: bool = True) -> Non
             arrays = ScanFieldEstimator().fit(bases.skin).prepared_skin()
             group = h5.create_group("scan_skin")
             group.attrs["prepared_id"] = prepared_id(content_id, arrays)
-            for name, values in arrays.items():
-                _write_array(group, name, values)
+            for name, values in arrays.items():  # plain: every one-off scan reads them whole (the lookup grid and
+                _write_array(group, name, values, pack=False)  # the kernel's indices: 80 ms of CPU to inflate, 44 MB)
 
 
 # --- reading -----------------------------------------------------------------------------------------------------

@@ -24,11 +24,13 @@ from typing import Any, NamedTuple
 import numpy as np
 from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState, DisplacementField, MoveVerification
 from rclpy.parameter import Parameter
+from std_msgs.msg import Header
 
 from hood_decomp.core.method.correction import CorrectionPolicy, limit_steps, plan_correction, verify_move
 from hood_decomp.core.types import BoundaryCorrection as CoreCorrection
 from hood_decomp.core.types import DisplacementField as CoreField
-from hood_decomp.core.types import ParameterEstimate
+from hood_decomp.core.types import FieldErrorModel, ParameterEstimate
+from hood_decomp.errors import HoodDecompError
 from hood_decomp.io.history import HistoryWriter, PartRecord, bases_file_id, inspection_record
 from hood_decomp.ros import messages
 from hood_decomp.ros.node_common import ERROR, HoodNode, declare, declare_list, parse_entries, spin
@@ -112,10 +114,11 @@ class EstimatorNode(HoodNode):
     def configure_node(self) -> None:
         self.sent.clear()
         for bases in self.variant_bases.values():  # fitted now, so the first field is answered at steady speed
-            if self.param("method") == "contact" and bases.reduced_model is not None:
-                bases.contact_estimator(self.param("min_coverage"))
-            else:
-                bases.residual_test()
+            bases.prepare_estimation(self.param("method"), self.param("min_coverage"))
+            try:
+                self.warm_up(bases)
+            except HoodDecompError as error:  # the bases serve real fields all the same: said, not fatal
+                self.get_logger().warning(f"warm-up of {bases.model_id} failed: {error}")
         self.state_pub = self.publisher(BoundaryState, "hood_decomp/boundary_state", latest=True)
         self.correction_pub = self.publisher(BoundaryCorrection, "hood_decomp/boundary_correction", latest=True)
         self.verification_pub = self.publisher(MoveVerification, "hood_decomp/move_verification", latest=True)
@@ -196,15 +199,33 @@ class EstimatorNode(HoodNode):
             self.writer.close()
         return super().on_deactivate(state)
 
-    def on_field(self, msg: DisplacementField) -> dict[str, object]:
+    def answer(self, msg: DisplacementField) -> tuple[CoreField, ParameterEstimate, CoreCorrection]:
+        """A field message -> the field, its estimate and the step-limited correction (nothing published or kept)."""
         from hood_decomp.core.method.bases import estimate_field
 
         policy = self.policy()
-        self.received += 1
         field = messages.msg_to_field(msg)
         estimate = estimate_field(self.bases_for_model(msg.model_id), field, method=self.param("method"),
                                   min_coverage=policy.min_coverage)
-        correction = limit_steps(plan_correction(estimate, policy), self.step_limits(estimate.names))
+        return field, estimate, limit_steps(plan_correction(estimate, policy), self.step_limits(estimate.names))
+
+    def warm_up(self, bases: Any) -> None:
+        """One synthetic field of ``bases`` (the PCA mean field, scan-like node errors) through :meth:`answer` and
+        the outgoing messages, nothing published, so that the first real field pays no first use (issue 19)."""
+        from hood_decomp.core.scan.scan_field import SMOOTHING_BIAS_CORRELATION
+
+        n = bases.skin.n_nodes
+        errors = FieldErrorModel("scan", np.full(n, 0.005), np.full(n, 20.0), 5.0,
+                                 bias_correlation=SMOOTHING_BIAS_CORRELATION)
+        field = CoreField(bases.model_id, np.array(bases.pca.mean_field_, dtype=float), 1.0, 0.05, errors)
+        header = Header()
+        _, estimate, correction = self.answer(messages.field_to_msg(field, header, "warm-up"))
+        messages.estimate_to_msg(estimate, header, "warm-up")
+        messages.correction_to_msg(correction, header, "warm-up")
+
+    def on_field(self, msg: DisplacementField) -> dict[str, object]:
+        self.received += 1
+        field, estimate, correction = self.answer(msg)
         part_id = messages.part_id_of(msg)
         values: dict[str, object] = {"part_id": part_id}
         earlier = self.sent.pop(part_id, None)

@@ -84,8 +84,13 @@ class ScanNode(HoodNode):
         # one-time preparation of each variant's skin: the scan-field estimator and the cloud's xyz
         self.prepared = {bases.model_id: (prepared_estimator(bases.skin), messages.SkinClouds(bases.skin))
                          for bases in self.variant_bases.values()}
-        for estimator, _ in self.prepared.values():
-            warm_up(estimator)  # the first scan then runs at steady-state speed (issue 19)
+        header = Header(frame_id=self.param("part_frame"))
+        for estimator, clouds in self.prepared.values():
+            field = warm_up(estimator)  # the first scan then runs at steady-state speed (issue 19)
+            # and so do the node's own conversions: a cloud in, a field and its displacement cloud out (not published)
+            messages.scan_to_mm(messages.points_to_cloud(estimator.points_, header), self.param("marker_field"), {})
+            messages.field_to_msg(field, header, "warm-up")
+            clouds.displacement(field, header)
         self.field_pub = self.publisher(DisplacementField, "hood_decomp/displacement", latest=True)
         self.cloud_pub = self.publisher(PointCloud2, "hood_decomp/displacement_cloud")
 

@@ -96,6 +96,16 @@ class Bases:
             estimator = self._contact_estimators.setdefault(key, estimator)
         return estimator
 
+    def prepare_estimation(self, method: str = "contact", min_coverage: float = DEFAULT_MIN_COVERAGE,
+                           temperature_k: float = 0.0) -> None:
+        """Fit now what :func:`estimate_field` with these arguments fits on its first call (the contact-aware
+        estimator, or for "pca" and for bases without a reduced model the within-model test), so that estimating
+        then only reads it: a node before it serves, a one-off run while it reads its scan."""
+        if method == "contact" and self.reduced_model is not None:
+            self.contact_estimator(min_coverage, temperature_k)
+        else:
+            self.residual_test()
+
     def at_temperature(self, temperature_k: float) -> ReducedModel:
         """The reduced model of a part ``temperature_k`` K off the model's reference temperature (uniform)."""
         if self.reduced_model is None:

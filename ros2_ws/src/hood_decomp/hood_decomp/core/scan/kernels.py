@@ -13,7 +13,10 @@ issue 19): at 1 M points the numpy path took 0.3-0.5 s less CPU, at 5 M the two 
 Per point (:func:`locate_block`): grid coordinates from one affine map, the cell's node, the offset in the node's
 frame, the quadric distance, the gates; the points that pass are written to preallocated block buffers and (when
 ``cells`` is given) their moments [1, u, v, uu, uv, vv, d, du, dv] are added to their node's cell sums, in one pass.
-Per node (:func:`raw_moments`, :func:`node_fits`): the cell sums to raw 3D moments, and the closed-form 3x3 plane fit.
+Per node (:func:`raw_moments`, :func:`node_fits`): the cell sums to raw 3D moments (the second moments formed from
+the node's basis rows, :func:`_second_moments`: no per-node map stored), and the closed-form 3x3 plane fit. The
+second pass (:func:`outliers`): residuals, outliers and the noise sums in one pass, without an array of the scan's
+size.
 """
 
 from __future__ import annotations
@@ -119,6 +122,47 @@ def _plane_residuals_numpy(j, u, v, d, coef, out):
         out[part] = d[part] - (c[:, 0] + c[:, 1] * u[part] + c[:, 2] * v[part])
 
 
+def _outliers_numpy(j, u, v, d, coef, limit, out_drop):
+    count, inliers, squares = 0, 0, 0.0
+    residual = np.empty(min(j.size, BLOCK_POINTS), np.float32)
+    for start in range(0, j.size, BLOCK_POINTS):
+        part = slice(start, start + BLOCK_POINTS)
+        r = residual[: j[part].size]
+        _plane_residuals_numpy(j[part], u[part], v[part], d[part], coef, r)
+        r = r.astype(np.float64)
+        outlier = np.abs(r) > limit
+        found = np.flatnonzero(outlier)
+        out_drop[count : count + found.size] = found + start
+        count += found.size
+        kept = r[np.isfinite(r) & ~outlier]
+        inliers, squares = inliers + kept.size, squares + float(np.sum(kept * kept))  # not BLAS (its threads)
+    return count, inliers, squares
+
+
+def _second_moments(n, u, v, uu, uv, vv, x, t1, t2):
+    """The upper triangle (xx xy xz yy yz zz) of sum p p^T over a cell's points p = x + u t1 + v t2 from its sums
+    n, u, v, uu, uv, vv and its node's basis rows x (about the centroid), t1, t2: sum_e row_e g_e^T with
+    g = (n x + u t1 + v t2, u x + uu t1 + uv t2, v x + uv t1 + vv t2). Formed per node (no (N, 6, 6) map: 54 MB at
+    paper resolution). Elementwise: rows indexable by component, (3, K) arrays on the numpy path, (3,) compiled."""
+    g0 = (n * x[0] + u * t1[0] + v * t2[0], n * x[1] + u * t1[1] + v * t2[1], n * x[2] + u * t1[2] + v * t2[2])
+    g1 = (u * x[0] + uu * t1[0] + uv * t2[0], u * x[1] + uu * t1[1] + uv * t2[1], u * x[2] + uu * t1[2] + uv * t2[2])
+    g2 = (v * x[0] + uv * t1[0] + vv * t2[0], v * x[1] + uv * t1[1] + vv * t2[1], v * x[2] + uv * t1[2] + vv * t2[2])
+    return (x[0] * g0[0] + t1[0] * g1[0] + t2[0] * g2[0], x[0] * g0[1] + t1[0] * g1[1] + t2[0] * g2[1],
+            x[0] * g0[2] + t1[0] * g1[2] + t2[0] * g2[2], x[1] * g0[1] + t1[1] * g1[1] + t2[1] * g2[1],
+            x[1] * g0[2] + t1[1] * g1[2] + t2[1] * g2[2], x[2] * g0[2] + t1[2] * g1[2] + t2[2] * g2[2])
+
+
+def _tangent_forms(s, t1, t2):
+    """t1^T S t1, t1^T S t2, t2^T S t2 of the symmetric S given by its upper triangle s (xx xy xz yy yz zz).
+    Elementwise as :func:`_second_moments`."""
+    a = (s[0] * t1[0] + s[1] * t1[1] + s[2] * t1[2], s[1] * t1[0] + s[3] * t1[1] + s[4] * t1[2],
+         s[2] * t1[0] + s[4] * t1[1] + s[5] * t1[2])  # S t1
+    b = (s[0] * t2[0] + s[1] * t2[1] + s[2] * t2[2], s[1] * t2[0] + s[3] * t2[1] + s[4] * t2[2],
+         s[2] * t2[0] + s[4] * t2[1] + s[5] * t2[2])  # S t2
+    return (t1[0] * a[0] + t1[1] * a[1] + t1[2] * a[2], t1[0] * b[0] + t1[1] * b[1] + t1[2] * b[2],
+            t2[0] * b[0] + t2[1] * b[1] + t2[2] * b[2])
+
+
 def _plane_system(s0, ts0, ts1, q0, q1, q2, d0, td0, td1, a, b):
     """One node's plane-fit normal equations in its tangent frame from raw moments about the centroid (node offset
     a = t1.x, b = t2.x), solved by the adjugate: cofactors c00..c22, determinant, m00 m11 m22 (the singularity scale)
@@ -137,24 +181,29 @@ def _plane_system(s0, ts0, ts1, q0, q1, q2, d0, td0, td1, a, b):
             d0, td0 - d0 * a, td1 - d0 * b)  # fmt: skip
 
 
-def _raw_moments_numpy(cells, basis, second, rows):
+def _raw_moments_numpy(cells, basis, rows):
     out = np.empty((rows.size, 14))
-    c = cells[rows]
-    out[:, 0] = c[:, 0]
-    out[:, 1:4] = np.einsum("nk,nkd->nd", c[:, :3], basis[rows])
-    out[:, 4:10] = np.einsum("nk,nkc->nc", c[:, :6], second[rows])
-    out[:, 10] = c[:, 6]
-    out[:, 11:14] = np.einsum("nk,nkd->nd", c[:, 6:9], basis[rows])
+    every = rows.size == cells.shape[0] and np.array_equal(rows, np.arange(rows.size))
+    c = (cells if every else cells[rows]).T.copy()  # (9, K) and (3, 3, K): contiguous per component
+    b = (basis if every else basis[rows]).transpose(1, 2, 0).copy()
+    out[:, 0] = c[0]
+    for dim in range(3):
+        out[:, 1 + dim] = c[0] * b[0, dim] + c[1] * b[1, dim] + c[2] * b[2, dim]
+        out[:, 11 + dim] = c[6] * b[0, dim] + c[7] * b[1, dim] + c[8] * b[2, dim]
+    for col, value in enumerate(_second_moments(*c[:6], b[0], b[1], b[2])):
+        out[:, 4 + col] = value
+    out[:, 10] = c[6]
     return out
 
 
-def _node_fits_numpy(mixed, frames, tangent_quad, t1x, t2x, coef, weight, inflation):
-    s0, s1, s2, d0, d1 = mixed[:, 0], mixed[:, 1:4], mixed[:, 4:10], mixed[:, 10], mixed[:, 11:14]
+def _node_fits_numpy(mixed, frames, t1x, t2x, coef, weight, inflation):
+    s0, s1, d0, d1 = mixed[:, 0], mixed[:, 1:4], mixed[:, 10], mixed[:, 11:14]
     ts = np.einsum("nkd,nd->nk", frames[:, :2], s1)
     td = np.einsum("nkd,nd->nk", frames[:, :2], d1)
-    quad = np.einsum("nkc,nc->nk", tangent_quad, s2)
+    tangents = frames[:, :2].transpose(1, 2, 0).copy()  # contiguous per component
+    quad = _tangent_forms(mixed[:, 4:10].T.copy(), tangents[0], tangents[1])
     c00, c01, c02, c11, c12, c22, det, scale, r0, r1, r2 = _plane_system(
-        s0, ts[:, 0], ts[:, 1], quad[:, 0], quad[:, 1], quad[:, 2], d0, td[:, 0], td[:, 1], t1x, t2x)
+        s0, ts[:, 0], ts[:, 1], quad[0], quad[1], quad[2], d0, td[:, 0], td[:, 1], t1x, t2x)
     with np.errstate(divide="ignore", invalid="ignore"):
         inv_det = np.where(np.abs(det) > 1e-12 * np.abs(scale) + 1e-300, 1.0 / det, np.nan)
     coef[:, 0] = (c00 * r0 + c01 * r1 + c02 * r2) * inv_det
@@ -230,7 +279,25 @@ def _plane_residuals_loop(j, u, v, d, coef, out):
         out[p] = np.float64(d[p]) - (coef[i, 0] + coef[i, 1] * np.float64(u[p]) + coef[i, 2] * np.float64(v[p]))
 
 
-def _raw_moments_loop(cells, basis, second, rows):
+def _outliers_loop(j, u, v, d, coef, limit, out_drop):
+    count = 0
+    inliers = 0
+    squares = 0.0
+    for p in range(j.size):
+        i = j[p]
+        # rounded to float32 as a stored residual (plane_residuals): the same points drop on both paths
+        r = np.float64(np.float32(np.float64(d[p]) - (coef[i, 0] + coef[i, 1] * np.float64(u[p])
+                                                      + coef[i, 2] * np.float64(v[p]))))
+        if abs(r) > limit:
+            out_drop[count] = p
+            count += 1
+        elif np.isfinite(r):
+            inliers += 1
+            squares += r * r
+    return count, inliers, squares
+
+
+def _raw_moments_loop(cells, basis, rows):
     out = np.empty((rows.size, 14))
     for r in range(rows.size):
         i = rows[r]
@@ -240,29 +307,22 @@ def _raw_moments_loop(cells, basis, second, rows):
                 i, 2, dim]
             out[r, 11 + dim] = cells[i, 6] * basis[i, 0, dim] + cells[i, 7] * basis[i, 1, dim] + cells[i, 8] * basis[
                 i, 2, dim]
+        second = _second_moments(cells[i, 0], cells[i, 1], cells[i, 2], cells[i, 3], cells[i, 4], cells[i, 5],
+                                 basis[i, 0], basis[i, 1], basis[i, 2])  # fmt: skip
         for c in range(6):
-            total = 0.0
-            for k in range(6):
-                total += cells[i, k] * second[i, k, c]
-            out[r, 4 + c] = total
+            out[r, 4 + c] = second[c]
         out[r, 10] = cells[i, 6]
     return out
 
 
-def _node_fits_loop(mixed, frames, tangent_quad, t1x, t2x, coef, weight, inflation):
+def _node_fits_loop(mixed, frames, t1x, t2x, coef, weight, inflation):
     for i in range(mixed.shape[0]):
         s0, d0 = mixed[i, 0], mixed[i, 10]
         ts0 = frames[i, 0, 0] * mixed[i, 1] + frames[i, 0, 1] * mixed[i, 2] + frames[i, 0, 2] * mixed[i, 3]
         ts1 = frames[i, 1, 0] * mixed[i, 1] + frames[i, 1, 1] * mixed[i, 2] + frames[i, 1, 2] * mixed[i, 3]
         td0 = frames[i, 0, 0] * mixed[i, 11] + frames[i, 0, 1] * mixed[i, 12] + frames[i, 0, 2] * mixed[i, 13]
         td1 = frames[i, 1, 0] * mixed[i, 11] + frames[i, 1, 1] * mixed[i, 12] + frames[i, 1, 2] * mixed[i, 13]
-        q0 = 0.0
-        q1 = 0.0
-        q2 = 0.0
-        for c in range(6):
-            q0 += tangent_quad[i, 0, c] * mixed[i, 4 + c]
-            q1 += tangent_quad[i, 1, c] * mixed[i, 4 + c]
-            q2 += tangent_quad[i, 2, c] * mixed[i, 4 + c]
+        q0, q1, q2 = _tangent_forms(mixed[i, 4:10], frames[i, 0], frames[i, 1])
         c00, c01, c02, c11, c12, c22, det, scale, r0, r1, r2 = _plane_system(s0, ts0, ts1, q0, q1, q2, d0, td0, td1,
                                                                              t1x[i], t2x[i])  # fmt: skip
         inv_det = 1.0 / det if abs(det) > 1e-12 * abs(scale) + 1e-300 else np.nan
@@ -283,10 +343,11 @@ def _kernel(name: str, fast: bool = True):
             from numba import njit
 
             module = globals()
-            for helper in ("_cell", "_add_one", "_plane_system"):  # called from the loops: compiled inline into them
+            # called from the loops: compiled inline into them
+            for helper in ("_cell", "_add_one", "_second_moments", "_tangent_forms", "_plane_system"):
                 module[helper] = njit(nogil=True, cache=True, inline="always")(module[helper])
-            for loop in ("_locate_block_loop", "_add_moments_loop", "_plane_residuals_loop", "_raw_moments_loop",
-                         "_node_fits_loop"):  # fmt: skip
+            for loop in ("_locate_block_loop", "_add_moments_loop", "_plane_residuals_loop", "_outliers_loop",
+                         "_raw_moments_loop", "_node_fits_loop"):  # fmt: skip
                 _JIT[loop] = njit(nogil=True, cache=True)(module[loop])
     return _JIT[name]
 
@@ -323,18 +384,29 @@ def plane_residuals(j: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, 
     return out
 
 
-def raw_moments(cells: np.ndarray, basis: np.ndarray, second: np.ndarray, rows: np.ndarray,
-                fast: bool = True) -> np.ndarray:
-    """Raw 3D moments (K, 14) of the cells ``rows`` (K,) from their sums (N, 9); see ScanFieldEstimator."""
-    return _kernel("_raw_moments_loop", fast)(cells, basis, second, rows)
+def outliers(j: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, coef: np.ndarray, limit: float,
+             fast: bool = True) -> tuple[np.ndarray, int, float]:
+    """The second pass's split of the points (nodes j, u, v, d (K,)) by their residual (float32, as
+    :func:`plane_residuals`) from their own node's plane coef (N, 3): the points (indices, int64) whose |residual|
+    exceeds ``limit`` mm, and the count and sum of squares (mm^2) of the other finite residuals. No array of K
+    residuals is formed (blocks on the numpy path, one loop compiled)."""
+    drop = np.empty(j.size, np.int64)  # only the pages written become resident: a few outliers
+    count, inliers, squares = _kernel("_outliers_loop", fast)(j, u, v, d, coef, float(limit), drop)
+    return drop[:count].copy(), int(inliers), float(squares)
 
 
-def node_fits(mixed: np.ndarray, frames: np.ndarray, tangent_quad: np.ndarray, t1x: np.ndarray,
-              t2x: np.ndarray, fast: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+def raw_moments(cells: np.ndarray, basis: np.ndarray, rows: np.ndarray, fast: bool = True) -> np.ndarray:
+    """Raw 3D moments (K, 14) of the cells ``rows`` (K,) from their sums (N, 9) and the node basis (N, 3, 3) (rows
+    x about the centroid, t1, t2); see ScanFieldEstimator."""
+    return _kernel("_raw_moments_loop", fast)(cells, basis, rows)
+
+
+def node_fits(mixed: np.ndarray, frames: np.ndarray, t1x: np.ndarray, t2x: np.ndarray,
+              fast: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """Per node the weighted plane fit from mixed raw moments (N, 14): coefficients (N, 3) [a mm, b_u, b_v], weight
     (N,) and intercept variance inflation (N,); the 3x3 normal equations solved in closed form (adjugate), NaN where
     singular."""
     n = mixed.shape[0]
     coef, weight, inflation = np.empty((n, 3)), np.empty(n), np.empty(n)
-    _kernel("_node_fits_loop", fast)(mixed, frames, tangent_quad, t1x, t2x, coef, weight, inflation)
+    _kernel("_node_fits_loop", fast)(mixed, frames, t1x, t2x, coef, weight, inflation)
     return coef, weight, inflation

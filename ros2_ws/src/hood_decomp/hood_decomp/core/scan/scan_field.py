@@ -63,8 +63,6 @@ _QUADRIC_NEIGHBOURS = 13
 # 17,000-83,000 mm^2 on the default hood (5 states), 3,700-9,000 mm^2 on the coarse one (8 states). Set where the
 # within-model test's false-alarm rate on 120 default scans came down (300 nodes: 12.5 %; 1000 nodes: none).
 SMOOTHING_BIAS_AREA_MM2 = 59_000.0
-# Upper triangle of a symmetric 3x3 matrix: xx xy xz yy yz zz.
-_UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 #: The prepared skin's arrays (ScanFieldEstimator.prepared_skin): named dimensions (N nodes, N1 = N + 1, G grid cells,
 #: Z kernel entries; digits fixed) and kind.
 PREPARED_SKIN: dict[str, tuple[tuple[str, ...], str]] = {
@@ -247,7 +245,7 @@ class ScanFieldEstimator:
         # one-off run's preparation at paper resolution).
         kernel = self.kernel_
         near = kernel.data >= 0.75**2
-        kept = np.concatenate([[0], np.cumsum(near)])[kernel.indptr]
+        kept = np.concatenate([[0], np.cumsum(near, dtype=np.int32)])[kernel.indptr]  # int32: 16 MB less at paper
         self.near_kernel_ = sp.csr_matrix((np.ones(kept[-1]), kernel.indices[near], kept), shape=(n, n))
         self.kernel_columns_ = kernel.tocsc()  # for taking a few cells' outliers back out
         self.kernel_squared_ = sp.csr_matrix((kernel.data * kernel.data, kernel.indices, kernel.indptr),
@@ -255,26 +253,15 @@ class ScanFieldEstimator:
         return self
 
     def _prepare_moment_maps(self, x: np.ndarray, t1: np.ndarray, t2: np.ndarray) -> None:
-        """Per-node linear maps from cell sums to raw 3D moments about the centroid, and back to tangent frames.
+        """Per-node maps from cell sums to raw 3D moments about the centroid, and back to tangent frames.
 
         A point of cell j sits at x_j + u t1_j + v t2_j (x_j about the centroid), so its first moments are
         [1, u, v] @ [x_j; t1_j; t2_j] and its second moments [1, u, v, uu, uv, vv] @ (6 x 6 map) in upper-triangle
-        order. For node i, the tangent quadratic forms t_a^T S t_b of a moment matrix S are (3 x 6 map) @ S.
+        order; for node i, the tangent quadratic forms t_a^T S t_b of a moment matrix S are (3 x 6 map) @ S. Both
+        maps are products of the basis rows [x_j; t1_j; t2_j] (N, 3, 3), which is all that is kept: the kernels build
+        them per node as they go (kernels._sym), not as (N, 6, 6) and (N, 3, 6) arrays (81 MB at paper resolution).
         """
         self.moment_basis_ = np.stack([x, t1, t2], axis=1)  # (N, 3, 3)
-
-        # Filled in place: the (N, 6, 6) map is 54 MB at paper resolution, built on every one-off run.
-        second = np.empty((x.shape[0], 6, 6))
-        for k, (a, b) in enumerate(((x, x), (x, t1), (x, t2), (t1, t1), (t1, t2), (t2, t2))):
-            for c, (p, q) in enumerate(_UPPER):  # upper triangle of a b^T + b a^T
-                np.multiply(a[:, p], b[:, q], out=second[:, k, c])
-                second[:, k, c] += a[:, q] * b[:, p]
-        # t_a^T S t_b = sum over the upper triangle of S times sym(t_a, t_b), diagonal entries counted once.
-        diagonal = np.array([p == q for p, q in _UPPER])
-        self.tangent_quad_ = second[:, 3:].copy()
-        self.tangent_quad_[:, :, diagonal] /= 2
-        second[:, [0, 3, 5]] /= 2
-        self.second_basis_ = second
         self.t1_dot_x_ = np.einsum("nd,nd->n", t1, x)
         self.t2_dot_x_ = np.einsum("nd,nd->n", t2, x)
 
@@ -377,11 +364,11 @@ class ScanFieldEstimator:
 
     def _scan_points(
         self, points: np.ndarray, transform: np.ndarray | None = None, *, moments: bool = False, workers: int = 0,
-        fast: bool | None = None,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        fast: bool | None = None, rows: bool = True,
+    ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
         """Points (M, 3) on the skin: their rows (K,) int64, nodes (K,) int32, tangent coordinates u, v (K,) and
         distances (K,) (float32, mm), and with ``moments`` the per-node cell sums (N, 9) of [1, u, v, uu, uv, vv, d,
-        du, dv] (else None).
+        du, dv] (else None). Without ``rows`` the rows are not kept (None: 8 bytes a point that a field does not need).
 
         transform: optional (4, 4) applied to the points first (scanner -> part frame); it is folded into the one
         affine map to grid units, so the part-frame points are never formed. Points outside the grid are clamped
@@ -402,19 +389,20 @@ class ScanFieldEstimator:
         if workers <= 0:
             workers = min(os.cpu_count() or 1, 4, m // _CHUNK_POINTS)
         workers = max(1, min(workers, n_blocks))
-        out = (np.empty(m, np.int64), np.empty(m, np.int32), np.empty(m, np.float32), np.empty(m, np.float32),
-               np.empty(m, np.float32))  # fmt: skip
+        out = (np.empty(m if rows else 0, np.int64), np.empty(m, np.int32), np.empty(m, np.float32),
+               np.empty(m, np.float32), np.empty(m, np.float32))  # fmt: skip
         n = self.points_.shape[0]
         cells = [np.zeros((n, 9)) if moments else None for _ in range(workers)]
         first = np.linspace(0, n_blocks, workers + 1).astype(np.int64) * block
 
         def run(w: int) -> int:
             position = int(first[w])
+            scratch = out[0] if rows else np.empty(block, np.int64)  # rows not kept: one block's worth, rewritten
             for start in range(int(first[w]), min(int(first[w + 1]), m), block):
                 position += kernels.locate_block(
                     points, start, min(start + block, m), affine, hi, self.grid_strides_, self.grid_table_,
-                    self.grid_cell_mm_, self.node_table_, float(self.max_distance_mm), *(a[position:] for a in out),
-                    cells[w], fast)  # fmt: skip
+                    self.grid_cell_mm_, self.node_table_, float(self.max_distance_mm), scratch[position:] if rows
+                    else scratch, *(a[position:] for a in out[1:]), cells[w], fast)  # fmt: skip
             return position - int(first[w])
 
         if workers == 1:
@@ -424,12 +412,12 @@ class ScanFieldEstimator:
                 counts = list(pool.map(run, range(workers)))
         total = counts[0]
         for w in range(1, workers):  # close the gaps between the threads' parts (moving down, so in place)
-            for a in out:
+            for a in out if rows else out[1:]:
                 a[total : total + counts[w]] = a[first[w] : first[w] + counts[w]]
             total += counts[w]
             if moments:
                 cells[0] += cells[w]
-        return (*(a[:total] for a in out), cells[0])
+        return (out[0][:total] if rows else None, *(a[:total] for a in out[1:]), cells[0])
 
     def _locate(
         self, points: np.ndarray, transform: np.ndarray | None = None
@@ -477,14 +465,14 @@ class ScanFieldEstimator:
         A point of cell j is taken at x_j + u t1_j + v t2_j: its offset along n_j (below a millimetre) moves it in
         node i's tangent plane by that times the small angle between n_i and n_j, which is negligible.
         """
-        return kernels.raw_moments(cells, self.moment_basis_, self.second_basis_, rows, fast)
+        return kernels.raw_moments(cells, self.moment_basis_, rows, fast)
 
     def _node_fits(self, mixed: np.ndarray, fast: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Weighted plane fits d = a + b_u u + b_v v per node from kernel-mixed raw moments (N, 14): each node's 3x3
         normal equations in its own tangent frame.
         Returns coefficients (N, 3) [a mm, b_u, b_v], weighted point count (N,) and intercept variance inflation (N,).
         """
-        return kernels.node_fits(mixed, self.frames_, self.tangent_quad_, self.t1_dot_x_, self.t2_dot_x_, fast)
+        return kernels.node_fits(mixed, self.frames_, self.t1_dot_x_, self.t2_dot_x_, fast)
 
     def field(self, points_mm: np.ndarray, transform: np.ndarray | None = None) -> DisplacementField:
         """The signed normal displacement (N,) mm of every skin node from scan points (M, 3), mm, in the part frame
@@ -495,7 +483,7 @@ class ScanFieldEstimator:
         self._check_fitted()
         points = np.asarray(points_mm, dtype=np.float64)
         fast = kernels.for_points(points.shape[0])  # one choice for the whole scan
-        _, j, u, v, d, cells = self._scan_points(points, transform, moments=True, fast=fast)
+        _, j, u, v, d, cells = self._scan_points(points, transform, moments=True, fast=fast, rows=False)
         n = self.points_.shape[0]
         if j.size == 0:
             return DisplacementField(self.skin_.model_id, np.full(n, np.nan), 0.0, float("nan"))
@@ -503,19 +491,20 @@ class ScanFieldEstimator:
         coef, _, _ = self._node_fits(mixed, fast)
         logger.info("first pass: %d points on the skin", j.size)
         # Second pass: drop points far from their own node's fit and take their sums out of the cells and, through
-        # the few kernel columns of those cells, out of the mixed moments.
-        residual = kernels.plane_residuals(j, u, v, d, coef, fast)
-        sample = residual[:: max(1, j.size // 100_000)]  # 1e5 residuals fix the scale
+        # the few kernel columns of those cells, out of the mixed moments. The residuals go by blocks (none of the
+        # scan's size is kept): the noise is the RMS of the inliers' residuals from the first-pass fit.
+        every = slice(None, None, max(1, j.size // 100_000))  # 1e5 residuals fix the scale
+        sample = kernels.plane_residuals(*(np.ascontiguousarray(a[every]) for a in (j, u, v, d)), coef, fast)
         spread = np.abs(sample[np.isfinite(sample)])
         sigma = 1.4826 * float(np.median(spread)) if spread.size else np.inf
-        drop = np.flatnonzero(np.abs(residual) > self.outlier_sigma * max(sigma, 1e-6))
+        limit = self.outlier_sigma * max(sigma, 1e-6)
+        drop, inliers, squares = kernels.outliers(j, u, v, d, coef, limit, fast)
         if drop.size:
             removed = np.zeros_like(cells)
             kernels.add_moments(j[drop], u[drop], v[drop], d[drop], 1.0, removed, fast)
             rows = np.unique(j[drop])
             cells -= removed
             mixed -= self.kernel_columns_[:, rows] @ self._raw_moments(removed, rows, fast)
-            residual[drop] = np.nan
         coef, weight, inflation = self._node_fits(mixed, fast)
         nearby = self.near_kernel_ @ cells[:, 0]
         supported = (
@@ -525,8 +514,7 @@ class ScanFieldEstimator:
             & np.isfinite(coef[:, 0])
         )
         value = np.where(supported, coef[:, 0], np.nan)
-        inliers = int(np.count_nonzero(np.isfinite(residual)))
-        noise = float(np.sqrt(np.nansum(np.square(residual, dtype=np.float64)) / inliers)) if inliers else float("nan")
+        noise = float(np.sqrt(squares / inliers)) if inliers else float("nan")
         logger.info("second pass: %d inliers, %d of %d nodes seen", j.size - drop.size, supported.sum(), n)
         errors = self._error_model(cells[:, 0], weight, inflation, supported, noise)
         return DisplacementField(self.skin_.model_id, value, float(supported.mean()), noise, errors)
@@ -578,13 +566,14 @@ def prepared_estimator(skin: SkinSurface, **options: float | None) -> ScanFieldE
     return _PREPARED[key]
 
 
-def warm_up(estimator: ScanFieldEstimator, points: int = 1_000_000) -> None:
+def warm_up(estimator: ScanFieldEstimator, points: int = 1_000_000) -> DisplacementField:
     """Run the fitted estimator's whole scan path once on a scan-sized cloud of its own skin, so that the first real
     scan runs at steady-state speed: the compiled kernels are loaded (or compiled, the first time after an install),
     the threads, the allocator's buffers of a scan's size and the sparse products are exercised.
 
     The cloud: about ``points`` points, each skin node repeated with small tangential offsets (a third of a mesh
     spacing), every 50th pushed 1 mm off along its normal (so the outlier pass runs too); as long as one scan.
+    Returns its field (for a caller that warms up what it does with a field).
     """
     estimator._check_fitted()
     kernels.load()  # a node serves many scans: the compiled path whatever their size
@@ -595,8 +584,9 @@ def warm_up(estimator: ScanFieldEstimator, points: int = 1_000_000) -> None:
     cos, sin = np.cos(angle)[:, None, None], np.sin(angle)[:, None, None]
     cloud = (nodes[None] + step * (cos * frames[None, :, 0] + sin * frames[None, :, 1])).reshape(-1, 3)
     cloud[::50] += np.tile(frames[:, 2], (copies, 1))[::50]
-    estimator.field(cloud)
+    field = estimator.field(cloud)
     estimator.point_distances(cloud[:20_000])
+    return field
 
 
 def _check_points(points_mm: np.ndarray, skin_size: float) -> np.ndarray:
