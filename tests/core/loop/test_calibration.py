@@ -198,8 +198,9 @@ def test_calibrate_verb_names_the_wrong_entry_and_exits_2(coarse_hood, case, tmp
 
 def test_stated_uncertainty_of_calibrated_bases_holds_on_calculix_parts(coarse_hood, case):
     """Fails if the calibrated model's discrepancy is dropped from the estimate's covariance or the within-model test
-    (or mis-scaled): on 40 held-out CalculiX-made parts (0.02 mm noise) at least 85 % of the errors must lie inside
-    the stated 95 % interval and at least 85 % of the parts pass the within-model test, while the same bases without
+    (or mis-scaled), or if the test takes the discrepancy estimated from 13 entries as exact (its degrees of freedom,
+    its local part): on 40 held-out CalculiX-made parts (0.02 mm noise) at least 90 % of the errors must lie inside
+    the stated 95 % interval and at least 39 of 40 parts pass the within-model test, while the same bases without
     the discrepancy term cover far less and alarm on most parts (checked: the test has teeth). Also fails if the
     discrepancy hides a missing effect: an undeclared 0.05 mm hinge_R.z move must still alarm on 9 of 10 parts."""
     from hood_decomp.core.fe.solver import project
@@ -223,5 +224,5 @@ def test_stated_uncertainty_of_calibrated_bases_holds_on_calculix_parts(coarse_h
                                                      + 0.05 * moved)).within_model for i in range(10))
     (coverage, within), (coverage_without, within_without) = outcome["with"], outcome["without"]
     assert coverage_without < 0.8 and within_without < 0.7, f"the stand-in should need the term: {outcome}"
-    assert coverage >= 0.85 and within >= 0.85, f"coverage / within-model rate with the discrepancy: {outcome}"
+    assert coverage >= 0.9 and within >= 0.975, f"coverage / within-model rate with the discrepancy: {outcome}"
     assert detected >= 9, f"hinge_R.z 0.05 mm detected on {detected} of 10 parts"

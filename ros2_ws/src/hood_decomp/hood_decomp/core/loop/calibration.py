@@ -58,7 +58,7 @@ from hood_decomp.core.fe.contact import contact_state
 from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solve_members
 from hood_decomp.core.fe.solver import SENSITIVE_ARRAYS
 from hood_decomp.core.method.bases import Bases, build_bases
-from hood_decomp.core.method.residual import DEFAULT_NOISE_MM, skin_adjacency
+from hood_decomp.core.method.residual import DEFAULT_NOISE_MM, ring_incidence, skin_adjacency
 from hood_decomp.core.types import DisplacementField, ReducedModel, SkinSurface, fingerprint
 from hood_decomp.errors import CalibrationError
 
@@ -416,8 +416,6 @@ def local_discrepancy(residuals: np.ndarray, mask: np.ndarray, noise: np.ndarray
     orthonormal smooth modes. The discrepancy modes hold the smooth part; this rough part (near the pads on the hood,
     0.0035-0.0042 mm RMS on the CalculiX stand-in) is what only the test's one-ring part sees
     (:func:`core.method.residual.check_residual`): uniform, it left 4.4 % false alarms, concentrated at a few rings."""
-    from hood_decomp.core.method.residual import ring_incidence
-
     rings = ring_incidence(skin)
     rough = np.where(mask, residuals - (residuals @ modes) @ modes.T, 0.0)
     count = np.asarray(mask, float) @ rings.T  # (M, N) seen nodes per ring
