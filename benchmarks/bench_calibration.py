@@ -28,7 +28,14 @@ import numpy as np
 from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solve_members, validation_plan
 from hood_decomp.core.fe.hood_preset import build_hood
 from hood_decomp.core.fe.model import skin_surface
-from hood_decomp.core.fe.solver import build_solver, physical_responses, project, reduce_model, thickness_sensitivities
+from hood_decomp.core.fe.solver import (
+    build_solver,
+    physical_responses,
+    project,
+    reduce_model,
+    thermal_moves,
+    thickness_sensitivities,
+)
 from hood_decomp.core.loop.calibration import (
     CalibrationEntry,
     PhysicalResponses,
@@ -102,7 +109,8 @@ def main() -> None:
     reduced = reduce_model(solver)
     commanded, rank = factorial_plan(model.lower, model.upper)
     bases = build_bases(simulate_ensemble(reduced, commanded, rank, model.lower, model.upper), skin, reduced)
-    physics = PhysicalResponses.from_solver(physical_responses(solver), thickness_sensitivities(model, reduced))
+    physics = PhysicalResponses.from_solver(physical_responses(solver), thickness_sensitivities(model, reduced),
+                                            thermal_moves(model))
     standin = StandIn(model, calculix_responses(model, cache=OUT / "standin_ccx_coarse.npz"))
     moved = solver.boundary_response("hinge_R", "z").reshape(-1, 6)[:, :3, None]
     hinge_r_z = project(model, solver.pads, moved)[0][:, 0]
@@ -140,7 +148,7 @@ def main() -> None:
             tic = time.perf_counter()
             calibrated, calibration = calibrate(reduced, physics, entries, skin, (model.lower, model.upper))
             variants[label] = rebuild_bases(bases, calibrated, json.dumps(calibration.record()), physics,
-                                            calibration.discrepancy)
+                                            calibration.discrepancy, calibration.local_mm2)
             record[label] = {"seconds": time.perf_counter() - tic, "rank": calibration.rank,
                              "loo_rms_mm": calibration.loo_rms_mm.tolist(), "factors": calibration.factors,
                              "discrepancy": calibration.record()["discrepancy"]}

@@ -15,16 +15,17 @@ from hood_decomp.io.bases import bases_id, load_bases, save_bases
 
 
 def test_calibration_and_thermal_round_trip_and_are_fingerprinted(coarse_hood, tmp_path):
-    """Fails if the calibration record, the thermal response or the discrepancy modes are lost or altered on the way
-    through the file, if calibrated bases keep the uncalibrated bases_id or change the model_id, or if an edited
-    record or discrepancy is accepted."""
+    """Fails if the calibration record, the thermal response, the discrepancy modes or its per-node local part are
+    lost or altered on the way through the file, if calibrated bases keep the uncalibrated bases_id or change the
+    model_id, or if an edited record, discrepancy or local part is accepted."""
     bases = coarse_hood.bases
     n, s = bases.skin.n_nodes, len(bases.reduced_model.k)
     rng = np.random.default_rng(0)
     thermal = (rng.normal(size=n), rng.normal(size=s), rng.normal(size=(n, 3)))
     record = json.dumps({"id": "abc", "entries": [{"name": "ref.vtu", "loo_rms_mm": 0.02}], "loo_rms_mm": 0.02})
     discrepancy = 0.01 * rng.normal(size=(n, 3))
-    calibrated = replace(bases, calibration=record, thermal=thermal, discrepancy=discrepancy)
+    local = 1e-5 * rng.uniform(size=n)
+    calibrated = replace(bases, calibration=record, thermal=thermal, discrepancy=discrepancy, discrepancy_local=local)
     path = tmp_path / "calibrated.h5"
     save_bases(path, calibrated)
     loaded = load_bases(path)
@@ -32,12 +33,18 @@ def test_calibration_and_thermal_round_trip_and_are_fingerprinted(coarse_hood, t
     for a, b in zip(loaded.thermal, thermal, strict=True):
         np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(loaded.discrepancy, discrepancy)
+    np.testing.assert_array_equal(loaded.discrepancy_local, local)
     assert load_bases(coarse_hood.bases_path).discrepancy is None
     assert loaded.model_id == bases.model_id
     assert bases_id(loaded) != bases_id(bases)
     assert load_bases(coarse_hood.bases_path).calibration == ""
     with h5py.File(path, "r+") as h5:
         h5["discrepancy"][0, 0] = 0.0
+    with pytest.raises(BasisError, match="bases_id"):
+        load_bases(path)
+    save_bases(path, calibrated)
+    with h5py.File(path, "r+") as h5:
+        h5["discrepancy_local"][0] = 2e-5
     with pytest.raises(BasisError, match="bases_id"):
         load_bases(path)
     save_bases(path, calibrated)

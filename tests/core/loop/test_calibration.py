@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from hood_decomp.core.fe.ensemble import solve_members, validation_plan
-from hood_decomp.core.fe.solver import condense, physical_responses, thickness_sensitivities
+from hood_decomp.core.fe.solver import condense, physical_responses, thermal_moves, thickness_sensitivities
 from hood_decomp.core.loop.calibration import (
     CalibrationEntry,
     PhysicalResponses,
@@ -48,7 +48,8 @@ def case(coarse_hood, coarse_calculix_columns):
     truth = condense(model, solver.pads, columns, solver.pad_responses() / E_FACTOR, reduced.names,
                      reduced.n_bilateral)
     truth = replace(truth, k=truth.k * PAD_K_FACTOR, preload=truth.preload * PRELOAD_FACTOR)
-    physics = PhysicalResponses.from_solver(physical_responses(solver), thickness_sensitivities(model, reduced))
+    physics = PhysicalResponses.from_solver(physical_responses(solver), thickness_sensitivities(model, reduced),
+                                            thermal_moves(model))
     rng = np.random.default_rng(16)
     settings = one_at_a_time(len(model.names))
     fields = solve_members(truth, settings).normal_displacement
@@ -57,7 +58,8 @@ def case(coarse_hood, coarse_calculix_columns):
     bases0 = coarse_hood.bases
     calibrated, calibration = calibrate(reduced, physics, entries, coarse_hood.skin,
                                         (bases0.pca.lower_, bases0.pca.upper_))
-    bases = rebuild_bases(bases0, calibrated, json.dumps(calibration.record()), physics, calibration.discrepancy)
+    bases = rebuild_bases(bases0, calibrated, json.dumps(calibration.record()), physics, calibration.discrepancy,
+                          calibration.local_mm2)
     return {"truth": truth, "physics": physics, "entries": entries, "bases": bases, "calibration": calibration,
             "rng": rng}
 
@@ -113,8 +115,9 @@ def test_too_few_entries_are_refused(coarse_hood, case):
         calibrate(coarse_hood.reduced, case["physics"], entries, coarse_hood.skin)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 16 target unmet: the embedded thermal response differs from "
-                   "CalculiX's by 1.7 % (RMS), which moves HINGE_X by ~0.011 mm and BUFFER_L by ~0.03 mm at 5 K")
+@pytest.mark.xfail(strict=True, reason="issue 16 target unmet: with the thermal response through the calibrated unit "
+                   "responses the shifts are HINGE_X ~0.003 mm, but a part with both buffers lifted still moves "
+                   "BUFFER_L/R by ~0.007/0.011 mm at 5 K (benchmarks/RESULTS.md)")
 def test_part_5_k_warmer_estimates_as_at_reference(coarse_hood, case):
     """Fails if a CalculiX part 5 K warmer (thermal field by CalculiX with a thermal load: *EXPANSION, *TEMPERATURE)
     estimated with its temperature moves any boundary estimate by more than 0.005 mm from the same part at the
@@ -195,8 +198,9 @@ def test_calibrate_verb_names_the_wrong_entry_and_exits_2(coarse_hood, case, tmp
 
 def test_stated_uncertainty_of_calibrated_bases_holds_on_calculix_parts(coarse_hood, case):
     """Fails if the calibrated model's discrepancy is dropped from the estimate's covariance or the within-model test
-    (or mis-scaled): on 40 held-out CalculiX-made parts (0.02 mm noise) at least 85 % of the errors must lie inside
-    the stated 95 % interval and at least 85 % of the parts pass the within-model test, while the same bases without
+    (or mis-scaled), or if the test takes the discrepancy estimated from 13 entries as exact (its degrees of freedom,
+    its local part): on 40 held-out CalculiX-made parts (0.02 mm noise) at least 90 % of the errors must lie inside
+    the stated 95 % interval and at least 39 of 40 parts pass the within-model test, while the same bases without
     the discrepancy term cover far less and alarm on most parts (checked: the test has teeth). Also fails if the
     discrepancy hides a missing effect: an undeclared 0.05 mm hinge_R.z move must still alarm on 9 of 10 parts."""
     from hood_decomp.core.fe.solver import project
@@ -220,5 +224,5 @@ def test_stated_uncertainty_of_calibrated_bases_holds_on_calculix_parts(coarse_h
                                                      + 0.05 * moved)).within_model for i in range(10))
     (coverage, within), (coverage_without, within_without) = outcome["with"], outcome["without"]
     assert coverage_without < 0.8 and within_without < 0.7, f"the stand-in should need the term: {outcome}"
-    assert coverage >= 0.85 and within >= 0.85, f"coverage / within-model rate with the discrepancy: {outcome}"
+    assert coverage >= 0.9 and within >= 0.975, f"coverage / within-model rate with the discrepancy: {outcome}"
     assert detected >= 9, f"hinge_R.z 0.05 mm detected on {detected} of 10 parts"

@@ -27,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hood_decomp.core.fe.solver import build_solver, physical_responses, thickness_sensitivities
+    from hood_decomp.core.fe.solver import build_solver, physical_responses, thermal_moves, thickness_sensitivities
     from hood_decomp.core.loop.calibration import CalibrationEntry, PhysicalResponses, calibrate, rebuild_bases
     from hood_decomp.errors import CalibrationError
     from hood_decomp.io.bases import bases_id, load_bases, save_bases
@@ -46,13 +46,14 @@ def run(args: argparse.Namespace) -> int:
     logger.info("calibrate: %d entries; the model's gas-spring, thermal and thickness responses (one factorisation "
                 "and one per sheet group)", len(entries))
     physics = PhysicalResponses.from_solver(physical_responses(build_solver(model)),
-                                            thickness_sensitivities(model, bases.reduced_model))
+                                            thickness_sensitivities(model, bases.reduced_model), thermal_moves(model))
     reduced, calibration = calibrate(bases.reduced_model, physics, entries, bases.skin,
                                      (bases.pca.lower_, bases.pca.upper_))
     record = calibration.record()
     record["settings_mm"] = {e.name: e.setting for e in read}
     record["from_bases_id"] = bases_id(bases)
-    calibrated = rebuild_bases(bases, reduced, json.dumps(record, sort_keys=True), physics, calibration.discrepancy)
+    calibrated = rebuild_bases(bases, reduced, json.dumps(record, sort_keys=True), physics, calibration.discrepancy,
+                               calibration.local_mm2)
     with written_whole(out) as temporary:
         save_bases(temporary, calibrated)
     print(f"wrote {out}: calibration {record['id']} from {len(entries)} entries, leave-one-out RMS "

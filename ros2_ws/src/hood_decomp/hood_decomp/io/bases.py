@@ -73,6 +73,8 @@ def bases_id(bases: Bases) -> str:
         items += ["thermal", *bases.thermal]
     if bases.discrepancy is not None:
         items += ["discrepancy", bases.discrepancy]
+    if bases.discrepancy_local is not None:
+        items += ["discrepancy_local", bases.discrepancy_local]
     if bases.measured_effects:
         items += ["measured_effects", "\x00".join(bases.measured_effects)]
     return fingerprint(*items)
@@ -179,6 +181,8 @@ def save_bases(path: str | Path, bases: Bases, *, scan_skin: bool = True) -> Non
                 thermal.create_dataset(name, data=value)
         if bases.discrepancy is not None:
             h5.create_dataset("discrepancy", data=bases.discrepancy)
+        if bases.discrepancy_local is not None:
+            h5.create_dataset("discrepancy_local", data=bases.discrepancy_local)
         skin = h5.create_group("skin")
         skin.attrs["model_id"] = bases.skin.model_id
         for name in ("points", "normals", "triangles"):
@@ -305,6 +309,10 @@ def load_bases(path: str | Path) -> Bases:
             thermal = tuple(read.array(f"thermal/{name}", dims) for name, dims in _THERMAL_DIMS.items())
         # optional (issue 16): calibrated bases' model discrepancy modes (N, D) mm
         discrepancy = read.array("discrepancy", ("N", "D")) if "discrepancy" in h5 else None
+        # optional (issue 16, session 6): the discrepancy's part outside the smooth modes per node (N,) mm^2
+        local = read.array("discrepancy_local", ("N",)) if "discrepancy_local" in h5 else None
+        if local is not None and (discrepancy is None or np.any(local < 0)):
+            raise BasisError(f"{path}: discrepancy_local must be non-negative variances beside /discrepancy")
         has_scan_skin = version >= 3 and "scan_skin" in h5
         # optional (issue 17): acceptance criteria, outside bases_id, bound to it by their own zones_id
         zones = _read_zones(read, stored_id) if "tolerance_zones" in h5 else ()
@@ -320,7 +328,7 @@ def load_bases(path: str | Path) -> Bases:
                         ("reduced model", None if reduced is None else reduced.model_id)):
         if other is not None and other != model_id:
             raise BasisError(f"{path}: {what} model_id {other!r} differs from the file's {model_id!r}")
-    bases = Bases(model_id, skin, pca, hier, reduced, calibration, thermal, zones, discrepancy, measured)
+    bases = Bases(model_id, skin, pca, hier, reduced, calibration, thermal, zones, discrepancy, measured, local)
     if bases_id(bases) != stored_id:
         raise BasisError(f"{path}: content does not match its bases_id {stored_id!r} (the file was altered after "
                          "it was written: a rewritten model_id or array); rebuild it with `hood-decomp bases`")

@@ -8,6 +8,7 @@ of fields (the estimator node, the CLI) prepares it once. Saving and loading is 
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 
 import numpy as np
@@ -61,6 +62,9 @@ class Bases:
     #: residuals, without a boundary to adjust; every estimate marks them (ParameterEstimate.measured_effect) and no
     #: correction moves them (core.method.correction.plan_correction)
     measured_effects: tuple[str, ...] = ()
+    #: the discrepancy's part outside the smooth modes it is stated on, per skin node (N,) mm^2
+    #: (core.loop.calibration.local_discrepancy): the within-model test's one-ring part counts it. None: no term
+    discrepancy_local: np.ndarray | None = None
     # (min_coverage, temperature K) -> fitted ContactEstimator; filled on first use, not part of the bases' value
     _contact_estimators: dict[tuple[float, float], ContactEstimator] = dataclasses.field(
         default_factory=dict, init=False, repr=False, compare=False)
@@ -75,8 +79,17 @@ class Bases:
         """The one within-model test on this skin with this model's discrepancy (:class:`~.residual.ResidualTest`),
         prepared once."""
         if "test" not in self._tests:
-            self._tests.setdefault("test", ResidualTest().fit(self.skin, self.discrepancy))
+            self._tests.setdefault("test", ResidualTest().fit(self.skin, self.discrepancy, self.discrepancy_dof,
+                                                              self.discrepancy_local))
         return self._tests["test"]
+
+    @property
+    def discrepancy_dof(self) -> float:
+        """Degrees of freedom of the discrepancy's estimate: the calibration's entries (each one sample of what the
+        model gets wrong; the record's ``entries``), inf without a discrepancy or a record."""
+        if self.discrepancy is None or not self.calibration:
+            return np.inf
+        return float(len(json.loads(self.calibration).get("entries", ()))) or np.inf
 
     def contact_estimator(self, min_coverage: float = DEFAULT_MIN_COVERAGE,
                           temperature_k: float = 0.0) -> ContactEstimator:
@@ -91,8 +104,10 @@ class Bases:
         key = (min_coverage, float(temperature_k))
         estimator = self._contact_estimators.get(key)
         if estimator is None:
-            estimator = ContactEstimator(min_coverage).fit(self.at_temperature(temperature_k), self.pca.lower_,
-                                                           self.pca.upper_, self.residual_test())
+            warm = self.at_temperature(temperature_k)
+            shift = None if self.reduced_model is warm else warm.z0 - self.reduced_model.z0
+            estimator = ContactEstimator(min_coverage).fit(warm, self.pca.lower_, self.pca.upper_,
+                                                           self.residual_test(), shift)
             estimator = self._contact_estimators.setdefault(key, estimator)
         return estimator
 
@@ -153,7 +168,8 @@ def rebuilt_like(rebuilt: Bases, source: Bases) -> Bases:
     model less wrong where it was wrong, so the discrepancy stays; dropping it would shrink every stated std back to
     the uncalibrated one. Dropping a measured effect's flag would let a correction move it."""
     return dataclasses.replace(rebuilt, calibration=source.calibration, thermal=source.thermal,
-                               discrepancy=source.discrepancy, tolerance_zones=source.tolerance_zones,
+                               discrepancy=source.discrepancy, discrepancy_local=source.discrepancy_local,
+                               tolerance_zones=source.tolerance_zones,
                                measured_effects=source.measured_effects)
 
 

@@ -73,9 +73,13 @@ class ContactEstimator:
     """Estimate parameter states with the contact conditions of the unilateral boundaries.
 
     Parameters: min_coverage (fraction of skin nodes that must be seen).
-    ``fit(model, lower, upper, test=None)``: model is the :class:`ReducedModel`; lower, upper (B + U,) mm declared
-    ranges; test: the skin's fitted :class:`ResidualTest` (the one within-model test; None: level test only).
-    Fitted: model_, lower_, upper_, test_, fields_ (B + S, N) = [R G]^T, gram_ (B + S, B + S), touching_pads_.
+    ``fit(model, lower, upper, test=None, pad_shift=None)``: model is the :class:`ReducedModel`; lower, upper (B + U,)
+    mm declared ranges; test: the skin's fitted :class:`ResidualTest` (the one within-model test; None: level test
+    only); pad_shift: (S,) mm a part of the pad springs' displacement in ``model.z0`` that is no boundary state (a
+    warm part's thermal expansion, :meth:`Bases.at_temperature`), taken out of a lifted pad's reported position (the
+    part's position there as at the reference temperature); None: none.
+    Fitted: model_, lower_, upper_, test_, pad_shift_ (S,), fields_ (B + S, N) = [R G]^T, gram_ (B + S, B + S),
+    touching_pads_.
     """
 
     def __init__(self, min_coverage: float = DEFAULT_MIN_COVERAGE,
@@ -84,7 +88,7 @@ class ContactEstimator:
         self.measured_min_pad_force_n = measured_min_pad_force_n
 
     def fit(self, model: ReducedModel, lower: np.ndarray, upper: np.ndarray,
-            test: ResidualTest | None = None) -> ContactEstimator:
+            test: ResidualTest | None = None, pad_shift: np.ndarray | None = None) -> ContactEstimator:
         n_params = len(model.names)
         n_pads = n_params - model.n_bilateral
         if np.shape(lower) != (n_params,) or np.shape(upper) != (n_params,):
@@ -93,6 +97,9 @@ class ContactEstimator:
             raise ModelError(f"pad_of must index the {n_pads} unilateral parameters, got {model.pad_of}")
         self.model_ = model
         self.test_ = test
+        self.pad_shift_ = np.zeros(model.k.size) if pad_shift is None else np.asarray(pad_shift, dtype=float)
+        if self.pad_shift_.shape != model.k.shape:
+            raise ModelError(f"pad_shift must have shape {model.k.shape}, got {self.pad_shift_.shape}")
         self.lower_ = np.asarray(lower, dtype=float)
         self.upper_ = np.asarray(upper, dtype=float)
         self.fields_ = np.vstack([model.R.T, model.G.T])
@@ -334,7 +341,7 @@ class ContactEstimator:
         lifted = np.zeros(n_b + n_pads, dtype=bool)
         u = cand.lift @ theta + cand.offset
         f = u[n_b:]
-        z = model.z0 + model.Sa @ u[:n_b] + model.H @ f
+        z = model.z0 - self.pad_shift_ + model.Sa @ u[:n_b] + model.H @ f  # lifted positions as at the reference
         # dz/dtheta, for a lifted pad's position.
         dz = model.Sa @ cand.lift[:n_b] + model.H @ cand.lift[n_b:]
         touching = list(np.unique(model.pad_of[cand.active]))

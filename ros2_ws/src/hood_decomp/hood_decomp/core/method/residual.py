@@ -297,7 +297,9 @@ def check_residual(
     model_mm: float = 0.0,
     alpha: float = DEFAULT_ALPHA,
     rings: sp.csr_matrix | None = None,
-    smooth_mm2: np.ndarray | None = None,
+    discrepancy: np.ndarray | None = None,
+    discrepancy_dof: float = np.inf,
+    discrepancy_local: np.ndarray | None = None,
 ) -> ModelCheck:
     """The one within-model test: is the residual what the field's error model explains?
 
@@ -305,10 +307,12 @@ def check_residual(
     (the residual is orthogonal to them), None for none. errors: the field's error model (its *shape*: relative node
     variances and correlation; its registration covariance in absolute terms). modes: (N, M) smooth fields of the
     skin (:func:`smooth_modes`); registration: (N, k) low-rank field errors e = U z, z ~ N(0, I_k), in absolute
-    terms: the field error per unit pose error (U of :meth:`FieldErrorModel.registration_modes`) and the calibrated
-    model's discrepancy modes (:attr:`ResidualTest.discrepancy_`), None without either. model_mm: the basis' own
-    error (white, mm). smooth_mm2: (N,) mm^2 the node variance of the field errors that are smooth on the ring scale
-    (the discrepancy's, sum of its modes squared), added to each one-ring mean's variance; None: none.
+    terms: the field error per unit pose error (U of :meth:`FieldErrorModel.registration_modes`), None for none.
+    model_mm: the basis' own error (white, mm). discrepancy: (N, d) mm the calibrated model's discrepancy modes
+    (:attr:`ResidualTest.discrepancy_`, delta = D z), None for none; discrepancy_dof: the degrees of freedom of its
+    estimate (the calibration entries it was estimated from; inf: known exactly); discrepancy_local: (N,) mm^2 the
+    discrepancy's part outside the smooth modes it is stated on, per node (a calibration's ``local_mm2``), which only
+    the one-ring part of the test can see: added to each ring mean's variance as an error smooth on the ring scale.
 
     A missing effect is smooth, noise is not (module docstring). The residual is split into its smooth part c (its
     coordinates in the modes after the fitted directions are taken out, M' of them) and the rough rest. The rough rest
@@ -316,6 +320,12 @@ def check_residual(
     too large (or too small) does not decide anything. Then q = c^T Cov(c)^-1 c with Cov(c) = lambda Q^T diag(v g) Q
     + (Q^T U)(Q^T U)^T + model^2 I follows F(M', nu) x M' under the model (nu: effective independent samples of the
     rough part), and the field is within the model when the upper-tail probability is at least ``alpha``.
+    A calibrated model's discrepancy adds Cov_D = (Q^T D)(Q^T D)^T, a covariance estimated from a handful of entries
+    (``discrepancy_dof``): q is then a Hotelling-type statistic with two estimated covariances (the level's, nu dof,
+    and the discrepancy's), referred to nu* M' / (nu* - M' + 1) F(M', nu* - M' + 1) with nu* the Nel-Van der Merwe
+    effective degrees of freedom (Krishnamoorthy & Yu 2004): (tr C^2 + (tr C)^2) / sum_i (tr C_i^2 + (tr C_i)^2) / nu_i
+    over the estimated parts C_i of the covariance C. With a chi-square reference, 13 entries' discrepancy raised the
+    false alarms of good parts to 20 % (benchmarks/RESULTS.md).
     Without modes (the skin unknown) the rough level itself is tested against the error model's stated level
     (chi-square, nu dof); a field that states no level is then not testable and is reported within (p = 1, dof 0).
 
@@ -334,6 +344,9 @@ def check_residual(
     weight = v * g
     model2 = float(model_mm) ** 2
     moved = registration[seen] if registration is not None else np.zeros((n_seen, 0))
+    n_registration = moved.shape[1]
+    if discrepancy is not None:
+        moved = np.hstack([moved, discrepancy[seen]])
     if modes is not None:
         parts = _smooth_split(r, np.asarray(design, float)[seen] if design is not None else np.zeros((n_seen, 0)),
                               modes[seen], weight, moved)
@@ -358,14 +371,29 @@ def check_residual(
         p_value = float(chi2_sf(scale * nu, nu))
         return ModelCheck(scale * nu, 0, nu, p_value, float(alpha), p_value >= alpha, scale, source, n_effective,
                           bias)
-    covariance = noise * smooth_cov + (model2 + bias) * np.eye(c.size) + projected @ projected.T
+    level = noise * smooth_cov + bias * np.eye(c.size)  # estimated from the rough part: nu dof
+    known = model2 * np.eye(c.size) + projected[:, :n_registration] @ projected[:, :n_registration].T
+    discrepant = projected[:, n_registration:] @ projected[:, n_registration:].T  # estimated: discrepancy_dof
+    covariance = level + known + discrepant
     statistic = float(c @ np.linalg.solve(covariance, c))
     m = c.size
-    p_value = float(f_sf(statistic / m, m, nu))
+    if discrepancy is None:
+        p_value = float(f_sf(statistic / m, m, nu))
+    else:
+        def spread(part: np.ndarray) -> float:
+            return float(np.trace(part @ part) + np.trace(part) ** 2)
+
+        effective = spread(covariance) / max(spread(level) / nu + spread(discrepant) / discrepancy_dof, 1e-300)
+        effective = max(effective, float(m))  # at least one denominator dof
+        p_value = float(f_sf(statistic * (effective - m + 1) / (effective * m), m, effective - m + 1))
     if rings is not None and errors.bias_correlation <= 0:
         node_variance_mm2 = np.zeros(residual.size)
         node_variance_mm2[seen] = np.maximum(noise * weight + model2, LOCAL_FLOOR_MM2)
-        p_value = min(1.0, 2.0 * min(p_value, local_p_value(rings, residual, node_variance_mm2, nu, smooth_mm2)))
+        smooth_mm2 = None if discrepancy is None else np.sum(discrepancy**2, axis=1)
+        if smooth_mm2 is not None and discrepancy_local is not None:
+            smooth_mm2 = smooth_mm2 + discrepancy_local
+        p_value = min(1.0, 2.0 * min(p_value, local_p_value(rings, residual, node_variance_mm2, nu, smooth_mm2,
+                                                            discrepancy_dof)))
     return ModelCheck(statistic, m, nu, p_value, float(alpha), p_value >= alpha, scale, source, n_effective, bias)
 
 
@@ -375,7 +403,7 @@ def ring_incidence(skin: SkinSurface) -> sp.csr_matrix:
 
 
 def local_p_value(rings: sp.csr_matrix, residual: np.ndarray, variance_mm2: np.ndarray, nu: float,
-                  smooth_mm2: np.ndarray | None = None) -> float:
+                  smooth_mm2: np.ndarray | None = None, smooth_dof: float = np.inf) -> float:
     """p-value of the largest one-ring mean residual under the model.
 
     rings: (N, N) :func:`ring_incidence`. residual: (N,) mm, NaN where unseen. variance_mm2: (N,) each seen node's
@@ -384,18 +412,22 @@ def local_p_value(rings: sp.csr_matrix, residual: np.ndarray, variance_mm2: np.n
     correlation, as in :func:`check_residual`); z_i = a_i / sd_i follows Student's t with nu degrees of freedom (the
     level is estimated), and the largest |z| over the n seen rings is Bonferroni-adjusted (conservative: the rings
     overlap). smooth_mm2: (N,) node variance of a field error that is smooth on the ring scale (fully correlated
-    within a ring, so a ring's sum has variance n_i sum_j s_j), None for none."""
+    within a ring, so a ring's sum has variance n_i sum_j s_j), None for none; smooth_dof: the degrees of freedom of
+    its estimate (a calibration's entries), with which each ring's t takes the Welch-Satterthwaite degrees of
+    freedom of its two estimated variances."""
     seen = np.isfinite(residual)
     count = rings @ seen.astype(float)
     total = rings @ np.where(seen, residual, 0.0)
-    spread = rings @ np.where(seen, variance_mm2, 0.0)
-    if smooth_mm2 is not None:
-        spread = spread + count * (rings @ np.where(seen, smooth_mm2, 0.0))
+    level = rings @ np.where(seen, variance_mm2, 0.0)
+    smooth = np.zeros_like(level) if smooth_mm2 is None else count * (rings @ np.where(seen, smooth_mm2, 0.0))
+    spread = level + smooth
     usable = seen & (count > 0) & (spread > 0)
     if not usable.any():
         return 1.0
-    z = np.abs(total[usable]) / np.sqrt(spread[usable])
-    return float(min(1.0, 2.0 * usable.sum() * t_sf(z.max(), nu)))
+    spread, level, smooth = spread[usable], level[usable], smooth[usable]
+    z = np.abs(total[usable]) / np.sqrt(spread)
+    dof = spread**2 / np.maximum(level**2 / nu + smooth**2 / smooth_dof, 1e-300 * spread**2)
+    return float(min(1.0, 2.0 * usable.sum() * np.min(t_sf(z, np.minimum(dof, 1e12)))))
 
 
 def split_level(scale: float, errors: FieldErrorModel, mean_variance: float) -> tuple[float, float]:
@@ -414,20 +446,29 @@ def split_level(scale: float, errors: FieldErrorModel, mean_variance: float) -> 
 class ResidualTest:
     """The within-model test of :func:`check_residual` on one skin, prepared once (its smooth modes).
 
-    alpha: false-alarm rate; degree: total degree of the smooth modes. ``fit(skin, discrepancy)`` -> self; fitted:
-    modes_ (N, M), points_, normals_ (N, 3), skin_, discrepancy_ (N, k) mm the calibrated model's discrepancy modes
-    (what the model still gets wrong: delta = D z, z ~ N(0, I_k); bases ``discrepancy``) or None for an uncalibrated
-    model; :meth:`rings` the one-ring incidence. ``check(...)`` judges one residual.
+    alpha: false-alarm rate; degree: total degree of the smooth modes. ``fit(skin, discrepancy, discrepancy_dof)``
+    -> self; fitted: modes_ (N, M), points_, normals_ (N, 3), skin_, discrepancy_ (N, k) mm the calibrated model's
+    discrepancy modes (what the model still gets wrong: delta = D z, z ~ N(0, I_k); bases ``discrepancy``) or None
+    for an uncalibrated model, discrepancy_dof_ the degrees of freedom of its estimate (the calibration's entries),
+    discrepancy_local_ (N,) mm^2 its part outside the smooth modes (:func:`check_residual`) or None; :meth:`rings`
+    the one-ring incidence. ``check(...)`` judges one residual.
     """
 
     def __init__(self, alpha: float = DEFAULT_ALPHA, degree: int = DEFAULT_SMOOTH_DEGREE):
         self.alpha = alpha
         self.degree = degree
 
-    def fit(self, skin: SkinSurface, discrepancy: np.ndarray | None = None) -> ResidualTest:
+    def fit(self, skin: SkinSurface, discrepancy: np.ndarray | None = None, discrepancy_dof: float = np.inf,
+            discrepancy_local: np.ndarray | None = None) -> ResidualTest:
         if discrepancy is not None and (np.ndim(discrepancy) != 2 or np.shape(discrepancy)[0] != skin.n_nodes):
             raise FieldError(f"discrepancy modes have shape {np.shape(discrepancy)}, expected ({skin.n_nodes}, k)")
+        if not discrepancy_dof > 0:
+            raise FieldError(f"discrepancy degrees of freedom must be positive, got {discrepancy_dof}")
         self.discrepancy_ = None if discrepancy is None else np.asarray(discrepancy, float)
+        self.discrepancy_dof_ = float(discrepancy_dof)
+        if discrepancy_local is not None and np.shape(discrepancy_local) != (skin.n_nodes,):
+            raise FieldError(f"local discrepancy has shape {np.shape(discrepancy_local)}, expected ({skin.n_nodes},)")
+        self.discrepancy_local_ = None if discrepancy_local is None else np.asarray(discrepancy_local, float)
         self.points_ = np.asarray(skin.points, float)
         self.normals_ = np.asarray(skin.normals, float)
         self.modes_ = smooth_modes(self.points_, self.degree)
@@ -458,7 +499,6 @@ class ResidualTest:
               model_mm: float = 0.0) -> ModelCheck:
         """:func:`check_residual` with this skin's modes, registration and discrepancy modes and this test's
         alpha."""
-        smooth = None if self.discrepancy_ is None else np.sum(self.discrepancy_**2, axis=1)
         rings = self.rings() if errors.bias_correlation <= 0 else None  # check_residual's local test needs it then
-        return check_residual(residual, design, errors, self.modes_, self.error_modes(errors), model_mm, self.alpha,
-                              rings, smooth)
+        return check_residual(residual, design, errors, self.modes_, self.registration(errors), model_mm, self.alpha,
+                              rings, self.discrepancy_, self.discrepancy_dof_, self.discrepancy_local_)
