@@ -28,6 +28,7 @@ import shutil
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -47,7 +48,7 @@ from hood_decomp.io.fields import write_field  # noqa: E402
 from hood_decomp.io.history import History  # noqa: E402
 from hood_decomp.io.json_values import json_ready  # noqa: E402
 from hood_decomp.shift.part import Options  # noqa: E402
-from hood_decomp.shift.runner import dask_client, run_batch, worker_peak_memory_mb  # noqa: E402
+from hood_decomp.shift.runner import _peak_rss_mb, dask_client, run_batch, worker_peak_memory_mb  # noqa: E402
 from hood_decomp.shift.sources import find_sources, iter_tasks  # noqa: E402
 from hood_decomp.shift.spc import RULES, individuals_chart  # noqa: E402
 from hood_decomp.synthetic.shift import ProcessModel, bump_field, make_part, plan_shift  # noqa: E402
@@ -124,20 +125,28 @@ def spc_over_seeds(seeds: int) -> dict:
 
 
 def _bags(hood: Hood, directory: pathlib.Path, n: int) -> None:
+    """The first n parts of the fields' shift (same plan and seed), scanned (500k points) into one bag, each scan
+    written as it is made: memory of one scan, not of n (write_scenario_bag consumes the generator lazily)."""
     from hood_decomp.ros.scan_bag import write_scenario_bag
     from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
     from hood_decomp.synthetic.scenarios import ScenarioScan
 
     config = ScannerConfig(n_points=500_000, noise_mm=0.02)
     plan = plan_shift(hood.reduced.names, ProcessModel(drift_label=None, step_label=None), n, seed=3)
-    items = []  # the first n parts of the fields' shift (same plan and seed): the same parts as scans
-    for i in range(n):
-        part = make_part(plan, i, hood.truth, hood.skin)
-        truth = dict(zip(hood.reduced.names, (float(v) for v in part.truth), strict=True))
-        items.append(ScenarioScan(part.part_id, truth, truth, {}, {}, part.clean,
-                                  synthesize_scan(hood.skin, part.displacement, config, seed=i), config))
-        print(f"bags: scan {i + 1}/{n}", file=sys.stderr)
-    write_scenario_bag(directory / "shift", items, model_id=hood.skin.model_id, resolution="default",
+    start = time.perf_counter()
+
+    def scans() -> Iterator[ScenarioScan]:
+        for i in range(n):
+            part = make_part(plan, i, hood.truth, hood.skin)
+            truth = dict(zip(hood.reduced.names, (float(v) for v in part.truth), strict=True))
+            yield ScenarioScan(part.part_id, truth, truth, {}, {}, part.clean,
+                               synthesize_scan(hood.skin, part.displacement, config, seed=i), config)
+            if (i + 1) % 10 == 0 or i + 1 == n:
+                elapsed = time.perf_counter() - start
+                print(f"bags: scan {i + 1}/{n}, {elapsed / (i + 1):.2f} s each, peak RSS "
+                      f"{_peak_rss_mb():.0f} MB, load {os.getloadavg()[0]:.1f}", file=sys.stderr)
+
+    write_scenario_bag(directory / "shift", scans(), model_id=hood.skin.model_id, resolution="default",
                        description="bench_shift parts")
 
 
@@ -153,7 +162,16 @@ def throughput(n_fields: int, n_bags: int) -> dict:
         if (i + 1) % 100 == 0:
             print(f"fields: {i + 1}/{n_fields}", file=sys.stderr)
     (work / "bags").mkdir()
-    _bags(hood, work / "bags", n_bags)
+    writing = {}
+    if n_bags:
+        rss_before, start = _peak_rss_mb(), time.perf_counter()
+        _bags(hood, work / "bags", n_bags)
+        writing = {"parts": n_bags, "seconds": time.perf_counter() - start, "peak_rss_mb_before": rss_before,
+                   "peak_rss_mb_after": _peak_rss_mb(),
+                   "bag_bytes": sum(f.stat().st_size for f in (work / "bags").rglob("*") if f.is_file()),
+                   "load_average_1min": os.getloadavg()[0]}
+        print(f"bag written: {writing['bag_bytes'] / 1e9:.1f} GB in {writing['seconds']:.0f} s, peak RSS of the "
+              f"writer {rss_before:.0f} -> {writing['peak_rss_mb_after']:.0f} MB", file=sys.stderr)
     rows = []
     for kind, directory, count in (("fields", work / "fields", n_fields), ("bags", work / "bags", n_bags)):
         if count == 0:  # --fields 0 or --bags 0: that input not measured in this run
@@ -184,7 +202,7 @@ def throughput(n_fields: int, n_bags: int) -> dict:
               f"{r['extrapolated_16_workers_parts_per_s']:>21.1f}"
               f"{r['load_average_1min'][0]:>6.1f}-{r['load_average_1min'][1]:.1f}")
     shutil.rmtree(work, ignore_errors=True)
-    return {"rows": rows, "load_average": os.getloadavg()}
+    return {"rows": rows, "load_average": os.getloadavg(), "bag_writing": writing}
 
 
 def recurring(n: int) -> dict:
@@ -264,7 +282,7 @@ def main() -> int:
         # rows of other (input, parts) from earlier runs are kept: a 1,000-field run and a bag run may be separate
         kept = [row for row in result.get("throughput", {}).get("rows", [])
                 if (row["input"], row["parts"]) not in {(r["input"], r["parts"]) for r in measured["rows"]}]
-        result["throughput"] = {"rows": kept + measured["rows"], "load_average": measured["load_average"]}
+        result["throughput"] = {**measured, "rows": kept + measured["rows"]}
     path.write_text(json.dumps(json_ready(result), indent=2) + "\n")
     print(f"\nwrote {path}")
     return 0
