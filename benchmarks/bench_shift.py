@@ -2,6 +2,7 @@
 residuals at default resolution. One command:
 
     scripts/with-env python benchmarks/bench_shift.py [--fields 100] [--bags 12] [--seeds 5] [--recurring 300]
+        [--feed 100] [--only spc|throughput|recurring|feed]
 
 1. **SPC over seeds** (20 x 20 hood, every part through generator -> field -> contact-aware estimate): false-alarm
    rate per rule and boundary on stable shifts of 1,000 parts (limits from the first 200), and the delay of the first
@@ -14,6 +15,9 @@ residuals at default resolution. One command:
    in 15 % of the parts: the candidate named with its magnitudes, the bump offered as a measured effect with the
    cross-validated residual RMS against 1.5 x the error model's and the declared-parameter errors after; a shift
    without undeclared effect: nothing offered.
+4. **Feed ceiling** (`--only feed --feed 100`): the parts/s one client can feed from a bag of 500k-point clouds when
+   the workers do nothing with them (the product's run_batch with a bases path that does not exist): the bound on
+   any worker count for bag input.
 Prints tables and writes benchmarks/out/bench_shift.json.
 """
 
@@ -28,6 +32,7 @@ import shutil
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -47,7 +52,7 @@ from hood_decomp.io.fields import write_field  # noqa: E402
 from hood_decomp.io.history import History  # noqa: E402
 from hood_decomp.io.json_values import json_ready  # noqa: E402
 from hood_decomp.shift.part import Options  # noqa: E402
-from hood_decomp.shift.runner import dask_client, run_batch, worker_peak_memory_mb  # noqa: E402
+from hood_decomp.shift.runner import _peak_rss_mb, dask_client, run_batch, worker_peak_memory_mb  # noqa: E402
 from hood_decomp.shift.sources import find_sources, iter_tasks  # noqa: E402
 from hood_decomp.shift.spc import RULES, individuals_chart  # noqa: E402
 from hood_decomp.synthetic.shift import ProcessModel, bump_field, make_part, plan_shift  # noqa: E402
@@ -124,20 +129,28 @@ def spc_over_seeds(seeds: int) -> dict:
 
 
 def _bags(hood: Hood, directory: pathlib.Path, n: int) -> None:
+    """The first n parts of the fields' shift (same plan and seed), scanned (500k points) into one bag, each scan
+    written as it is made: memory of one scan, not of n (write_scenario_bag consumes the generator lazily)."""
     from hood_decomp.ros.scan_bag import write_scenario_bag
     from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
     from hood_decomp.synthetic.scenarios import ScenarioScan
 
     config = ScannerConfig(n_points=500_000, noise_mm=0.02)
     plan = plan_shift(hood.reduced.names, ProcessModel(drift_label=None, step_label=None), n, seed=3)
-    items = []  # the first n parts of the fields' shift (same plan and seed): the same parts as scans
-    for i in range(n):
-        part = make_part(plan, i, hood.truth, hood.skin)
-        truth = dict(zip(hood.reduced.names, (float(v) for v in part.truth), strict=True))
-        items.append(ScenarioScan(part.part_id, truth, truth, {}, {}, part.clean,
-                                  synthesize_scan(hood.skin, part.displacement, config, seed=i), config))
-        print(f"bags: scan {i + 1}/{n}", file=sys.stderr)
-    write_scenario_bag(directory / "shift", items, model_id=hood.skin.model_id, resolution="default",
+    start = time.perf_counter()
+
+    def scans() -> Iterator[ScenarioScan]:
+        for i in range(n):
+            part = make_part(plan, i, hood.truth, hood.skin)
+            truth = dict(zip(hood.reduced.names, (float(v) for v in part.truth), strict=True))
+            yield ScenarioScan(part.part_id, truth, truth, {}, {}, part.clean,
+                               synthesize_scan(hood.skin, part.displacement, config, seed=i), config)
+            if (i + 1) % 10 == 0 or i + 1 == n:
+                elapsed = time.perf_counter() - start
+                print(f"bags: scan {i + 1}/{n}, {elapsed / (i + 1):.2f} s each, peak RSS "
+                      f"{_peak_rss_mb():.0f} MB, load {os.getloadavg()[0]:.1f}", file=sys.stderr)
+
+    write_scenario_bag(directory / "shift", scans(), model_id=hood.skin.model_id, resolution="default",
                        description="bench_shift parts")
 
 
@@ -153,7 +166,16 @@ def throughput(n_fields: int, n_bags: int) -> dict:
         if (i + 1) % 100 == 0:
             print(f"fields: {i + 1}/{n_fields}", file=sys.stderr)
     (work / "bags").mkdir()
-    _bags(hood, work / "bags", n_bags)
+    writing = {}
+    if n_bags:
+        rss_before, start = _peak_rss_mb(), time.perf_counter()
+        _bags(hood, work / "bags", n_bags)
+        writing = {"parts": n_bags, "seconds": time.perf_counter() - start, "peak_rss_mb_before": rss_before,
+                   "peak_rss_mb_after": _peak_rss_mb(),
+                   "bag_bytes": sum(f.stat().st_size for f in (work / "bags").rglob("*") if f.is_file()),
+                   "load_average_1min": os.getloadavg()[0]}
+        print(f"bag written: {writing['bag_bytes'] / 1e9:.1f} GB in {writing['seconds']:.0f} s, peak RSS of the "
+              f"writer {rss_before:.0f} -> {writing['peak_rss_mb_after']:.0f} MB", file=sys.stderr)
     rows = []
     for kind, directory, count in (("fields", work / "fields", n_fields), ("bags", work / "bags", n_bags)):
         if count == 0:  # --fields 0 or --bags 0: that input not measured in this run
@@ -184,7 +206,43 @@ def throughput(n_fields: int, n_bags: int) -> dict:
               f"{r['extrapolated_16_workers_parts_per_s']:>21.1f}"
               f"{r['load_average_1min'][0]:>6.1f}-{r['load_average_1min'][1]:.1f}")
     shutil.rmtree(work, ignore_errors=True)
-    return {"rows": rows, "load_average": os.getloadavg()}
+    return {"rows": rows, "load_average": os.getloadavg(), "bag_writing": writing}
+
+
+def feed_ceiling(n: int) -> dict:
+    """What one client (with the LocalCluster's scheduler in its process) can feed: n 500k-point clouds from a bag
+    through the product's run_batch (read, submit, ship to a worker, record in the history) with a bases path that
+    does not exist, so each worker's part fails at once after receiving its cloud. Parts/s here bound any worker
+    count from above for bag input; the clouds are random points (the work is skipped, only the bytes matter)."""
+    from hood_decomp.ros.scan_bag import write_scenario_bag
+    from hood_decomp.synthetic.scanner import ScannerConfig, SyntheticScan
+    from hood_decomp.synthetic.scenarios import ScenarioScan
+
+    work = pathlib.Path(tempfile.mkdtemp(prefix="bench_shift_feed_"))
+    rng = np.random.default_rng(0)
+    config = ScannerConfig(n_points=500_000)
+
+    def scans() -> Iterator[ScenarioScan]:
+        for i in range(n):
+            scan = SyntheticScan(rng.uniform(-1000, 1000, (500_000, 3)), np.eye(4), np.zeros((0, 3)),
+                                 np.zeros(0, np.int64), np.zeros((0, 3)), np.eye(4), np.eye(4), 0.02, 500_000, 0)
+            yield ScenarioScan(f"p{i}", {}, {}, {}, {}, np.zeros(0), scan, config)
+
+    write_scenario_bag(work / "bags" / "feed", scans(), model_id="random", resolution="none", description="feed")
+    sources = find_sources([work / "bags"])
+    rows = []
+    for workers in (1, 2):
+        load_before = os.getloadavg()[0]
+        with dask_client(None, workers) as client, History(work / f"feed_{workers}.sqlite") as history:
+            summary = run_batch(client, iter_tasks(sources), n, str(work / "no_bases.h5"), history, Options())
+        assert len(summary.failed) == n, "every part must fail at its bases (nothing else measured)"
+        rows.append({"workers": workers, "parts": n, "seconds": summary.seconds, "parts_per_s": summary.rate,
+                     "mb_per_s": summary.rate * 500_000 * 16 / 1e6,
+                     "load_average_1min": [load_before, os.getloadavg()[0]]})
+        print(f"feed ceiling, {workers} workers: {summary.rate:.1f} parts/s "
+              f"({rows[-1]['mb_per_s']:.0f} MB/s of clouds), load {load_before:.1f}", file=sys.stderr)
+    shutil.rmtree(work, ignore_errors=True)
+    return {"rows": rows}
 
 
 def recurring(n: int) -> dict:
@@ -248,7 +306,8 @@ def main() -> int:
     parser.add_argument("--bags", type=int, default=12, help="parts given as 500k-point scans in a bag (default 12)")
     parser.add_argument("--seeds", type=int, default=5, help="stable shifts for the false-alarm rates (default 5)")
     parser.add_argument("--recurring", type=int, default=300, help="parts of the recurring-residual shifts")
-    parser.add_argument("--only", choices=("spc", "throughput", "recurring"), default=None)
+    parser.add_argument("--feed", type=int, default=100, help="random 500k-point clouds for the client's feed ceiling")
+    parser.add_argument("--only", choices=("spc", "throughput", "recurring", "feed"), default=None)
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
     OUT.mkdir(parents=True, exist_ok=True)
@@ -259,12 +318,14 @@ def main() -> int:
         result["spc"] = spc_over_seeds(args.seeds)
     if args.only in (None, "recurring"):
         result["recurring"] = recurring(args.recurring)
+    if args.only in (None, "feed"):
+        result["feed_ceiling"] = feed_ceiling(args.feed)
     if args.only in (None, "throughput"):
         measured = throughput(args.fields, args.bags)
         # rows of other (input, parts) from earlier runs are kept: a 1,000-field run and a bag run may be separate
         kept = [row for row in result.get("throughput", {}).get("rows", [])
                 if (row["input"], row["parts"]) not in {(r["input"], r["parts"]) for r in measured["rows"]}]
-        result["throughput"] = {"rows": kept + measured["rows"], "load_average": measured["load_average"]}
+        result["throughput"] = {**measured, "rows": kept + measured["rows"]}
     path.write_text(json.dumps(json_ready(result), indent=2) + "\n")
     print(f"\nwrote {path}")
     return 0

@@ -4,6 +4,7 @@ refusal of foreign files, CSV export read back with the csv module."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import sqlite3
 import threading
 
@@ -135,3 +136,90 @@ def test_writer_keeps_parts_through_a_lock_and_a_bad_path(tmp_path):
     assert bad.flush() == ""
     with History(bad.path) as history:
         assert [r.part_id for r in history.records()] == ["p12", "p13"]
+
+
+#: schema version 1 as it was released (cef4121): the file format an older history on disk has
+_SCHEMA_V1 = """
+CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE parts (
+    id INTEGER PRIMARY KEY,
+    source TEXT NOT NULL, part_id TEXT NOT NULL, message INTEGER NOT NULL, stamp_ns INTEGER NOT NULL,
+    shift TEXT NOT NULL, status TEXT NOT NULL CHECK (status IN ('ok', 'failed')), error TEXT NOT NULL,
+    model_id TEXT NOT NULL, bases_id TEXT NOT NULL, method TEXT NOT NULL,
+    coverage REAL, noise_mm REAL, residual_rms_mm REAL, residual_max_mm REAL, residual_mean_mm REAL,
+    chi2 REAL, dof INTEGER, p_value REAL, within_model INTEGER, safe_to_apply INTEGER, reason TEXT NOT NULL,
+    UNIQUE (source, part_id)
+);
+CREATE INDEX parts_time ON parts (stamp_ns, source, message);
+CREATE TABLE parameters (
+    part INTEGER NOT NULL REFERENCES parts (id) ON DELETE CASCADE, name TEXT NOT NULL,
+    value_mm REAL, std_mm REAL, lifted INTEGER NOT NULL, correction_mm REAL, PRIMARY KEY (part, name)
+);
+CREATE TABLE effects (
+    part INTEGER NOT NULL REFERENCES parts (id) ON DELETE CASCADE, name TEXT NOT NULL, share REAL NOT NULL,
+    PRIMARY KEY (part, name)
+);
+CREATE TABLE residuals (
+    part INTEGER PRIMARY KEY REFERENCES parts (id) ON DELETE CASCADE, n INTEGER NOT NULL, data BLOB NOT NULL
+);
+INSERT INTO meta VALUES ('schema_version', '1'), ('application', 'hood_decomp results history');
+"""
+
+
+def test_measured_effect_flags_round_trip_and_export(tmp_path):
+    """Fails if a parameter's measured-effect flag is not stored per part and parameter, comes back changed, is lost
+    from the table (a label some part flags is a measured effect) or the CSV, if a record without flags does not
+    read as all boundaries, or if flags of the wrong length are written instead of refused."""
+    path = tmp_path / "h.sqlite"
+    flagged = dataclasses.replace(_record(1), measured_effect=np.array([False, True]))
+    with History(path) as history:
+        history.extend([flagged, _record(2)])
+        with pytest.raises(HistoryError, match="1 measured-effect flags"):
+            history.add(dataclasses.replace(_record(3), measured_effect=np.array([True])))
+        records, table = history.records(), history.table()
+        out = history.export_csv(tmp_path / "h.csv")
+    assert records[0].measured_effect.tolist() == [False, True]
+    assert records[1].measured_effect.tolist() == [False, False]
+    assert table.measured_effect.tolist() == [False, True]
+    rows = sqlite3.connect(path).execute("SELECT p.part_id, q.name FROM parameters q JOIN parts p ON p.id = q.part "
+                                         "WHERE q.measured_effect = 1").fetchall()
+    assert rows == [("p1", "B")]
+    csv_rows = list(csv.DictReader(out.open()))
+    assert [(r["A_measured_effect"], r["B_measured_effect"]) for r in csv_rows] == [("0", "1"), ("0", "0")]
+
+
+def test_a_version_1_history_is_migrated(tmp_path):
+    """Fails if a history written with schema version 1 (created here from its released DDL, not by the code under
+    test) does not open, keeps its old version, loses a row or a value, does not flag as measured effects exactly
+    the parameters its parts' correction notes named so (a lifted note or a similar name must not flag), cannot take
+    a new part afterwards, or writes a processed part twice."""
+    path = tmp_path / "old.sqlite"
+    db = sqlite3.connect(path)
+    db.executescript(_SCHEMA_V1)
+    columns = "source, part_id, message, stamp_ns, shift, status, error, model_id, bases_id, method, reason"
+    reasons = ("B lifted: commanded position not observable, not corrected; measured_1 is a measured effect: no "
+               "boundary to move", "A uncertainty 0.009 mm above 0.0045 mm")
+    for part, reason in enumerate(reasons, start=1):
+        db.execute(f"INSERT INTO parts ({columns}) VALUES ('bag', 'p{part}', {part}, {part}, 's', 'ok', '', 'm', "
+                   f"'b', 'contact', ?)", (reason,))
+        db.executemany("INSERT INTO parameters VALUES (?, ?, ?, ?, ?, ?)", [
+            (part, "A", 0.1 * part, 0.01, 0, -0.1 * part), (part, "B", -0.2, None, 1, 0.0),
+            (part, "measured_1", 0.15, 0.01, 0, 0.0), (part, "measured_10", 0.02, 0.01, 0, 0.0)])
+    db.commit()
+    db.close()
+    with History(path) as history:
+        version = history.db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0]
+        records = history.records()
+        assert history.add(dataclasses.replace(_record(3), measured_effect=np.array([True, False])))
+        assert not history.add(_record(3))
+        table = history.table()
+    assert version == "2"
+    assert [r.part_id for r in records] == ["p1", "p2"]
+    assert records[0].names == ("A", "B", "measured_1", "measured_10")
+    assert records[0].values == pytest.approx([0.1, -0.2, 0.15, 0.02]) and records[1].lifted.tolist()[1]
+    assert records[0].measured_effect.tolist() == [False, False, True, False]
+    assert records[1].measured_effect.tolist() == [False, False, False, False]
+    assert table.names == ("A", "B", "measured_1", "measured_10")
+    assert table.measured_effect.tolist() == [True, False, True, False]  # p3 flags A
+    with History(path) as history:  # opened again: already version 2, nothing migrated twice
+        assert len(history.records()) == 3

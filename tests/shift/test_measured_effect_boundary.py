@@ -128,6 +128,48 @@ def test_estimate_verb_reports_the_amplitude_and_no_move(measured_bases, tmp_pat
 
 
 # --- the estimator node ------------------------------------------------------------------------------------------
+def test_history_and_shift_report_show_the_measured_effect(tmp_path):
+    """Fails if parts estimated with the rebuilt bases (every part carrying the bump) lose the measured effect's
+    flag on their way into a real SQLite history (the shift's and the node's one record path, inspection_record), if
+    a boundary is flagged, or if the shift analysis and report do not chart the effect's amplitude as a measured
+    effect (JSON flag, table kind, caption) while giving it a capability against a tolerance range it does not
+    have, or stop doing so for the boundaries."""
+    from hood_decomp.io.history import History, PartRecord, inspection_record
+    from hood_decomp.shift.analysis import analyse_shift, analysis_json
+    from hood_decomp.shift.part import Options, inspect_field
+    from hood_decomp.shift.report import build_report
+    from hood_decomp.shift.runner import BatchSummary
+
+    case, rebuilt, _, _ = _case()
+    process = ProcessModel(candidate_share=0.0, bump_share=1.0, drift_label=None, step_label=None)
+    n = 30
+    plan = plan_shift(case.reduced.names, process, n, seed=11)
+    with History(tmp_path / "h.sqlite") as history:
+        for i in range(n):
+            estimate, analysis, correction, decomposition = inspect_field(
+                rebuilt, make_part(plan, i, case.truth_model, case.skin).field, Options())
+            history.add(inspection_record(
+                PartRecord(source="shift", part_id=f"P{i}", message=i, stamp_ns=i), estimate, analysis, correction,
+                tuple((e.name, float(e.share)) for e in decomposition.effects), keep_residual=False))
+        analysis = analyse_shift(history, ["shift"], rebuilt, baseline=10)
+    with sqlite3.connect(tmp_path / "h.sqlite") as db:
+        flagged = db.execute("SELECT DISTINCT name, COUNT(*) FROM parameters WHERE measured_effect = 1").fetchall()
+    assert flagged == [(NAME, n)]
+    assert analysis.table.measured_effect.tolist() == [name == NAME for name in analysis.table.names]
+    charted = {chart.name for chart in analysis.charts}
+    assert NAME in charted and len(charted) >= 4, charted
+    assert {c.name for c in analysis.capabilities} == charted - {NAME}
+    numbers = analysis_json(analysis, BatchSummary(n, 0, n, (), 1.0, 1))
+    assert numbers["measured_effects"] == [NAME]
+    assert {name: b["measured_effect"] for name, b in numbers["boundaries"].items()} == {
+        name: name == NAME for name in charted}
+    page = build_report(analysis, rebuilt, BatchSummary(n, 0, n, (), 1.0, 1), tmp_path).write(tmp_path / "i.html")
+    text = page.read_text()
+    assert f"<td>{NAME}</td><td>measured effect</td>" in text and f"{NAME} (measured effect)" in text
+    assert "<td>HINGE_Y</td><td>boundary</td>" in text or "HINGE_Y" not in charted
+    assert f"Measured effects ({NAME}) have no boundary" in text
+
+
 @pytest.fixture(scope="module")
 def node(measured_bases, tmp_path_factory):
     from tests.required import require_import
@@ -175,17 +217,17 @@ def _history_errors(received) -> list[str]:
             if s.level == DiagnosticStatus.ERROR and "history" in s.message]
 
 
-def _rows(path) -> dict[str, dict[str, tuple[float, float]]]:
-    """part_id -> parameter -> (value_mm, correction_mm) of the history at ``path``."""
+def _rows(path) -> dict[str, dict[str, tuple[float, float, int]]]:
+    """part_id -> parameter -> (value_mm, correction_mm, measured_effect) of the history at ``path``."""
     db = sqlite3.connect(path, timeout=5)
     try:
-        rows = db.execute("SELECT p.part_id, q.name, q.value_mm, q.correction_mm FROM parts p "
+        rows = db.execute("SELECT p.part_id, q.name, q.value_mm, q.correction_mm, q.measured_effect FROM parts p "
                           "JOIN parameters q ON q.part = p.id").fetchall()
     finally:
         db.close()
-    out: dict[str, dict[str, tuple[float, float]]] = {}
-    for part, name, value, correction in rows:
-        out.setdefault(part, {})[name] = (value, correction)
+    out: dict[str, dict[str, tuple[float, float, int]]] = {}
+    for part, name, value, correction, measured in rows:
+        out.setdefault(part, {})[name] = (value, correction, measured)
     return out
 
 
@@ -219,7 +261,8 @@ def test_live_history_survives_a_bad_path_and_a_lock(node):
     """Fails if the node does not write its estimates to the SQLite history named by its parameter (values and the
     zero move of the measured effect as published, the bases file's fingerprint), if the part that arrived while
     the path was bad is lost once a good path is set, or if a locked database loses a part (or the boundary state
-    of it) instead of reporting it and writing it when the lock is gone."""
+    of it) instead of reporting it and writing it when the lock is gone, or if the history does not flag the
+    measured effect (and only it) as one."""
     from tests.ros.test_lifecycle import set_parameter
 
     peer, received, processes, connected, root, bases_path = node
@@ -235,6 +278,7 @@ def test_live_history_survives_a_bad_path_and_a_lock(node):
     for name, value in zip(last.names, last.values, strict=True):
         assert rows["P-3"][name][0] == pytest.approx(value * 1e3, abs=1e-9)
     assert rows["P-2"][NAME][1] == 0.0 and rows["P-3"][NAME][1] == 0.0
+    assert {name: row[2] for name, row in rows["P-3"].items()} == {name: int(name == NAME) for name in last.names}
     fingerprint = hashlib.sha256(bases_path.read_bytes()).hexdigest()[:16]
     with sqlite3.connect(db) as check:
         assert {r[0] for r in check.execute("SELECT bases_id FROM parts")} == {fingerprint}

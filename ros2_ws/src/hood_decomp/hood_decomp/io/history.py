@@ -7,8 +7,9 @@ is there). A part recorded as failed is replaced when a later run processes it. 
 leaves either the whole part or none of it.
 
 The file states its ``schema_version`` (table ``meta``). Opening a database of another version migrates it when a
-migration is known (:data:`MIGRATIONS`, none yet: version 1 is the first) and otherwise refuses it, naming the version
-found and the ones this reader reads. A file that is no SQLite database or no hood_decomp history is refused by name.
+migration is known (:data:`MIGRATIONS`: 1 -> 2 adds ``parameters.measured_effect``) and otherwise refuses it, naming
+the version found and the ones this reader reads. A file that is no SQLite database or no hood_decomp history is
+refused by name.
 """
 
 from __future__ import annotations
@@ -29,9 +30,9 @@ from hood_decomp.core.method.residual import ResidualAnalysis
 from hood_decomp.core.types import BoundaryCorrection, ParameterEstimate
 from hood_decomp.errors import HistoryError
 
-SCHEMA_VERSION = 1
-#: version found -> function upgrading an open connection by one version (none yet)
-MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {}
+SCHEMA_VERSION = 2
+#: the note plan_correction puts in a part's ``reason`` for a measured effect (how version 1 recorded it)
+_MEASURED_NOTE = " is a measured effect: no boundary to move"
 STATUSES = ("ok", "failed")
 
 _SCHEMA = """
@@ -48,7 +49,8 @@ CREATE TABLE parts (
 CREATE INDEX parts_time ON parts (stamp_ns, source, message);
 CREATE TABLE parameters (
     part INTEGER NOT NULL REFERENCES parts (id) ON DELETE CASCADE, name TEXT NOT NULL,
-    value_mm REAL, std_mm REAL, lifted INTEGER NOT NULL, correction_mm REAL, PRIMARY KEY (part, name)
+    value_mm REAL, std_mm REAL, lifted INTEGER NOT NULL, correction_mm REAL,
+    measured_effect INTEGER NOT NULL DEFAULT 0, PRIMARY KEY (part, name)
 );
 CREATE TABLE effects (
     part INTEGER NOT NULL REFERENCES parts (id) ON DELETE CASCADE, name TEXT NOT NULL, share REAL NOT NULL,
@@ -63,15 +65,31 @@ _PART_COLUMNS = ("source", "part_id", "message", "stamp_ns", "shift", "status", 
                  "dof", "p_value", "within_model", "safe_to_apply", "reason")
 
 
+def _migrate_1_to_2(db: sqlite3.Connection) -> None:
+    """Version 2 flags measured effects per parameter (``parameters.measured_effect``). Version 1 kept the flag only
+    in the part's ``reason``, as plan_correction's note "<name> is a measured effect: no boundary to move": each
+    parameter so named there is flagged, every other one is not."""
+    db.execute("ALTER TABLE parameters ADD COLUMN measured_effect INTEGER NOT NULL DEFAULT 0")
+    flagged = [(part, note[: -len(_MEASURED_NOTE)]) for part, reason in db.execute("SELECT id, reason FROM parts")
+               for note in reason.split("; ") if note.endswith(_MEASURED_NOTE)]
+    db.executemany("UPDATE parameters SET measured_effect = 1 WHERE part = ? AND name = ?", flagged)
+
+
+#: version found -> function upgrading an open connection by one version
+MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _migrate_1_to_2}
+
+
 @dataclass(frozen=True)
 class PartRecord:
     """What the history keeps of one part (mm throughout).
 
     source: the bag or file it came from; part_id; message: index of the message in the bag (0 for a file);
     stamp_ns: the scan's stamp (ns since the epoch); shift: a label of the run that wrote it. status: "ok" or
-    "failed" (then ``error`` says why and the numbers are NaN). names, values, std, lifted, corrections: (P,) per
-    parameter. safe_to_apply, reason: the correction's decision. coverage, noise_mm, residual statistics, chi2, dof,
-    p_value, within_model: the one within-model test. effects: (name, share) of the decomposition.
+    "failed" (then ``error`` says why and the numbers are NaN). names, values, std, lifted, corrections,
+    measured_effect: (P,) per parameter (measured_effect: True for a parameter without a boundary, whose value is an
+    amplitude; empty when the estimate flags none). safe_to_apply, reason: the correction's decision. coverage,
+    noise_mm, residual statistics, chi2, dof, p_value, within_model: the one within-model test. effects: (name,
+    share) of the decomposition.
     residual: (N,) float32 mm, NaN where unseen, or None (not kept).
     """
 
@@ -103,6 +121,12 @@ class PartRecord:
     corrections: np.ndarray = field(default_factory=lambda: np.zeros(0))
     effects: tuple[tuple[str, float], ...] = ()
     residual: np.ndarray | None = None
+    measured_effect: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+
+    def measured_flags(self) -> np.ndarray:
+        """(P,) bool: measured_effect, all False when the record flags none."""
+        flags = np.asarray(self.measured_effect, dtype=bool)
+        return flags if flags.size else np.zeros(len(self.names), dtype=bool)
 
     @property
     def key(self) -> tuple[str, str]:
@@ -114,7 +138,9 @@ class HistoryTable:
     """Parts of a history in time order (stamp, source, message), M rows, for analysis.
 
     records: (M,) PartRecord without residuals. names: the parameter labels (union, in first-seen order);
-    values, std: (M, P) mm (NaN where a part has no such parameter or failed); lifted: (M, P) bool.
+    values, std: (M, P) mm (NaN where a part has no such parameter or failed); lifted: (M, P) bool;
+    measured_effect: (P,) bool, True for a label some part flags as a measured effect (a parameter without a
+    boundary: its values are amplitudes).
     """
 
     records: tuple[PartRecord, ...]
@@ -122,6 +148,7 @@ class HistoryTable:
     values: np.ndarray
     std: np.ndarray
     lifted: np.ndarray
+    measured_effect: np.ndarray
 
 
 def _none_if_nan(value: float) -> float | None:
@@ -152,6 +179,8 @@ def inspection_record(base: PartRecord, estimate: ParameterEstimate, analysis: R
         reason=correction.reason, names=tuple(estimate.names), values=np.asarray(estimate.values, float),
         std=np.asarray(estimate.std, float), lifted=np.asarray(estimate.lifted, bool),
         corrections=np.asarray(correction.corrections, float), effects=tuple(effects),
+        measured_effect=np.zeros(0, bool) if estimate.measured_effect is None else np.asarray(
+            estimate.measured_effect, bool),
         residual=np.asarray(estimate.residual, np.float32) if keep_residual else None)
 
 
@@ -234,9 +263,11 @@ class History:
         if record.status not in STATUSES:
             raise HistoryError(f"part status must be one of {STATUSES}, got {record.status!r}")
         n = len(record.names)
-        if not (len(record.values) == len(record.std) == len(record.lifted) == len(record.corrections) == n):
+        if not (len(record.values) == len(record.std) == len(record.lifted) == len(record.corrections) == n
+                and len(record.measured_effect) in (0, n)):
             raise HistoryError(f"part {record.part_id}: {n} names but {len(record.values)} values, {len(record.std)} "
-                               f"std, {len(record.lifted)} lifted flags, {len(record.corrections)} corrections")
+                               f"std, {len(record.lifted)} lifted flags, {len(record.corrections)} corrections, "
+                               f"{len(record.measured_effect)} measured-effect flags")
         db = self.db
         with db:
             row = db.execute("SELECT id, status FROM parts WHERE source = ? AND part_id = ?", record.key).fetchone()
@@ -250,10 +281,10 @@ class History:
             cursor = db.execute(f"INSERT INTO parts ({', '.join(_PART_COLUMNS)}) VALUES "
                                 f"({', '.join('?' * len(_PART_COLUMNS))})", values)
             part = cursor.lastrowid
-            db.executemany("INSERT INTO parameters VALUES (?, ?, ?, ?, ?, ?)", [
-                (part, name, _none_if_nan(v), _none_if_nan(s), int(lifted), _none_if_nan(c))
-                for name, v, s, lifted, c in zip(record.names, record.values, record.std, record.lifted,
-                                                 record.corrections, strict=True)])
+            db.executemany("INSERT INTO parameters VALUES (?, ?, ?, ?, ?, ?, ?)", [
+                (part, name, _none_if_nan(v), _none_if_nan(s), int(lifted), _none_if_nan(c), int(measured))
+                for name, v, s, lifted, c, measured in zip(record.names, record.values, record.std, record.lifted,
+                                                           record.corrections, record.measured_flags(), strict=True)])
             db.executemany("INSERT INTO effects VALUES (?, ?, ?)", [(part, n_, float(s)) for n_, s in record.effects])
             if record.residual is not None:
                 data = np.asarray(record.residual, dtype="<f4")
@@ -269,8 +300,8 @@ class History:
         rows = db.execute(f"SELECT id, {', '.join(_PART_COLUMNS)} FROM parts {where} "
                           "ORDER BY stamp_ns, source, message, part_id", args).fetchall()
         parameters: dict[int, list[tuple]] = {}
-        for part, *rest in db.execute("SELECT part, name, value_mm, std_mm, lifted, correction_mm FROM parameters "
-                                      "ORDER BY part, rowid"):
+        for part, *rest in db.execute("SELECT part, name, value_mm, std_mm, lifted, correction_mm, measured_effect "
+                                      "FROM parameters ORDER BY part, rowid"):
             parameters.setdefault(part, []).append(tuple(rest))
         effects: dict[int, list[tuple[str, float]]] = {}
         for part, name, share in db.execute("SELECT part, name, share FROM effects ORDER BY part, rowid"):
@@ -290,7 +321,8 @@ class History:
             out.append((part, PartRecord(
                 **raw, names=tuple(p[0] for p in params), values=numbers[:, 0], std=numbers[:, 1],
                 lifted=np.array([bool(p[3]) for p in params], dtype=bool), corrections=numbers[:, 2],
-                effects=tuple(effects.get(part, [])))))
+                effects=tuple(effects.get(part, [])), measured_effect=np.array([bool(p[5]) for p in params],
+                                                                               dtype=bool))))
         return out
 
     def records(self) -> list[PartRecord]:
@@ -306,10 +338,12 @@ class History:
         values = np.full((len(records), len(names)), np.nan)
         std = np.full_like(values, np.nan)
         lifted = np.zeros(values.shape, dtype=bool)
+        measured = np.zeros(len(names), dtype=bool)
         for i, record in enumerate(records):
             columns = [names.index(n) for n in record.names]
             values[i, columns], std[i, columns], lifted[i, columns] = record.values, record.std, record.lifted
-        return HistoryTable(tuple(records), tuple(names), values, std, lifted)
+            measured[columns] |= record.measured_flags()
+        return HistoryTable(tuple(records), tuple(names), values, std, lifted, measured)
 
     def residuals(self, keys: Sequence[tuple[str, str]]) -> np.ndarray:
         """Residual fields (len(keys), N) mm of the given (source, part_id), NaN where unseen; HistoryError for a part
@@ -330,26 +364,29 @@ class History:
 
     def export_csv(self, path: str | Path) -> Path:
         """All parts as one CSV table (one row per part, time order): the part columns, then per parameter
-        ``<name>_mm``, ``<name>_std_mm``, ``<name>_lifted``, ``<name>_correction_mm``, then ``share_<effect>``."""
+        ``<name>_mm``, ``<name>_std_mm``, ``<name>_lifted``, ``<name>_correction_mm``, ``<name>_measured_effect``,
+        then ``share_<effect>``."""
         records = self.records()
         names: list[str] = []
         effects: list[str] = []
         for record in records:
             names.extend(n for n in record.names if n not in names)
             effects.extend(n for n, _ in record.effects if n not in effects)
-        header = [*_PART_COLUMNS, *[f"{n}{s}" for n in names for s in ("_mm", "_std_mm", "_lifted", "_correction_mm")],
+        header = [*_PART_COLUMNS, *[f"{n}{s}" for n in names
+                                    for s in ("_mm", "_std_mm", "_lifted", "_correction_mm", "_measured_effect")],
                   *[f"share_{e}" for e in effects]]
         path = Path(path)
         with path.open("w", newline="") as handle:
             writer = csv.writer(handle)
             writer.writerow(header)
             for record in records:
-                by_name = {n: (v, s, int(lifted), c) for n, v, s, lifted, c in
-                           zip(record.names, record.values, record.std, record.lifted, record.corrections, strict=True)}
+                by_name = {n: (v, s, int(lifted), c, int(m)) for n, v, s, lifted, c, m in
+                           zip(record.names, record.values, record.std, record.lifted, record.corrections,
+                               record.measured_flags(), strict=True)}
                 shares = dict(record.effects)
                 row = [_csv_value(getattr(record, c)) for c in _PART_COLUMNS]
                 for name in names:
-                    row.extend(_csv_value(x) for x in by_name.get(name, ("", "", "", "")))
+                    row.extend(_csv_value(x) for x in by_name.get(name, ("", "", "", "", "")))
                 row.extend(_csv_value(shares.get(e, "")) for e in effects)
                 writer.writerow(row)
         return path

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import pathlib
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import Any
 
 import numpy as np
@@ -18,7 +18,8 @@ from builtin_interfaces.msg import Time
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Header
 
-from hood_decomp.io.bags import Record, write_bag, write_sidecar
+from hood_decomp.errors import BagError
+from hood_decomp.io.bags import BagWriter, Record, write_bag, write_sidecar
 from hood_decomp.ros import messages
 from hood_decomp.synthetic.scanner import SyntheticScan
 from hood_decomp.synthetic.scenarios import ScenarioScan
@@ -76,37 +77,46 @@ def _header(stamp_ns: int) -> Header:
     return Header(frame_id=SCANNER_FRAME, stamp=Time(sec=sec, nanosec=nanosec))
 
 
-def write_scenario_bag(path: str | pathlib.Path, items: Sequence[ScenarioScan | tuple[str, ScenarioScan]],
+def write_scenario_bag(path: str | pathlib.Path, items: Iterable[ScenarioScan | tuple[str, ScenarioScan]],
                        *, model_id: str, resolution: str, description: str, start_ns: int = 1_000_000_000_000,
                        period_ns: int = 1_000_000_000) -> pathlib.Path:
     """Write a bag of scans (one per second of bag time) and its sidecar ``<path>.json``.
 
     items: a ScenarioScan (a good scan), or (malformed kind, ScenarioScan) for a broken cloud built from that scan.
+    They are consumed one at a time and each cloud is written as it comes (rosbags' MCAP writer flushes a chunk per
+    MiB), so a generator of 1,000 500k-point scans needs the memory of one scan: only the sidecar's entries are kept.
     The sidecar lists, per scan in order: stamp, kind ("good" or the malformed kind and what is wrong), the settings,
     the truth of the declared parameters (mm), lifted buffers, undeclared effects, scan noise; plus the nominal
-    scanner pose and marker positions (the cell calibration the scan node needs) and the model it belongs to.
+    scanner pose (the first scan's) and marker positions (the cell calibration the scan node needs) and the model it
+    belongs to. BagError when ``items`` is empty (the bag directory is then left without a scan).
     """
-    records, entries = [], []
-    for index, item in enumerate(items):
-        stamp = start_ns + index * period_ns
-        kind, scenario = item if isinstance(item, tuple) else ("good", item)
-        cloud = scan_cloud(scenario.scan, stamp) if kind == "good" else malformed_cloud(kind, scenario.scan, stamp)
-        records.append(Record(SCAN_TOPIC, "sensor_msgs/msg/PointCloud2", stamp, bytes(serialize_message(cloud))))
-        sec, nanosec = divmod(stamp, 1_000_000_000)
-        entries.append({
-            "stamp": f"{sec}.{nanosec:09d}", "kind": kind, "problem": MALFORMED.get(kind), "name": scenario.name,
-            "settings_mm": scenario.settings, "truth_mm": scenario.truth_mm, "lifted": scenario.lifted,
-            "undeclared_mm": scenario.undeclared_mm, "noise_mm": scenario.config.noise_mm,
-            "points": int(cloud.width * cloud.height),
-        })
-    write_bag(path, records)
-    scans = [(item[1] if isinstance(item, tuple) else item).scan for item in items]
-    markers = {str(int(i)): p.tolist() for scan in scans for i, p in zip(scan.marker_ids, scan.markers_nominal,
-                                                                          strict=True)}
+    entries: list[dict[str, Any]] = []
+    markers: dict[str, list[float]] = {}
+    scanner_pose: list[list[float]] | None = None
+    with BagWriter(path) as bag:
+        for index, item in enumerate(items):
+            stamp = start_ns + index * period_ns
+            kind, scenario = item if isinstance(item, tuple) else ("good", item)
+            scan = scenario.scan
+            cloud = scan_cloud(scan, stamp) if kind == "good" else malformed_cloud(kind, scan, stamp)
+            bag.write(Record(SCAN_TOPIC, "sensor_msgs/msg/PointCloud2", stamp, bytes(serialize_message(cloud))))
+            sec, nanosec = divmod(stamp, 1_000_000_000)
+            entries.append({
+                "stamp": f"{sec}.{nanosec:09d}", "kind": kind, "problem": MALFORMED.get(kind), "name": scenario.name,
+                "settings_mm": scenario.settings, "truth_mm": scenario.truth_mm, "lifted": scenario.lifted,
+                "undeclared_mm": scenario.undeclared_mm, "noise_mm": scenario.config.noise_mm,
+                "points": int(cloud.width * cloud.height),
+            })
+            if scanner_pose is None:
+                scanner_pose = scan.scanner_pose.tolist()
+            markers.update({str(int(i)): p.tolist() for i, p in zip(scan.marker_ids, scan.markers_nominal,
+                                                                     strict=True)})
+    if scanner_pose is None:
+        raise BagError(f"bag {path}: no scans to write")
     return write_sidecar(path, {
         "description": description, "model": {"preset": "hood", "resolution": resolution, "model_id": model_id},
         "topic": SCAN_TOPIC, "frame_id": SCANNER_FRAME, "marker_field": MARKER_FIELD,
-        "scanner_pose_mm": scans[0].scanner_pose.tolist(),
+        "scanner_pose_mm": scanner_pose,
         "marker_positions_mm": dict(sorted(markers.items(), key=lambda kv: int(kv[0]))),
         "scans": entries,
     })

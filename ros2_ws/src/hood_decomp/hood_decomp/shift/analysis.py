@@ -35,8 +35,10 @@ MAX_RECURRING_PARTS = 400
 
 @dataclass(frozen=True)
 class ShiftAnalysis:
-    """table: the shift's parts (time order). ok: (M,) processed parts. charts, capabilities: per declared parameter
-    with enough charted parts. correlation: (P, P). outside: (M,) bool; outside_share: (M,) rolling share.
+    """table: the shift's parts (time order). ok: (M,) processed parts. charts: per parameter with enough charted
+    parts (a measured effect's chart follows its amplitude: ``table.measured_effect``); capabilities: per boundary
+    with a chart (a measured effect has no tolerance range to be capable against). correlation: (P, P). outside:
+    (M,) bool; outside_share: (M,) rolling share.
     recurring: a RecurringResult or None (with ``recurring_note`` saying why). alpha: the within-model level."""
 
     table: HistoryTable
@@ -70,7 +72,7 @@ def analyse_shift(history: History, sources: list[str], bases: Any, baseline: in
     if not keep.any():
         raise ShiftError(f"the history holds no part of {sources}")
     table = HistoryTable(tuple(r for r, k in zip(full.records, keep, strict=True) if k), full.names,
-                         full.values[keep], full.std[keep], full.lifted[keep])
+                         full.values[keep], full.std[keep], full.lifted[keep], full.measured_effect)
     ok = np.array([r.status == "ok" for r in table.records])
     values = chart_values(table, ok)
     names = list(table.names)
@@ -84,7 +86,7 @@ def analyse_shift(history: History, sources: list[str], bases: Any, baseline: in
             logger.info("%s: %d charted parts, too few for a control chart", name, charted)
             continue
         charts.append(individuals_chart(name, values[:, column], size))
-        if name in lower:
+        if name in lower and not table.measured_effect[column]:
             capabilities.append(capability(name, values[:, column], lower[name], upper[name]))
     outside = ok & ~np.array([r.within_model for r in table.records])
     rows = np.flatnonzero(outside)[-MAX_RECURRING_PARTS:]
@@ -109,6 +111,7 @@ def analysis_json(analysis: ShiftAnalysis, summary: Any) -> dict[str, Any]:
     """The numbers behind the report (mm), JSON-ready through io.json_values."""
     records = analysis.table.records
     rows = np.flatnonzero(analysis.outside)
+    measured = dict(zip(analysis.table.names, analysis.table.measured_effect, strict=True))
     out: dict[str, Any] = {
         "parts": len(records), "processed": int(analysis.ok.sum()),
         "failed": [{"source": r.source, "part_id": r.part_id, "error": r.error} for r in records if r.status != "ok"],
@@ -117,7 +120,8 @@ def analysis_json(analysis: ShiftAnalysis, summary: Any) -> dict[str, Any]:
                   "failed": len(summary.failed), "seconds": summary.seconds, "workers": summary.workers,
                   "parts_per_s": summary.rate},
         "boundaries": {
-            chart.name: {"centre_mm": chart.centre, "sigma_mm": chart.sigma, "sigma_estimate_mm": chart.sigma_estimate,
+            chart.name: {"measured_effect": bool(measured[chart.name]), "centre_mm": chart.centre,
+                         "sigma_mm": chart.sigma, "sigma_estimate_mm": chart.sigma_estimate,
                          "lcl_mm": chart.lcl, "ucl_mm": chart.ucl,
                          "baseline_parts": chart.baseline_end,
                          "alarms": {rule: [records[i].part_id for i in chart.alarms[rule]] for rule in RULES},
@@ -128,6 +132,7 @@ def analysis_json(analysis: ShiftAnalysis, summary: Any) -> dict[str, Any]:
         "capability": {c.name: {"cp": c.cp, "cpk": c.cpk, "pp": c.pp, "ppk": c.ppk, "mean_mm": c.mean,
                                 "share_outside_range": c.share_outside} for c in analysis.capabilities},
         "correlation": {"names": list(analysis.table.names), "matrix": analysis.correlation},
+        "measured_effects": [n for n, flag in measured.items() if flag],
         "recurring": {"note": analysis.recurring_note, "modes": []},
     }
     if analysis.recurring is not None:

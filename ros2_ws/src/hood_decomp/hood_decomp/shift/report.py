@@ -51,24 +51,32 @@ def build_report(analysis: ShiftAnalysis, bases: Any, summary: Any, out: Path) -
                  "moving-range and the sample estimate of the baseline, times its 90 % upper-confidence allowance for "
                  "a baseline of that length), the Western Electric rules (the run rule with Nelson's 9 points) and "
                  "an EWMA (lambda 0.2, L 2.86) for slow drifts. Lifted buffers (a position bound, not a state), "
-                 "failed parts and parts outside the model (their estimates carry the missing effect) are left out.")
+                 "failed parts and parts outside the model (their estimates carry the missing effect) are left out. "
+                 "A measured effect (a parameter without a boundary, learned from recurring residuals) is charted by "
+                 "its amplitude: a trend there is the incoming parts changing, with nothing to adjust.")
+    measured = dict(zip(analysis.table.names, analysis.table.measured_effect, strict=True))
     rows = []
     for chart in analysis.charts:
         first = chart.first_alarm()
-        rows.append((chart.name, _f(chart.centre), _f(chart.sigma), _f(chart.lcl), _f(chart.ucl), chart.baseline_end,
+        rows.append((chart.name, "measured effect" if measured[chart.name] else "boundary", _f(chart.centre),
+                     _f(chart.sigma), _f(chart.lcl), _f(chart.ucl), chart.baseline_end,
                      *[int(chart.alarms[rule].size) for rule in RULES],
                      "-" if first is None else f"{records[first[0]].part_id} ({first[1]})"))
     if rows:
-        section.table(["boundary", "centre", "sigma", "LCL", "UCL", "monitored from part", *RULES, "first alarm"],
-                      rows)
+        section.table(["parameter", "kind", "centre", "sigma", "LCL", "UCL", "monitored from part", *RULES,
+                       "first alarm"], rows)
     else:
         section.text("Too few parts within the model for a control chart (at least 20 charted parts per boundary).",
                      "note")
-    section.figures([(figures.plot_control_chart(chart, fig_dir / f"chart_{chart.name}.png"), f"{chart.name}")
+    section.figures([(figures.plot_control_chart(chart, fig_dir / f"chart_{chart.name}.png"),
+                      f"{chart.name} (measured effect)" if measured[chart.name] else chart.name)
                      for chart in analysis.charts], out)
 
     section = report.section("Capability against the parameter ranges")
     images = []
+    if analysis.table.measured_effect.any():
+        section.text("Measured effects (" + ", ".join(n for n, flag in measured.items() if flag) + ") have no "
+                     "boundary and so no tolerance range: no capability for them.", "note")
     if not analysis.capabilities:
         section.text("No capability without a control chart.", "note")
     else:
