@@ -181,9 +181,10 @@ def test_the_estimator_cache_is_not_part_of_the_value(toy):
     fresh = dataclasses.replace(bases)
     assert fresh == bases
     assert "_contact_estimators" not in repr(bases)
-    with pytest.raises(TypeError):
-        Bases(bases.model_id, bases.skin, bases.pca, bases.hierarchical, None, "", None, (), None, (),  # type: ignore[call-arg]
-              {})
+    constructor = [f.name for f in dataclasses.fields(Bases) if f.init]
+    assert "_contact_estimators" not in constructor
+    with pytest.raises(TypeError):  # one value more than the constructor's fields: the cache is not among them
+        Bases(*[getattr(bases, name) for name in constructor], {})  # type: ignore[call-arg]
     with pytest.raises(dataclasses.FrozenInstanceError):
         bases.model_id = "x"  # type: ignore[misc]
 

@@ -212,11 +212,11 @@ class EstimatorNode(HoodNode):
     def warm_up(self, bases: Any) -> None:
         """One synthetic field of ``bases`` (the PCA mean field, scan-like node errors) through :meth:`answer` and
         the outgoing messages, nothing published, so that the first real field pays no first use (issue 19)."""
-        from hood_decomp.core.scan.scan_field import SMOOTHING_BIAS_CORRELATION
+        from hood_decomp.core.scan import smoothing_bias_correlation
 
         n = bases.skin.n_nodes
         errors = FieldErrorModel("scan", np.full(n, 0.005), np.full(n, 20.0), 5.0,
-                                 bias_correlation=SMOOTHING_BIAS_CORRELATION)
+                                 bias_correlation=smoothing_bias_correlation(bases.skin))
         field = CoreField(bases.model_id, np.array(bases.pca.mean_field_, dtype=float), 1.0, 0.05, errors)
         header = Header()
         _, estimate, correction = self.answer(messages.field_to_msg(field, header, "warm-up"))

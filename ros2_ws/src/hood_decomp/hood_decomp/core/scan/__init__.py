@@ -20,11 +20,13 @@ from hood_decomp.core.scan.scan_field import (
     field_from_scan,
     prepared_estimator,
     register_prepared_skin,
+    smoothing_bias_correlation,
     warm_up,
 )
 
 __all__ = [
     "FusedField", "RegistrationResult", "ScanFieldEstimator", "ScanView", "ViewResult", "check_pose",
     "field_from_scan", "fuse_fields", "fuse_views", "pose_difference", "prepared_estimator",
-    "register_prepared_skin", "register_scan", "rigid_from_markers", "view_field", "warm_up",
+    "register_prepared_skin", "register_scan", "rigid_from_markers", "smoothing_bias_correlation", "view_field",
+    "warm_up",
 ]

@@ -63,6 +63,18 @@ _QUADRIC_NEIGHBOURS = 13
 # 17,000-83,000 mm^2 on the default hood (5 states), 3,700-9,000 mm^2 on the coarse one (8 states). Set where the
 # within-model test's false-alarm rate on 120 default scans came down (300 nodes: 12.5 %; 1000 nodes: none).
 SMOOTHING_BIAS_AREA_MM2 = 59_000.0
+
+
+def smoothing_bias_correlation(skin: SkinSurface) -> float:
+    """The scan step's smoothing bias on ``skin`` as a correlation sum in nodes (``FieldErrorModel.bias_correlation``):
+    :data:`SMOOTHING_BIAS_AREA_MM2` over the skin's area per node (mm^2 from its (T, 3) triangles)."""
+    points = np.asarray(skin.points, dtype=np.float64)
+    corners = points[np.asarray(skin.triangles, dtype=np.int64)]
+    area = 0.5 * float(np.sum(np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]),
+                                             axis=1)))
+    return SMOOTHING_BIAS_AREA_MM2 * points.shape[0] / max(area, 1e-300)
+
+
 #: The prepared skin's arrays (ScanFieldEstimator.prepared_skin): named dimensions (N nodes, N1 = N + 1, G grid cells,
 #: Z kernel entries; digits fixed) and kind.
 PREPARED_SKIN: dict[str, tuple[tuple[str, ...], str]] = {
@@ -206,11 +218,7 @@ class ScanFieldEstimator:
         self.radius_mm_ = float(self.radius_mm) if self.radius_mm is not None else 2.5 * spacing
         self.center_ = points.mean(axis=0)
         self.skin_size_mm_ = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))  # bounding-box diagonal
-        corners = points[np.asarray(skin.triangles, dtype=np.int64)]
-        area = 0.5 * float(np.sum(np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]),
-                                                 axis=1)))
-        # the smoothing bias' correlation sum in nodes of this skin (mean node area: the skin's area per node)
-        self.bias_correlation_ = SMOOTHING_BIAS_AREA_MM2 * n / max(area, 1e-300)
+        self.bias_correlation_ = smoothing_bias_correlation(skin)
         self.points_ = points
         tangent1, tangent2 = _tangent_frames(normals)
         self.frames_ = np.stack([tangent1, tangent2, normals], axis=1)  # (N, 3, 3) rows t1, t2, n
