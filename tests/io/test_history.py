@@ -138,6 +138,64 @@ def test_writer_keeps_parts_through_a_lock_and_a_bad_path(tmp_path):
         assert [r.part_id for r in history.records()] == ["p12", "p13"]
 
 
+def test_a_new_history_never_shows_a_file_without_its_tables(tmp_path):
+    """Fails if creating a history exposes the file before its schema is in it (a live shift report polling the
+    node's history then finds a database without tables), if writers racing to create the same history do not all
+    end up in one valid file, or if the private staging files are left behind."""
+    path = tmp_path / "live.sqlite"
+    seen: list[set[str]] = []
+    stop = threading.Event()
+
+    def watch() -> None:
+        while not stop.is_set():
+            if not path.exists():
+                continue
+            try:
+                db = sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=1)
+                try:
+                    seen.append({row[0] for row in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")})
+                finally:
+                    db.close()
+            except sqlite3.OperationalError:  # the file went between exists() and open: the loop unlinks it
+                pass
+
+    watcher = threading.Thread(target=watch)
+    watcher.start()
+    try:
+        for _ in range(40):
+            History(path).open().close()
+            path.unlink()
+    finally:
+        stop.set()
+        watcher.join(30)
+    assert seen, "the watcher never saw a history"
+    schema = {"meta", "parts", "parameters", "effects", "residuals"}
+    half_made = [tables for tables in seen if tables != schema]
+    assert not half_made, f"{len(half_made)} of {len(seen)} looks saw a history without all its tables: {half_made[0]}"
+
+    barrier = threading.Barrier(4)
+    errors: list[BaseException] = []
+
+    def create(i: int) -> None:
+        barrier.wait()
+        try:
+            with History(path) as history:
+                history.add(_record(i))
+        except BaseException as error:  # the test reports every writer's failure
+            errors.append(error)
+
+    writers = [threading.Thread(target=create, args=(i,)) for i in range(4)]
+    for writer in writers:
+        writer.start()
+    for writer in writers:
+        writer.join(30)
+    assert not errors
+    with History(path) as history:
+        assert sorted(r.part_id for r in history.records()) == ["p0", "p1", "p2", "p3"]
+        assert history.db.execute("SELECT COUNT(*) FROM meta WHERE key = 'schema_version'").fetchone() == (1,)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["live.sqlite"]
+
+
 #: schema version 1 as it was released (cef4121): the file format an older history on disk has
 _SCHEMA_V1 = """
 CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);

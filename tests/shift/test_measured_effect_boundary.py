@@ -218,16 +218,11 @@ def _history_errors(received) -> list[str]:
 
 
 def _rows(path) -> dict[str, dict[str, tuple[float, float, int]]]:
-    """part_id -> parameter -> (value_mm, correction_mm, measured_effect) of the history at ``path`` ({} while the
-    writer has made the file but not yet its tables: sqlite creates the file when the writer connects)."""
+    """part_id -> parameter -> (value_mm, correction_mm, measured_effect) of the history at ``path``."""
     db = sqlite3.connect(path, timeout=5)
     try:
         rows = db.execute("SELECT p.part_id, q.name, q.value_mm, q.correction_mm, q.measured_effect FROM parts p "
                           "JOIN parameters q ON q.part = p.id").fetchall()
-    except sqlite3.OperationalError as error:
-        if "no such table" not in str(error):
-            raise
-        rows = []
     finally:
         db.close()
     out: dict[str, dict[str, tuple[float, float, int]]] = {}

@@ -17,6 +17,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import hashlib
+import os
 import sqlite3
 import threading
 from collections import deque
@@ -205,15 +206,12 @@ class History:
         if not new and not self.path.is_file():
             raise HistoryError(f"history {self.path} is not a file")
         try:
+            if new:
+                self._create()
             # any thread may use it (a node's timer and subscription run in different executor threads); the
             # caller serialises its use (HistoryWriter holds a lock)
             self._db = sqlite3.connect(self.path, timeout=self.timeout_s, check_same_thread=False)
             self._db.execute("PRAGMA foreign_keys = ON")
-            if new:
-                with self._db:
-                    self._db.executescript(_SCHEMA)
-                    self._db.execute("INSERT INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
-                    self._db.execute("INSERT INTO meta VALUES ('application', 'hood_decomp results history')")
             self._check_version()
         except sqlite3.DatabaseError as error:
             self.close()
@@ -222,6 +220,31 @@ class History:
             self.close()
             raise
         return self
+
+    def _create(self) -> None:
+        """Write the schema to a private file beside ``path`` and only then give it the history's name, so that a
+        reader (a live shift report, another writer) never sees a database without its tables. A writer that lost a
+        race for the name uses the winner's file; an empty file at ``path`` is replaced."""
+        staging = self.path.with_name(f".{self.path.name}.{os.getpid()}.{threading.get_ident()}.new")
+        try:
+            db = sqlite3.connect(staging)
+            try:
+                with db:
+                    db.executescript(_SCHEMA)
+                    db.execute("INSERT INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+                    db.execute("INSERT INTO meta VALUES ('application', 'hood_decomp results history')")
+            finally:
+                db.close()
+            try:
+                os.link(staging, self.path)
+            except FileExistsError:
+                if self.path.stat().st_size == 0:
+                    os.replace(staging, self.path)
+            except OSError:  # a file system without hard links: no race-free name, but still never half-made
+                if not self.path.exists():
+                    os.replace(staging, self.path)
+        finally:
+            staging.unlink(missing_ok=True)
 
     def _check_version(self) -> None:
         assert self._db is not None
