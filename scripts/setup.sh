@@ -97,4 +97,8 @@ if [ ! -f "$WS/install/setup.bash" ] || [ "$(cat "$WS/install/.stamp-build" 2>/d
   )
   echo "$build_stamp" > "$WS/install/.stamp-build"
 fi
+# Byte-compile the package: its sources are symlinked, and with PYTHONDONTWRITEBYTECODE (set in some CI and shell
+# environments) every command would compile its modules again, 50 ms of a one-off `hood-decomp estimate` (issue 19).
+# Python checks each .pyc against its source, so an edited module never runs stale.
+"$VENV/bin/python" -m compileall -q "$WS/src/hood_decomp/hood_decomp" >/dev/null
 say "ready: source $ROOT/scripts/env.sh to use hood_decomp in this shell"

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import json
 import os
 import shutil
 import subprocess
@@ -693,3 +694,25 @@ def test_bad_input_through_the_console_script(case_id: str, tiny_workspace: Work
     lines = result.stderr.strip().splitlines()
     assert result.returncode == 2 and len(lines) == 1 and ": error: " in lines[0], result.stderr[-2000:]
     assert result.stdout == ""
+
+
+def test_estimate_through_the_console_script_writes_its_whole_output(tiny_workspace: Workspace, tmp_path: Path,
+                                                                      capsys) -> None:
+    """Fails if `estimate` in a process of its own (which ends without the interpreter's teardown and with one BLAS
+    thread, cli.entry) loses output: its JSON on a pipe (block-buffered stdout) cut short or differing from the same
+    call in this process, a --json file incomplete, or a status other than 0."""
+    argv = ["estimate", "--bases", str(tiny_workspace.bases), "--scan", str(tiny_workspace.scan), "--min-coverage", "0"]
+    result = subprocess.run([sys.executable, "-m", "hood_decomp.cli", *argv], capture_output=True, text=True,
+                            timeout=120, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert main(argv) == 0
+    in_process = json.loads(capsys.readouterr().out)
+    on_pipe = json.loads(result.stdout)
+    assert on_pipe.keys() == in_process.keys()
+    for name, value in in_process["parameters_mm"].items():
+        assert abs(on_pipe["parameters_mm"][name] - value) < 1e-9
+    out = tmp_path / "estimate.json"
+    result = subprocess.run([sys.executable, "-m", "hood_decomp.cli", *argv, "--json", str(out)], capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 0 and result.stderr.rstrip().endswith(f"wrote {out}"), result.stderr[-2000:]
+    assert json.loads(out.read_text())["parameters_mm"].keys() == in_process["parameters_mm"].keys()

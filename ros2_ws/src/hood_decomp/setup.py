@@ -23,7 +23,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "hood-decomp = hood_decomp.cli:main",
+            "hood-decomp = hood_decomp.cli:entry",
             "scan_node = hood_decomp.ros.scan_node:main",
             "estimator_node = hood_decomp.ros.estimator_node:main",
             "decomposition_node = hood_decomp.ros.decomposition_node:main",

@@ -1,5 +1,3 @@
-import sys
+from hood_decomp.cli import entry
 
-from hood_decomp.cli import main
-
-sys.exit(main())
+entry()

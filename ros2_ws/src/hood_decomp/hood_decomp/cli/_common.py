@@ -13,7 +13,7 @@ import os
 import shutil
 import sys
 import tempfile
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
@@ -24,6 +24,7 @@ from hood_decomp.io.json_values import json_ready
 
 if TYPE_CHECKING:  # only for annotations: a verb's --help does not load the method
     from hood_decomp.core.method.bases import Bases
+    from hood_decomp.core.scan.fusion import ScanView
     from hood_decomp.core.types import DisplacementField, SkinSurface
 
 #: what ``args.inputs`` holds: ("field" or "scan", path) in the order given on the command line
@@ -265,12 +266,14 @@ def input_paths(args: argparse.Namespace) -> list[Path]:
 
 
 def read_fields(inputs: Inputs | None, skin: SkinSurface, min_coverage: float,
-                poses: Poses | None = None, one_part: bool = False) -> list[DisplacementField]:
+                poses: Poses | None = None, one_part: bool = False,
+                views: Sequence[ScanView] | None = None) -> list[DisplacementField]:
     """The displacement fields of --field and --scan inputs, in their order; FieldError when there is none.
 
     The scans are the views of one part, fused into one field in the place of the first (each with its
     --scanner-pose from ``poses``, else the pose its PLY stores), when ``one_part`` (a verb that reads one part) or
-    when any scan has a --scanner-pose; otherwise every scan is a field of its own.
+    when any scan has a --scanner-pose; otherwise every scan is a field of its own. ``views``: those fused scans'
+    views when the caller read them already (:func:`read_bases_and_field`).
     """
     from hood_decomp.io.fields import read_field
     from hood_decomp.io.scans import fused_field_from_scan_files
@@ -286,7 +289,7 @@ def read_fields(inputs: Inputs | None, skin: SkinSurface, min_coverage: float,
             fields.append(read_field(path, skin)[0])
         elif one_part or poses:
             if not fused_done:
-                fields.append(fused_field_from_scan_files(skin, scans, min_coverage).field)
+                fields.append(fused_field_from_scan_files(skin, scans, min_coverage, views).field)
                 fused_done = True
         else:
             fields.append(fused_field_from_scan_files(skin, [(path, None)], min_coverage).field)
@@ -296,18 +299,22 @@ def read_fields(inputs: Inputs | None, skin: SkinSurface, min_coverage: float,
 def read_bases_and_field(args: argparse.Namespace, meanwhile: Callable[[Bases], object] | None = None
                          ) -> tuple[Bases, DisplacementField]:
     """The bases of --bases and the one field of --field or of the --scan views of one part (:func:`add_bases`,
-    :func:`add_inputs`). ``meanwhile(bases)``: work that needs only the bases, run in a second thread while the
-    field is read (a scan: its prepared skin and scan path), finished before this returns; a HoodDecompError there
-    is left to the caller's own call of that work, which raises it again."""
+    :func:`add_inputs`). The scan files are read in a second thread while the bases load (neither needs the other;
+    a bad bases file still fails first, by its own error). ``meanwhile(bases)``: work that needs only the bases, run
+    in a second thread while the field is made (a scan: its prepared skin and scan path), finished before this
+    returns; a HoodDecompError there is left to the caller's own call of that work, which raises it again."""
     from hood_decomp.io.bases import load_bases
+    from hood_decomp.io.scans import scan_file_views
 
-    bases = load_bases(args.bases)
-    if meanwhile is None:
-        fields = read_fields(args.inputs, bases.skin, args.min_coverage, args.scanner_poses, one_part=True)
-    else:
-        with ThreadPoolExecutor(1) as pool:
-            pending = pool.submit(meanwhile, bases)
-            fields = read_fields(args.inputs, bases.skin, args.min_coverage, args.scanner_poses, one_part=True)
+    inputs, poses = args.inputs or [], args.scanner_poses or {}
+    scans = [(path, poses.get(i)) for i, (kind, path) in enumerate(inputs) if kind == "scan"]
+    with ThreadPoolExecutor(2) as pool:
+        early = pool.submit(scan_file_views, scans) if scans and len(scans) == len(inputs) else None
+        bases = load_bases(args.bases)
+        pending = None if meanwhile is None else pool.submit(meanwhile, bases)
+        fields = read_fields(args.inputs, bases.skin, args.min_coverage, args.scanner_poses, one_part=True,
+                             views=None if early is None else early.result())
+        if pending is not None:
             with contextlib.suppress(HoodDecompError):
                 pending.result()
     return bases, apply_reference(args, bases, fields[:1])[0]

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 from pathlib import Path
 from typing import TYPE_CHECKING
-from xml.sax.saxutils import escape
 
 import numpy as np
 
@@ -100,6 +99,8 @@ def write_field(
         raise FieldError(f"displacement has shape {vectors.shape}, expected ({skin.n_nodes}, 3)")
     field.errors.validate(skin.n_nodes)
     error_points, error_data = _error_model_items(field.errors)
+    from xml.sax.saxutils import escape  # writing only: it loads urllib and http (30 ms of a reader's start)
+
     import meshio
 
     mesh = meshio.Mesh(

@@ -262,7 +262,10 @@ def read_ply(path: str | os.PathLike) -> PlyData:
     vertex = data.pop("vertex", None)
     if vertex is None or not {"x", "y", "z"} <= vertex.keys():
         raise ScanError(f"{path}: PLY file has no vertex element with x, y, z")
-    points = np.column_stack([vertex.pop(k).astype(np.float64) for k in ("x", "y", "z")])
+    # one copy into the final (M, 3) float64 array (per-column casts and a stack made three: 0.1 s at 5M points)
+    points = np.empty((len(vertex["x"]), 3))
+    for k, axis in enumerate("xyz"):
+        points[:, k] = vertex.pop(axis)
     face = data.pop("face", None)
     triangles = face["vertex_indices"] if face is not None else None
     if triangles is not None and triangles.size and (triangles.min() < 0 or triangles.max() >= len(points)):

@@ -32,13 +32,20 @@ def scan_file_view(path: str | os.PathLike, pose_path: str | os.PathLike | None 
                     scan.markers_nominal if has_markers else None, name=str(path), pose_source=source)
 
 
-def fused_field_from_scan_files(skin: SkinSurface, scans: Sequence[ScanInput],
-                                min_coverage: float = 0.2) -> FusedField:
+def scan_file_views(scans: Sequence[ScanInput]) -> list[ScanView]:
+    """The views of ``scans`` (:func:`scan_file_view` of each), in their order."""
+    return [scan_file_view(path, pose) for path, pose in scans]
+
+
+def fused_field_from_scan_files(skin: SkinSurface, scans: Sequence[ScanInput], min_coverage: float = 0.2,
+                                views: Sequence[ScanView] | None = None) -> FusedField:
     """The field of one part from its views' scan files (:func:`scan_file_view`), fused
     (:func:`hood_decomp.core.scan.fusion.fuse_views`): a lone scan without a pose is in the part frame (or registered
     by its markers); several views each need a pose, and one without is refused by its file name. ``min_coverage``
-    applies to the fused field (and to a lone scan). Raises ScanError naming the file and its problem."""
-    views = [scan_file_view(path, pose) for path, pose in scans]
+    applies to the fused field (and to a lone scan). ``views``: :func:`scan_file_views` of ``scans`` when the caller
+    read them already (a one-off run reads them while the bases load). Raises ScanError naming the file and its
+    problem."""
+    views = scan_file_views(scans) if views is None else views
     fused = fuse_views(skin, views, min_coverage=min_coverage,
                        min_view_coverage=min_coverage if len(views) == 1 else 0.02)
     for view in fused.views:
