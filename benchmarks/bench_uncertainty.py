@@ -66,7 +66,12 @@ def judge(estimate, member, names) -> dict:
     applied = (~estimate.lifted) & correction.applicable
     # a correction is -estimate; applying it is wrong by the estimate's error on the commanded state
     applied_error = float(np.max(np.abs(error[applied]), initial=0.0)) if correction.safe_to_apply else 0.0
+    # per boundary: may its own correction be applied (named in the message when the whole gate is shut), and how
+    # wrong would it be then
+    alone = np.where(applied, np.abs(error), np.nan)
     return {"z": [None if not np.isfinite(v) else float(v) for v in z], "within": bool(estimate.within_model),
+            "applicable": [bool(v) for v in applied], "applicable_error_mm": [None if not np.isfinite(v) else float(v)
+                                                                             for v in alone],
             "reasons": closed_by(correction),
             "p": estimate.check.p_value, "safe": bool(correction.safe_to_apply), "applied_error_mm": applied_error,
             "noise_scale": estimate.check.noise_scale}
@@ -98,6 +103,12 @@ def summary(rows: list[dict], names: tuple[str, ...]) -> dict:
         per[name] = {"n": int(col.size), "inside_95": float(np.mean(np.abs(col) <= Z95)) if col.size else None,
                      "max_abs_z": float(np.max(np.abs(col))) if col.size else None}
     out["per_parameter"] = per
+    if "applicable" in rows[0]:
+        ok = np.array([row["applicable"] for row in rows])
+        wrong = np.array([[np.nan if v is None else v for v in row["applicable_error_mm"]] for row in rows])
+        for i, name in enumerate(names):
+            per[name]["applicable"] = float(np.mean(ok[:, i]))
+            per[name]["max_applicable_error_mm"] = float(np.nanmax(wrong[:, i])) if ok[:, i].any() else None
     out["false_alarm_rate"] = float(np.mean([not r["within"] for r in rows]))
     out["gate_open_rate"] = float(np.mean([r["safe"] for r in rows]))
     out["max_applied_error_mm"] = float(max(r["applied_error_mm"] for r in rows))
@@ -211,7 +222,8 @@ def main() -> int:
             continue
         for name, row in results[key].get("per_parameter", {}).items():
             print(f"{key:<8} {name:<10} {row['n']:>5} {row['inside_95'] or float('nan'):>7.3f} "
-                  f"{row['max_abs_z'] or float('nan'):>7.2f}")
+                  f"{row['max_abs_z'] or float('nan'):>7.2f}  applicable alone {row['applicable']:.3f}, worst "
+                  f"{row['max_applicable_error_mm'] or 0.0:.4f} mm")
         print(f"{key:<8} false alarms {results[key]['false_alarm_rate']:.3f}, gate open "
               f"{results[key]['gate_open_rate']:.3f}, max applied error {results[key]['max_applied_error_mm']:.4f} mm")
     for row in curve:
