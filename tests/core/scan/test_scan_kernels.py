@@ -56,7 +56,8 @@ def _reference_field(est: ScanFieldEstimator, points: np.ndarray) -> tuple[np.nd
     """Node values and supported mask by the algorithm written out per node: for node i, every located point of every
     cell j with kernel weight K_ij, placed at x_j + u t1_j + v t2_j and expressed in node i's tangent frame, fitted
     by a weighted plane; then points with residual (to their own cell node's plane) beyond outlier_sigma robust
-    standard deviations dropped, and refitted."""
+    standard deviations dropped, and refitted; with twicing, the kept points' residuals from their own cell node's
+    plane fitted the same way and the fit added."""
     located = est.point_distances(points)
     on = np.flatnonzero(located.node >= 0)
     node, u, v, d = located.node[on], located.tangent[on, 0], located.tangent[on, 1], located.distance[on]
@@ -68,7 +69,7 @@ def _reference_field(est: ScanFieldEstimator, points: np.ndarray) -> tuple[np.nd
     members = [np.flatnonzero(node == j) for j in range(x.shape[0])]
     n = x.shape[0]
 
-    def fit(keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def fit(keep: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         coef, weight, inflation = np.full((n, 3), np.nan), np.zeros(n), np.full(n, np.inf)
         for i in range(n):
             cols = kernel.indices[kernel.indptr[i] : kernel.indptr[i + 1]]
@@ -83,11 +84,15 @@ def _reference_field(est: ScanFieldEstimator, points: np.ndarray) -> tuple[np.nd
         return coef, weight, inflation
 
     everything = np.ones(node.size, bool)
-    coef, _, _ = fit(everything)
+    coef, _, _ = fit(everything, d)
     residual = d - (coef[node, 0] + coef[node, 1] * u + coef[node, 2] * v)
     sigma = 1.4826 * np.median(np.abs(residual[np.isfinite(residual)]))
     keep = ~(np.abs(residual) > est.outlier_sigma * sigma)
-    coef, weight, inflation = fit(keep)
+    coef, weight, inflation = fit(keep, d)
+    if est.twicing_:  # the same fit of every kept point's residual from its own node's plane (none: the distance)
+        own = np.nan_to_num(coef[node])
+        twice, _, _ = fit(keep, d - (own[:, 0] + own[:, 1] * u + own[:, 2] * v))
+        coef = coef + twice
     counts = np.array([np.count_nonzero(keep[m]) for m in members], dtype=float)
     nearby = est.near_kernel_ @ counts
     supported = ((weight >= est.min_points) & (inflation <= est.max_inflation)
@@ -96,8 +101,10 @@ def _reference_field(est: ScanFieldEstimator, points: np.ndarray) -> tuple[np.nd
 
 
 def test_field_equals_a_per_node_reference(estimator, scan_points):
-    """Fails if the fused binning, the raw-moment mixing, the closed-form 3x3 fits or the outlier pass of the block
-    path compute anything but the per-node weighted plane fits written out plainly (to 1e-9 mm)."""
+    """Fails if the fused binning, the raw-moment mixing, the closed-form 3x3 fits, the outlier pass or the twicing
+    pass (from cell sums) of the block path compute anything but the per-node weighted plane fits written out
+    plainly (to 1e-9 mm)."""
+    assert estimator.twicing_  # the patch's 89 mm radius is above TWICING_MIN_RADIUS_MM
     expected, supported = _reference_field(estimator, scan_points)
     field = estimator.field(scan_points)
     value = field.normal_displacement
