@@ -17,13 +17,14 @@ import dataclasses
 import numpy as np
 
 from hood_decomp.core.fe.ensemble import solve_members
+from hood_decomp.core.fe.hood_preset import build_hood
 from hood_decomp.core.fe.solver import build_solver, reduce_model
 from hood_decomp.core.method.bases import estimate_field
 from hood_decomp.core.method.correction import plan_correction
 from hood_decomp.core.scan.scan_field import field_from_scan, prepared_estimator
 from hood_decomp.core.types import DisplacementField, FieldErrorModel
 from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
-from hood_decomp.synthetic.standin import scaled_thickness
+from hood_decomp.synthetic.standin import Family, StandIn, embedded_responses, scaled_thickness
 
 N_PARTS = 6
 NOISE_MM = 0.02
@@ -79,3 +80,20 @@ def test_a_part_with_other_physics_is_never_corrected_wrongly(coarse_hood):
     assert sum(row["caught"] for row in moved) >= 0.95 * len(moved), rows
     assert all(row["alarm_said"] for row in rows), rows
     assert max(row["applied_mm"] for row in rows) <= 0.02, rows
+
+
+def test_the_benchmarks_perturbed_parts_are_the_perturbed_model():
+    """Fails if the stand-in built on the embedded solver's responses (how benchmarks/bench_discrepancy.py makes its
+    perturbed-physics parts) differs from the perturbed model solved directly by more than 1e-6 mm: a wrong 1/E
+    scaling, gas-spring split, pad-stiffness factor, thickness interpolation or response layout. On a 20 x 20 hood:
+    the algebra does not depend on the mesh."""
+    model = build_hood("coarse", grid=(20, 20))
+    standin = StandIn(model, embedded_responses(model))
+    family = Family(E=0.97, thickness=1.05, pad_stiffness=1.3, gas_spring=1.05)
+    states = np.random.default_rng(7).uniform(model.lower, model.upper, (20, len(model.names)))
+    direct = solve_members(reduce_model(build_solver(perturbed(model))), states)
+    made = solve_members(standin.reduced(family), states)
+    nominal = solve_members(standin.reduced(Family()), states)
+    assert np.max(np.abs(direct.normal_displacement - nominal.normal_displacement)) > 0.05  # the change is seen
+    np.testing.assert_allclose(made.displacement, direct.displacement, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(made.effective, direct.effective, rtol=0, atol=1e-6)
