@@ -22,7 +22,9 @@ only place where the gate can open and the safety count means something).
 estimate; a part is moved when any parameter is shifted by more than 2 std. Caught: the test alarms or
 ``safe_to_apply`` is false; "said model": the reason says the model does not explain the part (the alarm) rather
 than naming a boundary's uncertainty or range. Unsafe: ``safe_to_apply`` true with an applicable correction wrong by
-more than 0.02 mm. "3x": the alarm rate with the node noise stated 3 times too large.
+more than 0.02 mm; "appl>0.02": parts where a boundary the correction states ``applicable`` (what the robot may
+still apply when the whole is not safe) is wrong by more than 0.02 mm. "3x": the alarm rate with the node noise
+stated 3 times too large.
 
 Prints a table per kind and writes benchmarks/out/discrepancy.json (rewritten as it goes). From the repository root:
     scripts/with-env nice python benchmarks/bench_discrepancy.py [--parts N] [--mesh-parts N] [--ccx-parts N]
@@ -96,13 +98,18 @@ def verdict(bases, field: DisplacementField, truth_field: np.ndarray, member, na
     row["moved"] = bool(np.max(np.abs(shift / estimate.std)) > MOVED_STD)
     row["caught"] = (not row["within"]) or (not row["safe"])
     row["said_model"] = "model" in row["reasons"]
-    row["reason"] = plan_correction(estimate).reason
+    correction = plan_correction(estimate)
+    row["reason"] = correction.reason
+    # per boundary: what the robot may still apply when the whole is not safe
+    applicable = correction.applicable & ~estimate.lifted
+    row["applicable"] = [name for name, ok in zip(names, applicable, strict=True) if ok]
+    row["applicable_error_mm"] = float(np.max(np.abs(estimate.values - member.effective[0])[applicable], initial=0.0))
     row["within_3x"] = bool(estimate_field(bases, inflated(field)).within_model)
     row["max_abs_error_mm"] = float(np.max(np.abs(estimate.values - member.effective[0])))
     return row
 
 
-def summary(rows: list[dict]) -> dict:
+def summary(rows: list[dict], names: tuple[str, ...]) -> dict:
     if not rows:
         return {"n": 0}
     moved = [r for r in rows if r["moved"]]
@@ -115,10 +122,14 @@ def summary(rows: list[dict]) -> dict:
         "moved": len(moved),
         "moved_caught": sum(r["caught"] for r in moved),
         "moved_alarmed": sum(not r["within"] for r in moved),
+        "alarms_without_model_message": sum(not r["within"] and not r["said_model"] for r in rows),
         "moved_caught_rate": float(np.mean([r["caught"] for r in moved])) if moved else None,
         "moved_alarm_rate": float(np.mean([not r["within"] for r in moved])) if moved else None,
         "median_max_shift_z": float(np.median([np.max(np.abs(r["shift_z"])) for r in rows])),
         "unsafe": sum(r["safe"] and r["applied_error_mm"] > UNSAFE_MM for r in rows),
+        "applicable_wrong": sum(r["applicable_error_mm"] > UNSAFE_MM for r in rows),
+        "max_applicable_error_mm": float(max(r["applicable_error_mm"] for r in rows)),
+        "applicable_boundaries": {name: sum(name in r["applicable"] for r in rows) for name in names},
         "max_applied_error_mm": float(max(r["applied_error_mm"] for r in rows)),
         "gate_closed_by": {kind: kinds.count(kind) for kind in sorted(set(kinds))},
     }
@@ -177,15 +188,18 @@ def main() -> int:
             rows["scan"].append(row | about)
             rows["field"].append(verdict(bases, noisy_field(truth_normal), truth_normal, member, names) | about)
             if (k + 1) % 10 == 0 or k + 1 == n:
-                results["kinds"][kind] = {way: {"summary": summary(r), "parts": r} for way, r in rows.items()}
+                results["kinds"][kind] = {way: {"summary": summary(r, names), "parts": r} for way, r in rows.items()}
                 save()
                 s = results["kinds"][kind]["scan"]["summary"]
                 log(f"{kind} {k + 1}/{n}: {(time.time() - start) / (k + 1):.1f} s per part, scan alarms "
                     f"{s['alarm_rate']:.2f}, moved {s['moved']}, caught {s['moved_caught']}, unsafe {s['unsafe']}")
 
-    log("the embedded solver's responses at three thickness scales (perturbed physics)")
-    standin = StandIn(model, embedded_responses(model))
-    for kind, factors in PHYSICS.items():
+    physics = [kind for kind in PHYSICS if not args.kinds or kind in args.kinds] if args.parts else []
+    if physics:
+        log("the embedded solver's responses at three thickness scales (perturbed physics)")
+        standin = StandIn(model, embedded_responses(model))
+    for kind in physics:
+        factors = PHYSICS[kind]
         def draw_physics(factors=factors):
             family = Family(**{key: float(1.0 + rng.uniform(-FAMILY_SPREAD[key], FAMILY_SPREAD[key]))
                                for key in factors})
@@ -223,13 +237,14 @@ def main() -> int:
     save()
 
     print(f"{'kind':<18} {'way':<6} {'n':>4} {'alarm':>6} {'3x':>5} {'open':>5} {'moved':>6} {'caught':>7} "
-          f"{'alarmed':>8} {'unsafe':>6} {'max applied':>11}  gate closed by")
+          f"{'alarmed':>8} {'unsafe':>6} {'max applied':>11} {'appl>0.02':>9} {'max appl':>8}")
     for kind, ways in results["kinds"].items():
         for way, block in ways.items():
             s = block["summary"]
             print(f"{kind:<18} {way:<6} {s['n']:>4} {s['alarm_rate']:>6.2f} {s['alarm_rate_noise_stated_3x']:>5.2f} "
                   f"{s['gate_open_rate']:>5.2f} {s['moved']:>6} {s['moved_caught']:>7} {s['moved_alarmed']:>8} "
-                  f"{s['unsafe']:>6} {s['max_applied_error_mm']:>11.4f}  {s['gate_closed_by']}")
+                  f"{s['unsafe']:>6} {s['max_applied_error_mm']:>11.4f} {s['applicable_wrong']:>9} "
+                  f"{s['max_applicable_error_mm']:>8.4f}")
     return 0
 
 
