@@ -102,9 +102,10 @@ def test_the_benchmarks_perturbed_parts_are_the_perturbed_model():
 
 @pytest.mark.xfail(strict=True, reason="issue 15 harness (ii) unmet: a pad 25 % softer than the model's is, in one "
                    "field, the same as a pad moved by its compression times 0.33 (0.1-0.2 mm); the field is explained "
-                   "(the test cannot alarm) and the buffer's stated std (0.002-0.004 mm) leaves out the pad stiffness, "
-                   "so its correction is called applicable though wrong by up to ~0.2 mm (bench_discrepancy: 39 of "
-                   "100 coarse parts at +-30 %; on the default hood safe_to_apply true on 6 of 10, up to 0.145 mm)")
+                   "(the test cannot alarm) and the buffer's stated std (about 0.003-0.0045 mm) leaves out the pad "
+                   "stiffness, so its correction is called applicable though wrong by up to ~0.2 mm (bench_discrepancy:"
+                   " 39 of 100 coarse parts at +-30 %; on the default hood safe_to_apply true on 19 of 25, up to "
+                   "0.145 mm)")
 def test_no_applicable_buffer_correction_is_wrong_when_the_pads_are_softer(coarse_hood):
     """Fails (the strict xfail passes, i.e. the suite fails) once no boundary the correction calls ``applicable`` is
     wrong by more than 0.02 mm on fields of a hood whose pads are 25 % softer than the bases' (0.02 mm white noise
