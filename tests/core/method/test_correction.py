@@ -34,15 +34,29 @@ def test_lifted_buffer_is_not_corrected_and_says_why():
 
 def test_every_reason_is_named():
     correction = plan_correction(
-        estimate(coverage=0.3, within_model=False, values=np.array([1.5, -0.5, np.nan]),
-                 std=np.array([0.001, 0.2, 0.003])),
+        estimate(coverage=0.3, values=np.array([1.5, -0.5, np.nan]), std=np.array([0.001, 0.2, 0.003])),
         CorrectionPolicy(min_coverage=0.6, max_std_mm=0.05),
     )
     assert not correction.safe_to_apply
-    for fragment in ("coverage 0.30 below minimum 0.60", "model does not explain this part",
-                     "HINGE_X = 1.500 mm outside", "BUFFER_R = nan mm outside",
+    for fragment in ("coverage 0.30 below minimum 0.60", "HINGE_X = 1.500 mm outside", "BUFFER_R = nan mm outside",
                      "LOCK_L uncertainty 0.200 mm above 0.05 mm"):
         assert fragment in correction.reason
+
+
+def test_a_part_the_model_does_not_explain_names_no_boundary():
+    """Fails if, when the within-model test alarms, the reason names a boundary (an estimate outside its range, a
+    large uncertainty, a lifted flag: under a model discrepancy these are its consequences, and naming one sends the
+    engineer to a boundary that may be fine; issue 15 harness (ii)), or drops the model statement or the coverage."""
+    correction = plan_correction(
+        estimate(coverage=0.3, within_model=False, values=np.array([1.5, -0.5, 0.2]),
+                 std=np.array([0.001, 0.2, 0.003]), lifted=np.array([False, False, True])),
+        CorrectionPolicy(min_coverage=0.6, max_std_mm=0.05),
+    )
+    assert not correction.safe_to_apply and not correction.applicable.any()
+    assert "coverage 0.30 below minimum 0.60" in correction.reason
+    assert "the model does not explain this part" in correction.reason
+    assert "differs from the part" in correction.reason
+    assert not any(name in correction.reason for name in ("HINGE_X", "LOCK_L", "BUFFER_R")), correction.reason
 
 
 def test_range_tolerance():

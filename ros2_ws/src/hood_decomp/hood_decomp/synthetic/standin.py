@@ -158,3 +158,24 @@ class StandIn:
             block = solve_members(self.reduced(family, thickness), setting[None, :])
             out[i], effective[i] = block.normal_displacement[0], block.effective[0]
         return out, effective
+
+
+def embedded_responses(model: PartModel, scales: tuple[float, ...] = THICKNESS_SCALES,
+                       pad_lattice: int = PAD_LATTICE) -> dict[float, dict[str, np.ndarray]]:
+    """The embedded solver's translations (n, 3) mm in :func:`calculix_responses`' layout ("load", "gas",
+    "unit_<LABEL>" per scale, "pad_<s>" at scale 1), so :class:`StandIn` makes perturbed-physics parts from the bases'
+    own solver: a discrepancy of physics alone, with no change of element or mesh (issue 15, harness (ii) a)."""
+    out: dict[float, dict[str, np.ndarray]] = {}
+    for scale in scales:
+        solver = build_solver(scaled_thickness(model, scale), validate=False, pad_lattice=pad_lattice)
+        n = len(model.nodes)
+        gas = np.zeros((n, 6))
+        gas[:, :3] = force_boundary_loads(solver.model)
+        columns = {"load": solver.load_response(), "gas": solver.solve(gas.ravel())}
+        columns.update({f"unit_{p.label}": solver.boundary_response(p.boundary, p.direction)
+                        for p in model.bilateral})
+        out[float(scale)] = {name: value.reshape(n, 6)[:, :3] for name, value in columns.items()}
+        if scale == 1.0:
+            pads = solver.pad_responses()
+            out[1.0].update({f"pad_{s:03d}": pads[:, :, s] for s in range(pads.shape[2])})
+    return out

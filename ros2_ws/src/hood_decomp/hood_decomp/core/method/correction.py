@@ -43,7 +43,9 @@ def plan_correction(estimate: ParameterEstimate, policy: CorrectionPolicy = Corr
     Per boundary, ``applicable`` says whether its own correction may be applied when the whole is not safe: only
     when the field is within the model with enough coverage (otherwise no number can be trusted), and its estimate
     is in range, its std below ``max_std_mm`` and it is not lifted. When the model does not explain the field the
-    reason says that the model differs from the part and names no boundary: a missing effect moves every estimate.
+    reason says that the model differs from the part and names no boundary: a missing effect or other physics moves
+    every estimate, so an estimate outside its range, a large uncertainty or a lifted flag is then no finding about
+    that boundary (naming it would send the engineer there) and is not listed; coverage still is.
     """
     values, std = np.asarray(estimate.values, float), np.asarray(estimate.std, float)
     lifted = np.asarray(estimate.lifted, bool)
@@ -57,21 +59,22 @@ def plan_correction(estimate: ParameterEstimate, policy: CorrectionPolicy = Corr
         problems.append(f"the model does not explain this part{test}: it lacks an effect or differs from the part, "
                         "so no boundary can be named and no estimate trusted")
     trusted = not problems
+    explained = bool(estimate.within_model)
     applicable = np.zeros(len(estimate.names), dtype=bool)
     for i, (name, value, sigma, low, high, is_lifted, is_effect) in enumerate(zip(
             estimate.names, values, std, estimate.lower, estimate.upper, lifted, effect, strict=True)):
         if is_lifted:
             continue
         in_range = low - policy.range_tolerance_mm <= value <= high + policy.range_tolerance_mm
-        if not in_range:  # a measured effect beyond its learned range is extrapolation too: no estimate trusted
+        if not in_range and explained:  # a measured effect beyond its learned range is extrapolation too
             problems.append(f"{name} = {value:.3f} mm outside its range [{low:g}, {high:g}] mm")
         if is_effect:  # nothing to move: its uncertainty gates no move
             continue
-        if not sigma <= policy.max_std_mm:
+        if not sigma <= policy.max_std_mm and explained:
             problems.append(f"{name} uncertainty {sigma:.3f} mm above {policy.max_std_mm:g} mm")
         applicable[i] = trusted and in_range and sigma <= policy.max_std_mm
     notes = [f"{name} lifted: commanded position not observable, not corrected"
-             for name, is_lifted in zip(estimate.names, lifted, strict=True) if is_lifted]
+             for name, is_lifted in zip(estimate.names, lifted, strict=True) if is_lifted and explained]
     notes += [f"{name} is a measured effect: no boundary to move" for name in np.asarray(estimate.names)[effect]]
     still = lifted | effect
     return BoundaryCorrection(

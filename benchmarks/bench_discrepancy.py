@@ -1,0 +1,252 @@
+"""Harness (ii), model discrepancy (issue 15): does the system *say* when the part is not its model?
+
+Truth from another model than the bases (the default hood's, built at ``--resolution``: coarse for counts, default
+for a spot check where the gate can open):
+- ``physics_*``: the same hood and mesh with perturbed physics, the bases' own embedded solver through
+  :class:`~hood_decomp.synthetic.standin.StandIn` (:func:`~hood_decomp.synthetic.standin.embedded_responses`):
+  Young's modulus x (1 +- 3 %), skin and all sheet thicknesses x (1 +- 5 %), pad stiffness x (1 +- 30 %), gas-spring
+  force x (1 +- 5 %), one factor at a time (uniform in its range) and ``physics_all`` (all four at once);
+- ``mesh_default``: the hood solved on the default mesh (30,107 skin nodes) against coarse bases (4,736);
+- ``ccx_nominal`` / ``ccx_family``: CalculiX S8R responses (cached npz of :func:`calculix_responses`, never run here)
+  at nominal physics and with a drawn :class:`Family` (E, thickness, pads, preload, gas springs).
+Each part: random commanded states in the declared ranges, solved with exact pad contact; scanned by the synthetic
+scanner (120k points, 0.02 mm range noise, 3 holes, scanner 0.5 deg / 5 mm off, 8 fixture markers with 0.02 mm centre
+noise) and turned into a field by the scan step with its error model; estimated through the path users take
+(``estimate_field``: contact-aware estimate, covariance from the field's error model, the one within-model test) and
+gated by ``plan_correction`` (the estimator node's ``BoundaryCorrection``). The same truth is also judged as a field
+with 0.02 mm white node noise stated as its error model (``field`` rows: no scan step, so no registration std: the
+only place where the gate can open and the safety count means something).
+
+"Moved": the discrepancy's own shift of the estimate, measured noise-free: the estimate of the exact truth field
+(on the scan's seen nodes, with the scan's error model) minus the truth, in units of the stated std of the scanned
+estimate; a part is moved when any parameter is shifted by more than 2 std. Caught: the test alarms or
+``safe_to_apply`` is false; "said model": the reason says the model does not explain the part (the alarm) rather
+than naming a boundary's uncertainty or range. Unsafe: ``safe_to_apply`` true with an applicable correction wrong by
+more than 0.02 mm; "appl>0.02": parts where a boundary the correction states ``applicable`` (what the robot may
+still apply when the whole is not safe) is wrong by more than 0.02 mm. "3x": the alarm rate with the node noise
+stated 3 times too large.
+
+Prints a table per kind and writes benchmarks/out/discrepancy.json (rewritten as it goes). From the repository root:
+    scripts/with-env nice python benchmarks/bench_discrepancy.py [--parts N] [--mesh-parts N] [--ccx-parts N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.interpolate import LinearNDInterpolator
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_uncertainty import judge  # noqa: E402
+
+from hood_decomp.core.fe.ensemble import solve_members  # noqa: E402
+from hood_decomp.core.fe.hood_preset import build_preset  # noqa: E402
+from hood_decomp.core.fe.model import skin_surface  # noqa: E402
+from hood_decomp.core.fe.solver import build_solver, reduce_model  # noqa: E402
+from hood_decomp.core.method.bases import estimate_field  # noqa: E402
+from hood_decomp.core.method.correction import plan_correction  # noqa: E402
+from hood_decomp.core.scan.scan_field import field_from_scan, prepared_estimator  # noqa: E402
+from hood_decomp.core.types import DisplacementField, FieldErrorModel  # noqa: E402
+from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan  # noqa: E402
+from hood_decomp.synthetic.standin import (  # noqa: E402
+    FAMILY_SPREAD,
+    Family,
+    StandIn,
+    calculix_responses,
+    embedded_responses,
+)
+from tests.conftest import _hood_case  # noqa: E402
+from tests.core.method.test_truth_elsewhere import _grid_coordinates  # noqa: E402
+
+OUT = ROOT / "benchmarks" / "out" / "discrepancy.json"
+CCX_CACHE = Path("/work/scratch/cache/standin_ccx_coarse.npz")
+NOISE_MM = 0.02
+MOVED_STD = 2.0
+UNSAFE_MM = 0.02
+PHYSICS = {"physics_E": ("E",), "physics_thickness": ("thickness",), "physics_pad": ("pad_stiffness",),
+           "physics_gas": ("gas_spring",), "physics_all": ("E", "thickness", "pad_stiffness", "gas_spring")}
+
+
+def log(line: str) -> None:
+    print(f"[bench_discrepancy {time.strftime('%H:%M:%S')}] {line}", file=sys.stderr, flush=True)
+
+
+def inflated(field: DisplacementField, factor: float = 3.0) -> DisplacementField:
+    """The field with its node noise stated ``factor`` times too large."""
+    errors = field.errors
+    return dataclasses.replace(field, noise_rms=factor * field.noise_rms,
+                               error_model=dataclasses.replace(errors, node_std=factor * errors.node_std))
+
+
+def verdict(bases, field: DisplacementField, truth_field: np.ndarray, member, names) -> dict:
+    """One part judged: ``judge``'s row, the noise-free shift in stated std, caught, said model, 3x alarm."""
+    estimate = estimate_field(bases, field)
+    row = judge(estimate, member, names)
+    clean = np.where(np.isfinite(field.normal_displacement), truth_field, np.nan)
+    shift = estimate_field(bases, dataclasses.replace(field, normal_displacement=clean)).values - member.effective[0]
+    row["shift_z"] = [float(v) for v in shift / estimate.std]
+    row["moved"] = bool(np.max(np.abs(shift / estimate.std)) > MOVED_STD)
+    row["caught"] = (not row["within"]) or (not row["safe"])
+    row["said_model"] = "model" in row["reasons"]
+    correction = plan_correction(estimate)
+    row["reason"] = correction.reason
+    # per boundary: what the robot may still apply when the whole is not safe
+    applicable = correction.applicable & ~estimate.lifted
+    row["applicable"] = [name for name, ok in zip(names, applicable, strict=True) if ok]
+    row["applicable_error_mm"] = float(np.max(np.abs(estimate.values - member.effective[0])[applicable], initial=0.0))
+    row["within_3x"] = bool(estimate_field(bases, inflated(field)).within_model)
+    row["max_abs_error_mm"] = float(np.max(np.abs(estimate.values - member.effective[0])))
+    return row
+
+
+def summary(rows: list[dict], names: tuple[str, ...]) -> dict:
+    if not rows:
+        return {"n": 0}
+    moved = [r for r in rows if r["moved"]]
+    kinds = [kind for r in rows for kind in r["reasons"]]
+    return {
+        "n": len(rows),
+        "alarm_rate": float(np.mean([not r["within"] for r in rows])),
+        "alarm_rate_noise_stated_3x": float(np.mean([not r["within_3x"] for r in rows])),
+        "gate_open_rate": float(np.mean([r["safe"] for r in rows])),
+        "moved": len(moved),
+        "moved_caught": sum(r["caught"] for r in moved),
+        "moved_alarmed": sum(not r["within"] for r in moved),
+        "alarms_without_model_message": sum(not r["within"] and not r["said_model"] for r in rows),
+        "moved_caught_rate": float(np.mean([r["caught"] for r in moved])) if moved else None,
+        "moved_alarm_rate": float(np.mean([not r["within"] for r in moved])) if moved else None,
+        "median_max_shift_z": float(np.median([np.max(np.abs(r["shift_z"])) for r in rows])),
+        "unsafe": sum(r["safe"] and r["applied_error_mm"] > UNSAFE_MM for r in rows),
+        "applicable_wrong": sum(r["applicable_error_mm"] > UNSAFE_MM for r in rows),
+        "max_applicable_error_mm": float(max(r["applicable_error_mm"] for r in rows)),
+        "applicable_boundaries": {name: sum(name in r["applicable"] for r in rows) for name in names},
+        "max_applied_error_mm": float(max(r["applied_error_mm"] for r in rows)),
+        "gate_closed_by": {kind: kinds.count(kind) for kind in sorted(set(kinds))},
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--parts", type=int, default=60, help="parts per physics_* kind")
+    parser.add_argument("--mesh-parts", type=int, default=60, help="parts of mesh_default (0: skip)")
+    parser.add_argument("--ccx-parts", type=int, default=60, help="parts per ccx_* kind (0: skip)")
+    parser.add_argument("--ccx-cache", type=Path, default=CCX_CACHE, help="CalculiX responses (never computed here)")
+    parser.add_argument("--resolution", choices=("coarse", "default"), default="coarse",
+                        help="the bases' (and the physics_* and ccx_* truths') resolution; mesh_default needs coarse")
+    parser.add_argument("--points", type=int, default=None,
+                        help="scan points on the skin (default: 120,000 at coarse, 500,000 at default resolution)")
+    parser.add_argument("--kinds", nargs="+", default=None, help="only these kinds")
+    parser.add_argument("--seed", type=int, default=152)
+    parser.add_argument("--out", type=Path, default=OUT, help="JSON written as the run goes")
+    args = parser.parse_args()
+    if args.points is None:
+        args.points = 500_000 if args.resolution == "default" else 120_000
+    rng = np.random.default_rng(args.seed)
+    log(f"building the {args.resolution} hood, its ensemble and bases")
+    with tempfile.TemporaryDirectory() as tmp:
+        case = _hood_case(args.resolution, Path(tmp))
+    bases, skin, model = case.bases, case.skin, case.model
+    names = bases.names
+    lo, hi = bases.pca.lower_, bases.pca.upper_
+    est = prepared_estimator(skin)
+    results: dict = {"date": time.strftime("%Y-%m-%d"), "names": list(names), "args": vars(args), "kinds": {}}
+
+    def save() -> None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(results, indent=1, default=str))
+
+    def scan_field(truth_skin, displacement) -> DisplacementField:
+        config = ScannerConfig(n_points=args.points, noise_mm=NOISE_MM, marker_noise_mm=NOISE_MM, n_holes=3)
+        synthetic = synthesize_scan(truth_skin, displacement, config, seed=int(rng.integers(1 << 30)))
+        field, _ = field_from_scan(skin, synthetic.points, markers_mm=synthetic.markers,
+                                   markers_nominal_mm=synthetic.markers_nominal, estimator=est)
+        return field
+
+    def noisy_field(truth: np.ndarray) -> DisplacementField:
+        values = truth + rng.normal(0.0, NOISE_MM, truth.size)
+        return DisplacementField(skin.model_id, values, 1.0, NOISE_MM, FieldErrorModel.stated(NOISE_MM, truth.size))
+
+    def run(kind: str, n: int, draw) -> None:
+        """draw() -> (member, truth skin, truth normal field on the bases' skin nodes, description)."""
+        if (args.kinds and kind not in args.kinds) or n <= 0:
+            return
+        rows: dict[str, list[dict]] = {"scan": [], "field": []}
+        start = time.time()
+        for k in range(n):
+            member, truth_skin, truth_normal, about = draw()
+            row = verdict(bases, scan_field(truth_skin, member.displacement[0]), truth_normal, member, names)
+            rows["scan"].append(row | about)
+            rows["field"].append(verdict(bases, noisy_field(truth_normal), truth_normal, member, names) | about)
+            if (k + 1) % 10 == 0 or k + 1 == n:
+                results["kinds"][kind] = {way: {"summary": summary(r, names), "parts": r} for way, r in rows.items()}
+                save()
+                s = results["kinds"][kind]["scan"]["summary"]
+                log(f"{kind} {k + 1}/{n}: {(time.time() - start) / (k + 1):.1f} s per part, scan alarms "
+                    f"{s['alarm_rate']:.2f}, moved {s['moved']}, caught {s['moved_caught']}, unsafe {s['unsafe']}")
+
+    physics = [kind for kind in PHYSICS if not args.kinds or kind in args.kinds] if args.parts else []
+    if physics:
+        log("the embedded solver's responses at three thickness scales (perturbed physics)")
+        standin = StandIn(model, embedded_responses(model))
+    for kind in physics:
+        factors = PHYSICS[kind]
+        def draw_physics(factors=factors):
+            family = Family(**{key: float(1.0 + rng.uniform(-FAMILY_SPREAD[key], FAMILY_SPREAD[key]))
+                               for key in factors})
+            member = solve_members(standin.reduced(family), rng.uniform(lo, hi)[None])
+            about = {key: getattr(family, key) for key in factors}
+            return member, skin, member.normal_displacement[0], about
+        run(kind, args.parts, draw_physics)
+
+    if args.mesh_parts and args.resolution == "coarse" and (not args.kinds or "mesh_default" in args.kinds):
+        log("the default-resolution hood (truth on a finer mesh than the coarse bases)")
+        fine = build_preset("hood", "default")
+        fine_skin = skin_surface(fine)
+        fine_reduced = reduce_model(build_solver(fine))
+        source, target = _grid_coordinates(fine_skin.points), _grid_coordinates(skin.points)
+
+        def draw_mesh():  # the noise-free truth on the coarse nodes: linear in the skin's grid coordinates
+            member = solve_members(fine_reduced, rng.uniform(lo, hi)[None])
+            return member, fine_skin, LinearNDInterpolator(source, member.normal_displacement[0])(target), {}
+        run("mesh_default", args.mesh_parts, draw_mesh)
+
+    if args.ccx_parts and args.resolution != "coarse":
+        results["ccx"] = "not run: the CalculiX cache is the coarse hood's"
+    elif args.ccx_parts and args.ccx_cache.exists():
+        log(f"CalculiX S8R responses from {args.ccx_cache}")
+        ccx = StandIn(model, calculix_responses(model, cache=args.ccx_cache))
+        for kind, family_of in (("ccx_nominal", lambda: Family()), ("ccx_family", lambda: Family.draw(rng))):
+            def draw_ccx(family_of=family_of):
+                family = family_of()
+                member = solve_members(ccx.reduced(family), rng.uniform(lo, hi)[None])
+                return member, skin, member.normal_displacement[0], dataclasses.asdict(family)
+            run(kind, args.ccx_parts, draw_ccx)
+    elif args.ccx_parts:
+        log(f"no CalculiX cache at {args.ccx_cache}: the ccx kinds are not run")
+        results["ccx"] = f"not run: no cache at {args.ccx_cache}"
+    save()
+
+    print(f"{'kind':<18} {'way':<6} {'n':>4} {'alarm':>6} {'3x':>5} {'open':>5} {'moved':>6} {'caught':>7} "
+          f"{'alarmed':>8} {'unsafe':>6} {'max applied':>11} {'appl>0.02':>9} {'max appl':>8}")
+    for kind, ways in results["kinds"].items():
+        for way, block in ways.items():
+            s = block["summary"]
+            print(f"{kind:<18} {way:<6} {s['n']:>4} {s['alarm_rate']:>6.2f} {s['alarm_rate_noise_stated_3x']:>5.2f} "
+                  f"{s['gate_open_rate']:>5.2f} {s['moved']:>6} {s['moved_caught']:>7} {s['moved_alarmed']:>8} "
+                  f"{s['unsafe']:>6} {s['max_applied_error_mm']:>11.4f} {s['applicable_wrong']:>9} "
+                  f"{s['max_applicable_error_mm']:>8.4f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
