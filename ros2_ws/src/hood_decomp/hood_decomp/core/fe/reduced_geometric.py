@@ -100,7 +100,7 @@ class ReducedGeometricModel:
         return np.concatenate([[1.0], state[:self.n_bilateral], self.Bf.T @ (self.H @ f), q])
 
     def force(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Psi^T f_nl (r,) N mm-ish (eq. 2) and its derivative d/dy (r, d) at coordinates y (d,)."""
+        """Psi^T f_nl (r,) N (generalised forces on the unit-peak modes, eq. 2) and d/dy (r, d) at y (d,)."""
         t4y = self.T4q @ y  # (r, d, d)
         t4yy = t4y @ y
         t3y = self.T3q @ y
