@@ -6,6 +6,8 @@ import argparse
 import sys
 import time
 
+import numpy as np
+
 from hood_decomp.cli._common import check_output, emit_json, finite, model_inputs, written_whole
 from hood_decomp.errors import EnsembleError
 
@@ -32,6 +34,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="embedded shell solver, or CalculiX (ccx) for the unit responses")
     parser.add_argument("--scheduler", default=None,
                         help="Dask scheduler address for CalculiX jobs (default: a local cluster)")
+    parser.add_argument("--nonlinear", action="store_true",
+                        help="geometrically nonlinear members (Green-Lagrange membrane strains) through a reduced "
+                             "model built for the ranges (embedded solver only; docs/paper_comparison.md)")
+    parser.add_argument("--range", action="append", default=[], metavar="LABEL=MIN:MAX",
+                        help="override a parameter's range in mm, e.g. HINGE_Y=-0.5:0.5 (repeatable); on "
+                             "hood-paper HINGE_Y +1 mm buckles the hood, so --nonlinear needs it within +-0.5")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -48,26 +56,52 @@ def run(args: argparse.Namespace) -> int:
         if args.solver != "calculix":
             raise EnsembleError("--scheduler is used only with --solver calculix (the embedded solver runs here)")
         _check_scheduler(args.scheduler)
+    if args.nonlinear and args.solver != "embedded":
+        raise EnsembleError("--nonlinear needs --solver embedded (the nonlinear terms are the embedded shell's)")
     start = time.perf_counter()
     model = load_model(args.model)
+    lower, upper = _ranges(model.names, model.lower, model.upper, args.range)
+    nonlinear = None
     if args.solver == "embedded":
         from hood_decomp.core.fe.solver import build_solver, reduce_model
 
         solver = build_solver(model)
         reduced, backend = reduce_model(solver), solver.backend
+        if args.nonlinear:
+            from hood_decomp.core.fe.reduced_geometric import build_reduced_geometric
+
+            nonlinear = build_reduced_geometric(solver, lower, upper)
     else:
         from hood_decomp.core.fe.calculix import reduce_model_calculix
 
         reduced = reduce_model_calculix(model, scheduler=args.scheduler)
         backend = "ccx"
     with written_whole(out) as temporary:
-        summary = write_ensemble(temporary, reduced, skin_surface(model), model.lower, model.upper,
+        summary = write_ensemble(temporary, reduced, skin_surface(model), lower, upper,
                                  n_validation=args.validation, seed=args.seed, solver=args.solver,
-                                 solver_backend=backend)
+                                 solver_backend=backend, nonlinear=nonlinear)
     summary["out"] = args.out
     summary["seconds"] = round(time.perf_counter() - start, 2)
     emit_json(summary)
     return 0
+
+
+def _ranges(names: tuple[str, ...], lower: np.ndarray, upper: np.ndarray, overrides: list[str]
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """The model's ranges (P,) mm with ``--range LABEL=MIN:MAX`` overrides applied."""
+    lower, upper = lower.astype(float), upper.astype(float)
+    for text in overrides:
+        label, _, span = text.partition("=")
+        low, _, high = span.partition(":")
+        try:
+            values = float(low), float(high)
+        except ValueError:
+            values = (float("nan"), float("nan"))
+        if label not in names or not all(np.isfinite(values)) or not values[0] < values[1]:
+            raise EnsembleError(f"--range {text[:80]!r}: expected LABEL=MIN:MAX with LABEL among {list(names)} "
+                                "and finite MIN < MAX (mm)")
+        lower[names.index(label)], upper[names.index(label)] = values
+    return lower, upper
 
 
 def _export(args: argparse.Namespace) -> int:

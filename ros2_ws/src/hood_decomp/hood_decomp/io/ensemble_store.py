@@ -3,7 +3,8 @@
 Schema (``schema`` = "hood_decomp.ensemble", ``schema_version`` = 1; also in docs/ensemble_schema.md)::
 
     /                          attrs: schema, schema_version, model_id (str), n_bilateral (int), solver (str),
-                                      solver_backend (str), created_utc (ISO 8601 str), pad_counts (JSON str)
+                                      solver_backend (str), created_utc (ISO 8601 str), pad_counts (JSON str),
+                                      physics (str: linear | geometric-nonlinear), physics_detail (JSON str)
     /names                     (P,)      UTF-8 strings: parameter labels, bilateral first then unilateral
     /lower, /upper             (P,)      float64, mm: declared ranges
     /skin/points               (N, 3)    float64, mm: visible skin nodes (the node order of every per-node array)
@@ -32,6 +33,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import h5py
 import numpy as np
@@ -41,6 +43,9 @@ from hood_decomp.core.types import DisplacementField, Ensemble, ReducedModel, Sk
 from hood_decomp.errors import EnsembleError
 from hood_decomp.io.fields import write_field
 from hood_decomp.io.hdf5 import Reader, open_hdf5
+
+if TYPE_CHECKING:
+    from hood_decomp.core.fe.reduced_geometric import ReducedGeometricModel
 
 logger = logging.getLogger(__name__)
 
@@ -59,11 +64,12 @@ class EnsembleWriter:
 
     def __init__(self, path: str | Path, skin: SkinSurface, names: tuple[str, ...], n_bilateral: int,
                  lower: np.ndarray, upper: np.ndarray, sizes: dict[str, int], solver: str = "embedded",
-                 solver_backend: str = "") -> None:
+                 solver_backend: str = "", physics: str = "linear", physics_detail: str = "{}") -> None:
         self.path = Path(path)
         self._skin, self._names, self._n_bilateral = skin, tuple(names), int(n_bilateral)
         self._lower, self._upper, self._sizes = lower, upper, dict(sizes)
         self._solver, self._backend = solver, solver_backend
+        self._physics, self._physics_detail = physics, physics_detail
         self._file: h5py.File | None = None
 
     def __enter__(self) -> EnsembleWriter:
@@ -73,6 +79,7 @@ class EnsembleWriter:
         f.attrs.update({
             "schema": SCHEMA, "schema_version": SCHEMA_VERSION, "model_id": self._skin.model_id,
             "n_bilateral": self._n_bilateral, "solver": self._solver, "solver_backend": self._backend,
+            "physics": self._physics, "physics_detail": self._physics_detail,
             "created_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
             "content_id": content_id(self._skin, self._names, self._n_bilateral, self._lower, self._upper),
         })
@@ -119,24 +126,37 @@ class EnsembleWriter:
 
 
 def write_ensemble(path: str | Path, reduced: ReducedModel, skin: SkinSurface, lower: np.ndarray, upper: np.ndarray,
-                   n_validation: int = 1400, seed: int = 0, solver: str = "embedded", solver_backend: str = ""
-                   ) -> dict[str, object]:
+                   n_validation: int = 1400, seed: int = 0, solver: str = "embedded", solver_backend: str = "",
+                   nonlinear: ReducedGeometricModel | None = None) -> dict[str, object]:
     """Solve the full factorial (training) and ``n_validation`` uniform random members and store them at ``path``.
 
+    nonlinear: solve the members with this reduced geometrically nonlinear model (built for [lower, upper]) instead
+    of ``reduced``'s linear superposition; the store records ``physics`` = "geometric-nonlinear" and the model's size.
     Returns a summary: member counts, pad contact counts per group (lifted / partial / full (member, pad) pairs).
     """
     if skin.model_id != reduced.model_id:
         raise EnsembleError(f"skin model_id {skin.model_id} does not match the reduced model's {reduced.model_id}")
+    physics, detail = "linear", {}
+    if nonlinear is not None:
+        if not (np.array_equal(nonlinear.lower, lower) and np.array_equal(nonlinear.upper, upper)):
+            raise EnsembleError(f"the nonlinear model was built for ranges {nonlinear.lower.tolist()} .. "
+                                f"{nonlinear.upper.tolist()}, the ensemble asks for {list(lower)} .. {list(upper)}")
+        physics = "geometric-nonlinear"
+        detail = {"model": "reduced Green-Lagrange membrane (core/fe/reduced_geometric.py)",
+                  "correction_modes": nonlinear.modes, "pad_force_shapes": int(nonlinear.Bf.shape[1]),
+                  "build_residual_mm": nonlinear.residual}
     training, rank = factorial_plan(lower, upper)
     plans = {"training": (training, rank)}
     if n_validation:
         plans["validation"] = (validation_plan(lower, upper, n_validation, seed), np.full(n_validation, -1))
-    summary: dict[str, object] = {"seed": seed}
+    summary: dict[str, object] = {"seed": seed, "physics": physics}
     with EnsembleWriter(path, skin, reduced.names, reduced.n_bilateral, lower, upper,
-                        {g: len(c) for g, (c, _) in plans.items()}, solver, solver_backend) as writer:
+                        {g: len(c) for g, (c, _) in plans.items()}, solver, solver_backend, physics,
+                        json.dumps(detail)) as writer:
         for group, (commanded, ranks) in plans.items():
             fractions = []
-            for rows, block in iter_members(reduced, commanded):
+            solve = None if nonlinear is None else nonlinear.members
+            for rows, block in iter_members(reduced, commanded, solve=solve):
                 writer.write(group, rows, commanded=commanded[rows], effective=block.effective,
                              contact_fraction=block.contact_fraction, reactions=block.reactions, rank=ranks[rows],
                              normal_displacement=block.normal_displacement.astype(np.float32),
@@ -241,6 +261,7 @@ def store_info(path: str | Path) -> dict[str, object]:
     """Root attributes and group sizes of a store (JSON-able)."""
     with _open(path) as (f, read, _):
         info: dict[str, object] = {k: read.attr("/", k, "str") for k in ("model_id", "solver", "created_utc")}
+        info["physics"] = read.attr("/", "physics", "str") if "physics" in f.attrs else "linear"
         for group in GROUPS:
             if group in f:
                 info[f"{group}_members"] = read.attr(group, "n_members", "int")

@@ -9,7 +9,7 @@ rank as in Table 1 (rank = number of non-zero parameters); validation members ar
 from __future__ import annotations
 
 import itertools
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -116,13 +116,16 @@ def contact_summary(commanded: np.ndarray, forces: np.ndarray, z: np.ndarray, pa
     return effective, contact_fraction, reactions
 
 
-def iter_members(reduced: ReducedModel, commanded: np.ndarray, block: int = 128
-                 ) -> Iterator[tuple[slice, MemberBlock]]:
-    """Solve members (m, P) mm block by block (bounded memory for large skins): (rows, solutions) per block."""
+def iter_members(reduced: ReducedModel, commanded: np.ndarray, block: int = 128,
+                 solve: Callable[[np.ndarray], MemberBlock] | None = None) -> Iterator[tuple[slice, MemberBlock]]:
+    """Solve members (m, P) mm block by block (bounded memory for large skins): (rows, solutions) per block.
+
+    solve: another solver of a block of members (e.g. the reduced nonlinear model's ``members``); None: the linear
+    :func:`solve_members` of ``reduced``."""
     total = len(commanded)
     for start in range(0, total, block):
         rows = slice(start, min(start + block, total))
-        yield rows, solve_members(reduced, commanded[rows])
+        yield rows, solve_members(reduced, commanded[rows]) if solve is None else solve(commanded[rows])
 
 
 def simulate_ensemble(reduced: ReducedModel, commanded: np.ndarray, rank: np.ndarray, lower: np.ndarray,

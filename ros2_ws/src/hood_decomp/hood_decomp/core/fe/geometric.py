@@ -322,7 +322,7 @@ class NonlinearSolver:
                 x = image
         return None
 
-    def _solve_one(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    def solve_displacement(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
         """One member: displacement (6n,) mm, pad forces (S,) N, iterations."""
         start, u, tangent = min(self._solved, key=lambda solved: float(np.abs(solved[0] - state).sum()))
         done, step, fresh, iterations, f = 0.0, 1.0, True, 0, None
@@ -357,7 +357,7 @@ class NonlinearSolver:
         forces = np.zeros((m, len(self.solver.pads.k)))
         iterations = np.zeros(m, dtype=np.int64)
         for member, state in enumerate(commanded):
-            u[:, member], forces[member], iterations[member] = self._solve_one(state)
+            u[:, member], forces[member], iterations[member] = self.solve_displacement(state)
             if (member + 1) % 50 == 0:
                 logger.info("nonlinear member %d/%d, %d tangents so far", member + 1, m, self.factorisations)
         z = np.asarray(self._pad_loads.T @ u).T

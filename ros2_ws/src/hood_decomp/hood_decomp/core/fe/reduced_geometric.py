@@ -1,0 +1,308 @@
+"""A reduced geometrically nonlinear model: members of :mod:`.geometric`'s physics in milliseconds.
+
+A member of the full nonlinear model (:class:`.geometric.NonlinearSolver`) solves K u + f_nl(u) = F + P f with the
+pad contact. Its exact solution is u = u_lin(a, f) + c with the linear member u_lin = u0 + W a + G f (load response,
+unit bilateral responses, unit pad spring responses; exact contact) and the correction c = -K^-1 f_nl(u) on the free
+DOFs. Here the correction is sought in a small space, c = Psi q (r modes, zero on the constrained DOFs), by Galerkin
+projection in K's inner product,
+
+    Psi^T K Psi q + Psi^T f_nl(u) = 0,     f = LCP(M, z0 + Sa a + Zq q - b[pad_of] - preload)       (1)
+
+with the pad contact solved exactly on the linear compliance M = H + diag(1/k) (Zq = P^T Psi: the correction moves
+the pads). f_nl is the gradient of the Green-Lagrange membrane energy beyond the linear one (cubic + quartic in u), so
+with u written in reduced coordinates y = (1, a, phi, q), u = u0 + W a + G Bf phi + Psi q, the projected force is a
+cubic polynomial in y whose tensors are computed once from the facet triangles:
+
+    E(y) = T3 . y^3 + T4 . y^4,   Psi^T f_nl = dE/dq = 3 T3(y, y, .) + 4 T4(y, y, y, .)                    (2)
+
+The pad forces enter f_nl only through phi = Bf^T H f, their projection on the p pad force shapes (Bf, H-orthonormal)
+that the linear members use (H-weighted POD of their forces); the linear part keeps every spring exactly. A member is
+a semi-smooth Newton method on q (r unknowns) with the LCP re-solved in every step and its active set's derivative in
+the Jacobian: milliseconds, whatever the mesh.
+
+Psi is the K-weighted POD of the exact corrections u - u_lin of a few training states (ranks 0-2 of the factorial
+and the 2^P corners of the ranges), each solved once by the full nonlinear model. The reduced model is valid inside
+the parameter ranges it was built for; a range that passes a buckling load (HINGE_Y +1 mm on the hood) stalls the
+full solves of the training states or shows as a reduced tangent that is not positive definite (SolverError).
+Checked member by member against the full nonlinear solver (tests/core/fe/test_reduced_geometric.py,
+benchmarks/bench_nlgeom_rom.py).
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from hood_decomp.core.fe.contact import solve_lcp
+from hood_decomp.core.fe.ensemble import MemberBlock, contact_summary, factorial_plan, validation_plan
+from hood_decomp.core.fe.geometric import FacetTriangles, NonlinearSolver, facet_triangles
+from hood_decomp.core.fe.model import skin_surface
+from hood_decomp.core.fe.solver import ShellSolver
+from hood_decomp.errors import SolverError
+
+logger = logging.getLogger(__name__)
+#: relative H-weighted singular value below which a pad force shape is dropped
+PAD_TOLERANCE = 3e-3
+#: bytes of facet temporaries per chunk when the energy tensors are summed
+CHUNK_BYTES = 200e6
+
+
+@dataclass(frozen=True)
+class ReducedGeometricModel:
+    """The reduced nonlinear model of one part, pad set and parameter range (see the module docstring).
+
+    names: (P,) labels, bilateral first. n_bilateral: B. lower, upper: (P,) mm, the ranges it was built for.
+    w0, w0_3d: (N,), (N, 3) skin normal / 3D load response, mm. R, R_3d: (N, B), (N, 3, B) per mm.
+    G, G_3d: (N, S), (N, 3, S) per N. Psi, Psi_3d: (N, r), (N, 3, r) mm, the correction modes on the skin.
+    z0: (S,), Sa: (S, B), H: (S, S), Zq: (S, r): pad spring displacements, mm. k, preload, pad_of: (S,).
+    Bf: (S, p) pad force shapes, H-orthonormal. Kq: (r, r) N/mm, Psi^T K Psi.
+    T3q: (r, d, d), T4q: (r, d, d, d): the rows of the symmetrised energy tensors for q, d = 1 + B + p + r.
+    residual: mm, the largest full-model residual correction of the training members at the end of the build.
+    """
+
+    model_id: str
+    names: tuple[str, ...]
+    n_bilateral: int
+    parameter_states: str
+    lower: np.ndarray
+    upper: np.ndarray
+    w0: np.ndarray
+    R: np.ndarray
+    G: np.ndarray
+    Psi: np.ndarray
+    w0_3d: np.ndarray
+    R_3d: np.ndarray
+    G_3d: np.ndarray
+    Psi_3d: np.ndarray
+    z0: np.ndarray
+    Sa: np.ndarray
+    H: np.ndarray
+    Zq: np.ndarray
+    k: np.ndarray
+    preload: np.ndarray
+    pad_of: np.ndarray
+    Bf: np.ndarray
+    Kq: np.ndarray
+    T3q: np.ndarray
+    T4q: np.ndarray
+    residual: float
+
+    @property
+    def modes(self) -> int:
+        return int(self.Kq.shape[0])
+
+    def coordinates(self, state: np.ndarray, f: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """y (d,) of a state (P,) mm, pad forces (S,) N and correction coordinates (r,)."""
+        return np.concatenate([[1.0], state[:self.n_bilateral], self.Bf.T @ (self.H @ f), q])
+
+    def force(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Psi^T f_nl (r,) N (generalised forces on the unit-peak modes, eq. 2) and d/dy (r, d) at y (d,)."""
+        t4y = self.T4q @ y  # (r, d, d)
+        t4yy = t4y @ y
+        t3y = self.T3q @ y
+        return 3 * t3y @ y + 4 * t4yy @ y, 6 * t3y + 12 * t4yy
+
+    def solve(self, state: np.ndarray, max_iter: int = 40, tolerance: float = 1e-9
+              ) -> tuple[np.ndarray, np.ndarray, int]:
+        """One member (eq. 1): pad forces f (S,) N, correction coordinates q (r,), Newton iterations.
+
+        Newton from q = 0 (the linear member); when it does not converge, continuation in the nonlinear force's
+        scale (1/4, 1/2, 3/4, 1). SolverError when that fails too or the reduced tangent is not positive definite at
+        the solution (beyond a buckling load)."""
+        for scales in ((1.0,), (0.25, 0.5, 0.75, 1.0)):
+            q = np.zeros(self.modes)
+            iterations = 0
+            for scale in scales:
+                result = self._newton(state, q, scale, max_iter, tolerance)
+                if result is None:
+                    break
+                f, q, count, tangent = result
+                iterations += count
+            else:
+                if np.linalg.eigvalsh(0.5 * (tangent + tangent.T)).min() <= 0:
+                    raise SolverError(f"reduced nonlinear member {np.round(state, 4).tolist()}: the tangent is not "
+                                      "positive definite (beyond a buckling load; narrow the parameter ranges)")
+                return f, q, iterations
+        raise SolverError(f"reduced nonlinear member {np.round(state, 4).tolist()} did not converge: the loads are "
+                          "near a buckling load or outside the ranges the model was built for "
+                          f"({self.lower.tolist()} .. {self.upper.tolist()})")
+
+    def _newton(self, state: np.ndarray, q: np.ndarray, scale: float, max_iter: int, tolerance: float
+                ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray] | None:
+        B, r = self.n_bilateral, self.modes
+        offset = self.z0 + self.Sa @ state[:B] - state[B:][self.pad_of] - self.preload
+        M = self.H + np.diag(1.0 / self.k)
+        phi = slice(1 + B, 1 + B + self.Bf.shape[1])
+        for iteration in range(1, max_iter + 1):
+            f = solve_lcp(M, offset + self.Zq @ q)
+            force, derivative = self.force(self.coordinates(state, f, q))
+            residual = self.Kq @ q + scale * force
+            tangent = self.Kq + scale * derivative[:, -r:]
+            active = f > 0
+            if active.any():  # df_A/dq = -M_AA^-1 Zq_A: the contact follows the correction
+                df = np.linalg.solve(M[np.ix_(active, active)], -self.Zq[active])
+                tangent = tangent + scale * derivative[:, phi] @ (self.Bf.T @ self.H[:, active]) @ df
+            step = np.linalg.solve(tangent, -residual)
+            if not np.all(np.isfinite(step)):
+                return None
+            q = q + step
+            if np.abs(step).max() < tolerance:
+                return solve_lcp(M, offset + self.Zq @ q), q, iteration, tangent
+        return None
+
+    def members(self, commanded: np.ndarray) -> MemberBlock:
+        """Members (m, P) mm as :func:`.ensemble.solve_members` reports them (skin fields, contact summary)."""
+        commanded = np.atleast_2d(np.asarray(commanded, dtype=float))
+        if commanded.ndim != 2 or commanded.shape[1] != len(self.names) or not np.all(np.isfinite(commanded)):
+            raise SolverError(f"expected finite parameter states (m, {len(self.names)}), got {commanded.shape}")
+        B, m = self.n_bilateral, len(commanded)
+        forces = np.zeros((m, len(self.k)))
+        q = np.zeros((m, self.modes))
+        for i, state in enumerate(commanded):
+            forces[i], q[i], _ = self.solve(state)
+        a = commanded[:, :B]
+        z = (self.z0[None] + a @ self.Sa.T + forces @ self.H.T + q @ self.Zq.T)
+        effective, fraction, reactions = contact_summary(commanded, forces, z, self.pad_of, self.preload, B,
+                                                         self.parameter_states)
+        normal = self.w0[None] + a @ self.R.T + forces @ self.G.T + q @ self.Psi.T
+        vectors = (self.w0_3d[None] + np.einsum("nab,mb->mna", self.R_3d, a)
+                   + np.einsum("nas,ms->mna", self.G_3d, forces) + np.einsum("nar,mr->mna", self.Psi_3d, q))
+        compression = commanded[:, B:][:, self.pad_of] + self.preload - z
+        return MemberBlock(effective, fraction, reactions, normal, vectors, forces, compression)
+
+
+def energy_tensors(facets: FacetTriangles, basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The Green-Lagrange membrane energy beyond the linear one of u = basis @ y, as symmetric tensors:
+    E(y) = T3 . y^3 + T4 . y^4 (T3 (d, d, d), T4 (d, d, d, d)); basis: nodal translations (n, 3, d) mm.
+
+    Per facet, eps_L = L y and eps_Q = (y^T S_k y)_k (k = xx, yy, 2xy); E = sum A [eps_L^T tD eps_Q + 1/2 eps_Q^T
+    tD eps_Q] (the energy whose gradient is :func:`.geometric.nonlinear_forces`). Summed over the facets in the
+    d (d + 1) / 2 products y_a y_b (a <= b), then spread to the full tensors."""
+    d = basis.shape[2]
+    first, second = np.triu_indices(d)
+    weight = np.where(first == second, 1.0, 2.0)  # y^T S y = sum over a <= b of weight S_ab y_a y_b
+    pairs = len(first)
+    T3 = np.zeros((d, pairs))
+    T4 = np.zeros((pairs, pairs))
+    size = len(facets.nodes)
+    chunk = max(1, int(CHUNK_BYTES / (8 * 9 * max(d * d, pairs))))
+    for start in range(0, size, chunk):
+        sub = slice(start, start + chunk)
+        J = np.einsum("tai,ticm->tcam", facets.grad[sub], basis[facets.nodes[sub]], optimize=True)  # (t, 3, 2, d)
+        local = np.einsum("tdc,tcam->tdam", facets.frame[sub, :2], J)
+        L = np.stack([local[:, 0, 0], local[:, 1, 1], local[:, 0, 1] + local[:, 1, 0]], axis=1)  # (t, 3, d)
+        Jx, Jy = J[:, :, 0], J[:, :, 1]
+        S = np.stack([0.5 * np.einsum("tca,tcb->tab", Jx, Jx), 0.5 * np.einsum("tca,tcb->tab", Jy, Jy),
+                      np.einsum("tca,tcb->tab", Jx, Jy)], axis=1)  # (t, 3, d, d), y^T S_k y = eps_Q,k
+        S = S + S.transpose(0, 1, 3, 2)
+        S = 0.5 * S[:, :, first, second] * weight  # (t, 3, pairs)
+        Dt = (facets.area[sub] * facets.thickness[sub])[:, None, None] * facets.D  # (t, 3, 3)
+        ell = np.einsum("tka,tkl->tla", L, Dt)
+        DS = np.einsum("tkl,tlp->tkp", Dt, S)
+        flat = S.reshape(-1, pairs)
+        T3 += ell.reshape(-1, d).T @ flat
+        T4 += 0.5 * flat.T @ DS.reshape(-1, pairs)
+    full3 = np.zeros((d, d, d))
+    full3[:, first, second] = T3  # a <= b only: the sum over all indices is then z-space's
+    full4 = np.zeros((d, d, d, d))
+    full4[first[:, None], second[:, None], first[None], second[None]] = T4
+    full3 = sum(full3.transpose(p) for p in itertools.permutations(range(3))) / 6
+    full4 = sum(full4.transpose(p) for p in itertools.permutations(range(4))) / 24
+    return full3, full4
+
+
+def training_states(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """States (m, P) mm the correction modes are built from: ranks 0-2 of the factorial and the 2^P corners (137 for
+    six parameters; without rank 2, 77, the coarse hood's random members were 0.014 mm from the full solve, with it
+    0.008 mm)."""
+    commanded, rank = factorial_plan(lower, upper)
+    corners = np.array(list(itertools.product(*zip(lower, upper, strict=True))), dtype=float)
+    return np.concatenate([commanded[rank <= 2], corners])
+
+
+def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.ndarray, modes: int = 36,
+                            pad_samples: int = 1400, seed: int = 1, full: NonlinearSolver | None = None
+                            ) -> ReducedGeometricModel:
+    """The reduced nonlinear model of a factorised linear solver over the ranges [lower, upper] (P,) mm.
+
+    The correction modes are the K-weighted POD (``modes`` of them at most) of the exact corrections u - u_lin of the
+    training states (:func:`training_states`), solved by the full nonlinear model (``full``, or a new
+    :class:`.geometric.NonlinearSolver` of ``solver``); ``residual`` is the largest difference of the reduced model's
+    training members from those (any skin translation). pad_samples: random states whose linear pad forces (with the
+    factorial's) give the pad force shapes.
+    """
+    start = time.perf_counter()
+    model = solver.model
+    lower, upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
+    n, B = len(model.nodes), len(model.bilateral)
+    pads = solver.pads
+    P = pads.loads.tocsr()
+    u0 = solver.load_response()
+    W = np.stack([solver.boundary_response(p.boundary, p.direction) for p in model.bilateral], axis=1)
+    G = solver.solve(pads.loads.toarray())
+    H = np.asarray(P.T @ G)
+    H = 0.5 * (H + H.T)
+    z0, Sa = P.T @ u0, np.asarray(P.T @ W)
+    M = H + np.diag(1.0 / pads.k)
+
+    # pad force shapes: H-weighted POD of the linear members' forces
+    factorial, _ = factorial_plan(lower, upper)
+    samples = np.concatenate([factorial, validation_plan(lower, upper, pad_samples, seed)])
+    forces = np.array([solve_lcp(M, z0 + Sa @ s[:B] - s[B:][pads.pad_of] - pads.preload) for s in samples])
+    values, vectors = np.linalg.eigh(H)
+    root = vectors * np.sqrt(np.maximum(values, 0))  # H = root root^T
+    _, sigma, vt = np.linalg.svd(forces @ root, full_matrices=False)
+    p = int((sigma > PAD_TOLERANCE * sigma[0]).sum())
+    Bf = (vectors / np.sqrt(np.maximum(values, values.max() * 1e-14))) @ vt[:p].T  # root^-T V: H-orthonormal
+    logger.info("%d pad force shapes of %d springs (%.1f s)", p, len(pads.k), time.perf_counter() - start)
+
+    states = training_states(lower, upper)
+    full = NonlinearSolver(solver) if full is None else full
+    exact, f = np.zeros((6 * n, len(states))), np.zeros((len(states), len(pads.k)))
+    for i, state in enumerate(states):
+        exact[:, i], f[i], _ = full.solve_displacement(state)
+    logger.info("%d training members solved by the full nonlinear model (%.1f s)", len(states),
+                time.perf_counter() - start)
+    snapshots = exact - u0[:, None] - W @ states[:, :B].T - G @ f.T  # zero on the constrained DOFs
+    gram = snapshots.T @ (solver.K @ snapshots)
+    values, vectors = np.linalg.eigh(0.5 * (gram + gram.T))
+    order = np.argsort(values)[::-1][:modes]
+    order = order[values[order] > 1e-12 * values[order[0]]]
+    Psi = snapshots @ vectors[:, order]
+    Psi /= np.abs(Psi).max(axis=0)
+    rom = _assemble(solver, Psi, u0, W, G, H, z0, Sa, Bf, lower, upper)
+    reference = exact.reshape(n, 6, -1)[model.skin_nodes, :3].transpose(2, 0, 1)
+    residual = float(np.abs(rom.members(states).displacement - reference).max())
+    logger.info("reduced nonlinear model: %d modes, %d pad force shapes; training members within %.4f mm (%.1f s)",
+                rom.modes, p, residual, time.perf_counter() - start)
+    return replace(rom, residual=residual)
+
+
+def _assemble(solver: ShellSolver, Psi: np.ndarray, u0: np.ndarray, W: np.ndarray, G: np.ndarray, H: np.ndarray,
+              z0: np.ndarray, Sa: np.ndarray, Bf: np.ndarray, lower: np.ndarray, upper: np.ndarray
+              ) -> ReducedGeometricModel:
+    """The reduced model of the correction modes Psi (6n, r) (residual not yet measured: NaN)."""
+    model = solver.model
+    n, r = len(model.nodes), Psi.shape[1]
+    basis = np.concatenate([u0[:, None], W, G @ Bf, Psi], axis=1).reshape(n, 6, -1)[:, :3]
+    T3, T4 = energy_tensors(facet_triangles(model), basis)
+    skin, normals = model.skin_nodes, skin_surface(model).normals
+
+    def on_skin(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = u.reshape(n, 6, -1)[skin, :3]
+        return np.einsum("nak,na->nk", t, normals), t
+
+    w, w3 = on_skin(np.concatenate([u0[:, None], W], axis=1))
+    g, g3 = on_skin(G)
+    psi, psi3 = on_skin(Psi)
+    pads = solver.pads
+    return ReducedGeometricModel(
+        model_id=model.model_id, names=tuple(model.names), n_bilateral=len(model.bilateral),
+        parameter_states=model.parameter_states, lower=lower.copy(), upper=upper.copy(), w0=w[:, 0], R=w[:, 1:],
+        G=g, Psi=psi, w0_3d=w3[:, :, 0], R_3d=w3[:, :, 1:], G_3d=g3, Psi_3d=psi3, z0=z0, Sa=Sa, H=H,
+        Zq=np.asarray(pads.loads.T @ Psi), k=pads.k.copy(), preload=pads.preload.copy(), pad_of=pads.pad_of.copy(),
+        Bf=Bf, Kq=Psi.T @ (solver.K @ Psi), T3q=T3[-r:].copy(), T4q=T4[-r:].copy(), residual=float("nan"))

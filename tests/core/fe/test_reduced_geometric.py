@@ -1,0 +1,64 @@
+"""The reduced geometrically nonlinear model (core/fe/reduced_geometric.py) against the full nonlinear solve.
+
+The accuracy over a whole parameter range is a benchmark (benchmarks/bench_nlgeom_rom.py, RESULTS.md); here the two
+things that make it exact when its spaces are: the energy tensors against the full-order force, and the reduced
+Galerkin + contact solve against a full nonlinear member whose correction is in its space.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hood_decomp.core.fe.geometric import NonlinearSolver, facet_triangles, nonlinear_forces
+from hood_decomp.core.fe.hood_preset import build_preset
+from hood_decomp.core.fe.reduced_geometric import _assemble, energy_tensors
+from hood_decomp.core.fe.solver import build_solver
+
+
+@pytest.fixture(scope="module")
+def coarse_paper():
+    model = build_preset("hood-paper", "coarse")
+    return model, build_solver(model)
+
+
+def test_energy_tensors_give_the_full_order_nonlinear_force(coarse_paper) -> None:
+    """Fails if the cubic/quartic tensors of the membrane energy (eq. 2) differ from the projection of the full-order
+    force of geometric.nonlinear_forces on the basis, u = basis @ y, for a random basis and y (a wrong strain term,
+    pair weight or symmetrisation)."""
+    model, _ = coarse_paper
+    facets = facet_triangles(model)
+    rng = np.random.default_rng(3)
+    basis = rng.normal(size=(len(model.nodes), 3, 5)) * 0.01
+    T3, T4 = energy_tensors(facets, basis)
+    for y in (rng.normal(size=5), 10 * rng.normal(size=5)):  # the cubic and the quartic term dominate in turn
+        reduced = 3 * np.einsum("abc,b,c->a", T3, y, y) + 4 * np.einsum("abcd,b,c,d->a", T4, y, y, y)
+        full = np.einsum("nak,na->k", basis, nonlinear_forces(facets, (basis @ y)[:, :, None])[..., 0])
+        assert np.abs(reduced - full).max() < 1e-10 * np.abs(full).max()
+
+
+def test_reduced_member_is_the_full_member_when_its_correction_is_in_the_space(coarse_paper) -> None:
+    """Fails if the reduced member (Galerkin projection, semi-smooth Newton with the pad contact re-solved) does not
+    return a full nonlinear member (NonlinearSolver, an independent iteration on the full mesh) whose correction
+    u - u_lin is the only mode and whose pad forces are exact (all pad shapes kept): a member with a buffer pressed,
+    so the contact and the nonlinear force both act."""
+    model, solver = coarse_paper
+    state = np.array([0.0, -0.5, -1.0, 0.0, 1.0, 0.0])
+    u, f, _ = NonlinearSolver(solver).solve_displacement(state)
+    assert (f > 0).any()
+    pads, B = solver.pads, len(model.bilateral)
+    u0 = solver.load_response()
+    W = np.stack([solver.boundary_response(p.boundary, p.direction) for p in model.bilateral], axis=1)
+    G = solver.solve(pads.loads.toarray())
+    H = np.asarray(pads.loads.T @ G)
+    H = 0.5 * (H + H.T)
+    values, vectors = np.linalg.eigh(H)
+    correction = u - u0 - W @ state[:B] - G @ f
+    rom = _assemble(solver, correction[:, None], u0, W, G, H, pads.loads.T @ u0, np.asarray(pads.loads.T @ W),
+                    vectors / np.sqrt(values), model.lower, model.upper)
+    member = rom.members(state[None])
+    n = len(model.nodes)
+    expected = u.reshape(n, 6)[model.skin_nodes, :3]
+    assert np.abs(correction).max() > 0.05  # the nonlinear part is not negligible
+    assert np.abs(member.displacement[0] - expected).max() < 1e-6
+    assert np.allclose(member.pad_forces[0], f, atol=1e-6 * f.max())
