@@ -19,10 +19,8 @@ Z95 = 1.959964
 def test_lock_and_buffer_stds_cover_the_contact_state_ambiguity(coarse_hood):
     """Fails if the spread between the contact states a noisy field supports is left out of the stated covariance
     (locks and buffers then hold 91-92 % inside their 95 % interval: 91.6 % pooled over 2,000 fields on 2026-11-24)
-    or if it is overstated (above 97.5 %). Pooled over locks and buffers whose contact flag is right, 600 fields: the
-    binomial std of the pooled fraction is ~0.4 %; with the term it was 94.8 % on 2,000 fields, and 96.9 % on 1,200
-    (97.1 / 96.7 % with seeds 7 / 8) once a touch the field cannot show is reported from the fit without it (the
-    spread to the touching fit then counts in full)."""
+    or if it is overstated (above 97 %). Pooled over locks and buffers whose contact flag is right, 600 fields: the
+    binomial std of the pooled fraction is ~0.5 %; with the term it was 94.8 % on 2,000 fields."""
     bases, reduced, skin = coarse_hood.bases, coarse_hood.reduced, coarse_hood.skin
     lower, upper = bases.pca.lower_, bases.pca.upper_
     n_b = reduced.n_bilateral
@@ -41,4 +39,4 @@ def test_lock_and_buffer_stds_cover_the_contact_state_ambiguity(coarse_hood):
         locks_and_buffers = np.arange(z.size) >= n_b - 2
         inside.extend(np.abs(z[right & locks_and_buffers]) <= Z95)
     fraction = float(np.mean(inside))
-    assert 0.93 <= fraction <= 0.975, f"{fraction:.3f} of lock and buffer errors inside the stated 95 % interval"
+    assert 0.93 <= fraction <= 0.97, f"{fraction:.3f} of lock and buffer errors inside the stated 95 % interval"
