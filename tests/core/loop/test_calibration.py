@@ -115,9 +115,6 @@ def test_too_few_entries_are_refused(coarse_hood, case):
         calibrate(coarse_hood.reduced, case["physics"], entries, coarse_hood.skin)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 16 target unmet: with the thermal response through the calibrated unit "
-                   "responses the shifts are HINGE_X ~0.003 mm, but a part with both buffers lifted still moves "
-                   "BUFFER_L/R by ~0.007/0.011 mm at 5 K (benchmarks/RESULTS.md)")
 def test_part_5_k_warmer_estimates_as_at_reference(coarse_hood, case):
     """Fails if a CalculiX part 5 K warmer (thermal field by CalculiX with a thermal load: *EXPANSION, *TEMPERATURE)
     estimated with its temperature moves any boundary estimate by more than 0.005 mm from the same part at the

@@ -53,7 +53,8 @@ def calculix_responses(model: PartModel, scales: tuple[float, ...] = THICKNESS_S
     """CalculiX translations (n, 3) mm per thickness scale: "load" (gravity + gas springs), "gas" (gas springs
     alone), "unit_<LABEL>" per bilateral parameter at every scale, and "pad_<s>" per pad spring at scale 1 only (the
     pad responses are 28 of 34 jobs on the coarse hood; :class:`StandIn` moves them with thickness by the embedded
-    solver's difference). ``cache``: an .npz read when present (and its model_id matches) and written after the runs.
+    solver's difference). ``cache``: an .npz read when present (and its model_id matches) and written after the runs
+    (complete or not at all).
     """
     if cache is not None and Path(cache).exists():
         with np.load(cache, allow_pickle=False) as data:
@@ -74,7 +75,10 @@ def calculix_responses(model: PartModel, scales: tuple[float, ...] = THICKNESS_S
         out[scale] = run_cases(scaled, cases, constrained)
     if cache is not None:
         arrays = {f"{s!r}|{name}": value for s, columns in out.items() for name, value in columns.items()}
-        np.savez_compressed(cache, model_id=np.array(model.model_id), scales=np.array(scales), **arrays)
+        # written under another name and renamed when complete: another process may read the cache once it exists
+        partial = Path(cache).with_suffix(".partial.npz")
+        np.savez_compressed(partial, model_id=np.array(model.model_id), scales=np.array(scales), **arrays)
+        partial.replace(cache)
     return out
 
 
@@ -100,12 +104,25 @@ def embedded_pad_responses(model: PartModel, scale: float, pad_lattice: int = PA
     return build_solver(scaled_thickness(model, scale), validate=False, pad_lattice=pad_lattice).pad_responses()
 
 
+@dataclass(frozen=True)
+class StandInParts:
+    """Stand-in parts (m of them): normal_displacement (m, N) mm, noise-free; effective (m, P) mm the parameter states
+    (a lifted pad's: the part's position there); reactions (m, U) N total pad reactions; position (m, U) mm the part's
+    position at each pad (where it would just touch; below a touching pad's commanded position by its largest spring
+    compression)."""
+
+    normal_displacement: np.ndarray
+    effective: np.ndarray
+    reactions: np.ndarray
+    position: np.ndarray
+
+
 class StandIn:
     """Stand-in parts of one model from CalculiX responses (:func:`calculix_responses`).
 
     ``reduced(family, thickness)`` is the CalculiX reduced model of a part (thickness: the part's own factor on top of
     the family's); ``fields(family, settings, rng)`` makes the skin normal fields (m, N) of m parts of a family at
-    commanded settings (m, P) mm, each with its own thickness variation.
+    commanded settings (m, P) mm, each with its own thickness variation (:class:`StandInParts`).
     """
 
     def __init__(self, model: PartModel, responses: dict[float, dict[str, np.ndarray]],
@@ -147,17 +164,21 @@ class StandIn:
         return replace(reduced, k=reduced.k * family.pad_stiffness, preload=reduced.preload * family.preload)
 
     def fields(self, family: Family, settings: np.ndarray, rng: np.random.Generator,
-               part_spread: float = PART_THICKNESS_SPREAD) -> tuple[np.ndarray, np.ndarray]:
-        """Normal fields (m, N) mm (noise-free) and effective states (m, P) mm of m parts of ``family`` at commanded
-        settings (m, P) mm, each part with its own thickness factor."""
+               part_spread: float = PART_THICKNESS_SPREAD) -> StandInParts:
+        """m parts of ``family`` at commanded settings (m, P) mm, each part with its own thickness factor."""
         settings = np.atleast_2d(np.asarray(settings, dtype=float))
+        n_pads = len(self.model.unilateral)
         out = np.empty((len(settings), len(self.model.skin_nodes)))
         effective = np.empty_like(settings)
+        reactions, position = np.empty((len(settings), n_pads)), np.empty((len(settings), n_pads))
+        pad_of = self.pads.pad_of
         for i, setting in enumerate(settings):
             thickness = 1.0 + rng.uniform(-part_spread, part_spread) if part_spread > 0 else 1.0
             block = solve_members(self.reduced(family, thickness), setting[None, :])
-            out[i], effective[i] = block.normal_displacement[0], block.effective[0]
-        return out, effective
+            out[i], effective[i], reactions[i] = block.normal_displacement[0], block.effective[0], block.reactions[0]
+            # b - compression = z - preload per spring; its minimum is the part's position at the pad
+            position[i] = [np.min(setting[-n_pads + u] - block.compression[0, pad_of == u]) for u in range(n_pads)]
+        return StandInParts(out, effective, reactions, position)
 
 
 def embedded_responses(model: PartModel, scales: tuple[float, ...] = THICKNESS_SCALES,

@@ -33,7 +33,7 @@ from hood_decomp.core.method.estimation import (
     valid_normal_matrix,
 )
 from hood_decomp.core.method.residual import ResidualTest, node_variance
-from hood_decomp.core.types import DisplacementField, ParameterEstimate, ReducedModel
+from hood_decomp.core.types import DisplacementField, FieldErrorModel, ModelCheck, ParameterEstimate, ReducedModel
 from hood_decomp.errors import FieldError, ModelError
 
 # Start from every pad combination up to this many pads (2^U starts); beyond it, all-touching and all-lifted only.
@@ -67,6 +67,22 @@ class _Candidate:
     normal_inverse: np.ndarray  # (n_theta, n_theta)
     rss: float
     feasible: bool
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """The reported fit of one contact state (:meth:`ContactEstimator._fit`); unseen: (U,) pads touching in the state
+    whose compression the field cannot show."""
+
+    values: np.ndarray
+    covariance: np.ndarray
+    lifted: np.ndarray
+    unseen: np.ndarray
+    reconstruction: np.ndarray
+    residual: np.ndarray
+    rms: float
+    worst: float
+    check: ModelCheck
 
 
 class ContactEstimator:
@@ -224,6 +240,45 @@ class ContactEstimator:
             raise FieldError("no contact state satisfies the contact conditions for this field")
         self._improve(candidates, problem, cache)
         best = self._select(list(candidates.values()), n_valid)
+        measured = noise2 > 0  # a noisy field: its noise level stated by noise_rms or by its error model
+        min_force = self.measured_min_pad_force_n if measured else 0.0
+        fit = self._fit(best, values, valid, errors, min_force)
+        if fit.unseen.any() and not measured:
+            # Without a noise level nothing weighs the contact states (no spread term): a touch the field cannot show
+            # (compression within LIFTED_SIGMAS of its std, the model's discrepancy included) is decided lifted, and
+            # its position and the other values come from the fit without it: the touching fit's light force only
+            # absorbs model error (on a calibrated model 5 K warmer, a 1 N touch of a lifted buffer moved its
+            # reported position 0.011 mm). On a noisy field the spread to the other states covers it (reporting the
+            # lifted fit there overstated the buffers' std: median |z| 0.40 on the coarse hood's validation).
+            free = np.isin(model.pad_of, np.flatnonzero(fit.unseen))
+            cand, tension, penetration = self._evaluate(best.active & ~free, problem, cache)
+            if cand.feasible and not tension.any() and not penetration.any():
+                best = candidates.setdefault(cand.active.tobytes(), cand)
+                fit = self._fit(best, values, valid, errors, min_force)
+        covariance = fit.covariance + self._between_states(candidates.values(), best, fit.values, noise2, min_force)
+        return ParameterEstimate(
+            model_id=model.model_id,
+            names=tuple(model.names),
+            values=fit.values,
+            std=np.sqrt(np.clip(np.diag(covariance), 0.0, None)),
+            lower=self.lower_.copy(),
+            upper=self.upper_.copy(),
+            lifted=fit.lifted,
+            reconstruction=fit.reconstruction,
+            residual=fit.residual,
+            residual_rms=fit.rms,
+            residual_max=fit.worst,
+            coverage=n_valid / n_nodes,
+            within_model=fit.check.within_model,
+            method="contact",
+            covariance=covariance,
+            check=fit.check,
+        )
+
+    def _fit(self, best: _Candidate, values: np.ndarray, valid: np.ndarray, errors: FieldErrorModel,
+             min_force_n: float) -> _Fit:
+        """The reported fit of a contact state: refined theta, residual, within-model test and values."""
+        model = self.model_
         # One step of iterative refinement on the real residual: the normal equations square the condition number.
         u = best.lift @ best.theta + best.offset
         reconstruction = model.w0 + u @ self.fields_
@@ -239,28 +294,8 @@ class ContactEstimator:
         check, registration = judge(residual, design, errors, self.test_, 0.0, span=self.fields_.T)
         theta_cov = parameter_covariance(design, best.normal_inverse, valid, errors, check.noise_scale, 0.0,
                                          registration)
-        measured = noise2 > 0  # a noisy field: its noise level stated by noise_rms or by its error model
-        min_force = self.measured_min_pad_force_n if measured else 0.0
-        out_values, covariance, lifted = self._report(best, theta, theta_cov, min_force)
-        covariance = covariance + self._between_states(candidates.values(), best, out_values, noise2, min_force)
-        return ParameterEstimate(
-            model_id=model.model_id,
-            names=tuple(model.names),
-            values=out_values,
-            std=np.sqrt(np.clip(np.diag(covariance), 0.0, None)),
-            lower=self.lower_.copy(),
-            upper=self.upper_.copy(),
-            lifted=lifted,
-            reconstruction=reconstruction,
-            residual=residual,
-            residual_rms=rms,
-            residual_max=worst,
-            coverage=n_valid / n_nodes,
-            within_model=check.within_model,
-            method="contact",
-            covariance=covariance,
-            check=check,
-        )
+        out_values, covariance, lifted, unseen = self._report(best, theta, theta_cov, min_force_n)
+        return _Fit(out_values, covariance, lifted, unseen, reconstruction, residual, rms, worst, check)
 
     def _between_states(self, candidates: Iterable[_Candidate], best: _Candidate, values: np.ndarray, noise2: float,
                         min_force_n: float) -> np.ndarray:
@@ -276,7 +311,7 @@ class ContactEstimator:
             weight = np.exp(-0.5 * (cand.rss / noise2 + 2.0 * cand.theta.size - low))
             if cand is best or weight < 1e-6:
                 continue
-            other, _, _ = self._report(cand, cand.theta, noise2 * cand.normal_inverse, min_force_n)
+            other, _, _, _ = self._report(cand, cand.theta, noise2 * cand.normal_inverse, min_force_n)
             diff = np.nan_to_num(other - values)
             spread += weight * np.outer(diff, diff)
             total += weight
@@ -323,9 +358,10 @@ class ContactEstimator:
 
     def _report(
         self, cand: _Candidate, theta: np.ndarray, cov: np.ndarray, min_force_n: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Values (B + U,) mm, their covariance (B + U, B + U) mm^2 and lifted flags from a solved candidate; a
-        touching pad with a total force below ``min_force_n`` (N) is reported lifted.
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Values (B + U,) mm, their covariance (B + U, B + U) mm^2, lifted flags (B + U,) and unseen flags (U,) from a
+        solved candidate; a touching pad with a total force below ``min_force_n`` (N) is reported lifted, one whose
+        compression the field cannot show is reported lifted and flagged unseen.
 
         Every value is affine in theta (a state, a touching pad's position, or a lifted pad's lowest spring height),
         so the covariance is jac cov jac^T; a light-touch pad's variance is raised to cover the range its commanded
@@ -339,6 +375,7 @@ class ContactEstimator:
         values[:n_b] = theta[:n_b]
         jac[:n_b, :n_b] = np.eye(n_b)
         lifted = np.zeros(n_b + n_pads, dtype=bool)
+        unseen = np.zeros(n_pads, dtype=bool)
         u = cand.lift @ theta + cand.offset
         f = u[n_b:]
         z = model.z0 - self.pad_shift_ + model.Sa @ u[:n_b] + model.H @ f  # lifted positions as at the reference
@@ -362,6 +399,7 @@ class ContactEstimator:
                     floor[n_b + pad] = values[n_b + pad] - float(np.min(z[springs] - model.preload[springs]))
                 continue
             lifted[n_b + pad] = True
+            unseen[pad] = pad in touching
             if springs.size == 0:
                 values[n_b + pad] = np.nan
                 floor[n_b + pad] = np.nan
@@ -382,4 +420,4 @@ class ContactEstimator:
         nan = np.isnan(floor)
         covariance[nan, :] = np.nan
         covariance[:, nan] = np.nan
-        return values, covariance, lifted
+        return values, covariance, lifted, unseen
