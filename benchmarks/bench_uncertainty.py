@@ -65,8 +65,18 @@ def judge(estimate, member, names) -> dict:
     applied = (~estimate.lifted) & correction.applicable
     # a correction is -estimate; applying it is wrong by the estimate's error on the commanded state
     applied_error = float(np.max(np.abs(error[applied]), initial=0.0)) if correction.safe_to_apply else 0.0
+    # per boundary, what the robot may apply, and what it might without the model's factors (model_spread)
+    before = plan_correction(dataclasses.replace(estimate, model_effects=None), CorrectionPolicy())
+    applicable = [name for name, ok in zip(names, applied, strict=True) if ok]
+    applicable_before = [name for name, ok in zip(names, before.applicable & ~estimate.lifted, strict=True) if ok]
     return {"z": [None if not np.isfinite(v) else float(v) for v in z], "within": bool(estimate.within_model),
-            "reasons": closed_by(correction),
+            "reasons": closed_by(correction), "safe_before": bool(before.safe_to_apply),
+            "applicable": applicable, "applicable_before": applicable_before,
+            "applicable_error_mm": float(np.max(np.abs(error[applied]), initial=0.0)),
+            "applicable_error_before_mm": float(np.max(np.abs(error[before.applicable & ~estimate.lifted]),
+                                                       initial=0.0)),
+            "max_model_std_mm": None if estimate.model_std is None else float(np.max(
+                estimate.model_std[~estimate.lifted], initial=0.0)),
             "p": estimate.check.p_value, "safe": bool(correction.safe_to_apply), "applied_error_mm": applied_error,
             "noise_scale": estimate.check.noise_scale}
 
@@ -79,6 +89,8 @@ def closed_by(correction) -> list[str]:
             continue
         if part.startswith("the model does not explain"):
             kinds.add("model")
+        elif part.startswith("model not calibrated to the part: "):  # a boundary's total uncertainty (model_spread)
+            kinds.add(part.split(": ")[1].split(" ")[0] + " model std")
         elif " uncertainty " in part or " = " in part:
             kinds.add(part.split(" ")[0] + (" std" if " uncertainty " in part else " range"))
         else:
@@ -99,6 +111,9 @@ def summary(rows: list[dict], names: tuple[str, ...]) -> dict:
     out["per_parameter"] = per
     out["false_alarm_rate"] = float(np.mean([not r["within"] for r in rows]))
     out["gate_open_rate"] = float(np.mean([r["safe"] for r in rows]))
+    out["gate_open_rate_before"] = float(np.mean([r["safe_before"] for r in rows]))
+    out["applicable_boundaries"] = {name: sum(name in r["applicable"] for r in rows) for name in names}
+    out["applicable_boundaries_before"] = {name: sum(name in r["applicable_before"] for r in rows) for name in names}
     out["max_applied_error_mm"] = float(max(r["applied_error_mm"] for r in rows))
     kinds = [kind for r in rows for kind in r["reasons"]]
     out["gate_closed_by"] = {kind: kinds.count(kind) for kind in sorted(set(kinds))}
