@@ -23,8 +23,9 @@ estimate; a part is moved when any parameter is shifted by more than 2 std. Caug
 ``safe_to_apply`` is false; "said model": the reason says the model does not explain the part (the alarm) rather
 than naming a boundary's uncertainty or range. Unsafe: ``safe_to_apply`` true with an applicable correction wrong by
 more than 0.02 mm; "appl>0.02": parts where a boundary the correction states ``applicable`` (what the robot may
-still apply when the whole is not safe) is wrong by more than 0.02 mm. "3x": the alarm rate with the node noise
-stated 3 times too large.
+still apply when the whole is not safe) is wrong by more than 0.02 mm; "w/o": the same with the gate ignoring the
+model's physical factors (``model_std``, core/method/model_spread.py), as it was before them. "3x": the alarm rate
+with the node noise stated 3 times too large.
 
 Prints a table per kind and writes benchmarks/out/discrepancy.json (rewritten as it goes). From the repository root:
     scripts/with-env nice python benchmarks/bench_discrepancy.py [--parts N] [--mesh-parts N] [--ccx-parts N]
@@ -98,12 +99,7 @@ def verdict(bases, field: DisplacementField, truth_field: np.ndarray, member, na
     row["moved"] = bool(np.max(np.abs(shift / estimate.std)) > MOVED_STD)
     row["caught"] = (not row["within"]) or (not row["safe"])
     row["said_model"] = "model" in row["reasons"]
-    correction = plan_correction(estimate)
-    row["reason"] = correction.reason
-    # per boundary: what the robot may still apply when the whole is not safe
-    applicable = correction.applicable & ~estimate.lifted
-    row["applicable"] = [name for name, ok in zip(names, applicable, strict=True) if ok]
-    row["applicable_error_mm"] = float(np.max(np.abs(estimate.values - member.effective[0])[applicable], initial=0.0))
+    row["reason"] = plan_correction(estimate).reason  # judge's row has what the robot may apply, before and after
     row["within_3x"] = bool(estimate_field(bases, inflated(field)).within_model)
     row["max_abs_error_mm"] = float(np.max(np.abs(estimate.values - member.effective[0])))
     return row
@@ -127,6 +123,10 @@ def summary(rows: list[dict], names: tuple[str, ...]) -> dict:
         "moved_alarm_rate": float(np.mean([not r["within"] for r in moved])) if moved else None,
         "median_max_shift_z": float(np.median([np.max(np.abs(r["shift_z"])) for r in rows])),
         "unsafe": sum(r["safe"] and r["applied_error_mm"] > UNSAFE_MM for r in rows),
+        "unsafe_before": sum(r["safe_before"] and r["applicable_error_before_mm"] > UNSAFE_MM for r in rows),
+        "applicable_wrong_before": sum(r["applicable_error_before_mm"] > UNSAFE_MM for r in rows),
+        "max_applicable_error_before_mm": float(max(r["applicable_error_before_mm"] for r in rows)),
+        "applicable_boundaries_before": {name: sum(name in r["applicable_before"] for r in rows) for name in names},
         "applicable_wrong": sum(r["applicable_error_mm"] > UNSAFE_MM for r in rows),
         "max_applicable_error_mm": float(max(r["applicable_error_mm"] for r in rows)),
         "applicable_boundaries": {name: sum(name in r["applicable"] for r in rows) for name in names},
@@ -237,14 +237,16 @@ def main() -> int:
     save()
 
     print(f"{'kind':<18} {'way':<6} {'n':>4} {'alarm':>6} {'3x':>5} {'open':>5} {'moved':>6} {'caught':>7} "
-          f"{'alarmed':>8} {'unsafe':>6} {'max applied':>11} {'appl>0.02':>9} {'max appl':>8}")
+          f"{'alarmed':>8} {'unsafe':>6} {'max applied':>11} {'appl>0.02':>9} {'max appl':>8} "
+          f"{'unsafe w/o model std':>20} {'appl>0.02 w/o':>13} {'max appl w/o':>12}")
     for kind, ways in results["kinds"].items():
         for way, block in ways.items():
             s = block["summary"]
             print(f"{kind:<18} {way:<6} {s['n']:>4} {s['alarm_rate']:>6.2f} {s['alarm_rate_noise_stated_3x']:>5.2f} "
                   f"{s['gate_open_rate']:>5.2f} {s['moved']:>6} {s['moved_caught']:>7} {s['moved_alarmed']:>8} "
                   f"{s['unsafe']:>6} {s['max_applied_error_mm']:>11.4f} {s['applicable_wrong']:>9} "
-                  f"{s['max_applicable_error_mm']:>8.4f}")
+                  f"{s['max_applicable_error_mm']:>8.4f} {s['unsafe_before']:>20} {s['applicable_wrong_before']:>13} "
+                  f"{s['max_applicable_error_before_mm']:>12.4f}")
     return 0
 
 

@@ -66,13 +66,21 @@ def judge(estimate, member, names) -> dict:
     applied = (~estimate.lifted) & correction.applicable
     # a correction is -estimate; applying it is wrong by the estimate's error on the commanded state
     applied_error = float(np.max(np.abs(error[applied]), initial=0.0)) if correction.safe_to_apply else 0.0
-    # per boundary: may its own correction be applied (named in the message when the whole gate is shut), and how
-    # wrong would it be then
+    # per boundary, what the robot may apply, and what it might without the model's factors (model_spread)
+    before = plan_correction(dataclasses.replace(estimate, model_effects=None), CorrectionPolicy())
+    applicable = [name for name, ok in zip(names, applied, strict=True) if ok]
+    applicable_before = [name for name, ok in zip(names, before.applicable & ~estimate.lifted, strict=True) if ok]
+    # per boundary: how wrong its own correction would be where it may be applied alone (NaN: not applicable)
     alone = np.where(applied, np.abs(error), np.nan)
     return {"z": [None if not np.isfinite(v) else float(v) for v in z], "within": bool(estimate.within_model),
-            "applicable": [bool(v) for v in applied], "applicable_error_mm": [None if not np.isfinite(v) else float(v)
-                                                                             for v in alone],
-            "reasons": closed_by(correction),
+            "reasons": closed_by(correction), "safe_before": bool(before.safe_to_apply),
+            "applicable": applicable, "applicable_before": applicable_before,
+            "applicable_error_mm": float(np.max(np.abs(error[applied]), initial=0.0)),
+            "applicable_errors_mm": [None if not np.isfinite(v) else float(v) for v in alone],
+            "applicable_error_before_mm": float(np.max(np.abs(error[before.applicable & ~estimate.lifted]),
+                                                       initial=0.0)),
+            "max_model_std_mm": None if estimate.model_std is None else float(np.max(
+                estimate.model_std[~estimate.lifted], initial=0.0)),
             "p": estimate.check.p_value, "safe": bool(correction.safe_to_apply), "applied_error_mm": applied_error,
             "noise_scale": estimate.check.noise_scale}
 
@@ -85,6 +93,8 @@ def closed_by(correction) -> list[str]:
             continue
         if part.startswith("the model does not explain"):
             kinds.add("model")
+        elif part.startswith("model not calibrated to the part: "):  # a boundary's total uncertainty (model_spread)
+            kinds.add(part.split(": ")[1].split(" ")[0] + " model std")
         elif " uncertainty " in part or " = " in part:
             kinds.add(part.split(" ")[0] + (" std" if " uncertainty " in part else " range"))
         else:
@@ -104,13 +114,16 @@ def summary(rows: list[dict], names: tuple[str, ...]) -> dict:
                      "max_abs_z": float(np.max(np.abs(col))) if col.size else None}
     out["per_parameter"] = per
     if "applicable" in rows[0]:
-        ok = np.array([row["applicable"] for row in rows])
-        wrong = np.array([[np.nan if v is None else v for v in row["applicable_error_mm"]] for row in rows])
+        ok = np.array([[name in row["applicable"] for name in names] for row in rows])
+        wrong = np.array([[np.nan if v is None else v for v in row["applicable_errors_mm"]] for row in rows])
         for i, name in enumerate(names):
             per[name]["applicable"] = float(np.mean(ok[:, i]))
             per[name]["max_applicable_error_mm"] = float(np.nanmax(wrong[:, i])) if ok[:, i].any() else None
     out["false_alarm_rate"] = float(np.mean([not r["within"] for r in rows]))
     out["gate_open_rate"] = float(np.mean([r["safe"] for r in rows]))
+    out["gate_open_rate_before"] = float(np.mean([r["safe_before"] for r in rows]))
+    out["applicable_boundaries"] = {name: sum(name in r["applicable"] for r in rows) for name in names}
+    out["applicable_boundaries_before"] = {name: sum(name in r["applicable_before"] for r in rows) for name in names}
     out["max_applied_error_mm"] = float(max(r["applied_error_mm"] for r in rows))
     kinds = [kind for r in rows for kind in r["reasons"]]
     out["gate_closed_by"] = {kind: kinds.count(kind) for kind in sorted(set(kinds))}

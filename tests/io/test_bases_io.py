@@ -150,6 +150,15 @@ def test_cli_estimate_and_decompose(saved, tmp_path, capsys):
         for b in model.names:
             assert cov[a][b] == pytest.approx(cov[b][a], rel=1e-9, abs=1e-30)
     assert result["within_model_test"]["noise_source"] == "residual"
+    # the uncalibrated model's physical factors, apart from the measurement std: model_std^2 is the sum of the
+    # factors' squared effects and the model covariance's diagonal; the pad factors move the touching buffer
+    model_cov, factors = result["model_covariance_mm2"], result["model_factors_mm"]
+    assert set(factors) == {"compliance (Young's modulus)", "pad stiffness", "pad preload"}
+    for a in model.names:
+        total = sum(effect[a] ** 2 for effect in factors.values())
+        assert result["model_std_mm"][a] ** 2 == pytest.approx(total, rel=1e-9, abs=1e-30)
+        assert model_cov[a][a] == pytest.approx(total, rel=1e-9, abs=1e-30)
+    assert abs(factors["pad preload"]["BUFFER_R"]) > 1e-4
     assert result["within_model"] == (result["within_model_test"]["p_value"] >= result["within_model_test"]["alpha"])
     plots = tmp_path / "plots"
     out = tmp_path / "d.json"

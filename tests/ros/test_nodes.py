@@ -144,7 +144,8 @@ def test_a_move_applied_at_half_is_named_by_the_next_inspection(coarse_hood, run
     sent = next(c for c in corrections if c.part_id == "P-21")
     index = [list(sent.names).index(n) for n in coarse_hood.reduced.names]
     commanded = np.array(sent.applicable)[index] & (np.array(sent.corrections)[index] != 0.0)
-    assert commanded.sum() >= 4, sent.reason
+    # uncalibrated bases: HINGE_X and a touching buffer are held back by the model's factors (model_spread)
+    assert commanded.sum() >= 3, sent.reason
     moved = truth + 0.5 * 1000.0 * np.where(commanded, np.array(sent.corrections)[index], 0.0)
     second = _field_msg(coarse_hood, solve_members(coarse_hood.reduced, moved[None]).normal_displacement[0], 22)
     second.part_id = "P-21"

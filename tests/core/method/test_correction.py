@@ -117,3 +117,17 @@ def test_verification_names_a_move_applied_at_half_as_slipped():
                                                std=np.full(5, 0.002), lower=-np.ones(5), upper=np.ones(5),
                                                lifted=np.zeros(5, bool)))
     assert whole.all_achieved and whole.summary == ""
+
+
+def test_a_correction_the_uncalibrated_model_cannot_tell_is_not_applicable():
+    """Fails if a boundary whose measurement std is small but whose total uncertainty sqrt(std^2 + model_std^2) (the
+    model's physical factors, not calibrated to the part: a softer pad looks like a moved pad) is above max_std is
+    still applicable or lets the whole be safe, if the reason does not name that boundary with its dominant factor
+    and one-sigma effect, or if a boundary within the limit (LOCK_L: 0.002 and 0.001 mm) is held back too."""
+    effects = np.array([[0.0, 0.001, 0.004], [0.0, 0.0, -0.020]])  # (factor, parameter) one-sigma, mm
+    correction = plan_correction(estimate(model_factors=("compliance", "pad stiffness"), model_effects=effects))
+    assert not correction.safe_to_apply
+    np.testing.assert_array_equal(correction.applicable, [True, True, False])
+    assert correction.reason == ("model not calibrated to the part: BUFFER_R correction depends on pad stiffness "
+                                 "by +-0.020 mm"), correction.reason
+    np.testing.assert_array_equal(correction.std, [0.001, 0.002, 0.003])  # the measurement std, unchanged

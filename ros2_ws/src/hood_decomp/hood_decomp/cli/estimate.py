@@ -32,13 +32,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def estimate_payload(estimate, n_bilateral: int) -> dict:
     """What `estimate` writes: per parameter the state and its std (mm, null when unknown), the full covariance
-    (``covariance_mm2``: label -> label -> mm^2), ``lifted`` for the unilateral boundaries, residual RMS and max
-    (mm), coverage, within_model with the one test behind it (``within_model_test``: p_value, alpha, statistic,
-    dof, noise_scale, noise_source: "residual" when the field states no error model and the noise level is
-    estimated from the residual with ``denominator_dof`` degrees of freedom) and method. ``measured_effects``
-    names the parameters without a boundary (measured effects: their value is an amplitude); ``correction`` is what
-    the estimator node would send the robot with the default policy (core.method.correction.plan_correction: the
-    move per boundary, mm, never one for a measured effect or a lifted buffer; safe_to_apply, applicable, reason)."""
+    (``covariance_mm2``: label -> label -> mm^2; the measurement's), what the model's physical factors, not calibrated
+    to the part, add apart from it (core.method.model_spread: ``model_std_mm``, ``model_covariance_mm2`` and
+    ``model_factors_mm``: factor -> label -> one-sigma effect, mm; null for the "pca" method), ``lifted`` for the
+    unilateral boundaries, residual RMS and max (mm), coverage, within_model with the one test behind it
+    (``within_model_test``: p_value, alpha, statistic, dof, noise_scale, noise_source: "residual" when the field states
+    no error model and the noise level is estimated from the residual with ``denominator_dof`` degrees of freedom) and
+    method. ``measured_effects`` names the parameters without a boundary (measured effects: their value is an
+    amplitude); ``correction`` is what the estimator node would send the robot with the default policy
+    (core.method.correction.plan_correction: the move per boundary, mm, never one for a measured effect or a lifted
+    buffer; safe_to_apply, applicable, reason)."""
     from hood_decomp.core.method.correction import plan_correction
 
     names = estimate.names
@@ -50,6 +53,12 @@ def estimate_payload(estimate, n_bilateral: int) -> dict:
         "std_mm": dict(zip(names, estimate.std, strict=True)),
         "covariance_mm2": None if covariance is None else {
             row: dict(zip(names, covariance[i], strict=True)) for i, row in enumerate(names)},
+        "model_std_mm": None if estimate.model_std is None else dict(zip(names, estimate.model_std, strict=True)),
+        "model_covariance_mm2": None if estimate.model_effects is None else {
+            row: dict(zip(names, estimate.model_covariance[i], strict=True)) for i, row in enumerate(names)},
+        "model_factors_mm": None if estimate.model_effects is None else {
+            factor: dict(zip(names, effect, strict=True))
+            for factor, effect in zip(estimate.model_factors, estimate.model_effects, strict=True)},
         "within_model_test": None if check is None else {
             "p_value": check.p_value, "alpha": check.alpha, "statistic": check.statistic, "dof": check.dof,
             "denominator_dof": check.denominator_dof, "noise_scale": check.noise_scale,

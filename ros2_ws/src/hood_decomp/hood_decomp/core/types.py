@@ -303,6 +303,10 @@ class ParameterEstimate:
     measured_effect: (P,) bool, True for a measured effect (a parameter without a boundary: a basis field learned from
         recurring residuals, :mod:`hood_decomp.core.loop.measured_effects`); its value is an amplitude, never a
         boundary to move. None means every parameter is a boundary (bases without measured effects).
+    model_factors: names of the model's physical factors considered (:mod:`hood_decomp.core.method.model_spread`).
+    model_effects: (F, P) mm, each factor's one-sigma effect on ``values`` (the uncertainty the model's not being
+        calibrated to the part adds, apart from ``std``: a softer pad looks like a moved pad); None when not
+        considered (the "pca" estimator, an estimate decoded from a message).
     """
 
     model_id: str
@@ -322,6 +326,18 @@ class ParameterEstimate:
     covariance: np.ndarray | None = None
     check: ModelCheck | None = None
     measured_effect: np.ndarray | None = None
+    model_factors: tuple[str, ...] = ()
+    model_effects: np.ndarray | None = None
+
+    @property
+    def model_covariance(self) -> np.ndarray | None:
+        """(P, P) mm^2, the considered factors' covariance of ``values``: sum of the effects' outer products."""
+        return None if self.model_effects is None else self.model_effects.T @ self.model_effects
+
+    @property
+    def model_std(self) -> np.ndarray | None:
+        """(P,) mm, sqrt of the diagonal of :attr:`model_covariance`."""
+        return None if self.model_effects is None else np.sqrt(np.sum(self.model_effects**2, axis=0))
 
     @property
     def boundary(self) -> np.ndarray:

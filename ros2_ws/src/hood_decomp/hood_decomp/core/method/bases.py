@@ -17,6 +17,7 @@ from hood_decomp.core.method.contact_estimation import ContactEstimator
 from hood_decomp.core.method.decomposition import decompose
 from hood_decomp.core.method.estimation import DEFAULT_MIN_COVERAGE, estimate_pca
 from hood_decomp.core.method.hierarchical import HierarchicalBasis
+from hood_decomp.core.method.model_spread import factor_spread
 from hood_decomp.core.method.pca import PCABasis
 from hood_decomp.core.method.residual import DEFAULT_ALPHA, ResidualAnalysis, ResidualTest, analyse_residual
 from hood_decomp.core.types import (
@@ -107,7 +108,8 @@ class Bases:
             warm = self.at_temperature(temperature_k)
             shift = None if self.reduced_model is warm else warm.z0 - self.reduced_model.z0
             estimator = ContactEstimator(min_coverage).fit(warm, self.pca.lower_, self.pca.upper_,
-                                                           self.residual_test(), shift)
+                                                           self.residual_test(), shift,
+                                                           factor_spread(warm, self.calibration))
             estimator = self._contact_estimators.setdefault(key, estimator)
         return estimator
 

@@ -32,6 +32,7 @@ from hood_decomp.core.method.estimation import (
     residual_stats,
     valid_normal_matrix,
 )
+from hood_decomp.core.method.model_spread import Factor, factor_effects
 from hood_decomp.core.method.residual import ResidualTest, node_variance
 from hood_decomp.core.types import DisplacementField, FieldErrorModel, ModelCheck, ParameterEstimate, ReducedModel
 from hood_decomp.errors import FieldError, ModelError
@@ -83,6 +84,7 @@ class _Fit:
     rms: float
     worst: float
     check: ModelCheck
+    effects: np.ndarray | None  # (F, P) mm: the considered model factors' effects (model_spread); None: none
 
 
 class ContactEstimator:
@@ -93,9 +95,10 @@ class ContactEstimator:
     mm declared ranges; test: the skin's fitted :class:`ResidualTest` (the one within-model test; None: level test
     only); pad_shift: (S,) mm a part of the pad springs' displacement in ``model.z0`` that is no boundary state (a
     warm part's thermal expansion, :meth:`Bases.at_temperature`), taken out of a lifted pad's reported position (the
-    part's position there as at the reference temperature); None: none.
-    Fitted: model_, lower_, upper_, test_, pad_shift_ (S,), fields_ (B + S, N) = [R G]^T, gram_ (B + S, B + S),
-    touching_pads_.
+    part's position there as at the reference temperature); None: none. factors: the model's physical factors
+    considered (:func:`~.model_spread.factor_spread`; each estimate reports their effects); (): none.
+    Fitted: model_, lower_, upper_, test_, pad_shift_ (S,), factors_, fields_ (B + S, N) = [R G]^T,
+    gram_ (B + S, B + S), touching_pads_.
     """
 
     def __init__(self, min_coverage: float = DEFAULT_MIN_COVERAGE,
@@ -104,7 +107,8 @@ class ContactEstimator:
         self.measured_min_pad_force_n = measured_min_pad_force_n
 
     def fit(self, model: ReducedModel, lower: np.ndarray, upper: np.ndarray,
-            test: ResidualTest | None = None, pad_shift: np.ndarray | None = None) -> ContactEstimator:
+            test: ResidualTest | None = None, pad_shift: np.ndarray | None = None,
+            factors: tuple[Factor, ...] = ()) -> ContactEstimator:
         n_params = len(model.names)
         n_pads = n_params - model.n_bilateral
         if np.shape(lower) != (n_params,) or np.shape(upper) != (n_params,):
@@ -113,6 +117,7 @@ class ContactEstimator:
             raise ModelError(f"pad_of must index the {n_pads} unilateral parameters, got {model.pad_of}")
         self.model_ = model
         self.test_ = test
+        self.factors_ = tuple(factors)
         self.pad_shift_ = np.zeros(model.k.size) if pad_shift is None else np.asarray(pad_shift, dtype=float)
         if self.pad_shift_.shape != model.k.shape:
             raise ModelError(f"pad_shift must have shape {model.k.shape}, got {self.pad_shift_.shape}")
@@ -242,7 +247,7 @@ class ContactEstimator:
         best = self._select(list(candidates.values()), n_valid)
         measured = noise2 > 0  # a noisy field: its noise level stated by noise_rms or by its error model
         min_force = self.measured_min_pad_force_n if measured else 0.0
-        fit = self._fit(best, values, valid, errors, min_force)
+        fit = self._fit(best, values, valid, normal, errors, min_force)
         if fit.unseen.any() and not measured:
             # Without a noise level nothing weighs the contact states (no spread term): a touch the field cannot show
             # (compression within LIFTED_SIGMAS of its std, the model's discrepancy included) is decided lifted, and
@@ -254,7 +259,7 @@ class ContactEstimator:
             cand, tension, penetration = self._evaluate(best.active & ~free, problem, cache)
             if cand.feasible and not tension.any() and not penetration.any():
                 best = candidates.setdefault(cand.active.tobytes(), cand)
-                fit = self._fit(best, values, valid, errors, min_force)
+                fit = self._fit(best, values, valid, normal, errors, min_force)
         covariance = fit.covariance + self._between_states(candidates.values(), best, fit.values, noise2, min_force)
         return ParameterEstimate(
             model_id=model.model_id,
@@ -273,10 +278,12 @@ class ContactEstimator:
             method="contact",
             covariance=covariance,
             check=fit.check,
+            model_factors=tuple(factor.name for factor in self.factors_),
+            model_effects=fit.effects,
         )
 
-    def _fit(self, best: _Candidate, values: np.ndarray, valid: np.ndarray, errors: FieldErrorModel,
-             min_force_n: float) -> _Fit:
+    def _fit(self, best: _Candidate, values: np.ndarray, valid: np.ndarray, normal: np.ndarray,
+             errors: FieldErrorModel, min_force_n: float) -> _Fit:
         """The reported fit of a contact state: refined theta, residual, within-model test and values."""
         model = self.model_
         # One step of iterative refinement on the real residual: the normal equations square the condition number.
@@ -295,7 +302,22 @@ class ContactEstimator:
         theta_cov = parameter_covariance(design, best.normal_inverse, valid, errors, check.noise_scale, 0.0,
                                          registration)
         out_values, covariance, lifted, unseen = self._report(best, theta, theta_cov, min_force_n)
-        return _Fit(out_values, covariance, lifted, unseen, reconstruction, residual, rms, worst, check)
+        effects = self._factor_effects(best, theta, normal, valid, theta_cov, min_force_n) if self.factors_ else None
+        return _Fit(out_values, covariance, lifted, unseen, reconstruction, residual, rms, worst, check, effects)
+
+    def _factor_effects(self, best: _Candidate, theta: np.ndarray, normal: np.ndarray, valid: np.ndarray,
+                        theta_cov: np.ndarray, min_force_n: float) -> np.ndarray:
+        """(F, P) mm: the considered factors' effects (:func:`~.model_spread.factor_effects`) through this fit's
+        linear map, in the (B + S) space: a field change dc w0 + G df moves rhs by dc [R G]^T w0 + normal[:, B:] df."""
+        model = self.model_
+        load = self.fields_ @ np.where(valid, model.w0, 0.0)
+        pad_part = normal[:, model.n_bilateral:]
+
+        def to_theta(dc: float, df: np.ndarray) -> np.ndarray:
+            return best.normal_inverse @ (best.lift.T @ (dc * load + pad_part @ df))
+
+        return factor_effects(model, self.factors_, best.active, theta, to_theta,
+                              lambda t: self._report(best, t, theta_cov, min_force_n)[0])
 
     def _between_states(self, candidates: Iterable[_Candidate], best: _Candidate, values: np.ndarray, noise2: float,
                         min_force_n: float) -> np.ndarray:

@@ -3,7 +3,8 @@
 The correction brings every boundary back to nominal (the negated estimate). It is marked unsafe, with every reason
 named, when acting on it could make things worse: too little of the part was seen, the one within-model test says the
 model does not explain the part, an estimate lies outside its declared range, or an uncertainty (the full error
-model's, :mod:`hood_decomp.core.method.estimation`) is too large to act on. Which boundaries may still be applied is
+model's, :mod:`hood_decomp.core.method.estimation`, with the model's own physical factors considered,
+:mod:`hood_decomp.core.method.model_spread`) is too large to act on. Which boundaries may still be applied is
 stated per boundary. A lifted unilateral boundary (a buffer that lost contact) has no observable commanded position:
 it gets no correction, and the reason says so. A measured effect (a parameter without a boundary,
 :attr:`ParameterEstimate.measured_effect`) is never corrected: there is nothing to move, only an amplitude to report.
@@ -42,7 +43,10 @@ def plan_correction(estimate: ParameterEstimate, policy: CorrectionPolicy = Corr
     Every failed condition is listed in ``reason`` ("; "-separated); notes on lifted boundaries are appended.
     Per boundary, ``applicable`` says whether its own correction may be applied when the whole is not safe: only
     when the field is within the model with enough coverage (otherwise no number can be trusted), and its estimate
-    is in range, its std below ``max_std_mm`` and it is not lifted. When the model does not explain the field the
+    is in range, its total uncertainty sqrt(std^2 + model_std^2) below ``max_std_mm`` (model_std: what the model's
+    physical factors, not calibrated to the part, leave open, :mod:`~hood_decomp.core.method.model_spread`; the
+    reason then names the dominant factor and its one-sigma effect) and it is not lifted.
+    When the model does not explain the field the
     reason says that the model differs from the part and names no boundary: a missing effect or other physics moves
     every estimate, so an estimate outside its range, a large uncertainty or a lifted flag is then no finding about
     that boundary (naming it would send the engineer there) and is not listed; coverage still is.
@@ -50,6 +54,9 @@ def plan_correction(estimate: ParameterEstimate, policy: CorrectionPolicy = Corr
     values, std = np.asarray(estimate.values, float), np.asarray(estimate.std, float)
     lifted = np.asarray(estimate.lifted, bool)
     effect = ~estimate.boundary
+    # the model's physical factors the field cannot tell (model_spread): one-sigma effects (F, P) mm
+    effects = np.zeros((1, len(values))) if estimate.model_effects is None else np.asarray(estimate.model_effects)
+    model_std = np.sqrt(np.sum(effects**2, axis=0))
     problems: list[str] = []
     if not estimate.coverage >= policy.min_coverage:
         problems.append(f"coverage {estimate.coverage:.2f} below minimum {policy.min_coverage:.2f}")
@@ -70,9 +77,14 @@ def plan_correction(estimate: ParameterEstimate, policy: CorrectionPolicy = Corr
             problems.append(f"{name} = {value:.3f} mm outside its range [{low:g}, {high:g}] mm")
         if is_effect:  # nothing to move: its uncertainty gates no move
             continue
+        total = float(np.hypot(sigma, model_std[i]))
         if not sigma <= policy.max_std_mm and explained:
             problems.append(f"{name} uncertainty {sigma:.3f} mm above {policy.max_std_mm:g} mm")
-        applicable[i] = trusted and in_range and sigma <= policy.max_std_mm
+        elif not total <= policy.max_std_mm and explained:
+            dominant = int(np.argmax(np.abs(effects[:, i])))
+            problems.append(f"model not calibrated to the part: {name} correction depends on "
+                            f"{estimate.model_factors[dominant]} by +-{abs(effects[dominant, i]):.3f} mm")
+        applicable[i] = trusted and in_range and total <= policy.max_std_mm
     notes = [f"{name} lifted: commanded position not observable, not corrected"
              for name, is_lifted in zip(estimate.names, lifted, strict=True) if is_lifted and explained]
     notes += [f"{name} is a measured effect: no boundary to move" for name in np.asarray(estimate.names)[effect]]
