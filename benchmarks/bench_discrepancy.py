@@ -35,9 +35,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -48,7 +46,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_uncertainty import judge  # noqa: E402
+from bench_uncertainty import judge, start_run  # noqa: E402
 
 from hood_decomp.core.fe.ensemble import solve_members  # noqa: E402
 from hood_decomp.core.fe.hood_preset import build_preset  # noqa: E402
@@ -66,11 +64,10 @@ from hood_decomp.synthetic.standin import (  # noqa: E402
     calculix_responses,
     embedded_responses,
 )
-from tests.conftest import _hood_case  # noqa: E402
 from tests.core.method.test_truth_elsewhere import _grid_coordinates  # noqa: E402
 
 OUT = ROOT / "benchmarks" / "out" / "discrepancy.json"
-CCX_CACHE = Path("/work/scratch/cache/standin_ccx_coarse.npz")
+CCX_CACHE = ROOT / "benchmarks" / "out" / "standin_ccx_coarse.npz"  # as bench_calibration's
 NOISE_MM = 0.02
 MOVED_STD = 2.0
 UNSAFE_MM = 0.02
@@ -149,21 +146,11 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=152)
     parser.add_argument("--out", type=Path, default=OUT, help="JSON written as the run goes")
     args = parser.parse_args()
-    if args.points is None:
-        args.points = 500_000 if args.resolution == "default" else 120_000
-    rng = np.random.default_rng(args.seed)
-    log(f"building the {args.resolution} hood, its ensemble and bases")
-    with tempfile.TemporaryDirectory() as tmp:
-        case = _hood_case(args.resolution, Path(tmp))
+    case, rng, results, save = start_run(args, log, kinds={})
     bases, skin, model = case.bases, case.skin, case.model
     names = bases.names
     lo, hi = bases.pca.lower_, bases.pca.upper_
     est = prepared_estimator(skin)
-    results: dict = {"date": time.strftime("%Y-%m-%d"), "names": list(names), "args": vars(args), "kinds": {}}
-
-    def save() -> None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(results, indent=1, default=str))
 
     def scan_field(truth_skin, displacement) -> DisplacementField:
         config = ScannerConfig(n_points=args.points, noise_mm=NOISE_MM, marker_noise_mm=NOISE_MM, n_holes=3)

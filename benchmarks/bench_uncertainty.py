@@ -29,6 +29,7 @@ import json
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -130,6 +131,26 @@ def summary(rows: list[dict], names: tuple[str, ...]) -> dict:
     return out
 
 
+def start_run(args: argparse.Namespace, log: Callable[[str], None], **results: object
+              ) -> tuple[object, np.random.Generator, dict, Callable[[], None]]:
+    """What a harness run starts with (this benchmark and bench_discrepancy): ``args.points`` defaulted by resolution,
+    the run's generator, the hood case (bases, reduced model, skin, model), the results dict (date, names, args and
+    ``results``) and the function that writes it to ``args.out`` as the run goes."""
+    if args.points is None:
+        args.points = 500_000 if args.resolution == "default" else 120_000
+    rng = np.random.default_rng(args.seed)
+    log(f"building the {args.resolution} hood, its ensemble and bases")
+    with tempfile.TemporaryDirectory() as tmp:
+        case = _hood_case(args.resolution, Path(tmp))
+    record: dict = {"date": time.strftime("%Y-%m-%d"), "names": list(case.bases.names), "args": vars(args), **results}
+
+    def save() -> None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(record, indent=1, default=str))
+
+    return case, rng, record, save
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--resolution", choices=("default", "coarse"), default="default")
@@ -144,20 +165,10 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=15)
     parser.add_argument("--out", type=Path, default=OUT, help="JSON written as the run goes")
     args = parser.parse_args()
-    if args.points is None:
-        args.points = 500_000 if args.resolution == "default" else 120_000
-    rng = np.random.default_rng(args.seed)
-    log(f"building the {args.resolution} hood, its ensemble and bases")
-    with tempfile.TemporaryDirectory() as tmp:
-        case = _hood_case(args.resolution, Path(tmp))
+    case, rng, results, save = start_run(args, log)
     bases, reduced, skin = case.bases, case.reduced, case.skin
     names = bases.names
     lo, hi = bases.pca.lower_, bases.pca.upper_
-    results: dict = {"date": time.strftime("%Y-%m-%d"), "names": list(names), "args": vars(args)}
-
-    def save() -> None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(results, indent=1, default=str))
 
     def member_of(state):
         return solve_members(reduced, state[None])

@@ -51,6 +51,11 @@ class SkinSurface:
     def n_nodes(self) -> int:
         return int(self.points.shape[0])
 
+    def triangle_areas(self) -> np.ndarray:
+        """(T,) mm^2, the area of each triangle."""
+        corners = np.asarray(self.points, dtype=np.float64)[self.triangles]
+        return 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+
 
 #: kinds of field error model: made by the scan step, stated by a user (``--noise-mm``), or none (a simulated field)
 ERROR_MODEL_KINDS = ("scan", "stated", "none")

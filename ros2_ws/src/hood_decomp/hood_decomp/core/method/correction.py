@@ -55,8 +55,8 @@ def plan_correction(estimate: ParameterEstimate, policy: CorrectionPolicy = Corr
     lifted = np.asarray(estimate.lifted, bool)
     effect = ~estimate.boundary
     # the model's physical factors the field cannot tell (model_spread): one-sigma effects (F, P) mm
-    effects = np.zeros((1, len(values))) if estimate.model_effects is None else np.asarray(estimate.model_effects)
-    model_std = np.sqrt(np.sum(effects**2, axis=0))
+    effects = estimate.model_effects
+    model_std = np.zeros(len(values)) if effects is None else estimate.model_std
     problems: list[str] = []
     if not estimate.coverage >= policy.min_coverage:
         problems.append(f"coverage {estimate.coverage:.2f} below minimum {policy.min_coverage:.2f}")

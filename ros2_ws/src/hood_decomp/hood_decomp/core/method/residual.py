@@ -123,10 +123,8 @@ def skin_adjacency(skin: SkinSurface) -> sp.csr_matrix:
 
 def _nodal_areas(skin: SkinSurface) -> np.ndarray:
     """Tributary area per skin node (N,) mm^2: a third of each adjacent triangle (triangles split quads, so 1/2)."""
-    p = skin.points[skin.triangles]
-    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
     out = np.zeros(skin.n_nodes)
-    np.add.at(out, skin.triangles.ravel(), np.repeat(area / 3.0, 3))
+    np.add.at(out, skin.triangles.ravel(), np.repeat(skin.triangle_areas() / 3.0, 3))
     return out
 
 

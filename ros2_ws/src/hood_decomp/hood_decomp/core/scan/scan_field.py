@@ -78,11 +78,7 @@ TWICING_MIN_RADIUS_MM = 12.0
 def smoothing_bias_correlation(skin: SkinSurface) -> float:
     """The scan step's smoothing bias on ``skin`` as a correlation sum in nodes (``FieldErrorModel.bias_correlation``):
     :data:`SMOOTHING_BIAS_AREA_MM2` over the skin's area per node (mm^2 from its (T, 3) triangles)."""
-    points = np.asarray(skin.points, dtype=np.float64)
-    corners = points[np.asarray(skin.triangles, dtype=np.int64)]
-    area = 0.5 * float(np.sum(np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]),
-                                             axis=1)))
-    return SMOOTHING_BIAS_AREA_MM2 * points.shape[0] / max(area, 1e-300)
+    return SMOOTHING_BIAS_AREA_MM2 * skin.n_nodes / max(float(np.sum(skin.triangle_areas())), 1e-300)
 
 
 #: The prepared skin's arrays (ScanFieldEstimator.prepared_skin): named dimensions (N nodes, N1 = N + 1, G grid cells,
