@@ -265,6 +265,11 @@ def input_paths(args: argparse.Namespace) -> list[Path]:
     return [*(path for _, path in args.inputs or []), *(args.scanner_poses or {}).values()]
 
 
+def _scan_inputs(inputs: Inputs, poses: Poses) -> list[tuple[Path, Path | None]]:
+    """The --scan paths of ``inputs`` in their order, each with its --scanner-pose (keyed by input index) or None."""
+    return [(path, poses.get(i)) for i, (kind, path) in enumerate(inputs) if kind == "scan"]
+
+
 def read_fields(inputs: Inputs | None, skin: SkinSurface, min_coverage: float,
                 poses: Poses | None = None, one_part: bool = False,
                 views: Sequence[ScanView] | None = None) -> list[DisplacementField]:
@@ -281,7 +286,7 @@ def read_fields(inputs: Inputs | None, skin: SkinSurface, min_coverage: float,
     if not inputs:
         raise FieldError("give at least one --field FIELD.vtu or --scan SCAN.ply")
     poses = poses or {}
-    scans = [(path, poses.get(i)) for i, (kind, path) in enumerate(inputs) if kind == "scan"]
+    scans = _scan_inputs(inputs, poses)
     fields: list[DisplacementField] = []
     fused_done = False
     for kind, path in inputs:
@@ -306,8 +311,8 @@ def read_bases_and_field(args: argparse.Namespace, meanwhile: Callable[[Bases], 
     from hood_decomp.io.bases import load_bases
     from hood_decomp.io.scans import scan_file_views
 
-    inputs, poses = args.inputs or [], args.scanner_poses or {}
-    scans = [(path, poses.get(i)) for i, (kind, path) in enumerate(inputs) if kind == "scan"]
+    inputs = args.inputs or []
+    scans = _scan_inputs(inputs, args.scanner_poses or {})
     with ThreadPoolExecutor(2) as pool:
         early = pool.submit(scan_file_views, scans) if scans and len(scans) == len(inputs) else None
         bases = load_bases(args.bases)
