@@ -7,6 +7,7 @@ import sys
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from hood_decomp.core.scan import kernels
 from hood_decomp.core.scan.scan_field import ScanFieldEstimator, warm_up
@@ -94,7 +95,7 @@ def _reference_field(est: ScanFieldEstimator, points: np.ndarray) -> tuple[np.nd
         twice, _, _ = fit(keep, d - (own[:, 0] + own[:, 1] * u + own[:, 2] * v))
         coef = coef + twice
     counts = np.array([np.count_nonzero(keep[m]) for m in members], dtype=float)
-    nearby = est.near_kernel_ @ counts
+    nearby = (kernel >= 0.75**2).astype(float) @ counts  # nodes within half the radius: biweight >= (1 - 0.5^2)^2
     supported = ((weight >= est.min_points) & (inflation <= est.max_inflation)
                  & (nearby >= max(1.0, est.min_points / 4)) & np.isfinite(coef[:, 0]))  # fmt: skip
     return coef[:, 0], supported
@@ -225,3 +226,30 @@ def test_the_fused_second_pass_drops_and_sums_what_a_residual_array_would(compil
     np.testing.assert_array_equal(drop, expected_drop)
     assert inliers == kept.size and 0 < inliers < m - drop.size
     assert squares == pytest.approx(float(np.sum(kept * kept)), rel=1e-12)
+
+
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.skipif(
+    not kernels.HAVE_NUMBA, reason="numba is not installed: only the numpy path exists"))])
+def test_the_kernel_pass_equals_sparse_products(estimator, compiled):
+    """kernels.kernel_sums walks the CSR kernel once instead of keeping a transposed, squared and thresholded copy.
+    Fails if its column subtraction differs from scipy's K[:, rows] @ removed (the kernel is not symmetric, so K's
+    rows would give other numbers), or its squared-kernel or near sums from scipy's products with K * K and with
+    K >= 0.5625, on the estimator's own kernel (five copies of it: more than one block of the numpy path)."""
+    kernel = sp.block_diag([estimator.kernel_] * 5, format="csr")  # five copies: more than one block
+    n = kernel.shape[0]
+    assert abs(kernel - kernel.T).max() > 0.1 and kernel.nnz > kernels.BLOCK_POINTS
+    rng = np.random.default_rng(5)
+    counts = rng.integers(0, 20, n).astype(float)
+    rows = np.sort(rng.choice(n, 200, replace=False))
+    removed = rng.normal(0.0, 1.0, (rows.size, 14))
+    mixed = rng.normal(0.0, 1.0, (n, 14))
+    expected = mixed - kernel.tocsc()[:, rows] @ removed
+    previous = kernels.use_compiled(compiled)
+    try:
+        squared, nearby = kernels.kernel_sums(kernel.indptr, kernel.indices, kernel.data, counts, rows, removed,
+                                              0.75**2, mixed, compiled)  # fmt: skip
+    finally:
+        kernels.use_compiled(previous)
+    np.testing.assert_allclose(mixed, expected, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(squared, kernel.multiply(kernel) @ counts, rtol=1e-12, atol=0)
+    np.testing.assert_array_equal(nearby, (kernel >= 0.75**2).astype(float) @ counts)

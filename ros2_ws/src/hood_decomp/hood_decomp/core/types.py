@@ -52,9 +52,16 @@ class SkinSurface:
         return int(self.points.shape[0])
 
     def triangle_areas(self) -> np.ndarray:
-        """(T,) mm^2, the area of each triangle."""
-        corners = np.asarray(self.points, dtype=np.float64)[self.triangles]
-        return 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+        """(T,) mm^2, the area of each triangle. By blocks of triangles: the whole (T, 3, 3) corners and their
+        products were about 60 MB of fresh memory at paper resolution, 0.1-0.15 s of a one-off run in page faults."""
+        points = np.asarray(self.points, dtype=np.float64)
+        triangles = np.asarray(self.triangles)
+        areas = np.empty(triangles.shape[0])
+        for start in range(0, triangles.shape[0], 65_536):
+            corners = points[triangles[start : start + 65_536]]
+            a, b = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+            areas[start : start + 65_536] = 0.5 * np.linalg.norm(np.cross(a, b), axis=1)
+        return areas
 
 
 #: kinds of field error model: made by the scan step, stated by a user (``--noise-mm``), or none (a simulated field)

@@ -26,6 +26,7 @@ import os
 import threading
 
 import numpy as np
+import scipy.sparse as sp
 
 #: numba is optional (the numpy path gives the same numbers) and imported only when a kernel first runs: it costs
 #: about 0.3 s of start-up that a verb without scans need not pay
@@ -213,6 +214,19 @@ def _node_fits_numpy(mixed, frames, t1x, t2x, coef, weight, inflation):
     inflation[:] = s0 * (c00 * inv_det)
 
 
+def _kernel_sums_numpy(indptr, indices, data, counts, rows, mark, removed, near, mixed, squared, nearby):
+    n = indptr.size - 1
+    if rows.size:  # scipy's column selection walks the CSR indices once (no transposed copy)
+        mixed -= sp.csr_matrix((data, indices, indptr), shape=(n, n))[:, rows] @ removed
+    start = 0
+    while start < n:  # row blocks of about BLOCK_POINTS kernel entries (at least one row)
+        stop = min(n, max(start + 1, int(np.searchsorted(indptr, indptr[start] + BLOCK_POINTS, "right")) - 1))
+        first, last = indptr[start], indptr[stop]
+        j, k, local = indices[first:last], data[first:last], indptr[start : stop + 1] - first
+        squared[start:stop] = sp.csr_matrix((k * k, j, local), shape=(stop - start, n)) @ counts
+        nearby[start:stop] = sp.csr_matrix(((k >= near).astype(np.float64), j, local), shape=(stop - start, n)) @ counts
+        start = stop
+
 # ------------------------------------------------------------------------------------------------ compiled path
 def _locate_block_loop(points, start, stop, affine, hi, strides, table, cell_mm, nodes, max_d,
                        out_row, out_j, out_u, out_v, out_d, cells):  # fmt: skip
@@ -333,6 +347,33 @@ def _node_fits_loop(mixed, frames, t1x, t2x, coef, weight, inflation):
         inflation[i] = s0 * (c00 * inv_det)
 
 
+def _kernel_sums_loop(indptr, indices, data, counts, rows, mark, removed, near, mixed, squared, nearby):
+    taken = np.empty(removed.shape[1])
+    for i in range(indptr.size - 1):
+        square = 0.0
+        close = 0.0
+        hits = 0
+        for e in range(indptr[i], indptr[i + 1]):
+            j = indices[e]
+            k = data[e]
+            c = counts[j]
+            square += k * k * c
+            if k >= near:
+                close += c
+            m = mark[j]
+            if m >= 0:
+                if hits == 0:
+                    taken[:] = 0.0
+                hits += 1
+                for col in range(removed.shape[1]):
+                    taken[col] += k * removed[m, col]
+        squared[i] = square
+        nearby[i] = close
+        if hits:
+            for col in range(removed.shape[1]):
+                mixed[i, col] -= taken[col]
+
+
 def _kernel(name: str, fast: bool = True):
     """The compiled loop ``name`` when ``fast`` and the compiled path is not switched off (numba imported and the
     loops compiled, or loaded from numba's cache, on first use), else the numpy function of the same job."""
@@ -347,7 +388,7 @@ def _kernel(name: str, fast: bool = True):
             for helper in ("_cell", "_add_one", "_second_moments", "_tangent_forms", "_plane_system"):
                 module[helper] = njit(nogil=True, cache=True, inline="always")(module[helper])
             for loop in ("_locate_block_loop", "_add_moments_loop", "_plane_residuals_loop", "_outliers_loop",
-                         "_raw_moments_loop", "_node_fits_loop"):  # fmt: skip
+                         "_raw_moments_loop", "_node_fits_loop", "_kernel_sums_loop"):  # fmt: skip
                 _JIT[loop] = njit(nogil=True, cache=True)(module[loop])
     return _JIT[name]
 
@@ -410,3 +451,25 @@ def node_fits(mixed: np.ndarray, frames: np.ndarray, t1x: np.ndarray, t2x: np.nd
     coef, weight, inflation = np.empty((n, 3)), np.empty(n), np.empty(n)
     _kernel("_node_fits_loop", fast)(mixed, frames, t1x, t2x, coef, weight, inflation)
     return coef, weight, inflation
+
+
+def kernel_sums(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kernel_data: np.ndarray, counts: np.ndarray,
+                rows: np.ndarray, removed: np.ndarray, near: float, mixed: np.ndarray,
+                fast: bool = True) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The second pass's node sums of the (N, N) CSR kernel K (indptr (N + 1,), indices, data), in one pass over it
+    (no transposed, squared or thresholded copy of K: in a fresh process building those cost more than a scan):
+
+    mixed (N, 14) -= K[:, rows] @ removed: the raw moments ``removed`` (R, 14) of the cells ``rows`` (R,), unique,
+    taken back out (K is not symmetric: per-node radii); returns sum_j K_ij^2 counts_j (N,) and sum_j counts_j over
+    the K_ij >= ``near`` (N,), with counts (N,) the cells' point counts. Per row, the terms are summed in the kernel's
+    entry order on both paths (the same numbers bit for bit; the numpy path in scipy's sparse products, by blocks of
+    rows).
+    """
+    n = kernel_indptr.size - 1
+    mark = np.full(n, -1, np.int32)  # the compiled loop's: row of ``removed`` per cell, -1 for none
+    mark[rows] = np.arange(rows.size)
+    squared, nearby = np.empty(n), np.empty(n)
+    _kernel("_kernel_sums_loop", fast)(kernel_indptr, kernel_indices, kernel_data, counts, rows, mark,
+                                       np.ascontiguousarray(removed, dtype=np.float64), float(near), mixed, squared,
+                                       nearby)  # fmt: skip
+    return squared, nearby

@@ -73,6 +73,9 @@ TWICING_VARIANCE = 1.8
 # 0.002-0.0027 mm at the default hood's 19 mm, so about 0.0004 mm at the paper mesh's 7.8 mm, the level of the
 # nominal geometry's own floor; there twicing would only add node noise and a fourth of the per-scan time.
 TWICING_MIN_RADIUS_MM = 12.0
+# Kernel weight of a node within half the radius (biweight (1 - 0.5^2)^2): a node needs scan points this close, or it
+# sits in a gap of the scan and a value there would be interpolated across the gap rather than measured.
+_NEAR_WEIGHT = 0.75**2
 
 
 def smoothing_bias_correlation(skin: SkinSurface) -> float:
@@ -259,17 +262,6 @@ class ScanFieldEstimator:
         # What a located point reads of its node, in one row: position in grid units, frame, quadric, squared gate.
         grid_position = (points - self.grid_origin_) / self.grid_cell_mm_
         self.node_table_ = np.column_stack([grid_position, self.frames_.reshape(n, 9), self.quadric_, self.gate2_])
-        # Nodes within half the radius: a node needs scan points this close, or it sits in a gap of the scan and a
-        # value there would be interpolated across the gap rather than measured.
-        # Both built on the kernel's own pattern (no copy of it, no general sparse product: these ran 0.5 s of a
-        # one-off run's preparation at paper resolution).
-        kernel = self.kernel_
-        near = kernel.data >= 0.75**2
-        kept = np.concatenate([[0], np.cumsum(near, dtype=np.int32)])[kernel.indptr]  # int32: 16 MB less at paper
-        self.near_kernel_ = sp.csr_matrix((np.ones(kept[-1]), kernel.indices[near], kept), shape=(n, n))
-        self.kernel_columns_ = kernel.tocsc()  # for taking a few cells' outliers back out
-        self.kernel_squared_ = sp.csr_matrix((kernel.data * kernel.data, kernel.indices, kernel.indptr),
-                                             shape=(n, n))  # for the node variances
         return self
 
     def _prepare_moment_maps(self, x: np.ndarray, t1: np.ndarray, t2: np.ndarray) -> None:
@@ -519,16 +511,19 @@ class ScanFieldEstimator:
         sigma = 1.4826 * float(np.median(spread)) if spread.size else np.inf
         limit = self.outlier_sigma * max(sigma, 1e-6)
         drop, inliers, squares = kernels.outliers(j, u, v, d, coef, limit, fast)
+        rows = np.unique(j[drop])
+        removed = np.zeros_like(cells)
         if drop.size:
-            removed = np.zeros_like(cells)
             kernels.add_moments(j[drop], u[drop], v[drop], d[drop], 1.0, removed, fast)
-            rows = np.unique(j[drop])
             cells -= removed
-            mixed -= self.kernel_columns_[:, rows] @ self._raw_moments(removed, rows, fast)
+        # One pass over the kernel: the dropped points' moments out of the mixed moments (through the kernel columns
+        # of their cells), and the per-node sums the support test and the error model need.
+        kernel = self.kernel_
+        squared, nearby = kernels.kernel_sums(kernel.indptr, kernel.indices, kernel.data, cells[:, 0], rows,
+                                              self._raw_moments(removed, rows, fast), _NEAR_WEIGHT, mixed, fast)
         coef, weight, inflation = self._node_fits(mixed, fast)
         if self.twicing_:  # a second twicing pass removes little more (coarse: bias RMS 0.0043 -> 0.0035 mm)
             coef = coef + self._twice(cells, coef, mixed, fast)
-        nearby = self.near_kernel_ @ cells[:, 0]
         supported = (
             (weight >= self.min_points)
             & (inflation <= self.max_inflation)
@@ -538,7 +533,7 @@ class ScanFieldEstimator:
         value = np.where(supported, coef[:, 0], np.nan)
         noise = float(np.sqrt(squares / inliers)) if inliers else float("nan")
         logger.info("second pass: %d inliers, %d of %d nodes seen", j.size - drop.size, supported.sum(), n)
-        errors = self._error_model(cells[:, 0], weight, inflation, supported, noise)
+        errors = self._error_model(cells[:, 0], squared, weight, inflation, supported, noise)
         return DisplacementField(self.skin_.model_id, value, float(supported.mean()), noise, errors)
 
     def _twice(self, cells: np.ndarray, coef: np.ndarray, mixed: np.ndarray, fast: bool) -> np.ndarray:
@@ -561,19 +556,20 @@ class ScanFieldEstimator:
         twice[:, 10:] = self.kernel_ @ self._raw_moments(residual, np.arange(cells.shape[0]), fast)[:, 10:]
         return self._node_fits(twice, fast)[0]
 
-    def _error_model(self, counts: np.ndarray, weight: np.ndarray, inflation: np.ndarray, supported: np.ndarray,
-                     noise_mm: float) -> FieldErrorModel:
+    def _error_model(self, counts: np.ndarray, squared: np.ndarray, weight: np.ndarray, inflation: np.ndarray,
+                     supported: np.ndarray, noise_mm: float) -> FieldErrorModel:
         """The node errors this smoothing makes of independent point noise (``noise_mm`` per point, along the normal).
 
         Node i's value is about sum_p k_i(p) d_p / W_i over the points p of the cells j (n_j points each, kernel
         weight K_ij, W_i = sum_j K_ij n_j), so Cov(a_i, a_k) = noise^2 sum_j K_ij K_kj n_j / (W_i W_k): the node std
         is noise sqrt(sum_j K_ij^2 n_j) / W_i, times the square root of the plane fit's intercept inflation (one-sided
         support), and the correlation sum g_i = sum_k Cov_ik / (s_i s_k) takes two sparse products (no N x N matrix).
+        counts (N,): the cells' point counts n_j; squared (N,): sum_j K_ij^2 n_j (:func:`kernels.kernel_sums`).
         """
         if not np.isfinite(noise_mm):
             return FieldErrorModel.none()
         with np.errstate(invalid="ignore", divide="ignore"):
-            spread = np.sqrt(self.kernel_squared_ @ counts) / weight  # std per unit point noise, before inflation
+            spread = np.sqrt(squared) / weight  # std per unit point noise, before inflation
             t = np.where(supported, 1.0 / (weight * spread), 0.0)  # 1 / (W_k s_k)
             correlation = t * (self.kernel_ @ (counts * (self.kernel_.T @ t)))
         if self.twicing_:
