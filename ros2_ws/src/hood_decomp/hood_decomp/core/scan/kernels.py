@@ -31,8 +31,10 @@ import scipy.sparse as sp
 #: numba is optional (the numpy path gives the same numbers) and imported only when a kernel first runs: it costs
 #: about 0.3 s of start-up that a verb without scans need not pay
 HAVE_NUMBA = importlib.util.find_spec("numba") is not None
-#: points per block: a block's temporaries (about 20 float64 columns) stay within a few MB of cache
-BLOCK_POINTS = 131_072
+#: points per block: a block's temporaries on the numpy path (the gathered (B, 18) node rows and about 20 float64
+#: columns: 20 MB per thread at 131,072 points) are made fresh in a one-off process; 65,536 took as little CPU per
+#: scan and 30 MB less memory (paper 1M, benchmarks/RESULTS.md, 2026-11-24); the compiled path does not care
+BLOCK_POINTS = 65_536
 #: a scan of at least this many points loads the compiled kernels when they are not loaded yet (module docstring)
 COMPILED_MIN_POINTS = 2_000_000
 #: True: compiled path, False: numpy path, None: by size (:func:`for_points`)
@@ -216,8 +218,10 @@ def _node_fits_numpy(mixed, frames, t1x, t2x, coef, weight, inflation):
 
 def _kernel_sums_numpy(indptr, indices, data, counts, rows, mark, removed, near, mixed, squared, nearby):
     n = indptr.size - 1
-    if rows.size:  # scipy's column selection walks the CSR indices once (no transposed copy)
-        mixed -= sp.csr_matrix((data, indices, indptr), shape=(n, n))[:, rows] @ removed
+    if rows.size:  # scipy's column selection walks the CSR indices once (no transposed copy); only the rows hit
+        columns = sp.csr_matrix((data, indices, indptr), shape=(n, n))[:, rows]
+        hit = np.flatnonzero(np.diff(columns.indptr))
+        mixed[hit] -= columns[hit] @ removed
     start = 0
     while start < n:  # row blocks of about BLOCK_POINTS kernel entries (at least one row)
         stop = min(n, max(start + 1, int(np.searchsorted(indptr, indptr[start] + BLOCK_POINTS, "right")) - 1))
