@@ -35,6 +35,9 @@ HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 #: columns: 20 MB per thread at 131,072 points) are made fresh in a one-off process; 65,536 took as little CPU per
 #: scan and 30 MB less memory (paper 1M, benchmarks/RESULTS.md, 2026-11-24); the compiled path does not care
 BLOCK_POINTS = 65_536
+#: nodes per block of the numpy path's per-node steps (raw moments, plane fits): their two dozen (K,) temporaries stay
+#: in cache and are not made fresh at the skin's size (N = 189k at paper resolution: 1.5 MB each)
+NODE_BLOCK = 16_384
 #: a scan of at least this many points loads the compiled kernels when they are not loaded yet (module docstring)
 COMPILED_MIN_POINTS = 2_000_000
 #: True: compiled path, False: numpy path, None: by size (:func:`for_points`)
@@ -187,19 +190,28 @@ def _plane_system(s0, ts0, ts1, q0, q1, q2, d0, td0, td1, a, b):
 def _raw_moments_numpy(cells, basis, rows):
     out = np.empty((rows.size, 14))
     every = rows.size == cells.shape[0] and np.array_equal(rows, np.arange(rows.size))
-    c = (cells if every else cells[rows]).T.copy()  # (9, K) and (3, 3, K): contiguous per component
-    b = (basis if every else basis[rows]).transpose(1, 2, 0).copy()
-    out[:, 0] = c[0]
-    for dim in range(3):
-        out[:, 1 + dim] = c[0] * b[0, dim] + c[1] * b[1, dim] + c[2] * b[2, dim]
-        out[:, 11 + dim] = c[6] * b[0, dim] + c[7] * b[1, dim] + c[8] * b[2, dim]
-    for col, value in enumerate(_second_moments(*c[:6], b[0], b[1], b[2])):
-        out[:, 4 + col] = value
-    out[:, 10] = c[6]
+    for start in range(0, rows.size, NODE_BLOCK):
+        part = slice(start, start + NODE_BLOCK)
+        c = (cells[part] if every else cells[rows[part]]).T.copy()  # (9, K) and (3, 3, K): contiguous per component
+        b = (basis[part] if every else basis[rows[part]]).transpose(1, 2, 0).copy()
+        block = out[part]
+        block[:, 0] = c[0]
+        for dim in range(3):
+            block[:, 1 + dim] = c[0] * b[0, dim] + c[1] * b[1, dim] + c[2] * b[2, dim]
+            block[:, 11 + dim] = c[6] * b[0, dim] + c[7] * b[1, dim] + c[8] * b[2, dim]
+        for col, value in enumerate(_second_moments(*c[:6], b[0], b[1], b[2])):
+            block[:, 4 + col] = value
+        block[:, 10] = c[6]
     return out
 
 
 def _node_fits_numpy(mixed, frames, t1x, t2x, coef, weight, inflation):
+    for start in range(0, mixed.shape[0], NODE_BLOCK):
+        part = slice(start, start + NODE_BLOCK)
+        _node_fits_block(mixed[part], frames[part], t1x[part], t2x[part], coef[part], weight[part], inflation[part])
+
+
+def _node_fits_block(mixed, frames, t1x, t2x, coef, weight, inflation):
     s0, s1, d0, d1 = mixed[:, 0], mixed[:, 1:4], mixed[:, 10], mixed[:, 11:14]
     ts = np.einsum("nkd,nd->nk", frames[:, :2], s1)
     td = np.einsum("nkd,nd->nk", frames[:, :2], d1)
