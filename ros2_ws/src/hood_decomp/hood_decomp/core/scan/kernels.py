@@ -91,7 +91,9 @@ def _locate_block_numpy(points, start, stop, affine, hi, strides, table, cell_mm
         np.fmin(index, hi[k], out=index)
         flat += index * strides[k]
     j = table[flat.astype(np.int64)]
-    node = nodes[j]  # one gather: node position in grid units (3), frame rows t1, t2, n (9), quadric (5), gate (1)
+    # one gather (take: a fifth less CPU than nodes[j]): node position in grid units (3), frame rows t1, t2, n (9),
+    # quadric (5), gate (1)
+    node = np.take(nodes, j, axis=0)
     o0, o1, o2 = ((g[k] - node[:, k]) * cell_mm for k in range(3))
     u = node[:, 3] * o0 + node[:, 4] * o1 + node[:, 5] * o2
     v = node[:, 6] * o0 + node[:, 7] * o1 + node[:, 8] * o2
@@ -112,9 +114,12 @@ def _locate_block_numpy(points, start, stop, affine, hi, strides, table, cell_mm
 
 def _add_moments_numpy(j, u32, v32, d32, sign, cells):
     n = cells.shape[0]
+    j = j.astype(np.intp)  # once, not in each bincount
     u, v, d = u32.astype(np.float64), v32.astype(np.float64), d32.astype(np.float64)
-    for k, column in enumerate((None, u, v, u * u, u * v, v * v, d, d * u, d * v)):
-        sums = np.bincount(j, weights=column, minlength=n)
+    columns = (lambda: None, lambda: u, lambda: v, lambda: u * u, lambda: u * v, lambda: v * v, lambda: d,
+               lambda: d * u, lambda: d * v)  # made one at a time  # fmt: skip
+    for k, column in enumerate(columns):
+        sums = np.bincount(j, weights=column(), minlength=n)
         if sign > 0:
             cells[:, k] += sums
         else:

@@ -408,14 +408,16 @@ class ScanFieldEstimator:
         first = np.linspace(0, n_blocks, workers + 1).astype(np.int64) * block
 
         def run(w: int) -> int:
-            position = int(first[w])
+            begin = position = int(first[w])
             scratch = out[0] if rows else np.empty(block, np.int64)  # rows not kept: one block's worth, rewritten
             for start in range(int(first[w]), min(int(first[w + 1]), m), block):
                 position += kernels.locate_block(
                     points, start, min(start + block, m), affine, hi, self.grid_strides_, self.grid_table_,
                     self.grid_cell_mm_, self.node_table_, float(self.max_distance_mm), scratch[position:] if rows
-                    else scratch, *(a[position:] for a in out[1:]), cells[w], fast)  # fmt: skip
-            return position - int(first[w])
+                    else scratch, *(a[position:] for a in out[1:]), cells[w] if fast else None, fast)  # fmt: skip
+            if moments and not fast:  # the numpy path bins the thread's points once (per block: nine (N,) bincounts)
+                kernels.add_moments(*(a[begin:position] for a in out[1:]), 1.0, cells[w], fast)
+            return position - begin
 
         if workers == 1:
             counts = [run(0)]
