@@ -16,7 +16,10 @@ frame, the quadric distance, the gates; the points that pass are written to prea
 Per node (:func:`raw_moments`, :func:`node_fits`): the cell sums to raw 3D moments (the second moments formed from
 the node's basis rows, :func:`_second_moments`: no per-node map stored), and the closed-form 3x3 plane fit. The
 second pass (:func:`outliers`): residuals, outliers and the noise sums in one pass, without an array of the scan's
-size.
+size; then (:func:`kernel_sums`) one pass over the node kernel takes the dropped points back out of the mixed
+moments and sums what the support test and the error model need, so that no transposed, squared or thresholded copy
+of the kernel is built when a process starts (those took 0.2 s of CPU and 90 MB in a one-off run at paper
+resolution).
 """
 
 from __future__ import annotations
