@@ -237,6 +237,7 @@ def _node_fits_block(mixed, frames, t1x, t2x, coef, weight, inflation):
 
 
 def _kernel_sums_numpy(indptr, indices, data, counts, rows, mark, removed, near, mixed, squared, nearby):
+    # one signature for both paths: this one selects the columns ``rows``, the compiled loop looks cells up in ``mark``
     n = indptr.size - 1
     if rows.size:  # scipy's column selection walks the CSR indices once (no transposed copy); only the rows hit
         columns = sp.csr_matrix((data, indices, indptr), shape=(n, n))[:, rows]
