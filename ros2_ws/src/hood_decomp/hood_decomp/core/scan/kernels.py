@@ -494,6 +494,7 @@ def kernel_sums(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kernel_da
     mark = np.full(n, -1, np.int32)  # the compiled loop's: row of ``removed`` per cell, -1 for none
     mark[rows] = np.arange(rows.size)
     squared, nearby = np.empty(n), np.empty(n)
+    counts = np.ascontiguousarray(counts, dtype=np.float64)  # once: a column of the cell sums would be copied per block
     _kernel("_kernel_sums_loop", fast)(kernel_indptr, kernel_indices, kernel_data, counts, rows, mark,
                                        np.ascontiguousarray(removed, dtype=np.float64), float(near), mixed, squared,
                                        nearby)  # fmt: skip
