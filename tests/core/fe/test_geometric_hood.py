@@ -59,9 +59,10 @@ def test_lock_pair_interaction_needs_geometric_nonlinearity(lock_study) -> None:
 def test_fig11_field_keeps_the_lock_pair_effect(lock_study) -> None:
     """Fails if decomposing a LOCK_L + LOCK_R field of the nonlinear hood (0.8 and -0.7 mm, as Fig. 11; a new FE
     solve, not an ensemble member) drops the LOCK_L & LOCK_R effect in coarsening or reconstructs the field worse
-    than 0.002 mm RMS. Its partial displacement is not asserted: it is 0.044 mm where the planted interaction
-    u(a_L + a_R) - u(a_L) - u(a_R) + u0 peaks at 0.15 mm (0.10 mm of it outside the single effects' span), the
-    issue's 5 % is not met (RESULTS.md)."""
+    than 0.002 mm RMS. Its partial displacement is not asserted: it is 0.058 mm where the planted interaction
+    u(a_L + a_R) - u(a_L) - u(a_R) + u0 peaks at 0.15 mm: between the grid's states the contact-born interaction
+    is not in the span of the effect's two fields (best fit leaves 0.053 mm), so the issue's 5 % is met at the grid's
+    corner (next test), not here (RESULTS.md)."""
     model, columns, nonlinear, ensembles = lock_study
     basis = HierarchicalBasis(0.1).fit(ensembles["nonlinear"])
     state = np.zeros((1, len(model.names)))
@@ -70,3 +71,24 @@ def test_fig11_field_keeps_the_lock_pair_effect(lock_study) -> None:
     decomposition = decompose(basis, field)
     assert "LOCK_L & LOCK_R" in {effect.name for effect in decomposition.effects}
     assert decomposition.reconstruction_rms < 0.002
+
+
+def test_lock_pair_effect_carries_the_planted_interaction_at_a_corner(lock_study) -> None:
+    """Fails if the LOCK_L & LOCK_R effect's partial displacement (eq. 6) in the decomposition of a LOCK_L +1,
+    LOCK_R -1 field differs from the planted interaction |u(a_L + a_R) - u(a_L) - u(a_R) + u0| (3D, four new
+    nonlinear solves, differenced here, not through the basis) by more than 5 % of its peak, or if coarsening drops
+    the effect. The paper's difference field alone gives the effect only the part outside the single effects' span
+    (0.16 of 0.21 mm here); between the grid's states (Fig. 11's 0.8 / -0.7) no two-field effect follows this
+    contact-born interaction (RESULTS.md)."""
+    model, columns, nonlinear, ensembles = lock_study
+    basis = HierarchicalBasis(0.1).fit(ensembles["nonlinear"])
+    states = np.zeros((4, len(model.names)))
+    states[0, columns], states[1, columns[0]], states[2, columns[1]] = (1.0, -1.0), 1.0, -1.0
+    u = nonlinear.members(states).displacement
+    planted = np.linalg.norm(u[0] - u[1] - u[2] + u[3], axis=1)
+    field = DisplacementField(model.model_id, nonlinear.members(states[:1]).normal_displacement[0], 1.0,
+                              float("nan"))
+    effects = {effect.name: effect for effect in decompose(basis, field).effects}
+    assert planted.max() > 0.15
+    difference = np.abs(effects["LOCK_L & LOCK_R"].partial_displacement - planted).max()
+    assert difference < 0.05 * planted.max()

@@ -7,7 +7,15 @@ from hood_decomp.core.method.decomposition import decompose, select_effects
 from hood_decomp.core.method.hierarchical import HierarchicalBasis
 from hood_decomp.core.types import ParameterEstimate
 from hood_decomp.errors import FieldError
-from tests.toy_models import field_of, interacting_ensemble, make_skin
+from tests.toy_models import (
+    field_of,
+    full_factorial,
+    interacting_ensemble,
+    interaction_term,
+    make_ensemble,
+    make_reduced_model,
+    make_skin,
+)
 
 
 @pytest.fixture(scope="module")
@@ -96,3 +104,53 @@ def test_bad_field_is_refused(setup):
     skin, _, _, basis = setup
     with pytest.raises(FieldError, match="all NaN"):
         decompose(basis, field_of(skin, np.full(skin.n_nodes, np.nan)))
+
+
+def _lock_pair_model(skin, inside: int, inside_peak: float, own_peak: float):
+    """A bilateral toy model whose LOCK_L & LOCK_R product term C is parameter ``inside``'s unit field scaled to a
+    peak of ``inside_peak`` mm plus a field of its own (peak ``own_peak`` mm). Returns (model, terms, C in 3D)."""
+    model = make_reduced_model(skin, seed=3, n_pads=0)
+    _, own, own3 = interaction_term(skin, (2, 3), 13, own_peak)
+    scale = inside_peak / np.abs(model.R[:, inside]).max()
+    term = ((2, 3), own + scale * model.R[:, inside], own3 + scale * model.R_3d[:, :, inside])
+    return model, (term,), term[2]
+
+
+def test_an_interaction_effect_carries_the_factorial_interaction():
+    """Fails if the LOCK_L & LOCK_R effect's partial displacement is not the planted product term a_L a_R C (3D,
+    analytic) when C has a part inside the span of LOCK_L's own field (0.6 mm of it): the paper's difference field
+    alone gives the effect only C's part outside that span and LOCK_L the rest."""
+    skin = make_skin()
+    model, terms, c3 = _lock_pair_model(skin, 2, 0.6, 0.2)
+    states, rank = full_factorial(4)
+    basis = HierarchicalBasis(epsilon=0.01).fit(make_ensemble(model, states, rank, terms))
+    state = np.array([0.0, 0.0, 0.8, -0.7])
+    values, _ = truth_field(model, terms, state)
+    effects = {e.name: e for e in decompose(basis, field_of(skin, values), known_estimate(basis, state)).effects}
+    planted = np.linalg.norm(0.8 * -0.7 * c3, axis=1)
+    np.testing.assert_allclose(effects["LOCK_L & LOCK_R"].partial_displacement, planted, atol=1e-9)
+    np.testing.assert_allclose(effects["LOCK_L"].partial_displacement,
+                               np.linalg.norm(0.8 * model.R_3d[:, :, 2], axis=1), atol=1e-9)
+
+
+def test_subset_span_keeps_an_interaction_that_an_unmoved_effect_absorbs():
+    """Fails if span="subset" does not add LOCK_L & LOCK_R when the pair's product term is mostly HINGE_X's field
+    (0.3 mm of it plus 0.04 mm of its own): the paper's whole span absorbs it (no effect at 0.1 mm), and a field that
+    moves only the locks (0.8, -0.7), HINGE_X estimated at zero (step 3), then keeps 0.09 mm of its 0.17 mm HINGE_X-
+    shaped term unexplained; with the subset span it is reconstructed and the effect carries the planted a_L a_R C."""
+    skin = make_skin()
+    model, terms, c3 = _lock_pair_model(skin, 0, 0.3, 0.04)
+    states, rank = full_factorial(4)
+    ensemble = make_ensemble(model, states, rank, terms)
+    state = np.array([0.0, 0.0, 0.8, -0.7])
+    values, _ = truth_field(model, terms, state)
+    planted = np.linalg.norm(0.8 * -0.7 * c3, axis=1)
+    residual = {}
+    for span in ("whole", "subset"):
+        basis = HierarchicalBasis(epsilon=0.1, span=span).fit(ensemble)
+        assert ("LOCK_L & LOCK_R" in basis.effect_names_) == (span == "subset")
+        decomposition = decompose(basis, field_of(skin, values), known_estimate(basis, state))
+        residual[span] = np.abs(decomposition.residual).max()
+    assert residual["whole"] > 0.05 and residual["subset"] < 1e-9
+    effects = {e.name: e for e in decomposition.effects}
+    np.testing.assert_allclose(effects["LOCK_L & LOCK_R"].partial_displacement, planted, atol=1e-9)

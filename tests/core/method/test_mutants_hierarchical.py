@@ -9,6 +9,7 @@ independent (unlike the linear and bilinear toy models, where most of them are d
 
 from __future__ import annotations
 
+import itertools
 import warnings
 from dataclasses import replace
 
@@ -41,6 +42,19 @@ def _outside(vector: np.ndarray, span: list[np.ndarray]) -> np.ndarray:
         return vector
     a = np.array(span)
     return vector - np.linalg.lstsq(a.T, vector, rcond=None)[0] @ a
+
+
+def factorial_interaction(x: np.ndarray, commanded: np.ndarray, m: int) -> np.ndarray:
+    """Sum over the subsets T of member m's non-zero parameters of (-1)^(|S| - |T|) u(a_T), by itertools."""
+    used = np.flatnonzero(commanded[m])
+    total = np.zeros(x.shape[1])
+    for size in range(used.size + 1):
+        for subset in itertools.combinations(used, size):
+            state = np.zeros_like(commanded[m])
+            state[list(subset)] = commanded[m][list(subset)]
+            j = int(np.flatnonzero(np.all(commanded == state, axis=1))[0])
+            total += (-1.0) ** (used.size - size) * x[j]
+    return total
 
 
 def greedy_reference(ensemble: Ensemble, epsilon: float):
@@ -85,7 +99,8 @@ def greedy_reference(ensemble: Ensemble, epsilon: float):
             partner = [int(j) for j in group if np.all(commanded[j] == -commanded[m])]
             sub = [fields[i] for e, emask in enumerate(masks) if not np.any(emask & ~mask)
                    for i in effect_fields[e] if independent[i]]
-            effect_fields.append([add(_outside(x[j], sub), j) for j in [m, *partner[:1]]])
+            interactions = {j: factorial_interaction(x, commanded, j) for j in [m, *partner[:1]]}
+            effect_fields.append([add(i + _outside(x[j] - i, sub), j) for j, i in interactions.items()])
             masks.append(mask)
             ranks.append(r)
     return np.array(masks), np.array(ranks), np.array(fields), np.array(independent), np.array(members), worst_of_rank

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from hood_decomp.cli._common import check_output, finite, model_inputs, written_whole
+from hood_decomp.core.method.hierarchical import SPANS
 from hood_decomp.errors import EnsembleError
 
 if TYPE_CHECKING:
@@ -30,6 +31,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--epsilon", type=finite(0.0, 100.0, low_open=True, why=" mm: the tolerance of a member "
                         "error; 100 mm is beyond any sheet-metal deviation"), default=0.1,
                         help="hierarchical tolerance: max allowed member error, mm (default 0.1, the paper's)")
+    parser.add_argument("--span", choices=SPANS, default="whole",
+                        help="span a member is measured against in the hierarchical greedy: whole (the paper's Fig. 5, "
+                        "every effect found so far; default) or subset (the effects of its own parameters, what "
+                        "decomposition step 3 leaves for such a field)")
     parser.add_argument("--model", type=Path, default=None,
                         help="model directory of the ensemble: its reduced FE model goes into the bases file for the "
                         "contact-aware estimator (without it only the paper's 'pca' estimator is available), and its "
@@ -65,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
     ensemble, skin = load_ensemble(args.ensemble, "training"), load_skin(args.ensemble)
     reduced, zones = _reduced_model(args.model, ensemble.model_id)
     components = 10 if args.components is None and args.explained_variance is None else args.components
-    bases = dataclasses.replace(build_bases(ensemble, skin, reduced, components, args.explained_variance, args.epsilon),
+    bases = dataclasses.replace(build_bases(ensemble, skin, reduced, components, args.explained_variance, args.epsilon,
+                                            args.span),
                                 tolerance_zones=zones)
     with written_whole(out) as temporary:
         save_bases(temporary, bases)

@@ -147,6 +147,7 @@ def build_bases(
     n_components: int | None = 10,
     explained_variance: float | None = None,
     epsilon: float = 0.1,
+    span: str = "whole",
 ) -> Bases:
     """Build both bases from a full-factorial ensemble (section 3.1.2) and bundle them with the skin and model."""
     for what, other in (("skin", skin.model_id), ("reduced model", getattr(reduced_model, "model_id", None))):
@@ -159,7 +160,7 @@ def build_bases(
                 pca.cumulative_explained_variance_[pca.n_components_ - 1])
     for note in pca.notes_:
         logger.info("PCA: %s", note)
-    hierarchical = HierarchicalBasis(epsilon=epsilon).fit(ensemble)
+    hierarchical = HierarchicalBasis(epsilon=epsilon, span=span).fit(ensemble)
     return Bases(ensemble.model_id, skin, pca, hierarchical, reduced_model)
 
 

@@ -8,6 +8,26 @@ normal displacement, mm) and the difference field of its inverse partner (the me
 state) are added as a new effect named by the parameters the member involves (e.g. ``LOCK_L & LOCK_R``), until
 every member of the rank is within epsilon.
 
+What an interaction effect's field holds (a deviation from the paper in the partition only, not in the span): the
+paper adds the member's least-squares difference field itself, so an interaction's part that looks like a single
+effect (a lock pair pressing the hood onto a buffer: the buffer's own field) is fitted to the single effects and the
+effect's partial displacement is only what lies outside their span (0.044 mm against a factorial interaction of
+0.151 mm in Fig. 11's lock pair on the nonlinear coarse hood-paper, RESULTS.md). Here the field is the member's
+factorial interaction (the Moebius difference over its sub-states, for a pair u(a_i + a_j) - u(a_i) - u(a_j) + u0,
+section 3.1.1's grid) plus the difference field of what is left, u_S - I_S (zero for a pair; for rank 3 the rank-2
+sub-members' parts outside the span, each within epsilon). Its part outside the span equals the paper's difference
+field exactly, so the greedy adds the same directions, finds the same effects and reconstructs every field the same;
+a decomposition gives the interaction effect the factorial interaction, which a user can check with four solves.
+
+Which span a member is measured against (``span``): the paper's Fig. 5 fits it with every effect found so far
+("whole", the default). Step 3 of the workflow then fits a field that moves only some parameters with the effects of
+those parameters alone, where the other effects that absorbed part of an interaction are gone: on the nonlinear
+coarse hood-paper the LOCK_L & LOCK_R members are 0.033 mm from the whole span but 0.157 mm from their own effects'
+(lock-buffer pairs 0.061 and 0.215 mm). "subset" measures each member against the effects its own parameters span
+(``subset_fields``), so every member is within epsilon of the basis step 3 leaves for it. A subset difference field
+that lies in the whole span (an interaction shaped exactly like an unmoved parameter's field) adds no direction to
+the whole basis and is refused (BasisError), as the decomposition fits with independent fields only.
+
 Speed: the paper refits every member from scratch after each addition (3 h 21 min at 188k nodes x 729 members). Here
 an orthonormal basis Q of the span grows by Gram-Schmidt (with one re-orthogonalisation), and the difference fields
 of the current rank are updated by one rank-one projection per added direction: E <- E - (E q) q^T. Every basis
@@ -31,6 +51,9 @@ LOADS = "LOADS"
 # stores hold float32 (relative rounding 6e-8 per value): at the paper's 188k nodes the inverse partner of a nearly
 # linear parameter differed from its negated field by 5e-7 and made the normal matrix singular on partial fields.
 DEPENDENT_RTOL = 1e-5
+#: which span a member is measured against in the greedy loop: "whole", the paper's Fig. 5 (every effect found so
+#: far), or "subset", the effects its own parameters span (what step 3 of the workflow leaves for such a field)
+SPANS = ("whole", "subset")
 
 
 class _GreedyBuild:
@@ -41,9 +64,12 @@ class _GreedyBuild:
     outside the span.
     """
 
-    def __init__(self, x: np.ndarray, n_params: int) -> None:
+    def __init__(self, x: np.ndarray, n_params: int, commanded: np.ndarray | None = None) -> None:
         self.x = x
         self.eye = np.eye(len(x))
+        # commanded states (M, P) and the member index by state, for the factorial interaction's sub-states
+        self.commanded = np.zeros((len(x), n_params)) if commanded is None else commanded
+        self.state_index = {tuple(row.tolist()): m for m, row in enumerate(self.commanded)}  # tuples: -0.0 == 0.0
         self.q = np.zeros((2 * n_params + 2, x.shape[1]))  # rows 0..k-1 span the basis; grows by doubling
         self.k = 0
         self.combos: list[np.ndarray] = []  # per basis field: member weights (M,)
@@ -91,25 +117,66 @@ class _GreedyBuild:
         self.ranks.append(rank)
         self.effect_fields.append([*fields, -1][:2])
 
-    def difference(self, member: int, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Difference field of ``member`` (N,) and its member weights (M,): the member minus its least-squares fit
-        with the effects whose parameters it involves (LOADS included)."""
-        fields = [i for e, m in enumerate(self.masks) if not np.any(m & ~mask)
-                  for i in self.effect_fields[e] if i >= 0 and self.independent[i]]
+    def subset_fields(self, mask: np.ndarray) -> list[int]:
+        """Independent basis fields of the effects whose parameters lie within ``mask`` (P,) bool (LOADS included):
+        what step 3 of the workflow leaves for a field that moves exactly those parameters."""
+        return [i for e, m in enumerate(self.masks) if not np.any(m & ~mask)
+                for i in self.effect_fields[e] if i >= 0 and self.independent[i]]
+
+    def subset_errors(self, members: np.ndarray) -> np.ndarray:
+        """(R,) mm: each member's largest distance from the span of its own subset of effects (``subset_fields``)."""
+        masks = self.commanded[members] != 0
+        errors = np.zeros(len(members))
+        for mask in np.unique(masks, axis=0):
+            rows = np.flatnonzero(np.all(masks == mask, axis=1))
+            q = np.linalg.qr(np.array([self.normal[i] for i in self.subset_fields(mask)]).T)[0]
+            block = self.x[members[rows]]
+            errors[rows] = np.abs(block - (block @ q) @ q.T).max(axis=1)
+        return errors
+
+    def difference(self, weights: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Difference field (N,) of the member combination ``weights`` (M,) and its member weights (M,): the
+        combination minus its least-squares fit with the effects whose parameters it involves (LOADS included)."""
+        fields = self.subset_fields(mask)
         sub = np.array([self.normal[i] for i in fields])
-        coeff = np.linalg.lstsq(sub.T, self.x[member], rcond=None)[0]
-        combo = self.eye[member] - coeff @ np.array([self.combos[i] for i in fields])
-        return self.x[member] - coeff @ sub, combo
+        target = weights @ self.x
+        coeff = np.linalg.lstsq(sub.T, target, rcond=None)[0]
+        combo = weights - coeff @ np.array([self.combos[i] for i in fields])
+        return target - coeff @ sub, combo
+
+    def interaction(self, member: int) -> np.ndarray:
+        """Member weights (M,) of the factorial interaction of ``member``: sum over the subsets T of its non-zero
+        parameters of (-1)^(|S| - |T|) u(a_T), a_T its state with the parameters outside T at 0."""
+        state = self.commanded[member]
+        used = np.flatnonzero(state != 0)
+        weights = np.zeros(len(self.x))
+        for bits in range(1 << used.size):
+            keep = np.zeros(state.size, dtype=bool)
+            keep[used[[(bits >> b) & 1 == 1 for b in range(used.size)]]] = True
+            sub = tuple(np.where(keep, state, 0.0).tolist())
+            if sub not in self.state_index:
+                raise BasisError(f"the factorial interaction of member {member} needs the member {sub}")
+            weights[self.state_index[sub]] += (-1.0) ** (used.size - int(keep.sum()))
+        return weights
+
+    def effect_field(self, member: int, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """An interaction effect's field (N,) and its member weights (M,) for ``member``: its factorial interaction
+        I_S plus the difference field of u_S - I_S (module docstring); outside the span it is the member's
+        difference field."""
+        weights = self.interaction(member)
+        rest, combo = self.difference(self.eye[member] - weights, mask)
+        return weights @ self.x + rest, weights + combo
 
     def grow_rank(self, rank: int, members: np.ndarray, commanded: np.ndarray, names: tuple[str, ...],
-                  epsilon: float, trace: list[tuple[int, int, float]]) -> float:
-        """Add effects until every member of ``rank`` (indices ``members``) is within ``epsilon`` mm of the span; one
-        trace row per step. Returns the rank's final worst member error (mm)."""
+                  epsilon: float, trace: list[tuple[int, int, float]], span: str = "whole") -> float:
+        """Add effects until every member of ``rank`` (indices ``members``) is within ``epsilon`` mm of the span
+        (``span`` "whole": of all effects found so far; "subset": of its own subset, ``subset_errors``); one trace
+        row per step. Returns the rank's final worst member error (mm)."""
         x = self.x
         q = self.q[: self.k]
         self.diff = x[members] - (x[members] @ q.T) @ q
         while True:
-            errors = np.abs(self.diff).max(axis=1)
+            errors = np.abs(self.diff).max(axis=1) if span == "whole" else self.subset_errors(members)
             worst = int(np.argmax(errors))
             trace.append((rank, len(self.names), float(errors[worst])))
             if errors[worst] <= epsilon:
@@ -119,7 +186,7 @@ class _GreedyBuild:
             partner = np.flatnonzero(np.all(commanded[members] == -commanded[m], axis=1))
             mask = commanded[m] != 0
             group = [m] + [int(members[i]) for i in partner[:1]]
-            diffs = [(*self.difference(j, mask), j) for j in group]
+            diffs = [(*self.effect_field(j, mask), j) for j in group]
             k_before = self.k
             fields = []
             for diff, combo, j in diffs:
@@ -134,7 +201,8 @@ class _GreedyBuild:
 class HierarchicalBasis:
     """Greedy hierarchical basis of effects (Fig. 5).
 
-    Parameters: epsilon (mm), the largest allowed max-abs difference of any member. Progress is logged (INFO).
+    Parameters: epsilon (mm), the largest allowed max-abs difference of any member; span (SPANS), the span a member
+    is measured against: "whole" (the paper's Fig. 5) or "subset" (module docstring). Progress is logged (INFO).
 
     Fitted attributes (F basis fields, E effects, N nodes, P parameters):
     model_id_, names_, n_bilateral_, epsilon_.
@@ -147,8 +215,9 @@ class HierarchicalBasis:
     rank_max_error_ (R,) mm: the final worst member error of each rank; gram_ (F, F) over all nodes.
     """
 
-    def __init__(self, epsilon: float = 0.1) -> None:
+    def __init__(self, epsilon: float = 0.1, span: str = "whole") -> None:
         self.epsilon = epsilon
+        self.span = span
 
     def fit(self, ensemble: Ensemble) -> HierarchicalBasis:
         """Build the basis from a full-factorial ensemble (ranks >= 0, both signs of every sample present)."""
@@ -158,6 +227,8 @@ class HierarchicalBasis:
         names = tuple(ensemble.names)
         if self.epsilon <= 0:
             raise BasisError(f"epsilon must be > 0 mm, got {self.epsilon}")
+        if self.span not in SPANS:
+            raise BasisError(f"span must be one of {SPANS}, got {self.span!r}")
         if not np.all(np.isfinite(x)):
             raise BasisError("ensemble normal displacement holds NaN or inf values")
         if np.any(rank < 0):
@@ -166,7 +237,7 @@ class HierarchicalBasis:
         if rank0.size != 1:
             raise BasisError(f"expected exactly one rank-0 member, found {rank0.size}")
 
-        build = _GreedyBuild(x, len(names))
+        build = _GreedyBuild(x, len(names), commanded)
         origin = int(rank0[0])
         if np.abs(x[origin]).max() > 1e-12:
             build.add(x[origin], build.eye[origin], origin)
@@ -187,7 +258,8 @@ class HierarchicalBasis:
         trace: list[tuple[int, int, float]] = []
         rank_error = np.zeros(int(rank.max()) + 1)
         for r in range(2, len(rank_error)):
-            rank_error[r] = build.grow_rank(r, np.flatnonzero(rank == r), commanded, names, self.epsilon, trace)
+            rank_error[r] = build.grow_rank(r, np.flatnonzero(rank == r), commanded, names, self.epsilon, trace,
+                                            self.span)
 
         combos = np.array(build.combos)
         self.model_id_ = ensemble.model_id
