@@ -165,6 +165,20 @@ def split_table(summary: dict) -> str:
     return "\n".join(rows)
 
 
+def hood_setup(resolution: str) -> tuple:
+    """The hood at ``resolution``: model, skin, solver, reduced model, embedded bases (full factorial) and the FE
+    responses behind the physical factors."""
+    model = build_hood(resolution)
+    skin = skin_surface(model)
+    solver = build_solver(model)
+    reduced = reduce_model(solver)
+    commanded, rank = factorial_plan(model.lower, model.upper)
+    bases = build_bases(simulate_ensemble(reduced, commanded, rank, model.lower, model.upper), skin, reduced)
+    physics = PhysicalResponses.from_solver(physical_responses(solver), thickness_sensitivities(model, reduced),
+                                            thermal_moves(model))
+    return model, skin, solver, reduced, bases, physics
+
+
 def default_check(cache: Path, families: int, parts: int, name: str) -> None:
     """The smaller default-resolution check (session 8): CalculiX (S8R) load, gas-spring and unit responses of the
     default hood at nominal thickness (``cache``: an .npz of "load", "gas", "unit_<LABEL>" translations, made one
@@ -174,14 +188,7 @@ def default_check(cache: Path, families: int, parts: int, name: str) -> None:
     per family at 0.02 mm white field noise."""
     from hood_decomp.core.fe.solver import condense
 
-    model = build_hood("default")
-    skin = skin_surface(model)
-    solver = build_solver(model)
-    reduced = reduce_model(solver)
-    commanded, rank = factorial_plan(model.lower, model.upper)
-    bases = build_bases(simulate_ensemble(reduced, commanded, rank, model.lower, model.upper), skin, reduced)
-    physics = PhysicalResponses.from_solver(physical_responses(solver), thickness_sensitivities(model, reduced),
-                                            thermal_moves(model))
+    model, skin, solver, reduced, bases, physics = hood_setup("default")
     with np.load(cache, allow_pickle=False) as data:
         if str(data["model_id"]) != model.model_id:
             raise SystemExit(f"{cache}: model_id {data['model_id']} is not the default hood's {model.model_id}")
@@ -240,14 +247,7 @@ def main() -> None:
         default_check(args.default_ccx, args.families, args.parts, args.json)
         return
     start = time.perf_counter()
-    model = build_hood("coarse")
-    skin = skin_surface(model)
-    solver = build_solver(model)
-    reduced = reduce_model(solver)
-    commanded, rank = factorial_plan(model.lower, model.upper)
-    bases = build_bases(simulate_ensemble(reduced, commanded, rank, model.lower, model.upper), skin, reduced)
-    physics = PhysicalResponses.from_solver(physical_responses(solver), thickness_sensitivities(model, reduced),
-                                            thermal_moves(model))
+    model, skin, solver, reduced, bases, physics = hood_setup("coarse")
     standin = StandIn(model, calculix_responses(model, cache=args.ccx_cache))
     moved = solver.boundary_response("hinge_R", "z").reshape(-1, 6)[:, :3, None]
     hinge_r_z = project(model, solver.pads, moved)[0][:, 0]
