@@ -8,10 +8,13 @@ random states; an undeclared hinge_R.z move of 0.05 mm on a subset (its response
 detection rate. Also the issue's table: nominal physics, no noise, 40 parts, embedded bases.
 
     scripts/with-env python benchmarks/bench_calibration.py [--families 5] [--parts 40] [--families-25 2]
+    scripts/with-env python benchmarks/bench_calibration.py --default-ccx CCX.npz [--families 5] [--parts 6]
+        (only the smaller default-resolution check: CalculiX load, gas and unit responses, embedded pads)
 
 Prints tables (per parameter: max and median error, median stated std, coverage of the stated 95 % interval, max
 |error|/std; per variant: the within-model rate, its complement the false-alarm rate, and the hinge_R.z detection
-rate; the calibrations' model discrepancy is logged) and writes benchmarks/out/bench_calibration.json.
+rate; the calibrations' model discrepancy is logged; coverage per family, coverage with the model std, and the
+position error of truly lifted pads) and writes benchmarks/out/bench_calibration.json.
 The CalculiX responses are cached in benchmarks/out/standin_ccx_coarse.npz or ``--ccx-cache`` (47 jobs; 44 min at
 load 15, 24 min at load 6-15 on 2026-11-24; /work/scratch/cache/standin_ccx_coarse.npz outlives a worktree).
 
@@ -27,7 +30,9 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -70,11 +75,25 @@ def field(model_id: str, values: np.ndarray, rng: np.random.Generator | None) ->
 
 
 def summarise(errors: list, stds: list, within: list, names: tuple[str, ...], lifted: list | None = None,
-              reactions: list | None = None) -> dict:
+              reactions: list | None = None, families: list | None = None, model_stds: list | None = None) -> dict:
     errors, stds = np.abs(np.array(errors)), np.array(stds)
     inside = errors <= 1.96 * stds
     z = errors / stds
-    split = {}
+    extra = {}
+    if families is not None:
+        # the coverage is measured over few calibrations: per family it is one calibration's, and its spread over
+        # the families is what the pooled figure is uncertain by (a cluster sample, not 1,000 independent ones)
+        families = np.array(families)
+        per_family = np.array([inside[families == g].mean(axis=0) for g in np.unique(families)])
+        extra["coverage_95_per_family"] = per_family.tolist()
+        extra["coverage_95_per_parameter_family_se"] = dict(zip(
+            names, (per_family.std(axis=0, ddof=1) / np.sqrt(len(per_family))).tolist(), strict=True))
+    if model_stds is not None:
+        total = np.hypot(stds, np.array(model_stds))
+        extra["coverage_95_per_parameter_with_model_std"] = dict(zip(
+            names, (errors <= 1.96 * total).mean(axis=0).tolist(), strict=True))
+        extra["median_model_std_mm"] = dict(zip(names, np.median(np.array(model_stds), axis=0).tolist(), strict=True))
+    split: dict = {}
     if lifted is not None and reactions is not None:
         flagged, reactions = np.array(lifted, bool), np.array(reactions)
         pads = errors[:, -reactions.shape[1]:]
@@ -106,6 +125,7 @@ def summarise(errors: list, stds: list, within: list, names: tuple[str, ...], li
         "within_model_rate": float(np.mean(within)),
         "false_alarm_rate": 1.0 - float(np.mean(within)),
         **split,
+        **extra,
     }
 
 
@@ -129,12 +149,83 @@ def split_table(summary: dict) -> str:
         rows.append(f"| {name} | {100 * summary['flagged_lifted_rate'][name]:.1f} % | "
                     f"{summary['max_error_not_lifted_mm'][name]:.4f} | {summary['max_error_lifted_mm'][name]:.4f} |")
     rows.append(f"buffer errors > 0.05 mm: {summary['buffer_errors_above_0.05mm']}")
+    rows.append("coverage with the model std (the calibration's factors): " + ", ".join(
+        f"{k} {100 * v:.1f}" for k, v in summary["coverage_95_per_parameter_with_model_std"].items()))
+    rows.append("coverage per family (%): " + "; ".join(
+        " ".join(f"{100 * v:.0f}" for v in row) for row in summary["coverage_95_per_family"])
+                + " (standard error over the families: " + ", ".join(
+        f"{k} {100 * v:.1f}" for k, v in summary["coverage_95_per_parameter_family_se"].items()) + ")")
+    if "lifted_pad_position" in summary:
+        rows.append(f"truly lifted pads flagged lifted, position error: {summary['lifted_pad_position']}")
     reported = summary["against_what_is_reported"]
     rows.append("against what is reported (a lifted flag: the part's position at the pad): max error "
                 + ", ".join(f"{k} {v:.4f}" for k, v in reported["max_error_mm"].items())
                 + f"; coverage {100 * reported['coverage_95']:.1f} % ("
                 + ", ".join(f"{k} {100 * v:.1f}" for k, v in reported["coverage_95_per_parameter"].items()) + ")")
     return "\n".join(rows)
+
+
+def hood_setup(resolution: str) -> tuple:
+    """The hood at ``resolution``: model, skin, solver, reduced model, embedded bases (full factorial) and the FE
+    responses behind the physical factors."""
+    model = build_hood(resolution)
+    skin = skin_surface(model)
+    solver = build_solver(model)
+    reduced = reduce_model(solver)
+    commanded, rank = factorial_plan(model.lower, model.upper)
+    bases = build_bases(simulate_ensemble(reduced, commanded, rank, model.lower, model.upper), skin, reduced)
+    physics = PhysicalResponses.from_solver(physical_responses(solver), thickness_sensitivities(model, reduced),
+                                            thermal_moves(model))
+    return model, skin, solver, reduced, bases, physics
+
+
+def default_check(cache: Path, families: int, parts: int, name: str) -> None:
+    """The smaller default-resolution check (session 8): CalculiX (S8R) load, gas-spring and unit responses of the
+    default hood at nominal thickness (``cache``: an .npz of "load", "gas", "unit_<LABEL>" translations, made one
+    job at a time), the embedded solver's pad responses (86 CalculiX jobs of 7.7 GB would be needed for CalculiX
+    pads and thickness families), per family E, pad stiffness, preload and gas-spring force drawn as the coarse
+    stand-in's (no thickness change: no responses at other thicknesses), 13 calibration entries and ``parts`` parts
+    per family at 0.02 mm white field noise."""
+    from hood_decomp.core.fe.solver import condense
+
+    model, skin, solver, reduced, bases, physics = hood_setup("default")
+    with np.load(cache, allow_pickle=False) as data:
+        if str(data["model_id"]) != model.model_id:
+            raise SystemExit(f"{cache}: model_id {data['model_id']} is not the default hood's {model.model_id}")
+        columns = {key: data[key] for key in data.files if key != "model_id"}
+    pads = solver.pad_responses()
+    names, mid = model.names, model.model_id
+    errors, stds, model_stds, within = [], [], [], []
+    for f in range(families):
+        rng = np.random.default_rng(1000 + f)
+        family = Family.draw(rng)
+        load = (columns["load"] + (family.gas_spring - 1.0) * columns["gas"]) / family.E
+        units = [columns[f"unit_{p.label}"] for p in model.bilateral]
+        truth = condense(model, solver.pads, np.stack([load, *units], axis=2), pads / family.E, reduced.names,
+                         reduced.n_bilateral)
+        truth = replace(truth, k=truth.k * family.pad_stiffness, preload=truth.preload * family.preload)
+        settings = one_at_a_time(len(names))
+        values = solve_members(truth, settings).normal_displacement
+        entries = [CalibrationEntry(f"entry {j}", field(mid, values[j], rng), settings[j])
+                   for j in range(len(settings))]
+        calibrated, calibration = calibrate(reduced, physics, entries, skin, (model.lower, model.upper))
+        calibrated_bases = rebuild_bases(bases, calibrated, json.dumps(calibration.record()), physics,
+                                         calibration.discrepancy, calibration.local_mm2)
+        states = validation_plan(model.lower, model.upper, parts, seed=2000 + f)
+        block = solve_members(truth, states)
+        for i in range(len(states)):
+            e = estimate_field(calibrated_bases, field(mid, block.normal_displacement[i], rng))
+            errors.append(e.values - block.effective[i]), stds.append(e.std), within.append(e.within_model)
+            model_stds.append(np.zeros(len(names)) if e.model_std is None else e.model_std)
+        logger.info("default family %d done", f)
+    summary = summarise(errors, stds, within, names, families=[i // parts for i in range(len(errors))],
+                        model_stds=model_stds)
+    summary["note"] = "default hood, CalculiX load/gas/unit responses, embedded pads, no thickness variation"
+    summary["load"] = os.getloadavg()[0]
+    print(table(f"calibrated, 13 entries, DEFAULT hood ({families} families x {parts} parts: fewer than 100)",
+                summary))
+    OUT.mkdir(exist_ok=True)
+    (OUT / name).write_text(json.dumps(summary, indent=1))
 
 
 def main() -> None:
@@ -146,24 +237,23 @@ def main() -> None:
     parser.add_argument("--json", default="bench_calibration.json", help="file name in benchmarks/out/")
     parser.add_argument("--ccx-cache", type=Path, default=OUT / "standin_ccx_coarse.npz",
                         help="the stand-in's CalculiX responses (.npz), read when present, else made and written")
+    parser.add_argument("--default-ccx", type=Path, default=None,
+                        help="run only the default-resolution check on these CalculiX responses (.npz)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     for name in ("distributed", "hood_decomp.core.method", "hood_decomp.core.fe.solver"):
         logging.getLogger(name).setLevel(logging.WARNING)
+    if args.default_ccx is not None:
+        default_check(args.default_ccx, args.families, args.parts, args.json)
+        return
     start = time.perf_counter()
-    model = build_hood("coarse")
-    skin = skin_surface(model)
-    solver = build_solver(model)
-    reduced = reduce_model(solver)
-    commanded, rank = factorial_plan(model.lower, model.upper)
-    bases = build_bases(simulate_ensemble(reduced, commanded, rank, model.lower, model.upper), skin, reduced)
-    physics = PhysicalResponses.from_solver(physical_responses(solver), thickness_sensitivities(model, reduced),
-                                            thermal_moves(model))
+    model, skin, solver, reduced, bases, physics = hood_setup("coarse")
     standin = StandIn(model, calculix_responses(model, cache=args.ccx_cache))
     moved = solver.boundary_response("hinge_R", "z").reshape(-1, 6)[:, :3, None]
     hinge_r_z = project(model, solver.pads, moved)[0][:, 0]
     names, mid, B = model.names, model.model_id, len(model.bilateral)
-    results: dict = {"date": "2026-11-24", "machine": "2 cores shared by 5 engineers, load 4-8", "noise_mm": NOISE_MM}
+    results: dict = {"date": "2026-11-24", "machine": "2 cores shared by 5 engineers",
+                     "load_at_start": os.getloadavg()[0], "noise_mm": NOISE_MM}
 
     # the issue's table: nominal physics, no noise, 40 parts
     nominal = Family()
@@ -178,7 +268,8 @@ def main() -> None:
     print(table("uncalibrated, nominal CalculiX parts, no noise", results["uncalibrated_nominal_noise_free"]))
 
     collected: dict[str, dict[str, list]] = {k: {"errors": [], "stds": [], "within": [], "detected": [],
-                                                 "lifted": [], "reactions": [], "reported": []}
+                                                 "lifted": [], "reactions": [], "reported": [], "family": [],
+                                                 "model_std": [], "pad_position": []}
                                              for k in ("uncalibrated", "reference", "calibrated_13", "calibrated_25")}
     families = []
     for f in range(args.families):
@@ -198,8 +289,14 @@ def main() -> None:
             calibrated, calibration = calibrate(reduced, physics, entries, skin, (model.lower, model.upper))
             variants[label] = rebuild_bases(bases, calibrated, json.dumps(calibration.record()), physics,
                                             calibration.discrepancy, calibration.local_mm2)
+            truth = standin.reduced(family)
+            offset = (calibrated.z0 - calibrated.preload) - (truth.z0 - truth.preload)
             record[label] = {"seconds": time.perf_counter() - tic, "rank": calibration.rank,
                              "loo_rms_mm": calibration.loo_rms_mm.tolist(), "factors": calibration.factors,
+                             "factor_std": calibration.factor_std,
+                             # the pads' z0 - preload, calibrated minus the family's truth (nominal part thickness)
+                             "pad_offset_error_mm": [float(offset[truth.pad_of == u].mean())
+                                                     for u in range(len(names) - B)],
                              "discrepancy": calibration.record()["discrepancy"]}
             logger.info("family %d %s: discrepancy %s", f, label, record[label]["discrepancy"])
             if label == "calibrated_13":
@@ -219,6 +316,13 @@ def main() -> None:
                 collected[label]["within"].append(e.within_model)
                 collected[label]["lifted"].append(e.lifted)
                 collected[label]["reactions"].append(reactions[i])
+                collected[label]["family"].append(f)
+                collected[label]["model_std"].append(np.zeros(len(names)) if e.model_std is None else e.model_std)
+                # a truly lifted pad flagged lifted: its value is the part's position there (StandInParts.position)
+                for u in np.flatnonzero((reactions[i] <= 0) & e.lifted[B:]):
+                    collected[label]["pad_position"].append(
+                        (float(e.values[B + u] - parts.position[i, u]), float(e.std[B + u]),
+                         float(0.0 if e.model_std is None else e.model_std[B + u])))
                 # what a lifted flag reports: the part's position at the pad (a light touch's commanded position
                 # lies above it and is not observable)
                 reported = np.concatenate([effective[i, :B], np.where(e.lifted[B:], parts.position[i],
@@ -235,7 +339,19 @@ def main() -> None:
     for label, data in collected.items():
         if not data["errors"]:
             continue
-        summary = summarise(data["errors"], data["stds"], data["within"], names, data["lifted"], data["reactions"])
+        summary = summarise(data["errors"], data["stds"], data["within"], names, data["lifted"], data["reactions"],
+                            data["family"], data["model_std"])
+        if data["pad_position"]:
+            error, std, model_std = np.array(data["pad_position"]).T
+            total = np.hypot(std, model_std)
+            summary["lifted_pad_position"] = {
+                "pads": len(error), "max_error_mm": float(np.abs(error).max()),
+                "rms_error_mm": float(np.sqrt(np.mean(error**2))),
+                "max_abs_z_std": float(np.max(np.abs(error) / std)),
+                "max_abs_z_with_model_std": float(np.max(np.abs(error) / total)),
+                "coverage_95_std": float(np.mean(np.abs(error) <= 1.96 * std)),
+                "coverage_95_with_model_std": float(np.mean(np.abs(error) <= 1.96 * total)),
+                "median_std_mm": float(np.median(std)), "median_model_std_mm": float(np.median(model_std))}
         reported = summarise(data["reported"], data["stds"], data["within"], names)
         summary["against_what_is_reported"] = {key: reported[key] for key in
                                                ("max_error_mm", "coverage_95", "coverage_95_per_parameter")}
@@ -247,6 +363,7 @@ def main() -> None:
               f"{summary['hinge_R_z_parts']} parts\n"
               + split_table(summary))
     results["seconds"] = time.perf_counter() - start
+    results["load_at_end"] = os.getloadavg()[0]
     OUT.mkdir(exist_ok=True)
     (OUT / args.json).write_text(json.dumps(results, indent=1))
     print(f"wrote {OUT / args.json} in {results['seconds']:.0f} s")

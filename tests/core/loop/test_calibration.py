@@ -21,6 +21,7 @@ from hood_decomp.core.loop.calibration import (
     CalibrationEntry,
     PhysicalResponses,
     calibrate,
+    factor_std,
     one_at_a_time,
     rebuild_bases,
     relative_field,
@@ -223,3 +224,16 @@ def test_stated_uncertainty_of_calibrated_bases_holds_on_calculix_parts(coarse_h
     assert coverage_without < 0.8 and within_without < 0.7, f"the stand-in should need the term: {outcome}"
     assert coverage >= 0.9 and within >= 0.975, f"coverage / within-model rate with the discrepancy: {outcome}"
     assert detected >= 9, f"hinge_R.z 0.05 mm detected on {detected} of 10 parts"
+
+
+def test_factor_std_is_the_jackknife_where_the_fit_understates_it():
+    """Fails if a physical factor's calibration std is the fit's noise-only std although leaving one entry out moves
+    the factor more (the jackknife over the leave-one-out fits; on the CalculiX stand-in the fit said 0.001-0.002 mm
+    for a preload whose pad offset was off by 0.02 mm), or if the fit's std is dropped where it is the larger.
+    Truth from another path: for a mean, the leave-one-out means' jackknife variance is exactly s^2 / M."""
+    rng = np.random.default_rng(5)
+    samples = rng.normal(size=(13, 2)) * [0.02, 0.001]
+    theta_loo = (samples.sum(axis=0) - samples) / 12.0  # the mean without each entry
+    covariance = np.diag([1e-8, 0.01])  # the fit's own std: 1e-4 and 0.1
+    expected = [samples[:, 0].std(ddof=1) / np.sqrt(13.0), 0.1]
+    np.testing.assert_allclose(factor_std(covariance, theta_loo), expected, rtol=1e-12)

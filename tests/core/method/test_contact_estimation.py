@@ -68,3 +68,31 @@ def test_bad_ranges_are_refused(setup):
     _, model, _, _ = setup
     with pytest.raises(ModelError, match=r"shape \(6,\)"):
         ContactEstimator().fit(model, np.zeros(5), np.zeros(6))
+
+
+def test_a_lifted_pads_model_std_counts_the_preload_it_is_read_from(setup):
+    """Fails if a lifted pad's stated model effect leaves out that its value, the part's position z - preload, moves
+    with the preload itself (a part whose preload differs from the model's has its position elsewhere, which the
+    estimate made with the model's preload does not follow; the effect was 0 before), or if it is added with the wrong
+    sign. Truth from another path: the part with the changed preload solved by exact pad contact (solve_members),
+    estimated by the nominal estimator, minus the changed part's own position there. The touching pad and the
+    bilateral values must stay unaffected (a lifted pad's preload moves no force)."""
+    from dataclasses import replace
+
+    from hood_decomp.core.fe.ensemble import solve_members
+    from hood_decomp.core.method.model_spread import Factor
+
+    skin, model, _, _ = setup
+    pad0 = (model.pad_of == 0).astype(float)
+    estimator = ContactEstimator().fit(model, np.full(6, -1.0), np.full(6, 1.0),
+                                       factors=(Factor("preload", preload=0.03 * pad0),))
+    part = replace(model, preload=model.preload + 0.03 * pad0)
+    rng = np.random.default_rng(8)
+    for _ in range(3):
+        state = np.concatenate([rng.uniform(-0.5, 0.5, N_BILATERAL), [-1.0, 0.5]])
+        estimate = estimator.estimate(field_of(skin, solve_members(model, state[None]).normal_displacement[0]))
+        assert estimate.lifted[N_BILATERAL] and not estimate.lifted[N_BILATERAL + 1]
+        truth = solve_members(part, state[None])
+        error = estimator.estimate(field_of(skin, truth.normal_displacement[0])).values - truth.effective[0]
+        assert abs(error[N_BILATERAL]) > 0.02  # the preload really moves the lifted pad's error
+        np.testing.assert_allclose(estimate.model_effects[0], error, atol=1e-6)

@@ -126,8 +126,9 @@ class PhysicalResponses:
 
 @dataclass(frozen=True)
 class Calibration:
-    """A fitted calibration. factors: name -> value (see :func:`factor_names`); factor_std: their std from the fit;
-    correction: (N, 1 + B + U) mm per unit regressor; rank: the correction's rank; entries: entry names;
+    """A fitted calibration. factors: name -> value (see :func:`factor_names`); factor_std: their calibration std
+    (:func:`factor_std`: the fit's or the jackknife's over the leave-one-out fits, the larger); correction:
+    (N, 1 + B + U) mm per unit regressor; rank: the correction's rank; entries: entry names;
     loo_rms_mm: (M,) leave-one-out prediction RMS per entry; noise_mm: the noise level used; residual_rms_mm: (M,)
     in-sample RMS after the calibration; setting_error_mm: (M,) largest setting discrepancy of the entry's test;
     discrepancy: (N, k) mm the model discrepancy modes (:func:`discrepancy_modes`); rough_rms_mm: the leave-one-out
@@ -425,6 +426,21 @@ def local_discrepancy(residuals: np.ndarray, mask: np.ndarray, noise: np.ndarray
     return (rings @ per_node) / np.asarray(rings.sum(axis=1)).ravel()
 
 
+def factor_std(covariance: np.ndarray, theta_loo: np.ndarray) -> np.ndarray:
+    """The physical factors' calibration std (F,): the larger of the fit's own (``covariance`` (F, F), the entries'
+    noise through the Gauss-Newton normal matrix and the prior) and the jackknife's over the leave-one-out fits
+    ``theta_loo`` (M, F): sqrt((M - 1) / M sum_j (theta_-j - mean)^2).
+
+    The fit's covariance counts only the entries' white noise, as if the model's shape were right; a factor the
+    entries pin down only through a response the model gets wrong (a pad's preload against the S8R skin's pad
+    response) moves when one entry is left out far more than that noise allows. On the CalculiX stand-in the fit's
+    preload std was 0.001-0.002 mm while the calibrated pad offset (z0 - preload) was off by up to 0.020 mm; the
+    jackknife's 0.005-0.027 mm followed the error family by family (benchmarks/RESULTS.md, session 8)."""
+    M = theta_loo.shape[0]
+    jackknife = np.sqrt((M - 1) / M * np.sum((theta_loo - theta_loo.mean(axis=0)) ** 2, axis=0))
+    return np.maximum(np.sqrt(np.clip(np.diag(covariance), 0.0, None)), jackknife)
+
+
 def smooth_modes(skin: SkinSurface, count: int = SMOOTH_MODES) -> np.ndarray:
     """The ``count`` smoothest skin fields (N, count), orthonormal: the lowest eigenvectors of the skin's graph
     Laplacian (edge weights 1), which resolve features down to about sqrt(skin area / count) (~100 mm on the hood)."""
@@ -495,9 +511,11 @@ def calibrate(reduced: ReducedModel, physics: PhysicalResponses, entries: list[C
     loo = np.zeros(M)
     loo_residual = np.zeros_like(problem.Y)
     setting_error = np.zeros(M)
+    theta_loo = np.zeros((M, theta.size))
     for j in range(M):
         others = np.delete(everything, j)
         theta_j, _ = problem.fit_factors(others, start=theta, iterations=3)
+        theta_loo[j] = theta_j
         excess, label = problem.setting_error(theta_j, j)
         setting_error[j] = excess
         if excess > 0:
@@ -526,7 +544,7 @@ def calibrate(reduced: ReducedModel, physics: PhysicalResponses, entries: list[C
     rough = float(np.sqrt(max(outside.mean(), 0.0) / skin.n_nodes))
     local = local_discrepancy(loo_residual, problem.mask, problem.noise, problem.modes, skin)
     names = factor_names(reduced, physics)
-    std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+    std = factor_std(covariance, theta_loo)
     calibration = Calibration(
         factors=dict(zip(names, map(float, theta), strict=True)), factor_std=dict(zip(names, map(float, std),
                                                                                       strict=True)),
@@ -605,6 +623,7 @@ __all__ = [
     "calibrate",
     "discrepancy_modes",
     "factor_names",
+    "factor_std",
     "local_discrepancy",
     "one_at_a_time",
     "rebuild_bases",

@@ -316,8 +316,19 @@ class ContactEstimator:
         def to_theta(dc: float, df: np.ndarray) -> np.ndarray:
             return best.normal_inverse @ (best.lift.T @ (dc * load + pad_part @ df))
 
-        return factor_effects(model, self.factors_, best.active, theta, to_theta,
-                              lambda t: self._report(best, t, theta_cov, min_force_n)[0])
+        def report(t: np.ndarray, factor: Factor | None = None) -> np.ndarray:
+            return self._report(best, t, theta_cov, min_force_n, factor)[0]
+
+        effects = factor_effects(model, self.factors_, best.active, theta, to_theta, report)
+        # A lifted pad's value is the part's position there, z - preload, and a part with the factor changed has its
+        # position moved too (the preload it is measured from, the compliance of z0 + H f), which the estimate made
+        # with the model's factor does not follow: the error is the estimate's shift minus that move. Without it a
+        # lifted pad's model std was 0 while the calibrated pad offset was off by up to 0.02 mm on the CalculiX
+        # stand-in (benchmarks/RESULTS.md, session 8).
+        base = report(theta)
+        for i, factor in enumerate(self.factors_):
+            effects[i] -= np.nan_to_num(report(theta, factor) - base)
+        return effects
 
     def _between_states(self, candidates: Iterable[_Candidate], best: _Candidate, values: np.ndarray, noise2: float,
                         min_force_n: float) -> np.ndarray:
@@ -379,11 +390,13 @@ class ContactEstimator:
         return min(candidates, key=lambda c: (c.rss + 2.0 * sigma2 * c.theta.size, c.theta.size))
 
     def _report(
-        self, cand: _Candidate, theta: np.ndarray, cov: np.ndarray, min_force_n: float
+        self, cand: _Candidate, theta: np.ndarray, cov: np.ndarray, min_force_n: float, factor: Factor | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Values (B + U,) mm, their covariance (B + U, B + U) mm^2, lifted flags (B + U,) and unseen flags (U,) from a
         solved candidate; a touching pad with a total force below ``min_force_n`` (N) is reported lifted, one whose
-        compression the field cannot show is reported lifted and flagged unseen.
+        compression the field cannot show is reported lifted and flagged unseen. ``factor``: a considered factor's
+        one-sigma change (:class:`~.model_spread.Factor`) applied to the pad springs' displacement and preload that a
+        lifted pad's position is read from (its compliance on z0 + H f, its preload); None: the model's.
 
         Every value is affine in theta (a state, a touching pad's position, or a lifted pad's lowest spring height),
         so the covariance is jac cov jac^T; a light-touch pad's variance is raised to cover the range its commanded
@@ -400,7 +413,10 @@ class ContactEstimator:
         unseen = np.zeros(n_pads, dtype=bool)
         u = cand.lift @ theta + cand.offset
         f = u[n_b:]
-        z = model.z0 - self.pad_shift_ + model.Sa @ u[:n_b] + model.H @ f  # lifted positions as at the reference
+        scale = 1.0 + (factor.compliance if factor is not None else 0.0)
+        preload = model.preload + (factor.preload if factor is not None and factor.preload is not None else 0.0)
+        # lifted positions as at the reference temperature
+        z = scale * (model.z0 + model.H @ f) - self.pad_shift_ + model.Sa @ u[:n_b]
         # dz/dtheta, for a lifted pad's position.
         dz = model.Sa @ cand.lift[:n_b] + model.H @ cand.lift[n_b:]
         touching = list(np.unique(model.pad_of[cand.active]))
@@ -418,7 +434,7 @@ class ContactEstimator:
                     # the one at which the pad just carries this force (the value, flagged lifted) and may be as low
                     # as the part's position there (the std covers that range).
                     lifted[n_b + pad] = True
-                    floor[n_b + pad] = values[n_b + pad] - float(np.min(z[springs] - model.preload[springs]))
+                    floor[n_b + pad] = values[n_b + pad] - float(np.min(z[springs] - preload[springs]))
                 continue
             lifted[n_b + pad] = True
             unseen[pad] = pad in touching
@@ -426,17 +442,17 @@ class ContactEstimator:
                 values[n_b + pad] = np.nan
                 floor[n_b + pad] = np.nan
                 continue
-            position = z[springs] - model.preload[springs]
+            position = z[springs] - preload[springs]
             k = springs[int(np.argmin(position))]
             values[n_b + pad] = position.min()
             jac[n_b + pad] = dz[k]
         covariance = jac @ cov @ jac.T
         std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
         with np.errstate(invalid="ignore", divide="ignore"):
-            factor = np.where(floor > std, floor / np.where(std > 0, std, 1.0), 1.0)
-        raise_only = np.isfinite(factor) & (std > 0)
-        factor = np.where(raise_only, factor, 1.0)
-        covariance = covariance * np.outer(factor, factor)
+            raise_by = np.where(floor > std, floor / np.where(std > 0, std, 1.0), 1.0)
+        raise_only = np.isfinite(raise_by) & (std > 0)
+        raise_by = np.where(raise_only, raise_by, 1.0)
+        covariance = covariance * np.outer(raise_by, raise_by)
         bare = (std == 0) & (floor > 0)
         covariance[bare, bare] = floor[bare] ** 2
         nan = np.isnan(floor)
