@@ -302,21 +302,17 @@ class ContactEstimator:
         theta_cov = parameter_covariance(design, best.normal_inverse, valid, errors, check.noise_scale, 0.0,
                                          registration)
         out_values, covariance, lifted, unseen = self._report(best, theta, theta_cov, min_force_n)
-        effects = self._factor_effects(best, theta, normal, valid, theta_cov, min_force_n) if self.factors_ else None
+        effects = self._factor_effects(best, theta, valid, theta_cov, min_force_n) if self.factors_ else None
         return _Fit(out_values, covariance, lifted, unseen, reconstruction, residual, rms, worst, check, effects)
 
-    def _factor_effects(self, best: _Candidate, theta: np.ndarray, normal: np.ndarray, valid: np.ndarray,
-                        theta_cov: np.ndarray, min_force_n: float) -> np.ndarray:
+    def _factor_effects(self, best: _Candidate, theta: np.ndarray, valid: np.ndarray, theta_cov: np.ndarray,
+                        min_force_n: float) -> np.ndarray:
         """(F, P) mm: the considered factors' effects (:func:`~.model_spread.factor_effects`) through this fit's
-        linear map, in the (B + S) space: a field change dc w0 + G df moves rhs by dc [R G]^T w0 + normal[:, B:] df."""
-        model = self.model_
-        load = self.fields_ @ np.where(valid, model.w0, 0.0)
-        pad_part = normal[:, model.n_bilateral:]
+        linear map, in the (B + S) space: a field change dw moves rhs by [R G]^T dw over the seen nodes."""
+        def to_theta(dw: np.ndarray) -> np.ndarray:
+            return best.normal_inverse @ (best.lift.T @ (self.fields_ @ np.where(valid, dw, 0.0)))
 
-        def to_theta(dc: float, df: np.ndarray) -> np.ndarray:
-            return best.normal_inverse @ (best.lift.T @ (dc * load + pad_part @ df))
-
-        return factor_effects(model, self.factors_, best.active, theta, to_theta,
+        return factor_effects(self.model_, self.factors_, best.active, theta, to_theta,
                               lambda t: self._report(best, t, theta_cov, min_force_n)[0])
 
     def _between_states(self, candidates: Iterable[_Candidate], best: _Candidate, values: np.ndarray, noise2: float,
