@@ -27,14 +27,24 @@ still apply when the whole is not safe) is wrong by more than 0.02 mm; "w/o": th
 model's physical factors (``model_std``, core/method/model_spread.py), as it was before them. "3x": the alarm rate
 with the node noise stated 3 times too large.
 
+The bases carry the FE model's responses to gas springs and thickness, so the gate's model std counts all five
+factors (``--without-physics``: compliance, pads and preload only, as bases files do). ``--own-parts``: harness (i)
+parts (truth from the bases' own reduced model) through the same path. ``--calibrate ccx|embedded``: the bases are
+first calibrated (core.loop.calibration, 13 one-at-a-time entries with 0.02 mm noise) to a family drawn from the seed,
+made by CalculiX (coarse cache) or by the embedded solver re-solved with the family's physics; ``calibrated_family``
+parts are of that family (harness (ii) on the calibrated bases). Besides the gate, a table per boundary of
+error / sqrt(std^2 + model_std^2) (is each error inside its total stated uncertainty).
+
 Prints a table per kind and writes benchmarks/out/discrepancy.json (rewritten as it goes). From the repository root:
     scripts/with-env nice python benchmarks/bench_discrepancy.py [--parts N] [--mesh-parts N] [--ccx-parts N]
+        [--own-parts N] [--calibrate ccx|embedded] [--without-physics] [--kinds ...]
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 import time
 from pathlib import Path
@@ -51,9 +61,17 @@ from bench_uncertainty import judge, start_run  # noqa: E402
 from hood_decomp.core.fe.ensemble import solve_members  # noqa: E402
 from hood_decomp.core.fe.hood_preset import build_preset  # noqa: E402
 from hood_decomp.core.fe.model import skin_surface  # noqa: E402
-from hood_decomp.core.fe.solver import build_solver, reduce_model  # noqa: E402
+from hood_decomp.core.fe.solver import (  # noqa: E402
+    build_solver,
+    physical_responses,
+    reduce_model,
+    thermal_moves,
+    thickness_sensitivities,
+)
+from hood_decomp.core.loop.calibration import CalibrationEntry, calibrate, one_at_a_time, rebuild_bases  # noqa: E402
 from hood_decomp.core.method.bases import estimate_field  # noqa: E402
 from hood_decomp.core.method.correction import plan_correction  # noqa: E402
+from hood_decomp.core.method.model_spread import PhysicalResponses  # noqa: E402
 from hood_decomp.core.scan.scan_field import field_from_scan, prepared_estimator  # noqa: E402
 from hood_decomp.core.types import DisplacementField, FieldErrorModel  # noqa: E402
 from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan  # noqa: E402
@@ -129,7 +147,35 @@ def summary(rows: list[dict], names: tuple[str, ...]) -> dict:
         "applicable_boundaries": {name: sum(name in r["applicable"] for r in rows) for name in names},
         "max_applied_error_mm": float(max(r["applied_error_mm"] for r in rows)),
         "gate_closed_by": {kind: kinds.count(kind) for kind in sorted(set(kinds))},
+        "z_total": z_table(rows, names),
     }
+
+
+def z_table(rows: list[dict], names: tuple[str, ...]) -> dict:
+    """Per boundary, the errors against the total uncertainty sqrt(std^2 + model_std^2) (where the estimate's contact
+    state is the truth's): count, largest |z|, fractions within 2 and 3."""
+    out = {}
+    for i, name in enumerate(names):
+        z = np.abs([r["z_total"][i] for r in rows if r["z_total"][i] is not None])
+        out[name] = {"n": int(z.size), "max": float(z.max(initial=0.0)),
+                     "within_2": float(np.mean(z <= 2.0)) if z.size else None,
+                     "within_3": float(np.mean(z <= 3.0)) if z.size else None}
+    return out
+
+
+def calibrated_bases(bases, physics: PhysicalResponses, truth, rng: np.random.Generator):
+    """``bases`` calibrated (core.loop.calibration, as ``hood-decomp calibrate``) from the one-at-a-time plan's 13
+    entries of the part model ``truth`` (exact pad contact, 0.02 mm white noise stated as the error model)."""
+    settings = one_at_a_time(len(bases.names))
+    fields = solve_members(truth, settings).normal_displacement
+    n = bases.skin.n_nodes
+    entries = [CalibrationEntry(f"entry {j}", DisplacementField(
+        bases.model_id, fields[j] + rng.normal(0.0, NOISE_MM, n), 1.0, NOISE_MM, FieldErrorModel.stated(NOISE_MM, n)),
+        settings[j]) for j in range(len(settings))]
+    reduced, calibration = calibrate(bases.reduced_model, physics, entries, bases.skin,
+                                     (bases.pca.lower_, bases.pca.upper_))
+    return rebuild_bases(bases, reduced, json.dumps(calibration.record(), sort_keys=True), physics,
+                         calibration.discrepancy, calibration.local_mm2)
 
 
 def main() -> int:
@@ -143,14 +189,40 @@ def main() -> int:
     parser.add_argument("--points", type=int, default=None,
                         help="scan points on the skin (default: 120,000 at coarse, 500,000 at default resolution)")
     parser.add_argument("--kinds", nargs="+", default=None, help="only these kinds")
+    parser.add_argument("--without-physics", action="store_true",
+                        help="bases without the responses to thickness and gas springs (model_std without them)")
+    parser.add_argument("--own-parts", type=int, default=0,
+                        help="parts of own_model: harness (i), truth from the bases' own reduced model (0: skip)")
+    parser.add_argument("--calibrate", choices=("ccx", "embedded"), default=None,
+                        help="first calibrate the bases (13 entries, 0.02 mm noise) to a family drawn from the seed, "
+                             "made by CalculiX (coarse, needs --ccx-cache) or by the embedded solver re-solved with "
+                             "that family's physics (any resolution); calibrated_family: parts of that family")
     parser.add_argument("--seed", type=int, default=152)
     parser.add_argument("--out", type=Path, default=OUT, help="JSON written as the run goes")
     args = parser.parse_args()
     case, rng, results, save = start_run(args, log, kinds={})
-    bases, skin, model = case.bases, case.skin, case.model
+    skin, model = case.skin, case.model
+    log("the FE model's responses to gas springs and sheet thickness (the model's factors, model_spread)")
+    physics = PhysicalResponses.from_solver(physical_responses(case.solver),
+                                            thickness_sensitivities(model, case.reduced), thermal_moves(model))
+    # --without-physics: the gate as before thickness and gas springs were considered (for the comparison)
+    bases = dataclasses.replace(case.bases, physics=None if args.without_physics else physics)
     names = bases.names
     lo, hi = bases.pca.lower_, bases.pca.upper_
     est = prepared_estimator(skin)
+    ccx = StandIn(model, calculix_responses(model, cache=args.ccx_cache)) \
+        if args.ccx_cache.exists() and args.resolution == "coarse" else None
+    if args.calibrate == "embedded":
+        log("the embedded solver's responses at three thickness scales (the calibration's stand-in)")
+        ccx = StandIn(model, embedded_responses(model))
+    elif args.calibrate and ccx is None:
+        raise SystemExit(f"--calibrate ccx needs the coarse CalculiX cache ({args.ccx_cache})")
+    if args.calibrate:
+        family = Family.draw(rng)
+        bases = calibrated_bases(bases, physics, ccx.reduced(family), rng)
+        results["calibrated_to"] = dataclasses.asdict(family) | {"by": args.calibrate,
+                                                                 "record": json.loads(bases.calibration)}
+        log(f"calibrated to the CalculiX family {family}")
 
     def scan_field(truth_skin, displacement) -> DisplacementField:
         config = ScannerConfig(n_points=args.points, noise_mm=NOISE_MM, marker_noise_mm=NOISE_MM, n_holes=3)
@@ -181,11 +253,22 @@ def main() -> int:
                 log(f"{kind} {k + 1}/{n}: {(time.time() - start) / (k + 1):.1f} s per part, scan alarms "
                     f"{s['alarm_rate']:.2f}, moved {s['moved']}, caught {s['moved_caught']}, unsafe {s['unsafe']}")
 
-    physics = [kind for kind in PHYSICS if not args.kinds or kind in args.kinds] if args.parts else []
-    if physics:
+    if args.own_parts and (not args.kinds or "own_model" in args.kinds):
+        def draw_own():  # harness (i): the bases' own model, measured
+            member = solve_members(bases.reduced_model, rng.uniform(lo, hi)[None])
+            return member, skin, member.normal_displacement[0], {}
+        run("own_model", args.own_parts, draw_own)
+    if args.calibrate and args.ccx_parts:
+        def draw_family():  # harness (ii) on the calibrated bases: the family they were calibrated to
+            member = solve_members(ccx.reduced(family), rng.uniform(lo, hi)[None])
+            return member, skin, member.normal_displacement[0], {}
+        run("calibrated_family", args.ccx_parts, draw_family)
+
+    perturbed = [kind for kind in PHYSICS if not args.kinds or kind in args.kinds] if args.parts else []
+    if perturbed:
         log("the embedded solver's responses at three thickness scales (perturbed physics)")
         standin = StandIn(model, embedded_responses(model))
-    for kind in physics:
+    for kind in perturbed:
         factors = PHYSICS[kind]
         def draw_physics(factors=factors):
             family = Family(**{key: float(1.0 + rng.uniform(-FAMILY_SPREAD[key], FAMILY_SPREAD[key]))
@@ -207,18 +290,17 @@ def main() -> int:
             return member, fine_skin, LinearNDInterpolator(source, member.normal_displacement[0])(target), {}
         run("mesh_default", args.mesh_parts, draw_mesh)
 
-    if args.ccx_parts and args.resolution != "coarse":
+    if args.ccx_parts and args.resolution != "coarse" and not args.calibrate:
         results["ccx"] = "not run: the CalculiX cache is the coarse hood's"
-    elif args.ccx_parts and args.ccx_cache.exists():
+    elif args.ccx_parts and ccx is not None and not args.calibrate:
         log(f"CalculiX S8R responses from {args.ccx_cache}")
-        ccx = StandIn(model, calculix_responses(model, cache=args.ccx_cache))
         for kind, family_of in (("ccx_nominal", lambda: Family()), ("ccx_family", lambda: Family.draw(rng))):
             def draw_ccx(family_of=family_of):
                 family = family_of()
                 member = solve_members(ccx.reduced(family), rng.uniform(lo, hi)[None])
                 return member, skin, member.normal_displacement[0], dataclasses.asdict(family)
             run(kind, args.ccx_parts, draw_ccx)
-    elif args.ccx_parts:
+    elif args.ccx_parts and not args.calibrate:
         log(f"no CalculiX cache at {args.ccx_cache}: the ccx kinds are not run")
         results["ccx"] = f"not run: no cache at {args.ccx_cache}"
     save()
@@ -234,6 +316,14 @@ def main() -> int:
                   f"{s['unsafe']:>6} {s['max_applied_error_mm']:>11.4f} {s['applicable_wrong']:>9} "
                   f"{s['max_applicable_error_mm']:>8.4f} {s['unsafe_before']:>20} {s['applicable_wrong_before']:>13} "
                   f"{s['max_applicable_error_before_mm']:>12.4f}")
+    print("\nerror / sqrt(std^2 + model_std^2) per boundary (contact state as the truth's): max |z|, "
+          "fraction within 2 and 3")
+    print(f"{'kind':<18} {'way':<6} " + " ".join(f"{name:>20}" for name in names))
+    for kind, ways in results["kinds"].items():
+        for way, block in ways.items():
+            cells = [f"{c['max']:6.2f} {c['within_2'] or 0:5.2f} {c['within_3'] or 0:5.2f}"
+                     for c in block["summary"]["z_total"].values()]
+            print(f"{kind:<18} {way:<6} " + " ".join(f"{cell:>20}" for cell in cells))
     return 0
 
 

@@ -63,6 +63,9 @@ def judge(estimate, member, names) -> dict:
     same = estimate.lifted == true_lifted
     error = estimate.values - truth
     z = np.where(same, error / estimate.std, np.nan)
+    # against the total uncertainty the gate acts on, sqrt(std^2 + model_std^2) (core/method/model_spread.py)
+    model_std = np.zeros_like(estimate.std) if estimate.model_effects is None else estimate.model_std
+    z_total = np.where(same, error / np.hypot(estimate.std, model_std), np.nan)
     correction = plan_correction(estimate, CorrectionPolicy())
     applied = (~estimate.lifted) & correction.applicable
     # a correction is -estimate; applying it is wrong by the estimate's error on the commanded state
@@ -73,7 +76,10 @@ def judge(estimate, member, names) -> dict:
     applicable_before = [name for name, ok in zip(names, before.applicable & ~estimate.lifted, strict=True) if ok]
     # per boundary: how wrong its own correction would be where it may be applied alone (NaN: not applicable)
     alone = np.where(applied, np.abs(error), np.nan)
-    return {"z": [None if not np.isfinite(v) else float(v) for v in z], "within": bool(estimate.within_model),
+    return {"z": [None if not np.isfinite(v) else float(v) for v in z],
+            "z_total": [None if not np.isfinite(v) else float(v) for v in z_total],
+            "std_mm": [float(v) for v in estimate.std], "model_std_mm": [float(v) for v in model_std],
+            "within": bool(estimate.within_model),
             "reasons": closed_by(correction), "safe_before": bool(before.safe_to_apply),
             "applicable": applicable, "applicable_before": applicable_before,
             "applicable_error_mm": float(np.max(np.abs(error[applied]), initial=0.0)),

@@ -84,9 +84,9 @@ def test_a_lifted_pads_model_std_counts_the_preload_it_is_read_from(setup):
 
     skin, model, _, _ = setup
     pad0 = (model.pad_of == 0).astype(float)
-    estimator = ContactEstimator().fit(model, np.full(6, -1.0), np.full(6, 1.0),
-                                       factors=(Factor("preload", preload=0.03 * pad0),))
     part = replace(model, preload=model.preload + 0.03 * pad0)
+    factor = Factor("preload", plus=part, minus=replace(model, preload=model.preload - 0.03 * pad0))
+    estimator = ContactEstimator().fit(model, np.full(6, -1.0), np.full(6, 1.0), factors=(factor,))
     rng = np.random.default_rng(8)
     for _ in range(3):
         state = np.concatenate([rng.uniform(-0.5, 0.5, N_BILATERAL), [-1.0, 0.5]])

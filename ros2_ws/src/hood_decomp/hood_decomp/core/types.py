@@ -238,6 +238,10 @@ class DisplacementField:
         return normals * self.normal_displacement[:, None]
 
 
+#: the reduced model's arrays a sheet thickness changes (k, preload and pad_of do not depend on it)
+SENSITIVE_ARRAYS = ("w0", "R", "G", "z0", "Sa", "H", "w0_3d", "R_3d", "G_3d")
+
+
 @dataclass(frozen=True)
 class ReducedModel:
     """The FE model condensed to what estimation needs: affine in the parameters for a fixed pad contact state.

@@ -26,7 +26,7 @@ import scipy.sparse as sp
 
 from hood_decomp.core.fe.model import AXES, PartModel, patch_nodes, patch_weights, skin_surface, validate_model
 from hood_decomp.core.fe.shell import quad_stiffness
-from hood_decomp.core.types import ReducedModel
+from hood_decomp.core.types import SENSITIVE_ARRAYS, ReducedModel
 from hood_decomp.errors import ModelError, SolverError
 
 logger = logging.getLogger(__name__)
@@ -529,6 +529,3 @@ def thickness_sensitivities(model: PartModel, base: ReducedModel, step: float = 
                                       for name in SENSITIVE_ARRAYS})
     return out
 
-
-#: the reduced model's arrays a thickness changes (k, preload and pad_of do not depend on it)
-SENSITIVE_ARRAYS = ("w0", "R", "G", "z0", "Sa", "H", "w0_3d", "R_3d", "G_3d")

@@ -56,8 +56,8 @@ import numpy as np
 
 from hood_decomp.core.fe.contact import contact_state
 from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solve_members
-from hood_decomp.core.fe.solver import SENSITIVE_ARRAYS
 from hood_decomp.core.method.bases import Bases, build_bases
+from hood_decomp.core.method.model_spread import PhysicalResponses, apply_factors, factor_names
 from hood_decomp.core.method.residual import DEFAULT_NOISE_MM, ring_incidence, skin_adjacency
 from hood_decomp.core.types import DisplacementField, ReducedModel, SkinSurface, fingerprint
 from hood_decomp.errors import CalibrationError
@@ -89,39 +89,6 @@ class CalibrationEntry:
     name: str
     field: DisplacementField
     setting: np.ndarray
-
-
-@dataclass(frozen=True)
-class PhysicalResponses:
-    """The FE responses behind the physical factors (core.fe.solver.physical_responses): gas springs at their stated
-    force and 1 K of uniform temperature rise, each as skin normal (N,), pad springs (S,), skin translations (N, 3);
-    thermal_moves (B,) mm per K, the unit responses' share of the thermal response (core.fe.solver.thermal_moves)."""
-
-    gas_w: np.ndarray
-    gas_z: np.ndarray
-    gas_w3: np.ndarray
-    thermal_w: np.ndarray
-    thermal_z: np.ndarray
-    thermal_w3: np.ndarray
-    #: thickness group -> d(reduced model arrays)/d(log thickness) (core.fe.solver.thickness_sensitivities)
-    thickness: dict[str, ReducedModel]
-    thermal_moves: np.ndarray
-
-    @staticmethod
-    def from_solver(responses: dict[str, tuple], thickness: dict[str, ReducedModel],
-                    thermal_moves: np.ndarray) -> PhysicalResponses:
-        (gw, gz, g3), (tw, tz, t3) = responses["gas_spring"], responses["thermal"]
-        return PhysicalResponses(gw, gz, g3, tw, tz, t3, thickness, np.asarray(thermal_moves, float))
-
-    def thermal(self, model: ReducedModel, calibrated: ReducedModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The thermal response (skin normal (N,), pad springs (S,), skin 3D (N, 3) mm per K) of a calibrated reduced
-        model: the FE model's (of ``model``, the reduced model these responses belong to) with its unit responses'
-        share (:attr:`thermal_moves`) moved by what the calibration changed in them. Without it a calibrated part's
-        thermal response keeps the FE model's unit response error: 1.7 % RMS on the coarse hood against CalculiX,
-        0.011-0.031 mm in the estimates at 5 K."""
-        m = self.thermal_moves
-        return (self.thermal_w + (calibrated.R - model.R) @ m, self.thermal_z + (calibrated.Sa - model.Sa) @ m,
-                self.thermal_w3 + (calibrated.R_3d - model.R_3d) @ m)
 
 
 @dataclass(frozen=True)
@@ -180,41 +147,6 @@ def one_at_a_time(n_params: int, moves: tuple[float, ...] = (0.8,)) -> np.ndarra
                 setting[i] = sign * move
                 settings.append(setting)
     return np.array(settings)
-
-
-def factor_names(reduced: ReducedModel, physics: PhysicalResponses) -> list[str]:
-    """Names of the physical factors: compliance, gas_spring, thickness per sheet group, then per pad stiffness and
-    preload."""
-    pads = reduced.names[reduced.n_bilateral:]
-    return ["compliance", "gas_spring", *(f"thickness:{g}" for g in physics.thickness),
-            *(f"pad_stiffness:{p}" for p in pads), *(f"preload:{p}" for p in pads)]
-
-
-def apply_factors(reduced: ReducedModel, physics: PhysicalResponses, theta: np.ndarray,
-                  full: bool = True) -> ReducedModel:
-    """The reduced model with physical factors theta (:func:`factor_names` order): compliance exp(theta_0) on the load
-    and pad-force responses, gas-spring force x (1 + theta_1), each sheet group's thickness x exp(theta) (first order
-    through its sensitivity), pad stiffness x exp, preload + theta (mm). ``full``: False leaves the 3D arrays as they
-    are (the fit reads only the normal ones)."""
-    n_pads = len(reduced.names) - reduced.n_bilateral
-    n_groups = len(physics.thickness)
-    c, g = float(np.exp(theta[0])), float(theta[1])
-    stiffness = np.exp(np.asarray(theta[2 + n_groups:2 + n_groups + n_pads]))
-    preload = np.asarray(theta[2 + n_groups + n_pads:2 + n_groups + 2 * n_pads])
-    arrays = SENSITIVE_ARRAYS if full else tuple(name for name in SENSITIVE_ARRAYS if not name.endswith("_3d"))
-    if n_groups:
-        reduced = replace(reduced, **{name: getattr(reduced, name) + sum(
-            t * getattr(sens, name) for t, sens in zip(theta[2:2 + n_groups], physics.thickness.values(),
-                                                       strict=True)) for name in arrays})
-    reduced = replace(
-        reduced,
-        w0=c * (reduced.w0 + g * physics.gas_w), z0=c * (reduced.z0 + g * physics.gas_z),
-        G=c * reduced.G, H=c * reduced.H,
-        k=reduced.k * stiffness[reduced.pad_of], preload=reduced.preload + preload[reduced.pad_of],
-    )
-    if not full:
-        return reduced
-    return replace(reduced, w0_3d=c * (reduced.w0_3d + g * physics.gas_w3), G_3d=c * reduced.G_3d)
 
 
 def with_correction(reduced: ReducedModel, correction: np.ndarray, normals: np.ndarray) -> ReducedModel:
@@ -576,7 +508,7 @@ def rebuild_bases(bases: Bases, reduced: ReducedModel, calibration: str = "",
     rebuilt = build_bases(ensemble, bases.skin, reduced, bases.pca.n_components, bases.pca.explained_variance,
                           bases.hierarchical.epsilon_)
     thermal = None if physics is None else physics.thermal(bases.reduced_model, reduced)
-    return replace(rebuilt, calibration=calibration, thermal=thermal, discrepancy=discrepancy,
+    return replace(rebuilt, calibration=calibration, thermal=thermal, physics=physics, discrepancy=discrepancy,
                    discrepancy_local=discrepancy_local,
                    tolerance_zones=bases.tolerance_zones, measured_effects=bases.measured_effects)
 

@@ -17,7 +17,7 @@ from hood_decomp.core.method.contact_estimation import ContactEstimator
 from hood_decomp.core.method.decomposition import decompose
 from hood_decomp.core.method.estimation import DEFAULT_MIN_COVERAGE, estimate_pca
 from hood_decomp.core.method.hierarchical import HierarchicalBasis
-from hood_decomp.core.method.model_spread import factor_spread
+from hood_decomp.core.method.model_spread import PhysicalResponses, factor_spread
 from hood_decomp.core.method.pca import PCABasis
 from hood_decomp.core.method.residual import DEFAULT_ALPHA, ResidualAnalysis, ResidualTest, analyse_residual
 from hood_decomp.core.types import (
@@ -66,6 +66,11 @@ class Bases:
     #: the discrepancy's part outside the smooth modes it is stated on, per skin node (N,) mm^2
     #: (core.loop.calibration.local_discrepancy): the within-model test's one-ring part counts it. None: no term
     discrepancy_local: np.ndarray | None = None
+    #: the FE model's responses to the physical factors (gas springs, sheet thickness; core.fe.solver
+    #: physical_responses, thickness_sensitivities) of ``reduced_model``'s FE model: with them the estimates consider
+    #: thickness and gas-spring force among the model's factors (model_spread). None: these two are not considered.
+    #: Not part of the model's value (not in bases_id)
+    physics: PhysicalResponses | None = dataclasses.field(default=None, compare=False)
     # (min_coverage, temperature K) -> fitted ContactEstimator; filled on first use, not part of the bases' value
     _contact_estimators: dict[tuple[float, float], ContactEstimator] = dataclasses.field(
         default_factory=dict, init=False, repr=False, compare=False)
@@ -109,7 +114,7 @@ class Bases:
             shift = None if self.reduced_model is warm else warm.z0 - self.reduced_model.z0
             estimator = ContactEstimator(min_coverage).fit(warm, self.pca.lower_, self.pca.upper_,
                                                            self.residual_test(), shift,
-                                                           factor_spread(warm, self.calibration))
+                                                           factor_spread(warm, self.calibration, self.physics))
             estimator = self._contact_estimators.setdefault(key, estimator)
         return estimator
 
@@ -169,8 +174,11 @@ def rebuilt_like(rebuilt: Bases, source: Bases) -> Bases:
     measured effects) carrying what ``source`` states beyond its model: its calibration (record, thermal response and
     model discrepancy), its tolerance zones and its measured effects. An added effect does not make the calibrated
     model less wrong where it was wrong, so the discrepancy stays; dropping it would shrink every stated std back to
-    the uncalibrated one. Dropping a measured effect's flag would let a correction move it."""
+    the uncalibrated one. Dropping a measured effect's flag would let a correction move it. The physical responses
+    stay where the parameters are the same (an added parameter has none)."""
+    same = getattr(rebuilt.reduced_model, "names", None) == getattr(source.reduced_model, "names", ())
     return dataclasses.replace(rebuilt, calibration=source.calibration, thermal=source.thermal,
+                               physics=source.physics if same else None,
                                discrepancy=source.discrepancy, discrepancy_local=source.discrepancy_local,
                                tolerance_zones=source.tolerance_zones,
                                measured_effects=source.measured_effects)

@@ -302,24 +302,20 @@ class ContactEstimator:
         theta_cov = parameter_covariance(design, best.normal_inverse, valid, errors, check.noise_scale, 0.0,
                                          registration)
         out_values, covariance, lifted, unseen = self._report(best, theta, theta_cov, min_force_n)
-        effects = self._factor_effects(best, theta, normal, valid, theta_cov, min_force_n) if self.factors_ else None
+        effects = self._factor_effects(best, theta, valid, theta_cov, min_force_n) if self.factors_ else None
         return _Fit(out_values, covariance, lifted, unseen, reconstruction, residual, rms, worst, check, effects)
 
-    def _factor_effects(self, best: _Candidate, theta: np.ndarray, normal: np.ndarray, valid: np.ndarray,
-                        theta_cov: np.ndarray, min_force_n: float) -> np.ndarray:
+    def _factor_effects(self, best: _Candidate, theta: np.ndarray, valid: np.ndarray, theta_cov: np.ndarray,
+                        min_force_n: float) -> np.ndarray:
         """(F, P) mm: the considered factors' effects (:func:`~.model_spread.factor_effects`) through this fit's
-        linear map, in the (B + S) space: a field change dc w0 + G df moves rhs by dc [R G]^T w0 + normal[:, B:] df."""
-        model = self.model_
-        load = self.fields_ @ np.where(valid, model.w0, 0.0)
-        pad_part = normal[:, model.n_bilateral:]
-
-        def to_theta(dc: float, df: np.ndarray) -> np.ndarray:
-            return best.normal_inverse @ (best.lift.T @ (dc * load + pad_part @ df))
+        linear map, in the (B + S) space: a field change dw moves rhs by [R G]^T dw over the seen nodes."""
+        def to_theta(dw: np.ndarray) -> np.ndarray:
+            return best.normal_inverse @ (best.lift.T @ (self.fields_ @ np.where(valid, dw, 0.0)))
 
         def report(t: np.ndarray, factor: Factor | None = None) -> np.ndarray:
             return self._report(best, t, theta_cov, min_force_n, factor)[0]
 
-        effects = factor_effects(model, self.factors_, best.active, theta, to_theta, report)
+        effects = factor_effects(self.model_, self.factors_, best.active, theta, to_theta, report)
         # A lifted pad's value is the part's position there, z - preload, and a part with the factor changed has its
         # position moved too (the preload it is measured from, the compliance of z0 + H f), which the estimate made
         # with the model's factor does not follow: the error is the estimate's shift minus that move. Without it a
@@ -395,8 +391,8 @@ class ContactEstimator:
         """Values (B + U,) mm, their covariance (B + U, B + U) mm^2, lifted flags (B + U,) and unseen flags (U,) from a
         solved candidate; a touching pad with a total force below ``min_force_n`` (N) is reported lifted, one whose
         compression the field cannot show is reported lifted and flagged unseen. ``factor``: a considered factor's
-        one-sigma change (:class:`~.model_spread.Factor`) applied to the pad springs' displacement and preload that a
-        lifted pad's position is read from (its compliance on z0 + H f, its preload); None: the model's.
+        + change (:class:`~.model_spread.Factor`'s ``plus`` model) as the pad springs' displacement and preload that a
+        lifted pad's position is read from (z0 + H f, preload); None: the model's.
 
         Every value is affine in theta (a state, a touching pad's position, or a lifted pad's lowest spring height),
         so the covariance is jac cov jac^T; a light-touch pad's variance is raised to cover the range its commanded
@@ -413,10 +409,10 @@ class ContactEstimator:
         unseen = np.zeros(n_pads, dtype=bool)
         u = cand.lift @ theta + cand.offset
         f = u[n_b:]
-        scale = 1.0 + (factor.compliance if factor is not None else 0.0)
-        preload = model.preload + (factor.preload if factor is not None and factor.preload is not None else 0.0)
+        changed = factor.plus if factor is not None else model  # the pad springs a lifted position is read from
+        preload = changed.preload
         # lifted positions as at the reference temperature
-        z = scale * (model.z0 + model.H @ f) - self.pad_shift_ + model.Sa @ u[:n_b]
+        z = changed.z0 + changed.H @ f - self.pad_shift_ + changed.Sa @ u[:n_b]
         # dz/dtheta, for a lifted pad's position.
         dz = model.Sa @ cand.lift[:n_b] + model.H @ cand.lift[n_b:]
         touching = list(np.unique(model.pad_of[cand.active]))

@@ -1,113 +1,193 @@
 """What the model's own physical factors make uncertain in an estimate (consider parameters, Schmidt-Kalman style).
 
-The bases are one FE model; a real part's physics differs from it (Young's modulus, pad stiffness, pad preload, ...).
-A softer pad looks in one field exactly like a pad moved by its compression times the stiffness change: the field is
-explained, the within-model test cannot alarm, and the measurement std says nothing about it. Such factors are not
-estimated; they are *considered*: each factor's one-sigma change is applied to the reduced model at the estimated
-state and contact state, the change of the skin field it makes is taken through the estimator's own linear map into
-the parameters, and the result is the factor's one-sigma effect (P,) mm on the reported values. Their sum of outer
-products is the model covariance (``ParameterEstimate.model_covariance``); the safety gate
+The bases are one FE model; a real part's physics differs from it (Young's modulus, sheet thickness, pad stiffness,
+pad preload, gas-spring force, ...). A softer pad looks in one field exactly like a pad moved by its compression
+times the stiffness change: the field is explained, the within-model test cannot alarm, and the measurement std says
+nothing about it. Such factors are not estimated; they are *considered*: each factor's one-sigma change is applied to
+the reduced model (:func:`apply_factors`, the calibration's own model of the factors) and the pad contact solved at
+the estimated state and contact state; the change of the skin field it makes is taken through the estimator's own
+linear map into the parameters, and the result is the factor's one-sigma effect (P,) mm on the reported values.
+Their sum of outer products is the model covariance (``ParameterEstimate.model_covariance``); the safety gate
 (:func:`~hood_decomp.core.method.correction.plan_correction`) acts on sqrt(std^2 + model_std^2) and names the dominant
 factor per boundary.
 
-Spreads (:func:`factor_spread`): uncalibrated bases take the issue-15 ranges as *uniform half-widths* (the physics a
-plant's parts scatter over, the way harness (ii) draws them; a uniform of half-width h has std h / sqrt(3)):
-compliance 1/E 3 %, pad stiffness 30 % (one factor for all pads, as a family shares it), pad preload 50 % of the
-model's. Calibrated bases (``hood-decomp calibrate``) take the fitted factors' std from the calibration record
-(compliance log-std, per pad stiffness log-std, per pad preload in mm). Not considered (the reduced model carries no
-response to them): sheet thickness (needs responses at another thickness) and gas-spring force (needs the gas
-springs' response apart from gravity); benchmarks/RESULTS.md gives what that leaves open.
+Spreads (:func:`factor_spread`): uncalibrated bases take issue 15's ranges of a plant's parts as *uniform
+half-widths* (:data:`HALF_WIDTH`, the physics harness (ii) draws; a uniform of half-width h has std h / sqrt(3)):
+compliance 1/E 3 %, every sheet's thickness 5 % (one factor: the harness and a coil's gauge move all together), pad
+stiffness 30 % (one factor for all pads, as a family shares it), pad preload 50 % of the model's, gas-spring force
+5 % (a gas spring's force tolerance class, e.g. +-5 % of the nominal force at 20 C, is of this size). Stiffness and
+thickness are log scales (exp(+-sigma)). Calibrated bases (``hood-decomp calibrate``) take the fitted factors' std
+from the calibration record (``factor_std``: compliance, gas_spring, thickness per sheet group, per pad stiffness and
+preload). Thickness and gas-spring force need the FE model's responses to them (:class:`PhysicalResponses`,
+``Bases.physics``); bases without them do not consider these two, and the estimate's ``model_factors`` says which
+were.
 """
 
 from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from hood_decomp.core.types import ReducedModel
+from hood_decomp.core.types import SENSITIVE_ARRAYS, ReducedModel
 
-#: issue 15's ranges of the uncalibrated model's factors, relative uniform half-widths (preload: of the model's)
-HALF_WIDTH = {"compliance": 0.03, "pad_stiffness": 0.30, "preload": 0.50}
+#: issue 15's ranges of a plant's parts about the uncalibrated model (relative uniform half-widths; preload: of the
+#: model's preload)
+HALF_WIDTH = {"compliance": 0.03, "thickness": 0.05, "pad_stiffness": 0.30, "preload": 0.50, "gas_spring": 0.05}
+
+
+@dataclass(frozen=True)
+class PhysicalResponses:
+    """The FE responses behind the physical factors (core.fe.solver.physical_responses): gas springs at their stated
+    force and 1 K of uniform temperature rise, each as skin normal (N,), pad springs (S,), skin translations (N, 3);
+    thermal_moves (B,) mm per K, the unit responses' share of the thermal response (core.fe.solver.thermal_moves)."""
+
+    gas_w: np.ndarray
+    gas_z: np.ndarray
+    gas_w3: np.ndarray
+    thermal_w: np.ndarray
+    thermal_z: np.ndarray
+    thermal_w3: np.ndarray
+    #: thickness group -> d(reduced model arrays)/d(log thickness) (core.fe.solver.thickness_sensitivities)
+    thickness: dict[str, ReducedModel]
+    thermal_moves: np.ndarray
+
+    @staticmethod
+    def from_solver(responses: dict[str, tuple], thickness: dict[str, ReducedModel],
+                    thermal_moves: np.ndarray) -> PhysicalResponses:
+        (gw, gz, g3), (tw, tz, t3) = responses["gas_spring"], responses["thermal"]
+        return PhysicalResponses(gw, gz, g3, tw, tz, t3, thickness, np.asarray(thermal_moves, float))
+
+    def thermal(self, model: ReducedModel, calibrated: ReducedModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The thermal response (skin normal (N,), pad springs (S,), skin 3D (N, 3) mm per K) of a calibrated reduced
+        model: the FE model's (of ``model``, the reduced model these responses belong to) with its unit responses'
+        share (:attr:`thermal_moves`) moved by what the calibration changed in them. Without it a calibrated part's
+        thermal response keeps the FE model's unit response error: 1.7 % RMS on the coarse hood against CalculiX,
+        0.011-0.031 mm in the estimates at 5 K."""
+        m = self.thermal_moves
+        return (self.thermal_w + (calibrated.R - model.R) @ m, self.thermal_z + (calibrated.Sa - model.Sa) @ m,
+                self.thermal_w3 + (calibrated.R_3d - model.R_3d) @ m)
+
+
+
+
+def factor_names(reduced: ReducedModel, physics: PhysicalResponses) -> list[str]:
+    """Names of the physical factors: compliance, gas_spring, thickness per sheet group, then per pad stiffness and
+    preload."""
+    pads = reduced.names[reduced.n_bilateral:]
+    return ["compliance", "gas_spring", *(f"thickness:{g}" for g in physics.thickness),
+            *(f"pad_stiffness:{p}" for p in pads), *(f"preload:{p}" for p in pads)]
+
+
+def apply_factors(reduced: ReducedModel, physics: PhysicalResponses, theta: np.ndarray,
+                  full: bool = True) -> ReducedModel:
+    """The reduced model with physical factors theta (:func:`factor_names` order): compliance exp(theta_0) on the load
+    and pad-force responses, gas-spring force x (1 + theta_1), each sheet group's thickness x exp(theta) (first order
+    through its sensitivity), pad stiffness x exp, preload + theta (mm). ``full``: False leaves the 3D arrays as they
+    are (the fit reads only the normal ones)."""
+    n_pads = len(reduced.names) - reduced.n_bilateral
+    n_groups = len(physics.thickness)
+    c, g = float(np.exp(theta[0])), float(theta[1])
+    stiffness = np.exp(np.asarray(theta[2 + n_groups:2 + n_groups + n_pads]))
+    preload = np.asarray(theta[2 + n_groups + n_pads:2 + n_groups + 2 * n_pads])
+    arrays = SENSITIVE_ARRAYS if full else tuple(name for name in SENSITIVE_ARRAYS if not name.endswith("_3d"))
+    if n_groups:
+        reduced = replace(reduced, **{name: getattr(reduced, name) + sum(
+            t * getattr(sens, name) for t, sens in zip(theta[2:2 + n_groups], physics.thickness.values(),
+                                                       strict=True)) for name in arrays})
+    reduced = replace(
+        reduced,
+        w0=c * (reduced.w0 + g * physics.gas_w), z0=c * (reduced.z0 + g * physics.gas_z),
+        G=c * reduced.G, H=c * reduced.H,
+        k=reduced.k * stiffness[reduced.pad_of], preload=reduced.preload + preload[reduced.pad_of],
+    )
+    if not full:
+        return reduced
+    return replace(reduced, w0_3d=c * (reduced.w0_3d + g * physics.gas_w3), G_3d=c * reduced.G_3d)
 
 
 @dataclass(frozen=True)
 class Factor:
-    """One considered factor's one-sigma change of the reduced model: compliance (relative, on every force response:
-    w0, z0, G, H), pad stiffness (S,) relative, preload (S,) mm."""
+    """One considered factor: its name and the reduced model changed by plus and minus its one-sigma change
+    (:func:`apply_factors`; the normal arrays, the 3D ones kept)."""
 
     name: str
-    compliance: float = 0.0
-    stiffness: np.ndarray | None = None
-    preload: np.ndarray | None = None
+    plus: ReducedModel
+    minus: ReducedModel
 
 
-def factor_spread(model: ReducedModel, calibration: str = "") -> tuple[Factor, ...]:
+def factor_spread(model: ReducedModel, calibration: str = "",
+                  physics: PhysicalResponses | None = None) -> tuple[Factor, ...]:
     """The considered factors of ``model`` with their one-sigma changes: from the calibration record (JSON text,
-    ``Bases.calibration``; its ``factor_std``) when there is one, else the uncalibrated prior :data:`HALF_WIDTH`."""
+    ``Bases.calibration``; its ``factor_std``) when there is one, else the uncalibrated prior :data:`HALF_WIDTH`.
+    ``physics``: the FE model's responses to gas springs and thickness (None: these two are not considered)."""
+    known = physics is not None
+    if physics is None:
+        n, s = model.w0.shape[0], model.k.size
+        physics = PhysicalResponses(np.zeros(n), np.zeros(s), np.zeros((n, 3)), np.zeros(n), np.zeros(s),
+                                    np.zeros((n, 3)), {}, np.zeros(model.n_bilateral))
+    names = factor_names(model, physics)
     pads = model.names[model.n_bilateral:]
-    n_springs = model.k.size
     record = json.loads(calibration).get("factor_std", {}) if calibration else None
+    changes: list[tuple[str, dict[str, float]]]
     if record is None:
         uniform = 1.0 / np.sqrt(3.0)
-        return (Factor("compliance (Young's modulus)", compliance=HALF_WIDTH["compliance"] * uniform),
-                Factor("pad stiffness", stiffness=np.full(n_springs, HALF_WIDTH["pad_stiffness"] * uniform)),
-                Factor("pad preload", preload=HALF_WIDTH["preload"] * uniform * np.abs(model.preload)))
-    factors = [Factor("calibrated compliance", compliance=float(record.get("compliance", 0.0)))]
-    for p, pad in enumerate(pads):
-        springs = (model.pad_of == p).astype(float)
-        factors.append(Factor(f"calibrated pad stiffness of {pad}",
-                              stiffness=springs * float(record.get(f"pad_stiffness:{pad}", 0.0))))
-        factors.append(Factor(f"calibrated pad preload of {pad}",
-                              preload=springs * float(record.get(f"preload:{pad}", 0.0))))
-    return tuple(f for f in factors if f.compliance or any(np.any(v) for v in (f.stiffness, f.preload)
-                                                           if v is not None))
+        preload = {f"preload:{pad}": HALF_WIDTH["preload"] * uniform
+                   * float(np.sum(np.abs(model.preload[model.pad_of == p])) / max(np.sum(model.pad_of == p), 1))
+                   for p, pad in enumerate(pads)}
+        changes = [("compliance (Young's modulus)", {"compliance": HALF_WIDTH["compliance"] * uniform}),
+                   ("sheet thickness", {name: HALF_WIDTH["thickness"] * uniform for name in names
+                                        if name.startswith("thickness:")}),
+                   ("pad stiffness", {f"pad_stiffness:{pad}": HALF_WIDTH["pad_stiffness"] * uniform
+                                      for pad in pads}),
+                   ("pad preload", preload),
+                   ("gas-spring force", {"gas_spring": HALF_WIDTH["gas_spring"] * uniform if known else 0.0})]
+    else:
+        changes = [(" of ".join(("calibrated " + name.split(":")[0].replace("_", " "), *name.split(":")[1:])),
+                    {name: float(record.get(name, 0.0))}) for name in names if known or name != "gas_spring"]
+    factors = []
+    for label, change in changes:
+        theta = np.array([change.get(name, 0.0) for name in names])
+        if np.any(theta):
+            factors.append(Factor(label, apply_factors(model, physics, theta, full=False),
+                                  apply_factors(model, physics, -theta, full=False)))
+    return tuple(factors)
 
 
-def _forces(model: ReducedModel, active: np.ndarray, pads: np.ndarray, theta: np.ndarray, factor: Factor | None,
-            sign: float) -> tuple[float, np.ndarray]:
-    """(c, f): the compliance scale and the pad spring forces (S,) N of the model changed by ``sign`` times
-    ``factor`` at theta = (a, b of the touching ``pads``) with the springs ``active`` in contact (the estimate's
-    contact state); its skin field is c w0 + R a + c G f."""
+def _field(model: ReducedModel, active: np.ndarray, pads: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """The skin normal field (N,) mm of ``model`` at theta = (a, b of the touching ``pads``) with the springs
+    ``active`` in contact (the estimate's contact state): w0 + R a + G f, f the springs' forces there."""
     n_b = model.n_bilateral
-    c = 1.0 + sign * (factor.compliance if factor else 0.0)
-    k = model.k * (1.0 + sign * factor.stiffness) if factor is not None and factor.stiffness is not None else model.k
-    preload = model.preload + sign * factor.preload if factor is not None and factor.preload is not None \
-        else model.preload
     a = theta[:n_b]
     f = np.zeros(model.k.size)
     idx = np.flatnonzero(active)
     if idx.size:
         b = np.zeros(int(model.pad_of.max()) + 1)
         b[pads] = theta[n_b:]
-        compliance = np.diag(1.0 / k[idx]) + c * model.H[np.ix_(idx, idx)]
-        f[idx] = np.linalg.solve(compliance, b[model.pad_of[idx]] + preload[idx] - c * model.z0[idx]
+        compliance = np.diag(1.0 / model.k[idx]) + model.H[np.ix_(idx, idx)]
+        f[idx] = np.linalg.solve(compliance, b[model.pad_of[idx]] + model.preload[idx] - model.z0[idx]
                                  - model.Sa[idx] @ a)
-    return c, f
+    return model.w0 + model.R @ a + model.G @ f
 
 
 def factor_effects(model: ReducedModel, factors: tuple[Factor, ...], active: np.ndarray, theta: np.ndarray,
-                   to_theta: Callable[[float, np.ndarray], np.ndarray],
+                   to_theta: Callable[[np.ndarray], np.ndarray],
                    report: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
     """(F, P) mm: each factor's one-sigma effect on the reported values.
 
-    active: (S,) bool the estimate's contact state; theta: (n_theta,) its unknowns; to_theta(dc, df): the
-    estimator's linear map (over the seen nodes) from the field change dc w0 + G df (dc: scale of the load field,
-    df: (S,) pad force change, N) to theta; report: theta -> (P,) reported values. A factor's change is applied with
-    both signs; the larger shift of the two (by its largest entry) is kept, signed as the + change's, so a nonlinear
-    factor (the pad compliance 1/k) is not understated.
+    active: (S,) bool the estimate's contact state; theta: (n_theta,) its unknowns; to_theta(dw): the estimator's
+    linear map (over the seen nodes) from a skin field change dw (N,) mm to theta; report: theta -> (P,) reported
+    values. A factor's change is applied with both signs; the larger shift of the two (by its largest entry) is kept,
+    signed as the + change's, so a nonlinear factor (the pad compliance 1/k) is not understated.
     """
     pads = np.unique(model.pad_of[active])
-    _, nominal = _forces(model, active, pads, theta, None, 0.0)
+    nominal = _field(model, active, pads, theta)
     base = report(theta)
     effects = np.zeros((len(factors), base.size))
     for i, factor in enumerate(factors):
-        shifts = []
-        for sign in (1.0, -1.0):
-            c, f = _forces(model, active, pads, theta, factor, sign)
-            shifts.append(np.nan_to_num(report(theta + to_theta(c - 1.0, c * f - nominal)) - base))
-        up, down = shifts
+        up, down = (np.nan_to_num(report(theta + to_theta(_field(changed, active, pads, theta) - nominal)) - base)
+                    for changed in (factor.plus, factor.minus))
         effects[i] = up if np.max(np.abs(up)) >= np.max(np.abs(down)) else -down
     return effects
