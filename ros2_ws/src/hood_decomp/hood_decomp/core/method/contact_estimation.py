@@ -312,19 +312,10 @@ class ContactEstimator:
         def to_theta(dw: np.ndarray) -> np.ndarray:
             return best.normal_inverse @ (best.lift.T @ (self.fields_ @ np.where(valid, dw, 0.0)))
 
-        def report(t: np.ndarray, factor: Factor | None = None) -> np.ndarray:
-            return self._report(best, t, theta_cov, min_force_n, factor)[0]
+        def report(t: np.ndarray, springs: ReducedModel | None) -> np.ndarray:
+            return self._report(best, t, theta_cov, min_force_n, springs)[0]
 
-        effects = factor_effects(self.model_, self.factors_, best.active, theta, to_theta, report)
-        # A lifted pad's value is the part's position there, z - preload, and a part with the factor changed has its
-        # position moved too (the preload it is measured from, the compliance of z0 + H f), which the estimate made
-        # with the model's factor does not follow: the error is the estimate's shift minus that move. Without it a
-        # lifted pad's model std was 0 while the calibrated pad offset was off by up to 0.02 mm on the CalculiX
-        # stand-in (benchmarks/RESULTS.md, session 8).
-        base = report(theta)
-        for i, factor in enumerate(self.factors_):
-            effects[i] -= np.nan_to_num(report(theta, factor) - base)
-        return effects
+        return factor_effects(self.model_, self.factors_, best.active, theta, to_theta, report)
 
     def _between_states(self, candidates: Iterable[_Candidate], best: _Candidate, values: np.ndarray, noise2: float,
                         min_force_n: float) -> np.ndarray:
@@ -386,13 +377,14 @@ class ContactEstimator:
         return min(candidates, key=lambda c: (c.rss + 2.0 * sigma2 * c.theta.size, c.theta.size))
 
     def _report(
-        self, cand: _Candidate, theta: np.ndarray, cov: np.ndarray, min_force_n: float, factor: Factor | None = None
+        self, cand: _Candidate, theta: np.ndarray, cov: np.ndarray, min_force_n: float,
+        springs: ReducedModel | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Values (B + U,) mm, their covariance (B + U, B + U) mm^2, lifted flags (B + U,) and unseen flags (U,) from a
         solved candidate; a touching pad with a total force below ``min_force_n`` (N) is reported lifted, one whose
-        compression the field cannot show is reported lifted and flagged unseen. ``factor``: a considered factor's
-        + change (:class:`~.model_spread.Factor`'s ``plus`` model) as the pad springs' displacement and preload that a
-        lifted pad's position is read from (z0 + H f, preload); None: the model's.
+        compression the field cannot show is reported lifted and flagged unseen. ``springs``: the reduced model whose
+        pad springs (z0 + H f, Sa, preload) a lifted pad's position is read from (a factor's changed model, for the
+        part it makes); None: the model's.
 
         Every value is affine in theta (a state, a touching pad's position, or a lifted pad's lowest spring height),
         so the covariance is jac cov jac^T; a light-touch pad's variance is raised to cover the range its commanded
@@ -409,7 +401,7 @@ class ContactEstimator:
         unseen = np.zeros(n_pads, dtype=bool)
         u = cand.lift @ theta + cand.offset
         f = u[n_b:]
-        changed = factor.plus if factor is not None else model  # the pad springs a lifted position is read from
+        changed = model if springs is None else springs
         preload = changed.preload
         # lifted positions as at the reference temperature
         z = changed.z0 + changed.H @ f - self.pad_shift_ + changed.Sa @ u[:n_b]

@@ -174,20 +174,23 @@ def _field(model: ReducedModel, active: np.ndarray, pads: np.ndarray, theta: np.
 
 def factor_effects(model: ReducedModel, factors: tuple[Factor, ...], active: np.ndarray, theta: np.ndarray,
                    to_theta: Callable[[np.ndarray], np.ndarray],
-                   report: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+                   report: Callable[[np.ndarray, ReducedModel | None], np.ndarray]) -> np.ndarray:
     """(F, P) mm: each factor's one-sigma effect on the reported values.
 
     active: (S,) bool the estimate's contact state; theta: (n_theta,) its unknowns; to_theta(dw): the estimator's
-    linear map (over the seen nodes) from a skin field change dw (N,) mm to theta; report: theta -> (P,) reported
-    values. A factor's change is applied with both signs; the larger shift of the two (by its largest entry) is kept,
-    signed as the + change's, so a nonlinear factor (the pad compliance 1/k) is not understated.
+    linear map (over the seen nodes) from a skin field change dw (N,) mm to theta; report(theta, springs): the (P,)
+    reported values, read with the pad springs of ``springs`` (None: the model's). The effect is what the estimate
+    (read with the model) reports minus what the changed part is (read with its own springs): a lifted pad's value is
+    the part's position z - preload, which the change moves too. A factor's change is applied with both signs; the
+    larger shift of the two (by its largest entry) is kept, signed as the + change's, so a nonlinear factor (the pad
+    compliance 1/k) is not understated.
     """
     pads = np.unique(model.pad_of[active])
     nominal = _field(model, active, pads, theta)
-    base = report(theta)
-    effects = np.zeros((len(factors), base.size))
+    effects = np.zeros((len(factors), report(theta, None).size))
     for i, factor in enumerate(factors):
-        up, down = (np.nan_to_num(report(theta + to_theta(_field(changed, active, pads, theta) - nominal)) - base)
+        up, down = (np.nan_to_num(report(theta + to_theta(_field(changed, active, pads, theta) - nominal), None)
+                                  - report(theta, changed))
                     for changed in (factor.plus, factor.minus))
         effects[i] = up if np.max(np.abs(up)) >= np.max(np.abs(down)) else -down
     return effects
