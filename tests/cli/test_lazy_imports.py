@@ -40,3 +40,16 @@ def test_estimate_of_a_scan_imports_nothing_it_does_not_use(tiny_workspace, tmp_
     assert not modules & set(NOT_FOR_A_SMALL_SCAN), sorted(modules & set(NOT_FOR_A_SMALL_SCAN))
     assert json.loads((tmp_path / "estimate.json").read_text())["parameters_mm"]
 
+
+
+def test_help_imports_no_scipy():
+    """Fails if `hood-decomp --help` imports scipy: since scipy 1.17 any scipy subpackage costs about 0.16 s (it clones
+    every numpy submodule into its array-API namespace), half of what --help costs otherwise; a module-level
+    ``import scipy.sparse`` or ``from scipy import special`` in a module a verb's parser imports brings it back."""
+    script = ("import sys\nfrom hood_decomp.cli import main\ntry:\n    main(['--help'])\nexcept SystemExit as done:\n"
+              "    assert done.code == 0, done.code\n"
+              "print('SCIPY', sorted(m for m in sys.modules if m.split('.')[0] == 'scipy'))\n")  # fmt: skip
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    line = next(row for row in done.stdout.splitlines() if row.startswith("SCIPY "))
+    assert line == "SCIPY []", line

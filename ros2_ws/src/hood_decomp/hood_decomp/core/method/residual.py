@@ -22,13 +22,16 @@ The residual r = measured - reconstruction (N,) mm of an estimate is judged agai
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse as sp
 
 from hood_decomp.core.method.distributions import chi2_sf, f_sf, norm_isf, t_sf
 from hood_decomp.core.types import FieldErrorModel, ModelCheck, SkinSurface
 from hood_decomp.errors import FieldError
+
+if TYPE_CHECKING:  # imported where used (scipy >= 1.17 costs 0.16 s to import)
+    import scipy.sparse as sp
 
 #: scan noise (mm, one standard deviation per node) assumed when a field does not state its own (NaN noise_rms):
 #: a smoothed structured-light field; the paper's repeatability scans stay within +-0.1 mm (Fig. 14), i.e. ~0.02 mm rms
@@ -112,6 +115,8 @@ def noise_level(noise_mm: float | None, default_mm: float = DEFAULT_NOISE_MM) ->
 
 def skin_adjacency(skin: SkinSurface) -> sp.csr_matrix:
     """Node adjacency (N, N) along the skin triangles' edges, symmetric, no diagonal."""
+    import scipy.sparse as sp
+
     tri = np.asarray(skin.triangles, dtype=np.int64)
     rows = np.concatenate([tri[:, 0], tri[:, 1], tri[:, 2], tri[:, 1], tri[:, 2], tri[:, 0]])
     cols = np.concatenate([tri[:, 1], tri[:, 2], tri[:, 0], tri[:, 0], tri[:, 1], tri[:, 2]])
@@ -130,6 +135,8 @@ def _nodal_areas(skin: SkinSurface) -> np.ndarray:
 
 def _ring_average(adjacency: sp.csr_matrix, residual: np.ndarray, seen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One-ring mean of the residual over seen nodes, and the factor sqrt(1 / ring size) of its noise std."""
+    import scipy.sparse as sp
+
     ring = adjacency + sp.identity(adjacency.shape[0], format="csr")
     values = np.where(seen, residual, 0.0)
     count = ring @ seen.astype(float)
@@ -397,6 +404,8 @@ def check_residual(
 
 def ring_incidence(skin: SkinSurface) -> sp.csr_matrix:
     """(N, N) 0/1 one-ring incidence of the skin: each node with itself and its edge neighbours."""
+    import scipy.sparse as sp
+
     return (skin_adjacency(skin) + sp.identity(skin.n_nodes, format="csr")).tocsr()
 
 

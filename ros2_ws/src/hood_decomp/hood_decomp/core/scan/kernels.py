@@ -29,7 +29,6 @@ import os
 import threading
 
 import numpy as np
-import scipy.sparse as sp
 
 #: numba is optional (the numpy path gives the same numbers) and imported only when a kernel first runs: it costs
 #: about 0.3 s of start-up that a verb without scans need not pay
@@ -238,6 +237,8 @@ def _node_fits_block(mixed, frames, t1x, t2x, coef, weight, inflation):
 
 def _kernel_sums_numpy(indptr, indices, data, counts, rows, mark, removed, near, mixed, squared, nearby):
     # one signature for both paths: this one selects the columns ``rows``, the compiled loop looks cells up in ``mark``
+    import scipy.sparse as sp  # imported where used (0.16 s): --help and verbs without it do not pay
+
     n = indptr.size - 1
     if rows.size:  # scipy's column selection walks the CSR indices once (no transposed copy); only the rows hit
         columns = sp.csr_matrix((data, indices, indptr), shape=(n, n))[:, rows]

@@ -36,14 +36,14 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse as sp
 
 from hood_decomp.core.scan import kernels
 from hood_decomp.core.scan.registration import RegistrationResult, register_scan
 from hood_decomp.core.types import DisplacementField, FieldErrorModel, SkinSurface
 from hood_decomp.errors import ScanError
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # scipy is imported where used (0.16 s since scipy 1.17): --help does not pay it
+    import scipy.sparse as sp
     from scipy.spatial import cKDTree
 
 logger = logging.getLogger(__name__)
@@ -114,6 +114,8 @@ def _unique_edges(triangles: np.ndarray, n: int) -> np.ndarray:
     """(E, 2) node pairs (low, high) of the triangles' (T, 3) edges, each once, in row-major order. A sparse matrix
     of the half-edges sums the duplicates by a counting sort over rows (np.unique(axis=0) sorts rows of pairs,
     about 15 times slower at 1.1M half-edges)."""
+    import scipy.sparse as sp
+
     a, b = triangles.ravel(), np.roll(triangles, -1, axis=1).ravel()
     pairs = sp.csr_matrix((np.ones(a.size, np.int32), (np.minimum(a, b), np.maximum(a, b))), shape=(n, n)).tocoo()
     return np.column_stack([pairs.row, pairs.col]).astype(np.int64)
@@ -257,6 +259,8 @@ class ScanFieldEstimator:
             self._set_grid(prepared["grid_origin"], float(prepared["grid_cell"][0]), prepared["grid_shape"],
                            prepared["grid_table"])  # fmt: skip
             self.node_radius_mm_ = prepared["node_radius"]
+            import scipy.sparse as sp
+
             kernel = (prepared["kernel_data"], prepared["kernel_indices"], prepared["kernel_indptr"])
             self.kernel_ = sp.csr_matrix(kernel, shape=(n, n))
         # What a located point reads of its node, in one row: position in grid units, frame, quadric, squared gate.
@@ -350,6 +354,8 @@ class ScanFieldEstimator:
             dist = np.concatenate([dist, np.linalg.norm(self.points_[wide_i] - self.points_[wide_j], axis=1)])
         i = np.concatenate([i, np.arange(n)])
         j = np.concatenate([j, np.arange(n)])
+        import scipy.sparse as sp
+
         pattern = sp.csr_matrix((np.ones(i.size), (i, j)), shape=(n, n))
         rows = np.repeat(np.arange(n), np.diff(pattern.indptr))
         dist = np.linalg.norm(self.points_[pattern.indices] - self.points_[rows], axis=1)
