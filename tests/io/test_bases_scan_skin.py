@@ -109,3 +109,23 @@ def test_version_2_file_loads_and_scans_with_a_rebuilt_skin(saved, points, fresh
     loaded = load_bases(old)
     field, _ = field_from_scan(loaded.skin, points)
     assert field.coverage > 0.9
+
+
+def test_mapped_load_views_the_file_and_still_checks_it(saved, points, fresh_cache, tmp_path):
+    """Fails if ``load_bases(mapped=True)`` copies the plainly stored arrays instead of viewing the mapped file (a
+    writeable array), reads another offset or dtype than h5py does (another field than a copying load, bit for bit),
+    or lets an edited float of the mapped file through (its bases_id must still be checked)."""
+    _, path = saved
+    copied = field_from_scan(load_bases(path).skin, points)[0]
+    mapped = load_bases(path, mapped=True)
+    assert not mapped.pca.components_.flags.writeable and not mapped.skin.points.flags.writeable
+    with h5py.File(path, "r") as h5:
+        np.testing.assert_array_equal(mapped.pca.components_, h5["pca/components"][()])
+    field = field_from_scan(mapped.skin, points)[0]
+    np.testing.assert_array_equal(field.normal_displacement, copied.normal_displacement)
+    altered = tmp_path / "altered.h5"
+    shutil.copy(path, altered)
+    with h5py.File(altered, "r+") as h5:
+        h5["pca/components"][0, 0] += 1e-9
+    with pytest.raises(BasisError, match="bases_id"):
+        load_bases(altered, mapped=True)

@@ -315,7 +315,7 @@ def read_bases_and_field(args: argparse.Namespace, meanwhile: Callable[[Bases], 
     scans = _scan_inputs(inputs, args.scanner_poses or {})
     with ThreadPoolExecutor(2) as pool:
         early = pool.submit(scan_file_views, scans) if scans and len(scans) == len(inputs) else None
-        bases = load_bases(args.bases)
+        bases = load_bases(args.bases, mapped=True)  # a verb's process ends soon: the file's pages as they are
         pending = None if meanwhile is None else pool.submit(meanwhile, bases)
         fields = read_fields(args.inputs, bases.skin, args.min_coverage, args.scanner_poses, one_part=True,
                              views=None if early is None else early.result())

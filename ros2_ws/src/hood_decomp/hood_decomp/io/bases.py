@@ -232,13 +232,16 @@ def save_bases(path: str | Path, bases: Bases, *, scan_skin: bool = True) -> Non
 
 
 # --- reading -----------------------------------------------------------------------------------------------------
-def load_bases(path: str | Path) -> Bases:
+def load_bases(path: str | Path, mapped: bool = False) -> Bases:
     """Read a bases file written by :func:`save_bases`. Raises BasisError for a missing, foreign, altered or malformed
     file: every dataset and attribute of docs/bases_schema.md present with its kind, its shape consistent with the
-    others (named dimensions), its floats finite, its indices in range, and the content matching ``bases_id``."""
+    others (named dimensions), its floats finite, its indices in range, and the content matching ``bases_id``.
+
+    mapped: the float arrays (and the prepared scan skin's) are read-only views of the file mapped into memory
+    (:class:`~hood_decomp.io.hdf5.Reader`), for a process that ends soon after, as a command-line verb does."""
     path = Path(path)
     with open_hdf5(path, "bases file", BasisError) as h5:
-        read = Reader(h5, path, BasisError)
+        read = Reader(h5, path, BasisError, mapped)
         found = h5.attrs.get("format")
         if found != FORMAT:
             shown = found if isinstance(found, str) and len(found) < 60 else type(found).__name__
@@ -337,20 +340,20 @@ def load_bases(path: str | Path) -> Bases:
     if has_scan_skin:  # read when the first scan of this skin needs it (not for a field or a decomposition)
         from hood_decomp.core.scan.scan_field import register_prepared_skin
 
-        register_prepared_skin(skin, lambda: load_scan_skin(path, stored_id, skin.n_nodes))
+        register_prepared_skin(skin, lambda: load_scan_skin(path, stored_id, skin.n_nodes, mapped))
     return bases
 
 
-def load_scan_skin(path: str | Path, content_id: str, n_nodes: int) -> dict[str, np.ndarray]:
+def load_scan_skin(path: str | Path, content_id: str, n_nodes: int, mapped: bool = False) -> dict[str, np.ndarray]:
     """The prepared scan skin of the bases file ``path`` whose ``bases_id`` is ``content_id`` and skin has ``n_nodes``
     nodes (ScanFieldEstimator.prepared_skin arrays). Raises BasisError when the file changed since (another
     bases_id), the group is malformed (kinds, named shapes, finiteness) or its content does not match its
-    ``prepared_id``; index ranges are checked by ``ScanFieldEstimator.fit``."""
+    ``prepared_id``; index ranges are checked by ``ScanFieldEstimator.fit``. ``mapped``: see :func:`load_bases`."""
     from hood_decomp.core.scan.scan_field import PREPARED_SKIN
 
     path = Path(path)
     with open_hdf5(path, "bases file", BasisError) as h5:
-        read = Reader(h5, path, BasisError)
+        read = Reader(h5, path, BasisError, mapped)
         if read.attr("/", "bases_id", "str") != content_id:
             raise BasisError(f"{path} changed since it was loaded (another bases_id); load it again")
         read.bind("N", n_nodes, "skin/points")
