@@ -81,6 +81,34 @@ def test_contact_solution_against_a_direct_solve(coarse_hood_paper) -> None:
     assert case.ensemble.contact_fraction[0].tolist() == [0.0, 0.0]
 
 
+def test_held_buffers_are_bilateral_displacement_boundaries(coarse_hood_paper) -> None:
+    """Fails if ``buffers="held"`` is not each buffer as a bilateral displacement boundary at its commanded position
+    (bench_paper's no-contact control): every pad spring must sit at the commanded position (within 1e-5 mm: the
+    rigid spring's 1/k), some must pull, and the members must be affine in the state (superposition: the second
+    difference u(a + b) - u(a) - u(b) + u(0) below 1e-6 mm) for a lock-buffer pair whose unilateral members interact by
+    more than 0.1 mm (contact). Bad ``buffers`` values are refused."""
+    from hood_decomp.core.fe.contact import contact_state
+    from hood_decomp.errors import EnsembleError
+
+    reduced = coarse_hood_paper.reduced
+    names = list(reduced.names)
+    B = reduced.n_bilateral
+    a, b = np.zeros(len(names)), np.zeros(len(names))
+    a[names.index("LOCK_L")], b[names.index("BUFFER_L")] = -1.0, 1.0
+    states = np.array([a + b, a, b, np.zeros(len(names))])
+    for state in states:
+        held = contact_state(reduced, state[:B], state[B:], held=True)
+        assert np.abs(held.z - state[B:][reduced.pad_of]).max() < 1e-5
+    held = solve_members(reduced, states, buffers="held")
+    assert (held.pad_forces < 0).any()
+    second = np.array([1.0, -1.0, -1.0, 1.0]) @ held.normal_displacement
+    assert np.abs(second).max() < 1e-6
+    unilateral = np.array([1.0, -1.0, -1.0, 1.0]) @ solve_members(reduced, states).normal_displacement
+    assert np.abs(unilateral).max() > 0.1
+    with pytest.raises(EnsembleError, match="buffers"):
+        solve_members(reduced, states, buffers="glued")
+
+
 def test_retargeted_pads_equal_a_fresh_reduction(coarse_hood, coarse_hood_paper) -> None:
     """Fails if retarget_pads (hood-paper's reduced model from the default hood's, no solve) differs from a full
     reduction of hood-paper, or accepts a model whose pads are laid out otherwise."""
