@@ -165,9 +165,11 @@ def test_rigid_buffer_member_against_calculix(coarse_hood_paper) -> None:
     """Fails if a hood-paper member whose left buffer pushes (BUFFER_L = +1 mm) is not CalculiX's contact solution
     too: CalculiX (S8R, linear) holding exactly the pad nodes the LCP says touch must find them pushing (no pull
     beyond 2 % of the buffer load) and every other pad node clear of its buffer, with the buffer's total reaction
-    within 4 % and the member's response (member minus the rank-0 member, both from CalculiX) within 5 % of its peak.
-    Measured: reaction 250 vs 256 N, response 3.9 % (the issue's 3 % target is not met on this member; the rank-0
-    load case itself differs by 11 %, the S8R-versus-flat-facet difference of the coarse grid)."""
+    within 4 % and the member's response (member minus the rank-0 member, both from CalculiX) within 5 % of its peak
+    at every node and within 1.5 % in RMS (a global difference, not one at the lock reinforcement's edge, would fail
+    it), its 3D translations consistent with the normal field. Measured: reaction 250 vs 256 N, response 3.9 % at
+    the worst node (2 mm outside the lock reinforcement), 0.93 % RMS (the issue's 3 % is not met on this member; the
+    rank-0 load case itself differs by 8.9 % coarse, 2.6 % at default resolution: RESULTS.md)."""
     from hood_decomp.core.fe.calculix import check_contact_set
     from tests.required import ensure_ccx
 
@@ -186,3 +188,5 @@ def test_rigid_buffer_member_against_calculix(coarse_hood_paper) -> None:
     ours = members.normal_displacement[1] - members.normal_displacement[0]
     theirs = pushed.normal - base.normal
     assert np.abs(theirs - ours).max() < 0.05 * np.abs(ours).max()
+    assert np.sqrt(np.mean((theirs - ours) ** 2)) < 0.015 * np.abs(ours).max()
+    assert np.allclose(np.einsum("na,na->n", pushed.skin_displacement, case.skin.normals), pushed.normal)
