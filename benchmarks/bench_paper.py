@@ -27,7 +27,7 @@ ensemble --nonlinear``), whose physics the linear reduced model does not have: n
 estimator there.
 
 Usage: scripts/with-env python benchmarks/bench_paper.py [--resolution coarse|default|paper] [--validation 1400]
-       [--contact-members 200] | --store S [--span whole|subset]
+       [--contact-members 200] [--no-held] | --store S [--span whole|subset]
 Prints a table (row | paper | hood_decomp | the same with buffers held) and writes benchmarks/out/bench_paper[_RES].json
 (bench_paper_store_<S>_<span>.json) and figures in benchmarks/out/bench_paper[_RES]/.
 """
@@ -235,7 +235,8 @@ def run_store(store: Path, n_validation: int, epsilon: float, span: str) -> dict
     return result
 
 
-def run(resolution: str, n_validation: int, contact_members: int, epsilon: float) -> dict[str, object]:
+def run(resolution: str, n_validation: int, contact_members: int, epsilon: float, held_column: bool = True
+        ) -> dict[str, object]:
     from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solve_members, validation_plan
     from hood_decomp.core.fe.hood_preset import build_preset
     from hood_decomp.core.fe.model import skin_surface
@@ -280,13 +281,14 @@ def run(resolution: str, n_validation: int, contact_members: int, epsilon: float
     # the same hood, mesh and solver with the buffers held (bilateral displacement boundaries, no contact): what
     # the contact treatment alone changes in Figs. 8-10
     commanded, rank = factorial_plan(model.lower, model.upper)
-    held_figures = figures / "buffers_held"
-    held_figures.mkdir(exist_ok=True)
-    _, held, _ = figures_8_to_10(
-        simulate_ensemble(reduced, commanded, rank, model.lower, model.upper, buffers="held"),
-        held_blocks(reduced, validation_plan(model.lower, model.upper, n_validation)), skin, None, epsilon, "whole",
-        0, held_figures, "hood-paper, buffers held")
-    result["buffers_held"] = held
+    if held_column:
+        held_figures = figures / "buffers_held"
+        held_figures.mkdir(exist_ok=True)
+        _, held, _ = figures_8_to_10(
+            simulate_ensemble(reduced, commanded, rank, model.lower, model.upper, buffers="held"),
+            held_blocks(reduced, validation_plan(model.lower, model.upper, n_validation)), skin, None, epsilon,
+            "whole", 0, held_figures, "hood-paper, buffers held")
+        result["buffers_held"] = held
 
     # Fig. 11
     state = np.array([FIG11_SETTING.get(n, 0.0) for n in names])
@@ -373,7 +375,7 @@ def figure_rows(result: dict) -> list[tuple[str, str, str]]:
 
 def table(result: dict) -> tuple[list[str], list[tuple[str, ...]]]:
     """Header and rows: Figs. 8-10 (hood-paper beside the same hood with its buffers held), Fig. 11, Table 3."""
-    held = {row: ours for row, _, ours in figure_rows(result["buffers_held"])}
+    held = {row: ours for row, _, ours in figure_rows(result["buffers_held"])} if "buffers_held" in result else {}
     rows: list[tuple[str, ...]] = [(row, paper, ours, held.get(row, "-")) for row, paper, ours in figure_rows(result)]
     fig11 = result["fig11"]
     rows.append(("Fig. 11: effects after coarsening", PAPER["fig11"],
@@ -394,6 +396,8 @@ def main() -> None:
     parser.add_argument("--contact-members", type=int, default=200,
                         help="validation members also estimated with the contact-aware estimator")
     parser.add_argument("--epsilon", type=float, default=0.1, help="hierarchical basis tolerance, mm (paper: 0.1)")
+    parser.add_argument("--no-held", action="store_true",
+                        help="leave out the buffers-held column (729 members in memory: 3.3 GB at paper resolution)")
     parser.add_argument("--store", type=Path, help="Figs. 8-10 only, of this ensemble store (e.g. a nonlinear one)")
     parser.add_argument("--span", choices=("whole", "subset"), default="whole",
                         help="hierarchical basis span with --store (paper: whole)")
@@ -407,7 +411,7 @@ def main() -> None:
         rows: list[tuple[str, ...]] = figure_rows(result)
         path = OUT / f"bench_paper_store_{args.store.stem}_{args.span}.json"
     else:
-        result = run(args.resolution, args.validation, args.contact_members, args.epsilon)
+        result = run(args.resolution, args.validation, args.contact_members, args.epsilon, not args.no_held)
         header, rows = table(result)
         path = OUT / f"bench_paper{'' if args.resolution == 'paper' else '_' + args.resolution}.json"
     result["table"] = [dict(zip(header, row, strict=True)) for row in rows]
