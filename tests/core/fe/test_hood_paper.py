@@ -81,6 +81,34 @@ def test_contact_solution_against_a_direct_solve(coarse_hood_paper) -> None:
     assert case.ensemble.contact_fraction[0].tolist() == [0.0, 0.0]
 
 
+def test_held_buffers_are_bilateral_displacement_boundaries(coarse_hood_paper) -> None:
+    """Fails if ``buffers="held"`` is not each buffer as a bilateral displacement boundary at its commanded position
+    (bench_paper's no-contact control): every pad spring must sit at the commanded position (within 1e-5 mm: the
+    rigid spring's 1/k), some must pull, and the members must be affine in the state (superposition: the second
+    difference u(a + b) - u(a) - u(b) + u(0) below 1e-6 mm) for a lock-buffer pair whose unilateral members interact by
+    more than 0.1 mm (contact). Bad ``buffers`` values are refused."""
+    from hood_decomp.core.fe.contact import contact_state
+    from hood_decomp.errors import EnsembleError
+
+    reduced = coarse_hood_paper.reduced
+    names = list(reduced.names)
+    B = reduced.n_bilateral
+    a, b = np.zeros(len(names)), np.zeros(len(names))
+    a[names.index("LOCK_L")], b[names.index("BUFFER_L")] = -1.0, 1.0
+    states = np.array([a + b, a, b, np.zeros(len(names))])
+    for state in states:
+        held = contact_state(reduced, state[:B], state[B:], held=True)
+        assert np.abs(held.z - state[B:][reduced.pad_of]).max() < 1e-5
+    held = solve_members(reduced, states, buffers="held")
+    assert (held.pad_forces < 0).any()
+    second = np.array([1.0, -1.0, -1.0, 1.0]) @ held.normal_displacement
+    assert np.abs(second).max() < 1e-6
+    unilateral = np.array([1.0, -1.0, -1.0, 1.0]) @ solve_members(reduced, states).normal_displacement
+    assert np.abs(unilateral).max() > 0.1
+    with pytest.raises(EnsembleError, match="buffers"):
+        solve_members(reduced, states, buffers="glued")
+
+
 def test_retargeted_pads_equal_a_fresh_reduction(coarse_hood, coarse_hood_paper) -> None:
     """Fails if retarget_pads (hood-paper's reduced model from the default hood's, no solve) differs from a full
     reduction of hood-paper, or accepts a model whose pads are laid out otherwise."""
@@ -137,9 +165,11 @@ def test_rigid_buffer_member_against_calculix(coarse_hood_paper) -> None:
     """Fails if a hood-paper member whose left buffer pushes (BUFFER_L = +1 mm) is not CalculiX's contact solution
     too: CalculiX (S8R, linear) holding exactly the pad nodes the LCP says touch must find them pushing (no pull
     beyond 2 % of the buffer load) and every other pad node clear of its buffer, with the buffer's total reaction
-    within 4 % and the member's response (member minus the rank-0 member, both from CalculiX) within 5 % of its peak.
-    Measured: reaction 250 vs 256 N, response 3.9 % (the issue's 3 % target is not met on this member; the rank-0
-    load case itself differs by 11 %, the S8R-versus-flat-facet difference of the coarse grid)."""
+    within 4 % and the member's response (member minus the rank-0 member, both from CalculiX) within 5 % of its peak
+    at every node and within 1.5 % in RMS (a global difference, not one at the lock reinforcement's edge, would fail
+    it), its 3D translations consistent with the normal field. Measured: reaction 250 vs 256 N, response 3.9 % at
+    the worst node (2 mm outside the lock reinforcement), 0.93 % RMS (the issue's 3 % is not met on this member; the
+    rank-0 load case itself differs by 8.9 % coarse, 2.6 % at default resolution: RESULTS.md)."""
     from hood_decomp.core.fe.calculix import check_contact_set
     from tests.required import ensure_ccx
 
@@ -158,3 +188,5 @@ def test_rigid_buffer_member_against_calculix(coarse_hood_paper) -> None:
     ours = members.normal_displacement[1] - members.normal_displacement[0]
     theirs = pushed.normal - base.normal
     assert np.abs(theirs - ours).max() < 0.05 * np.abs(ours).max()
+    assert np.sqrt(np.mean((theirs - ours) ** 2)) < 0.015 * np.abs(ours).max()
+    assert np.allclose(np.einsum("na,na->n", pushed.skin_displacement, case.skin.normals), pushed.normal)

@@ -397,7 +397,8 @@ def run_member_job(deck: str, n_nodes: int, workdir: str | None = None, timeout:
 class ContactCheck:
     """A member solved by CalculiX with the contact set of an LCP solution held (:func:`check_contact_set`).
 
-    normal: (N,) mm skin normal displacement. touching: per unilateral boundary, (patch nodes,) bool, the held nodes.
+    normal: (N,) mm skin normal displacement; skin_displacement: (N, 3) mm skin translations. touching: per unilateral
+    boundary, (patch nodes,) bool, the held nodes.
     reaction: (U,) N, CalculiX's total reaction of each buffer along its axis. held_reaction_min: (U,) N, the
     smallest reaction of a held node (NaN: none held). free_gap_min: (U,) mm, the smallest clearance of a free pad
     node above its buffer (NaN: none free). The contact set is CalculiX's solution too when held nodes push and free
@@ -405,6 +406,7 @@ class ContactCheck:
     """
 
     normal: np.ndarray
+    skin_displacement: np.ndarray
     touching: tuple[np.ndarray, ...]
     reaction: np.ndarray
     held_reaction_min: np.ndarray
@@ -447,4 +449,5 @@ def check_contact_set(model: PartModel, state: np.ndarray, pad_forces: np.ndarra
         held_min.append(rz.min() if rz.size else np.nan)
         gap_min.append(gap.min() if gap.size else np.nan)
     normal = np.einsum("na,na->n", u[model.skin_nodes], normals)
-    return ContactCheck(normal, tuple(touching), np.array(reaction), np.array(held_min), np.array(gap_min))
+    return ContactCheck(normal, u[model.skin_nodes], tuple(touching), np.array(reaction), np.array(held_min),
+                        np.array(gap_min))

@@ -61,8 +61,11 @@ class ContactState:
     compression: np.ndarray
 
 
-def contact_state(reduced: ReducedModel, bilateral: np.ndarray, unilateral: np.ndarray) -> ContactState:
-    """Solve the pad contact for bilateral states a (B,) mm and commanded pad positions b (U,) mm."""
+def contact_state(reduced: ReducedModel, bilateral: np.ndarray, unilateral: np.ndarray,
+                  held: bool = False) -> ContactState:
+    """Solve the pad contact for bilateral states a (B,) mm and commanded pad positions b (U,) mm.
+
+    held: keep every spring active (M f = -q, f of either sign): the buffers as bilateral boundaries, no contact."""
     bilateral = np.asarray(bilateral, dtype=float)
     unilateral = np.asarray(unilateral, dtype=float)
     if bilateral.shape != (reduced.n_bilateral,):
@@ -73,6 +76,6 @@ def contact_state(reduced: ReducedModel, bilateral: np.ndarray, unilateral: np.n
     target = unilateral[reduced.pad_of] + reduced.preload if len(reduced.k) else np.zeros(0)
     z_free = reduced.z0 + reduced.Sa @ bilateral if len(reduced.k) else np.zeros(0)
     M = reduced.H + np.diag(1.0 / reduced.k)
-    f = solve_lcp(M, z_free - target)
+    f = np.linalg.solve(M, target - z_free) if held and len(reduced.k) else solve_lcp(M, z_free - target)
     z = z_free + reduced.H @ f
     return ContactState(f=f, z=z, compression=target - z)

@@ -62,19 +62,26 @@ class MemberBlock:
     compression: np.ndarray
 
 
-def solve_members(reduced: ReducedModel, commanded: np.ndarray) -> MemberBlock:
-    """Solve members with commanded states (m, P) mm (names order of ``reduced``): exact contact + superposition."""
+def solve_members(reduced: ReducedModel, commanded: np.ndarray, buffers: str = "unilateral") -> MemberBlock:
+    """Solve members with commanded states (m, P) mm (names order of ``reduced``): exact contact + superposition.
+
+    buffers: "unilateral" (the model's contact) or "held": every pad spring kept active, pulling as well as pushing,
+    i.e. each buffer a bilateral displacement boundary at its commanded position (the paper's Table 2 read as plain
+    displacement boundaries; CalculiX's ``buffers="held"`` decks). Held members are affine in the state.
+    """
     commanded = np.atleast_2d(np.asarray(commanded, dtype=float))
     n_params = len(reduced.names)
     if commanded.shape[1] != n_params:
         raise EnsembleError(f"expected {n_params} parameter columns {reduced.names}, got {commanded.shape[1]}")
+    if buffers not in ("unilateral", "held"):
+        raise EnsembleError(f"buffers must be 'unilateral' or 'held', got {buffers!r}")
     B = reduced.n_bilateral
     m, S = len(commanded), len(reduced.k)
     forces = np.zeros((m, S))
     compression = np.zeros((m, S))
     z = np.zeros((m, S))
     for i, state in enumerate(commanded):
-        contact = contact_state(reduced, state[:B], state[B:])
+        contact = contact_state(reduced, state[:B], state[B:], held=buffers == "held")
         forces[i] = contact.f
         compression[i] = contact.compression
         z[i] = contact.z
@@ -129,9 +136,9 @@ def iter_members(reduced: ReducedModel, commanded: np.ndarray, block: int = 128,
 
 
 def simulate_ensemble(reduced: ReducedModel, commanded: np.ndarray, rank: np.ndarray, lower: np.ndarray,
-                      upper: np.ndarray) -> Ensemble:
-    """An in-memory Ensemble of the given members (use the store for large ones)."""
-    solved = solve_members(reduced, commanded)
+                      upper: np.ndarray, buffers: str = "unilateral") -> Ensemble:
+    """An in-memory Ensemble of the given members (use the store for large ones); buffers: see solve_members."""
+    solved = solve_members(reduced, commanded, buffers)
     return Ensemble(
         model_id=reduced.model_id,
         names=tuple(reduced.names),

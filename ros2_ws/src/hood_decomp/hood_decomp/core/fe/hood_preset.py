@@ -60,6 +60,10 @@ PATCH_RADIUS = 30.0  # hinges, locks, gas springs, mm
 PAD_RADIUS = 40.0  # buffers, mm
 
 
+#: the 2 mm reinforcements: site -> how far (mm, in plan) they reach from it
+REINFORCEMENT_REACH = {"hinge_L": 120.0, "hinge_R": 120.0, "lock_L": 90.0, "lock_R": 90.0}
+
+
 def half_width(x: np.ndarray) -> np.ndarray:
     """Half width (mm) of the hood's plan at X = x."""
     return 0.5 * WIDTH * (1.0 - TAPER * (1.0 - x / LENGTH))
@@ -155,7 +159,7 @@ def build_hood(resolution: str = "default", pad_stiffness: float = PAD_STIFFNESS
     parts = [Part("outer_skin", 0.7), Part("inner_panel", 0.7)]
     cell_part_inner = np.ones(inner_cells.sum(), dtype=np.int64)
     ccx, ccy = cx[inner_cells], cy[inner_cells]
-    for name, reach in (("hinge_L", 120.0), ("hinge_R", 120.0), ("lock_L", 90.0), ("lock_R", 90.0)):
+    for name, reach in REINFORCEMENT_REACH.items():
         x0, y0 = sites[name]
         mine = np.hypot(ccx - x0, ccy - y0) < reach
         parts.append(Part(f"reinf_{name}", 2.0))
