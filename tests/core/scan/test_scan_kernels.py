@@ -117,7 +117,8 @@ def test_field_equals_a_per_node_reference(estimator, scan_points):
 @pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed: only the numpy path exists")
 def test_compiled_path_equals_the_numpy_path(estimator, scan_points, monkeypatch):
     """Fails if the compiled kernels and the numpy path differ by more than 1e-9 mm anywhere (values, node std,
-    noise), with a transform folded in, several threads and blocks of points and of nodes, NaN rows and outliers."""
+    noise) or their correlation sums by more than 1e-9 relative, with a transform folded in, several threads and
+    blocks of points and of nodes, NaN rows and outliers."""
     monkeypatch.setattr(kernels, "NODE_BLOCK", 500)  # the patch's 1,405 nodes in three blocks on the numpy path
     rotation = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     transform = np.eye(4)
@@ -141,6 +142,7 @@ def test_compiled_path_equals_the_numpy_path(estimator, scan_points, monkeypatch
     np.testing.assert_array_equal(np.isnan(fast.normal_displacement), np.isnan(slow.normal_displacement))
     np.testing.assert_allclose(fast.normal_displacement, slow.normal_displacement, rtol=0, atol=1e-9)
     np.testing.assert_allclose(fast.error_model.node_std, slow.error_model.node_std, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(fast.error_model.correlation, slow.error_model.correlation, rtol=1e-9, atol=0)
     assert abs(fast.noise_rms - slow.noise_rms) < 1e-9
     assert np.isfinite(fast.normal_displacement).mean() > 0.8
 
@@ -254,6 +256,54 @@ def test_the_kernel_pass_equals_sparse_products(estimator, compiled):
     np.testing.assert_allclose(mixed, expected, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(squared, kernel.multiply(kernel) @ counts, rtol=1e-12, atol=0)
     np.testing.assert_array_equal(nearby, (kernel >= 0.75**2).astype(float) @ counts)
+
+
+def _equivalent_matrix(estimator: ScanFieldEstimator, rho: np.ndarray, raw: np.ndarray) -> np.ndarray:
+    """The plane fit's equivalent weights L (N, N), dense, written out per entry from their definition: node i's
+    intercept takes rho_i . [n_j, t1_i . (P_j - n_j x_i), t2_i . (P_j - n_j x_i)] of cell j, times K_ij."""
+    kernel = estimator.kernel_.toarray()
+    x, t1, t2 = (estimator.moment_basis_[:, k] for k in range(3))
+    count, position = raw[:, 0], raw[:, 1:4]
+    rel = position[None, :, :] - count[None, :, None] * x[:, None, :]  # (i, j, 3): P_j - n_j x_i
+    local = rho[:, 0:1] * count[None, :] + rho[:, 1:2] * np.einsum("ijd,id->ij", rel, t1) + rho[:, 2:3] * np.einsum(
+        "ijd,id->ij", rel, t2)
+    return kernel * local
+
+
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.skipif(
+    not kernels.HAVE_NUMBA, reason="numba is not installed: only the numpy path exists"))])
+def test_the_error_model_sums_equal_dense_products_of_the_equivalent_weights(estimator, compiled):
+    """kernels.covariance_sums forms t (A D A^T t) without an N x N matrix (A = L, or 2 L - L L twiced), and
+    kernels.twiced_variance the diagonals of L D L^T and A D A^T. Fails if either differs by more than 1e-9 relative
+    from dense products of L written out from its definition (_equivalent_matrix) on the patch's own kernel, with
+    random inverse rows (a NaN row counts as 0), cells without points (D = 0 there) and t = 0 on some nodes: a
+    transposed product taken the wrong way round (K is not symmetric), a wrong sign or frame in c_i or w_i, a dropped
+    L L term, or a numpy twin that computes something else."""
+    rng = np.random.default_rng(9)
+    n = estimator.points_.shape[0]
+    rho = rng.normal(0.0, 1.0, (n, 3)) * [1.0, 0.01, 0.01]
+    rho[5] = np.nan
+    cells = np.zeros((n, 9))
+    cells[:, 0] = rng.integers(0, 6, n)
+    cells[:, 1:3] = rng.normal(0.0, 2.0, (n, 2)) * cells[:, :1]
+    raw = estimator._raw_moments(cells, np.arange(n), False)
+    t = rng.uniform(0.5, 2.0, n) * (rng.random(n) > 0.1)
+    weights = _equivalent_matrix(estimator, np.nan_to_num(rho), raw)
+    inverse = np.diag(np.where(raw[:, 0] > 0, 1.0 / np.maximum(raw[:, 0], 1.0), 0.0))
+    twiced_weights = 2.0 * weights - weights @ weights
+    kernel = estimator.kernel_
+    args = (kernel.indptr, kernel.indices, kernel.data, rho, estimator.moment_basis_, estimator.t1_dot_x_,
+            estimator.t2_dot_x_, raw)  # fmt: skip
+    previous = kernels.use_compiled(compiled)
+    try:
+        for twiced, a in ((False, weights), (True, twiced_weights)):
+            got = kernels.covariance_sums(*args, t, twiced, compiled)
+            np.testing.assert_allclose(got, t * (a @ inverse @ a.T @ t), rtol=1e-9, atol=1e-9 * np.abs(got).max())
+        plain, twiced = kernels.twiced_variance(*args, compiled)
+    finally:
+        kernels.use_compiled(previous)
+    np.testing.assert_allclose(plain, np.diag(weights @ inverse @ weights.T), rtol=1e-9, atol=0)
+    np.testing.assert_allclose(twiced, np.diag(twiced_weights @ inverse @ twiced_weights.T), rtol=1e-9, atol=0)
 
 
 def test_triangle_areas_by_blocks_are_the_analytic_areas():

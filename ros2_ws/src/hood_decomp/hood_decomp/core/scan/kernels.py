@@ -213,13 +213,14 @@ def _raw_moments_numpy(cells, basis, rows):
     return out
 
 
-def _node_fits_numpy(mixed, frames, t1x, t2x, coef, weight, inflation):
+def _node_fits_numpy(mixed, frames, t1x, t2x, coef, weight, inflation, rho):
     for start in range(0, mixed.shape[0], NODE_BLOCK):
         part = slice(start, start + NODE_BLOCK)
-        _node_fits_block(mixed[part], frames[part], t1x[part], t2x[part], coef[part], weight[part], inflation[part])
+        _node_fits_block(mixed[part], frames[part], t1x[part], t2x[part], coef[part], weight[part], inflation[part],
+                         rho[part])
 
 
-def _node_fits_block(mixed, frames, t1x, t2x, coef, weight, inflation):
+def _node_fits_block(mixed, frames, t1x, t2x, coef, weight, inflation, rho):
     s0, s1, d0, d1 = mixed[:, 0], mixed[:, 1:4], mixed[:, 10], mixed[:, 11:14]
     ts = np.einsum("nkd,nd->nk", frames[:, :2], s1)
     td = np.einsum("nkd,nd->nk", frames[:, :2], d1)
@@ -234,6 +235,7 @@ def _node_fits_block(mixed, frames, t1x, t2x, coef, weight, inflation):
     coef[:, 2] = (c02 * r0 + c12 * r1 + c22 * r2) * inv_det
     weight[:] = s0
     inflation[:] = s0 * (c00 * inv_det)
+    rho[:, 0], rho[:, 1], rho[:, 2] = c00 * inv_det, c01 * inv_det, c02 * inv_det
 
 
 def _kernel_sums_numpy(indptr, indices, data, counts, rows, mark, removed, near, mixed, squared, nearby):
@@ -251,6 +253,55 @@ def _kernel_sums_numpy(indptr, indices, data, counts, rows, mark, removed, near,
         squared[start:stop] = sp.csr_matrix((k * k, j, local), shape=(stop - start, n)) @ counts
         nearby[start:stop] = sp.csr_matrix(((k >= near).astype(np.float64), j, local), shape=(stop - start, n)) @ counts
         start = stop
+
+def _equivalent_rows(rho, basis, t1x, t2x):
+    """[c_i, w_i] (N, 4) from the inverse normal matrices' first rows rho (N, 3) (rows with a NaN: 0); basis
+    (N, 3, 3) rows x, t1, t2."""
+    rho = np.where(np.isfinite(rho).all(axis=1, keepdims=True), rho, 0.0)
+    rows = np.empty((rho.shape[0], 4))
+    rows[:, 0] = rho[:, 0] - rho[:, 1] * t1x - rho[:, 2] * t2x
+    rows[:, 1:] = np.einsum("nk,nkd->nd", rho[:, 1:], basis[:, 1:])
+    return rows
+
+
+def _covariance_sums_numpy(indptr, indices, data, rho, basis, t1x, t2x, sums, t, twiced, out):
+    # L = K (rows sums^T) elementwise, rows [c, w], sums [n, P]: L^T x = sums . (K^T (rows x)) and
+    # L x = rows . (K (sums x)), sparse products with four columns (K^T a CSC view of K: no transposed copy)
+    n = indptr.size - 1
+    kernel = sp.csr_matrix((data, indices, indptr), shape=(n, n))
+    rows = _equivalent_rows(rho, basis, t1x, t2x)
+    sums = sums[:, :4]
+
+    def back(x):
+        total = kernel.T @ (rows * x[:, None])
+        return sums[:, 0] * total[:, 0] + (sums[:, 1] * total[:, 1] + sums[:, 2] * total[:, 2]
+                                           + sums[:, 3] * total[:, 3])
+
+    def forward(x):
+        total = kernel @ (sums * x[:, None])
+        return rows[:, 0] * total[:, 0] + (rows[:, 1] * total[:, 1] + rows[:, 2] * total[:, 2]
+                                           + rows[:, 3] * total[:, 3])
+
+    y = back(t)
+    if twiced:
+        y = 2.0 * y - back(y)
+    count = sums[:, 0]
+    y = np.where(count > 0, y / np.where(count > 0, count, 1.0), 0.0)
+    f = forward(y)
+    out[:] = t * (2.0 * f - forward(f) if twiced else f)
+
+
+def _twiced_variance_numpy(indptr, indices, data, rows, sums, plain, twiced):
+    n = indptr.size - 1
+    row = np.repeat(np.arange(n), np.diff(indptr))
+    weights = sp.csr_matrix((data * np.einsum("zd,zd->z", rows[row], sums[indices, :4]), indices, indptr),
+                            shape=(n, n))
+    count = sums[:, 0]
+    inverse = np.where(count > 0, 1.0 / np.where(count > 0, count, 1.0), 0.0)
+    plain[:] = weights.multiply(weights) @ inverse
+    both = 2.0 * weights - weights @ weights
+    twiced[:] = both.multiply(both) @ inverse
+
 
 # ------------------------------------------------------------------------------------------------ compiled path
 def _locate_block_loop(points, start, stop, affine, hi, strides, table, cell_mm, nodes, max_d,
@@ -354,7 +405,7 @@ def _raw_moments_loop(cells, basis, rows):
     return out
 
 
-def _node_fits_loop(mixed, frames, t1x, t2x, coef, weight, inflation):
+def _node_fits_loop(mixed, frames, t1x, t2x, coef, weight, inflation, rho):
     for i in range(mixed.shape[0]):
         s0, d0 = mixed[i, 0], mixed[i, 10]
         ts0 = frames[i, 0, 0] * mixed[i, 1] + frames[i, 0, 1] * mixed[i, 2] + frames[i, 0, 2] * mixed[i, 3]
@@ -370,6 +421,7 @@ def _node_fits_loop(mixed, frames, t1x, t2x, coef, weight, inflation):
         coef[i, 2] = (c02 * r0 + c12 * r1 + c22 * r2) * inv_det
         weight[i] = s0
         inflation[i] = s0 * (c00 * inv_det)
+        rho[i, 0], rho[i, 1], rho[i, 2] = c00 * inv_det, c01 * inv_det, c02 * inv_det
 
 
 def _kernel_sums_loop(indptr, indices, data, counts, rows, mark, removed, near, mixed, squared, nearby):
@@ -399,6 +451,118 @@ def _kernel_sums_loop(indptr, indices, data, counts, rows, mark, removed, near, 
                 mixed[i, col] -= taken[col]
 
 
+def _covariance_sums_loop(indptr, indices, data, rho, basis, t1x, t2x, sums, t, twiced, out):
+    n = indptr.size - 1
+    rows = np.empty((n, 4))  # [c_i, w_i]; sums: [n_j, P_j] in its first four columns
+    for i in range(n):
+        r0, r1, r2 = rho[i, 0], rho[i, 1], rho[i, 2]
+        if not (np.isfinite(r0) and np.isfinite(r1) and np.isfinite(r2)):
+            r0, r1, r2 = 0.0, 0.0, 0.0
+        rows[i, 0] = r0 - r1 * t1x[i] - r2 * t2x[i]
+        for dim in range(3):
+            rows[i, 1 + dim] = r1 * basis[i, 1, dim] + r2 * basis[i, 2, dim]
+    # the plain fit recomputes L's entries in its two passes (storing them, 32 MB at paper resolution, cost more);
+    # the twiced one stores them for its four
+    weights = np.empty(indices.size if twiced else 0)
+    back = np.zeros(n)
+    for i in range(n):
+        r0, r1, r2, r3, ti = rows[i, 0], rows[i, 1], rows[i, 2], rows[i, 3], t[i]
+        if ti == 0.0 and not twiced:  # nothing to add
+            continue
+        for e in range(indptr[i], indptr[i + 1]):
+            j = indices[e]
+            value = data[e] * (r0 * sums[j, 0] + (r1 * sums[j, 1] + r2 * sums[j, 2] + r3 * sums[j, 3]))
+            if twiced:
+                weights[e] = value
+            back[j] += value * ti
+    if twiced:  # A^T t = 2 L^T t - L^T (L^T t)
+        again = np.zeros(n)
+        for i in range(n):
+            bi = back[i]
+            for e in range(indptr[i], indptr[i + 1]):
+                again[indices[e]] += weights[e] * bi
+        for j in range(n):
+            back[j] = 2.0 * back[j] - again[j]
+    for j in range(n):  # D A^T t
+        back[j] = back[j] / sums[j, 0] if sums[j, 0] > 0 else 0.0
+    if twiced:  # A y = 2 L y - L (L y), the second product only where t is not 0
+        forward = np.empty(n)
+        for i in range(n):
+            total = 0.0
+            for e in range(indptr[i], indptr[i + 1]):
+                total += weights[e] * back[indices[e]]
+            forward[i] = total
+        for i in range(n):
+            total = 0.0
+            if t[i] != 0.0:
+                for e in range(indptr[i], indptr[i + 1]):
+                    total += weights[e] * forward[indices[e]]
+            out[i] = t[i] * (2.0 * forward[i] - total)
+    else:  # L y where t is not 0
+        for i in range(n):
+            total = 0.0
+            if t[i] != 0.0:
+                r0, r1, r2, r3 = rows[i, 0], rows[i, 1], rows[i, 2], rows[i, 3]
+                for e in range(indptr[i], indptr[i + 1]):
+                    j = indices[e]
+                    total += data[e] * (r0 * sums[j, 0] + (r1 * sums[j, 1] + r2 * sums[j, 2] + r3 * sums[j, 3])
+                                        ) * back[j]
+            out[i] = t[i] * total
+
+
+def _twiced_variance_loop(indptr, indices, data, rows, sums, plain, twiced):
+    n = indptr.size - 1
+    count = sums[:, 0]
+    weights = np.empty(indices.size)
+    for i in range(n):
+        for e in range(indptr[i], indptr[i + 1]):
+            j = indices[e]
+            weights[e] = data[e] * (rows[i, 0] * sums[j, 0] + rows[i, 1] * sums[j, 1] + rows[i, 2] * sums[j, 2]
+                                    + rows[i, 3] * sums[j, 3])
+    row = np.zeros(n)  # row i of 2 L - L L, dense, reset after each row
+    seen = np.full(n, -1, np.int64)
+    touched = np.empty(n, np.int64)
+    for i in range(n):
+        m = 0
+        square = 0.0
+        for e in range(indptr[i], indptr[i + 1]):
+            j = indices[e]
+            if count[j] > 0:
+                square += weights[e] * weights[e] / count[j]
+            if seen[j] != i:
+                seen[j] = i
+                touched[m] = j
+                m += 1
+            row[j] += 2.0 * weights[e]
+        for e in range(indptr[i], indptr[i + 1]):
+            k = indices[e]
+            a = weights[e]
+            for f in range(indptr[k], indptr[k + 1]):
+                j = indices[f]
+                if seen[j] != i:
+                    seen[j] = i
+                    touched[m] = j
+                    m += 1
+                row[j] -= a * weights[f]
+        total = 0.0
+        for q in range(m):
+            j = touched[q]
+            if count[j] > 0:
+                total += row[j] * row[j] / count[j]
+            row[j] = 0.0
+        plain[i] = square
+        twiced[i] = total
+
+
+def _unsigned(fast: bool, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Index arrays (the kernel's, the grid's nodes, the points' nodes) as unsigned views for the compiled loops:
+    numba checks every signed index for a negative one to wrap around (the loops over the kernel's entries ran 2-3
+    times slower); unchanged for numpy."""
+    if not fast or _MODE is False:
+        return arrays
+    return tuple(a.view(a.dtype.str.replace("i", "u")) for a in arrays)
+
+
 def _kernel(name: str, fast: bool = True):
     """The compiled loop ``name`` when ``fast`` and the compiled path is not switched off (numba imported and the
     loops compiled, or loaded from numba's cache, on first use), else the numpy function of the same job."""
@@ -413,7 +577,8 @@ def _kernel(name: str, fast: bool = True):
             for helper in ("_cell", "_add_one", "_second_moments", "_tangent_forms", "_plane_system"):
                 module[helper] = njit(nogil=True, cache=True, inline="always")(module[helper])
             for loop in ("_locate_block_loop", "_add_moments_loop", "_plane_residuals_loop", "_outliers_loop",
-                         "_raw_moments_loop", "_node_fits_loop", "_kernel_sums_loop"):  # fmt: skip
+                         "_raw_moments_loop", "_node_fits_loop", "_kernel_sums_loop", "_covariance_sums_loop",
+                         "_twiced_variance_loop"):  # fmt: skip
                 _JIT[loop] = njit(nogil=True, cache=True)(module[loop])
     return _JIT[name]
 
@@ -432,21 +597,22 @@ def locate_block(points: np.ndarray, start: int, stop: int, affine: np.ndarray, 
     first ``count`` entries of the out buffers (each at least stop - start long); with ``cells`` (N, 9) float64
     their moments are added to it. ``fast``: the compiled path where it is not switched off (all functions here).
     """
-    return int(_kernel("_locate_block_loop", fast)(points, start, stop, affine, hi, strides, table, cell_mm, nodes,
-                                                   max_d, out_row, out_j, out_u, out_v, out_d, cells))  # fmt: skip
+    return int(_kernel("_locate_block_loop", fast)(points, start, stop, affine, hi, strides, *_unsigned(fast, table),
+                                                   cell_mm, nodes, max_d, out_row, out_j, out_u, out_v, out_d,
+                                                   cells))  # fmt: skip
 
 
 def add_moments(j: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, sign: float, cells: np.ndarray,
                 fast: bool = True) -> None:
     """cells (N, 9) += sign * per-node sums of [1, u, v, uu, uv, vv, d, du, dv] of the points (K,) at nodes j."""
-    _kernel("_add_moments_loop", fast)(j, u, v, d, float(sign), cells)
+    _kernel("_add_moments_loop", fast)(*_unsigned(fast, j), u, v, d, float(sign), cells)
 
 
 def plane_residuals(j: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, coef: np.ndarray,
                     fast: bool = True) -> np.ndarray:
     """Residuals (K,) float32 mm of the points (nodes j, u, v, d (K,)) from their own node's plane coef (N, 3)."""
     out = np.empty(j.size, np.float32)
-    _kernel("_plane_residuals_loop", fast)(j, u, v, d, coef, out)
+    _kernel("_plane_residuals_loop", fast)(*_unsigned(fast, j), u, v, d, coef, out)
     return out
 
 
@@ -457,7 +623,7 @@ def outliers(j: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, coef: n
     exceeds ``limit`` mm, and the count and sum of squares (mm^2) of the other finite residuals. No array of K
     residuals is formed (blocks on the numpy path, one loop compiled)."""
     drop = np.empty(j.size, np.int64)  # only the pages written become resident: a few outliers
-    count, inliers, squares = _kernel("_outliers_loop", fast)(j, u, v, d, coef, float(limit), drop)
+    count, inliers, squares = _kernel("_outliers_loop", fast)(*_unsigned(fast, j), u, v, d, coef, float(limit), drop)
     return drop[:count].copy(), int(inliers), float(squares)
 
 
@@ -468,14 +634,15 @@ def raw_moments(cells: np.ndarray, basis: np.ndarray, rows: np.ndarray, fast: bo
 
 
 def node_fits(mixed: np.ndarray, frames: np.ndarray, t1x: np.ndarray, t2x: np.ndarray,
-              fast: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+              fast: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """Per node the weighted plane fit from mixed raw moments (N, 14): coefficients (N, 3) [a mm, b_u, b_v], weight
-    (N,) and intercept variance inflation (N,); the 3x3 normal equations solved in closed form (adjugate), NaN where
-    singular."""
+    (N,), intercept variance inflation (N,) and the first row (N, 3) of the inverse normal matrix (the intercept is
+    its product with the right-hand side [sum d, sum d u, sum d v]: the fit's equivalent kernel); the 3x3 normal
+    equations solved in closed form (adjugate), NaN where singular."""
     n = mixed.shape[0]
-    coef, weight, inflation = np.empty((n, 3)), np.empty(n), np.empty(n)
-    _kernel("_node_fits_loop", fast)(mixed, frames, t1x, t2x, coef, weight, inflation)
-    return coef, weight, inflation
+    coef, weight, inflation, rho = np.empty((n, 3)), np.empty(n), np.empty(n), np.empty((n, 3))
+    _kernel("_node_fits_loop", fast)(mixed, frames, t1x, t2x, coef, weight, inflation, rho)
+    return coef, weight, inflation, rho
 
 
 def kernel_sums(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kernel_data: np.ndarray, counts: np.ndarray,
@@ -495,7 +662,44 @@ def kernel_sums(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kernel_da
     mark[rows] = np.arange(rows.size)
     squared, nearby = np.empty(n), np.empty(n)
     counts = np.ascontiguousarray(counts, dtype=np.float64)  # once: a column of the cell sums would be copied per block
-    _kernel("_kernel_sums_loop", fast)(kernel_indptr, kernel_indices, kernel_data, counts, rows, mark,
+    _kernel("_kernel_sums_loop", fast)(*_unsigned(fast, kernel_indptr, kernel_indices), kernel_data, counts, rows, mark,
                                        np.ascontiguousarray(removed, dtype=np.float64), float(near), mixed, squared,
                                        nearby)  # fmt: skip
     return squared, nearby
+
+
+def covariance_sums(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kernel_data: np.ndarray, rho: np.ndarray,
+                    basis: np.ndarray, t1x: np.ndarray, t2x: np.ndarray, raw: np.ndarray, t: np.ndarray,
+                    twiced: bool, fast: bool = True) -> np.ndarray:
+    """t (A D A^T t) (N,), elementwise, for t (N,), D = diag(1 / n) (zero where n is 0) and A the node values'
+    weights on the cells' mean distances (with t = 1 / s the correlation sums of ScanFieldEstimator._error_model):
+    the plane fit's equivalent weights L_ij = K_ij (c_i n_j + w_i . P_j) on the pattern of the (N, N) CSR kernel K
+    (indptr, indices, data), or A = 2 L - L L with ``twiced``.
+
+    Node i's intercept is rho_i . [sum d, sum d u, sum d v] over its kernel-weighted points, rho (N, 3) the first row
+    of its inverse normal matrix (:func:`node_fits`; NaN rows count as 0); cell j's points (n_j of them, position
+    sum P_j about the skin centroid: the first four columns of the cells' raw moments (N, 14), :func:`raw_moments`)
+    sum to [n_j, t1_i . (P_j - n_j x_i), t2_i . (P_j - n_j x_i)] in node i's frame, hence c_i = rho_i0 - rho_i1
+    t1_i . x_i - rho_i2 t2_i . x_i and w_i = rho_i1 t1_i + rho_i2 t2_i (basis (N, 3, 3) rows x, t1, t2; t1x, t2x
+    (N,) the t . x). Compiled: two passes over K (plain, L's entries made as they are used) or four (twiced, L
+    stored in the first); numpy: sparse products with four columns, L never formed. The same numbers to rounding."""
+    out = np.empty(kernel_indptr.size - 1)
+    _kernel("_covariance_sums_loop", fast)(*_unsigned(fast, kernel_indptr, kernel_indices), kernel_data, rho, basis,
+                                           t1x, t2x, raw, np.ascontiguousarray(t, dtype=np.float64), bool(twiced),
+                                           out)  # fmt: skip
+    return out
+
+
+def twiced_variance(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kernel_data: np.ndarray, rho: np.ndarray,
+                    basis: np.ndarray, t1x: np.ndarray, t2x: np.ndarray, raw: np.ndarray,
+                    fast: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """The diagonals (N,) of L D L^T and of (2 L - L L) D (2 L - L L)^T, D = diag(1 / n) (zero where n is 0), for the
+    equivalent weights L of :func:`covariance_sums` (same arguments): the plain and the twiced fit's node
+    variance per unit point noise. The twiced one needs L L, two rings wide: row by row into a dense scratch row
+    (compiled) or scipy's sparse product (numpy)."""
+    n = kernel_indptr.size - 1
+    plain, twiced = np.empty(n), np.empty(n)
+    _kernel("_twiced_variance_loop", fast)(*_unsigned(fast, kernel_indptr, kernel_indices), kernel_data,
+                                           _equivalent_rows(rho, basis, t1x, t2x),  # once per skin: numpy
+                                           np.ascontiguousarray(raw[:, :4]), plain, twiced)
+    return plain, twiced
