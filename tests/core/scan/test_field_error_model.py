@@ -37,9 +37,9 @@ def test_node_std_and_correlation_predict_the_scatter_of_repeated_scans(repeated
     """Fails if the stated node std is off the repeat-to-repeat scatter by more than 20 % (median over nodes), or if
     the correlation sums do not predict the variance of smooth averages of the field (patch means over ~100 nodes)
     between 0.4 and 1.5 times: white noise (correlation 1) would predict 5-10 times too little there; also if the
-    twiced weights are dropped from the node variance. Measured (twiced): node std ratio 0.96, block-average ratio
-    0.79 (the blocks' 0/1 edges cut the ~130 mm correlation: on smooth fields the model is exact, see the Monte
-    Carlo test below)."""
+    twiced/plain variance ratio (about 1.78) is dropped from the node variance. Measured (twiced): node std ratio
+    0.957, block-average ratio 0.787 (the blocks' 0/1 edges cut the ~130 mm correlation: on smooth fields the model
+    is exact, see the Monte Carlo test below)."""
     assert repeated[2].twicing_
     skin, fields, _ = repeated
     values = np.array([f.normal_displacement for f in fields])
@@ -172,8 +172,8 @@ def test_node_variance_and_smooth_projections_match_a_monte_carlo_of_white_point
     projections on the skin's degree-2 smooth fields, as the within-model test states it (sum_i q_i^2 s_i^2 g_i), is
     off by more than 20 %: the kernel-average model with a constant twicing factor (1.8) over-stated it 1.47 times
     here (measured 0.68), so does dropping the plane fit's equivalent kernel (its one-sided inflation applied to a
-    whole node's correlation sum) or the twiced weights 2 L - L L. Measured: node 1.02, smooth 0.93 (free-edge nodes
-    alone about 1.18: the cell approximation of the twiced weights; benchmarks/RESULTS.md)."""
+    whole node's correlation sum) or the twiced weights 2 L - L L. Measured: node 1.005, smooth 0.927
+    (benchmarks/RESULTS.md, issue 15 run 8)."""
     from hood_decomp.core.fe.hood_preset import build_preset
     from hood_decomp.core.fe.model import skin_surface
     from hood_decomp.core.method.residual import smooth_modes

@@ -258,44 +258,36 @@ def test_the_kernel_pass_equals_sparse_products(estimator, compiled):
     np.testing.assert_array_equal(nearby, (kernel >= 0.75**2).astype(float) @ counts)
 
 
-def _equivalent_matrix(estimator: ScanFieldEstimator, rho: np.ndarray, raw: np.ndarray) -> np.ndarray:
-    """The plane fit's equivalent weights L (N, N), dense, written out per entry from their definition: node i's
-    intercept takes rho_i . [n_j, t1_i . (P_j - n_j x_i), t2_i . (P_j - n_j x_i)] of cell j, times K_ij."""
-    kernel = estimator.kernel_.toarray()
-    x, t1, t2 = (estimator.moment_basis_[:, k] for k in range(3))
-    count, position = raw[:, 0], raw[:, 1:4]
-    rel = position[None, :, :] - count[None, :, None] * x[:, None, :]  # (i, j, 3): P_j - n_j x_i
-    local = rho[:, 0:1] * count[None, :] + rho[:, 1:2] * np.einsum("ijd,id->ij", rel, t1) + rho[:, 2:3] * np.einsum(
-        "ijd,id->ij", rel, t2)
-    return kernel * local
-
-
 @pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.skipif(
     not kernels.HAVE_NUMBA, reason="numba is not installed: only the numpy path exists"))])
-def test_the_error_model_sums_equal_dense_products_of_the_equivalent_weights(estimator, compiled):
-    """kernels.covariance_sums forms t (A D A^T t) without an N x N matrix (A = L, or 2 L - L L twiced), and
-    kernels.twiced_variance the diagonals of L D L^T and A D A^T. Fails if either differs by more than 1e-9 relative
-    from dense products of L written out from its definition (_equivalent_matrix) on the patch's own kernel, with
-    random inverse rows (a NaN row counts as 0), cells without points (D = 0 there) and t = 0 on some nodes: a
-    transposed product taken the wrong way round (K is not symmetric), a wrong sign or frame in c_i or w_i, a dropped
-    L L term, or a numpy twin that computes something else."""
-    rng = np.random.default_rng(9)
+def test_the_error_model_sums_equal_dense_products_of_the_equivalent_weights(estimator, scan_points, compiled):
+    """The scan error model's weights: node i's intercept is linear in its points' distances, a_i = sum over the
+    kernel-weighted points of d (c_i + w_i . p) (p about the skin centroid), so kernels.node_fits' rows [c_i, w_i]
+    must give the fitted intercept from the mixed moments [sum d, sum d p]; kernels.covariance_sums forms t (A D A^T t)
+    without an N x N matrix (A = L or 2 L - L L, L_ij = K_ij (c_i n_j + w_i . P_j)) and kernels.twiced_variance the
+    diagonals of L D L^T and A D A^T. Fails if the rows are not the fit's equivalent kernel (a wrong sign, frame or
+    inverse row: 1e-9 relative on the patch scan's intercepts), or if either sum differs by more than 1e-9 relative
+    from dense products (a transposed product taken the wrong way round: K is not symmetric; a dropped L L term;
+    cells without points, where D is 0, or t = 0 mishandled; a numpy twin computing something else)."""
     n = estimator.points_.shape[0]
-    rho = rng.normal(0.0, 1.0, (n, 3)) * [1.0, 0.01, 0.01]
-    rho[5] = np.nan
-    cells = np.zeros((n, 9))
-    cells[:, 0] = rng.integers(0, 6, n)
-    cells[:, 1:3] = rng.normal(0.0, 2.0, (n, 2)) * cells[:, :1]
-    raw = estimator._raw_moments(cells, np.arange(n), False)
-    t = rng.uniform(0.5, 2.0, n) * (rng.random(n) > 0.1)
-    weights = _equivalent_matrix(estimator, np.nan_to_num(rho), raw)
-    inverse = np.diag(np.where(raw[:, 0] > 0, 1.0 / np.maximum(raw[:, 0], 1.0), 0.0))
-    twiced_weights = 2.0 * weights - weights @ weights
-    kernel = estimator.kernel_
-    args = (kernel.indptr, kernel.indices, kernel.data, rho, estimator.moment_basis_, estimator.t1_dot_x_,
-            estimator.t2_dot_x_, raw)  # fmt: skip
     previous = kernels.use_compiled(compiled)
     try:
+        cells = estimator._scan_points(scan_points, moments=True, fast=compiled, rows=False)[5]
+        raw = estimator._raw_moments(cells, np.arange(n), compiled)
+        mixed = estimator.kernel_ @ raw
+        coef, _, _, rows = estimator._node_fits(mixed, compiled, equivalent=True)
+        fitted = np.isfinite(coef[:, 0])
+        intercept = rows[:, 0] * mixed[:, 10] + np.einsum("nd,nd->n", rows[:, 1:], mixed[:, 11:14])
+        np.testing.assert_allclose(intercept[fitted], coef[fitted, 0], rtol=1e-9, atol=1e-9)
+        rng = np.random.default_rng(9)
+        rows = rows * rng.uniform(0.5, 1.5, (n, 1))  # other numbers through the same algebra
+        raw[rng.random(n) < 0.1, :4] = 0.0  # cells without points
+        t = rng.uniform(0.5, 2.0, n) * (rng.random(n) > 0.1)
+        kernel = estimator.kernel_
+        weights = kernel.toarray() * (rows[:, :1] * raw[None, :, 0] + rows[:, 1:] @ raw[:, 1:4].T)
+        inverse = np.diag(np.where(raw[:, 0] > 0, 1.0 / np.maximum(raw[:, 0], 1.0), 0.0))
+        twiced_weights = 2.0 * weights - weights @ weights
+        args = (kernel.indptr, kernel.indices, kernel.data, rows, raw)
         for twiced, a in ((False, weights), (True, twiced_weights)):
             got = kernels.covariance_sums(*args, t, twiced, compiled)
             np.testing.assert_allclose(got, t * (a @ inverse @ a.T @ t), rtol=1e-9, atol=1e-9 * np.abs(got).max())

@@ -19,7 +19,9 @@ second pass (:func:`outliers`): residuals, outliers and the noise sums in one pa
 size; then (:func:`kernel_sums`) one pass over the node kernel takes the dropped points back out of the mixed
 moments and sums what the support test and the error model need, so that no transposed, squared or thresholded copy
 of the kernel is built when a process starts (those took 0.2 s of CPU and 90 MB in a one-off run at paper
-resolution).
+resolution). The error model's correlation sums (:func:`covariance_sums`) go over the kernel two or four more times
+with the plane fit's equivalent weights made as they are used; :func:`twiced_variance` (once per skin) takes the
+kernel's two-ring product. The compiled loops get the index arrays as unsigned views (:func:`_unsigned`).
 """
 
 from __future__ import annotations
@@ -213,14 +215,14 @@ def _raw_moments_numpy(cells, basis, rows):
     return out
 
 
-def _node_fits_numpy(mixed, frames, t1x, t2x, coef, weight, inflation, rho):
+def _node_fits_numpy(mixed, frames, t1x, t2x, coef, weight, inflation, rows):
     for start in range(0, mixed.shape[0], NODE_BLOCK):
         part = slice(start, start + NODE_BLOCK)
         _node_fits_block(mixed[part], frames[part], t1x[part], t2x[part], coef[part], weight[part], inflation[part],
-                         rho[part])
+                         None if rows is None else rows[part])
 
 
-def _node_fits_block(mixed, frames, t1x, t2x, coef, weight, inflation, rho):
+def _node_fits_block(mixed, frames, t1x, t2x, coef, weight, inflation, rows):
     s0, s1, d0, d1 = mixed[:, 0], mixed[:, 1:4], mixed[:, 10], mixed[:, 11:14]
     ts = np.einsum("nkd,nd->nk", frames[:, :2], s1)
     td = np.einsum("nkd,nd->nk", frames[:, :2], d1)
@@ -235,7 +237,15 @@ def _node_fits_block(mixed, frames, t1x, t2x, coef, weight, inflation, rho):
     coef[:, 2] = (c02 * r0 + c12 * r1 + c22 * r2) * inv_det
     weight[:] = s0
     inflation[:] = s0 * (c00 * inv_det)
-    rho[:, 0], rho[:, 1], rho[:, 2] = c00 * inv_det, c01 * inv_det, c02 * inv_det
+    if rows is None:
+        return
+    # the equivalent kernel's row sides [c, w] (first row rho of the inverse normal matrix, about the centroid;
+    # zero where singular): c = rho_0 - rho_1 t1 . x - rho_2 t2 . x, w = rho_1 t1 + rho_2 t2
+    inv0 = np.where(np.isfinite(inv_det), inv_det, 0.0)
+    r0, r1, r2 = c00 * inv0, c01 * inv0, c02 * inv0
+    rows[:, 0] = r0 - r1 * t1x - r2 * t2x
+    for dim in range(3):
+        rows[:, 1 + dim] = r1 * tangents[0][dim] + r2 * tangents[1][dim]
 
 
 def _kernel_sums_numpy(indptr, indices, data, counts, rows, mark, removed, near, mixed, squared, nearby):
@@ -254,22 +264,11 @@ def _kernel_sums_numpy(indptr, indices, data, counts, rows, mark, removed, near,
         nearby[start:stop] = sp.csr_matrix(((k >= near).astype(np.float64), j, local), shape=(stop - start, n)) @ counts
         start = stop
 
-def _equivalent_rows(rho, basis, t1x, t2x):
-    """[c_i, w_i] (N, 4) from the inverse normal matrices' first rows rho (N, 3) (rows with a NaN: 0); basis
-    (N, 3, 3) rows x, t1, t2."""
-    rho = np.where(np.isfinite(rho).all(axis=1, keepdims=True), rho, 0.0)
-    rows = np.empty((rho.shape[0], 4))
-    rows[:, 0] = rho[:, 0] - rho[:, 1] * t1x - rho[:, 2] * t2x
-    rows[:, 1:] = np.einsum("nk,nkd->nd", rho[:, 1:], basis[:, 1:])
-    return rows
-
-
-def _covariance_sums_numpy(indptr, indices, data, rho, basis, t1x, t2x, sums, t, twiced, out):
+def _covariance_sums_numpy(indptr, indices, data, rows, sums, t, twiced, out):
     # L = K (rows sums^T) elementwise, rows [c, w], sums [n, P]: L^T x = sums . (K^T (rows x)) and
     # L x = rows . (K (sums x)), sparse products with four columns (K^T a CSC view of K: no transposed copy)
     n = indptr.size - 1
     kernel = sp.csr_matrix((data, indices, indptr), shape=(n, n))
-    rows = _equivalent_rows(rho, basis, t1x, t2x)
     sums = sums[:, :4]
 
     def back(x):
@@ -405,7 +404,7 @@ def _raw_moments_loop(cells, basis, rows):
     return out
 
 
-def _node_fits_loop(mixed, frames, t1x, t2x, coef, weight, inflation, rho):
+def _node_fits_loop(mixed, frames, t1x, t2x, coef, weight, inflation, rows):
     for i in range(mixed.shape[0]):
         s0, d0 = mixed[i, 0], mixed[i, 10]
         ts0 = frames[i, 0, 0] * mixed[i, 1] + frames[i, 0, 1] * mixed[i, 2] + frames[i, 0, 2] * mixed[i, 3]
@@ -421,7 +420,12 @@ def _node_fits_loop(mixed, frames, t1x, t2x, coef, weight, inflation, rho):
         coef[i, 2] = (c02 * r0 + c12 * r1 + c22 * r2) * inv_det
         weight[i] = s0
         inflation[i] = s0 * (c00 * inv_det)
-        rho[i, 0], rho[i, 1], rho[i, 2] = c00 * inv_det, c01 * inv_det, c02 * inv_det
+        if rows is not None:
+            inv0 = inv_det if np.isfinite(inv_det) else 0.0
+            r0, r1, r2 = c00 * inv0, c01 * inv0, c02 * inv0
+            rows[i, 0] = r0 - r1 * t1x[i] - r2 * t2x[i]
+            for dim in range(3):
+                rows[i, 1 + dim] = r1 * frames[i, 0, dim] + r2 * frames[i, 1, dim]
 
 
 def _kernel_sums_loop(indptr, indices, data, counts, rows, mark, removed, near, mixed, squared, nearby):
@@ -451,16 +455,8 @@ def _kernel_sums_loop(indptr, indices, data, counts, rows, mark, removed, near, 
                 mixed[i, col] -= taken[col]
 
 
-def _covariance_sums_loop(indptr, indices, data, rho, basis, t1x, t2x, sums, t, twiced, out):
-    n = indptr.size - 1
-    rows = np.empty((n, 4))  # [c_i, w_i]; sums: [n_j, P_j] in its first four columns
-    for i in range(n):
-        r0, r1, r2 = rho[i, 0], rho[i, 1], rho[i, 2]
-        if not (np.isfinite(r0) and np.isfinite(r1) and np.isfinite(r2)):
-            r0, r1, r2 = 0.0, 0.0, 0.0
-        rows[i, 0] = r0 - r1 * t1x[i] - r2 * t2x[i]
-        for dim in range(3):
-            rows[i, 1 + dim] = r1 * basis[i, 1, dim] + r2 * basis[i, 2, dim]
+def _covariance_sums_loop(indptr, indices, data, rows, sums, t, twiced, out):
+    n = indptr.size - 1  # rows: [c_i, w_i]; sums: [n_j, P_j] in its first four columns
     # the plain fit recomputes L's entries in its two passes (storing them, 32 MB at paper resolution, cost more);
     # the twiced one stores them for its four
     weights = np.empty(indices.size if twiced else 0)
@@ -633,16 +629,19 @@ def raw_moments(cells: np.ndarray, basis: np.ndarray, rows: np.ndarray, fast: bo
     return _kernel("_raw_moments_loop", fast)(cells, basis, rows)
 
 
-def node_fits(mixed: np.ndarray, frames: np.ndarray, t1x: np.ndarray, t2x: np.ndarray,
-              fast: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+def node_fits(mixed: np.ndarray, frames: np.ndarray, t1x: np.ndarray, t2x: np.ndarray, fast: bool = True,
+              equivalent: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """Per node the weighted plane fit from mixed raw moments (N, 14): coefficients (N, 3) [a mm, b_u, b_v], weight
-    (N,), intercept variance inflation (N,) and the first row (N, 3) of the inverse normal matrix (the intercept is
-    its product with the right-hand side [sum d, sum d u, sum d v]: the fit's equivalent kernel); the 3x3 normal
-    equations solved in closed form (adjugate), NaN where singular."""
+    (N,), intercept variance inflation (N,) and the fit's equivalent kernel as rows (N, 4) [c_i, w_i]: the intercept
+    is rho_i . [sum d, sum d u, sum d v] over the kernel-weighted points, rho_i the first row of the inverse normal
+    matrix, and cell j's points sum to [n_j, t1_i . (P_j - n_j x_i), t2_i . (P_j - n_j x_i)] in node i's frame (P_j
+    their position sum about the centroid), so it takes c_i n_j + w_i . P_j of them with c_i = rho_i0 - rho_i1
+    t1_i . x_i - rho_i2 t2_i . x_i and w_i = rho_i1 t1_i + rho_i2 t2_i (zero where singular; None unless
+    ``equivalent``). The 3x3 normal equations solved in closed form (adjugate), NaN where singular."""
     n = mixed.shape[0]
-    coef, weight, inflation, rho = np.empty((n, 3)), np.empty(n), np.empty(n), np.empty((n, 3))
-    _kernel("_node_fits_loop", fast)(mixed, frames, t1x, t2x, coef, weight, inflation, rho)
-    return coef, weight, inflation, rho
+    coef, weight, inflation, rows = np.empty((n, 3)), np.empty(n), np.empty(n), np.empty((n, 4)) if equivalent else None
+    _kernel("_node_fits_loop", fast)(mixed, frames, t1x, t2x, coef, weight, inflation, rows)
+    return coef, weight, inflation, rows
 
 
 def kernel_sums(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kernel_data: np.ndarray, counts: np.ndarray,
@@ -668,30 +667,25 @@ def kernel_sums(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kernel_da
     return squared, nearby
 
 
-def covariance_sums(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kernel_data: np.ndarray, rho: np.ndarray,
-                    basis: np.ndarray, t1x: np.ndarray, t2x: np.ndarray, raw: np.ndarray, t: np.ndarray,
-                    twiced: bool, fast: bool = True) -> np.ndarray:
+def covariance_sums(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kernel_data: np.ndarray, rows: np.ndarray,
+                    raw: np.ndarray, t: np.ndarray, twiced: bool, fast: bool = True) -> np.ndarray:
     """t (A D A^T t) (N,), elementwise, for t (N,), D = diag(1 / n) (zero where n is 0) and A the node values'
     weights on the cells' mean distances (with t = 1 / s the correlation sums of ScanFieldEstimator._error_model):
     the plane fit's equivalent weights L_ij = K_ij (c_i n_j + w_i . P_j) on the pattern of the (N, N) CSR kernel K
     (indptr, indices, data), or A = 2 L - L L with ``twiced``.
 
-    Node i's intercept is rho_i . [sum d, sum d u, sum d v] over its kernel-weighted points, rho (N, 3) the first row
-    of its inverse normal matrix (:func:`node_fits`; NaN rows count as 0); cell j's points (n_j of them, position
-    sum P_j about the skin centroid: the first four columns of the cells' raw moments (N, 14), :func:`raw_moments`)
-    sum to [n_j, t1_i . (P_j - n_j x_i), t2_i . (P_j - n_j x_i)] in node i's frame, hence c_i = rho_i0 - rho_i1
-    t1_i . x_i - rho_i2 t2_i . x_i and w_i = rho_i1 t1_i + rho_i2 t2_i (basis (N, 3, 3) rows x, t1, t2; t1x, t2x
-    (N,) the t . x). Compiled: two passes over K (plain, L's entries made as they are used) or four (twiced, L
-    stored in the first); numpy: sparse products with four columns, L never formed. The same numbers to rounding."""
+    rows (N, 4): [c_i, w_i] (:func:`node_fits`); the cells' counts n_j and position sums P_j about the skin centroid:
+    the first four columns of their raw moments (N, 14) (:func:`raw_moments`). Compiled: two passes over K (plain,
+    L's entries made as they are used) or four (twiced, L stored in the first);
+    numpy: sparse products with four columns, L never formed. The same numbers to rounding."""
     out = np.empty(kernel_indptr.size - 1)
-    _kernel("_covariance_sums_loop", fast)(*_unsigned(fast, kernel_indptr, kernel_indices), kernel_data, rho, basis,
-                                           t1x, t2x, raw, np.ascontiguousarray(t, dtype=np.float64), bool(twiced),
-                                           out)  # fmt: skip
+    _kernel("_covariance_sums_loop", fast)(*_unsigned(fast, kernel_indptr, kernel_indices), kernel_data, rows, raw,
+                                           np.ascontiguousarray(t, dtype=np.float64), bool(twiced), out)
     return out
 
 
-def twiced_variance(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kernel_data: np.ndarray, rho: np.ndarray,
-                    basis: np.ndarray, t1x: np.ndarray, t2x: np.ndarray, raw: np.ndarray,
+def twiced_variance(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kernel_data: np.ndarray, rows: np.ndarray,
+                    raw: np.ndarray,
                     fast: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """The diagonals (N,) of L D L^T and of (2 L - L L) D (2 L - L L)^T, D = diag(1 / n) (zero where n is 0), for the
     equivalent weights L of :func:`covariance_sums` (same arguments): the plain and the twiced fit's node
@@ -699,7 +693,6 @@ def twiced_variance(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kerne
     (compiled) or scipy's sparse product (numpy)."""
     n = kernel_indptr.size - 1
     plain, twiced = np.empty(n), np.empty(n)
-    _kernel("_twiced_variance_loop", fast)(*_unsigned(fast, kernel_indptr, kernel_indices), kernel_data,
-                                           _equivalent_rows(rho, basis, t1x, t2x),  # once per skin: numpy
+    _kernel("_twiced_variance_loop", fast)(*_unsigned(fast, kernel_indptr, kernel_indices), kernel_data, rows,
                                            np.ascontiguousarray(raw[:, :4]), plain, twiced)
     return plain, twiced

@@ -476,14 +476,14 @@ class ScanFieldEstimator:
         """
         return kernels.raw_moments(cells, self.moment_basis_, rows, fast)
 
-    def _node_fits(self, mixed: np.ndarray, fast: bool = True
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _node_fits(self, mixed: np.ndarray, fast: bool = True, equivalent: bool = False
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
         """Weighted plane fits d = a + b_u u + b_v v per node from kernel-mixed raw moments (N, 14): each node's 3x3
         normal equations in its own tangent frame.
         Returns coefficients (N, 3) [a mm, b_u, b_v], weighted point count (N,), intercept variance inflation (N,) and
-        the first row (N, 3) of the inverse normal matrix (what the intercept takes of [sum d, sum d u, sum d v]).
+        with ``equivalent`` the equivalent kernel's rows (N, 4) [c_i, w_i] (:func:`kernels.node_fits`), else None.
         """
-        return kernels.node_fits(mixed, self.frames_, self.t1_dot_x_, self.t2_dot_x_, fast)
+        return kernels.node_fits(mixed, self.frames_, self.t1_dot_x_, self.t2_dot_x_, fast, equivalent)
 
     def field(self, points_mm: np.ndarray, transform: np.ndarray | None = None) -> DisplacementField:
         """The signed normal displacement (N,) mm of every skin node from scan points (M, 3), mm, in the part frame
@@ -523,7 +523,7 @@ class ScanFieldEstimator:
         squared, nearby = kernels.kernel_sums(kernel.indptr, kernel.indices, kernel.data, cells[:, 0], rows,
                                               removed_raw, _NEAR_WEIGHT, mixed, fast)
         raw[rows] -= removed_raw  # the kept points' raw moments (linear in the cell sums): their counts and positions
-        coef, weight, inflation, rho = self._node_fits(mixed, fast)
+        coef, weight, inflation, rows = self._node_fits(mixed, fast, equivalent=True)
         if self.twicing_:  # a second twicing pass removes little more (coarse: bias RMS 0.0043 -> 0.0035 mm)
             coef = coef + self._twice(cells, coef, mixed, fast)
         supported = (
@@ -535,7 +535,7 @@ class ScanFieldEstimator:
         value = np.where(supported, coef[:, 0], np.nan)
         noise = float(np.sqrt(squares / inliers)) if inliers else float("nan")
         logger.info("second pass: %d inliers, %d of %d nodes seen", j.size - drop.size, supported.sum(), n)
-        errors = self._error_model(raw, squared, weight, inflation, rho, supported, noise, fast)
+        errors = self._error_model(raw, squared, weight, inflation, rows, supported, noise, fast)
         return DisplacementField(self.skin_.model_id, value, float(supported.mean()), noise, errors)
 
     def _twice(self, cells: np.ndarray, coef: np.ndarray, mixed: np.ndarray, fast: bool) -> np.ndarray:
@@ -572,12 +572,11 @@ class ScanFieldEstimator:
         raw = self._raw_moments(cells, np.arange(n), fast)
         kernel = self.kernel_
         plain, twiced = kernels.twiced_variance(kernel.indptr, kernel.indices, kernel.data,
-                                                self._node_fits(kernel @ raw, fast)[3], self.moment_basis_,
-                                                self.t1_dot_x_, self.t2_dot_x_, raw, fast)
+                                                self._node_fits(kernel @ raw, fast, equivalent=True)[3], raw, fast)
         return np.where(plain > 0, twiced / np.where(plain > 0, plain, 1.0), 1.0)
 
     def _error_model(self, raw: np.ndarray, squared: np.ndarray, weight: np.ndarray, inflation: np.ndarray,
-                     rho: np.ndarray, supported: np.ndarray, noise_mm: float, fast: bool) -> FieldErrorModel:
+                     rows: np.ndarray, supported: np.ndarray, noise_mm: float, fast: bool) -> FieldErrorModel:
         """The node errors this smoothing makes of independent point noise (``noise_mm`` per point, along the normal).
 
         The node values are a = A m of the cells' mean distances m (Var m_j = noise^2 / n_j), A = L the plane fit's
@@ -586,8 +585,9 @@ class ScanFieldEstimator:
         Node std: noise sqrt(sum_j K_ij^2 n_j) / W_i times the square root of the fit's intercept inflation (the
         diagonal of L D L^T where the kernel's square is locally proportional to it; measured 0.96-1.0 of a Monte
         Carlo of the smoother, 1.08 at free edges), for the twiced fit times :meth:`_twicing_variance`. squared (N,):
-        sum_j K_ij^2 n_j (:func:`kernels.kernel_sums`); weight W (N,), inflation (N,), rho (N, 3): the second pass's
-        :func:`kernels.node_fits`; raw (N, 14): the kept points' raw moments per cell (counts, position sums).
+        sum_j K_ij^2 n_j (:func:`kernels.kernel_sums`); weight W (N,), inflation (N,), rows (N, 4) [c_i, w_i] of L:
+        the second pass's :func:`kernels.node_fits`; raw (N, 14): the kept points' raw moments per cell (counts,
+        position sums).
         Correlation sum g_i = sum_k Cov_ik / (s_i s_k) = (A D A^T t)_i / s_i, t = 1 / s: two (plain) or four (twiced)
         products with L (:func:`kernels.covariance_sums`), no N x N matrix. A smooth projection of the field sees
         these row sums: the kernel-average model they replace over-stated it 1.4 times (issue 15 run 7).
@@ -603,8 +603,8 @@ class ScanFieldEstimator:
         supported = supported & np.isfinite(spread) & (spread > 0)
         t = np.where(supported, 1.0 / np.where(supported, spread, 1.0), 0.0)
         kernel = self.kernel_
-        correlation = kernels.covariance_sums(kernel.indptr, kernel.indices, kernel.data, rho, self.moment_basis_,
-                                              self.t1_dot_x_, self.t2_dot_x_, raw, t, self.twicing_, fast)
+        correlation = kernels.covariance_sums(kernel.indptr, kernel.indices, kernel.data, rows, raw, t, self.twicing_,
+                                              fast)
         return FieldErrorModel("scan", np.where(supported, noise_mm * spread, np.nan),
                                np.where(supported, np.maximum(correlation, 1.0), 1.0), float(self.radius_mm_),
                                bias_correlation=self.bias_correlation_)
