@@ -461,6 +461,7 @@ for _verb, _option, _values in (
     (BASES, "--components", ("0", "nan", "2.5")),
     (BASES, "--explained-variance", ("2", "nan", "0")),
     (ESTIMATE, "--min-coverage", ("nan", "2", "-0.1")),
+    (ESTIMATE, "--marker-std-mm", ("nan", "0", "-0.01", "inf", "11")),
     (ESTIMATE, "--method", ("magic",)),
     (DECOMPOSE, "--min-share", ("nan", "1.5")),
     (CLOSE, "--alpha", ("nan", "0", "1")),

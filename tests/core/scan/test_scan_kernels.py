@@ -117,7 +117,8 @@ def test_field_equals_a_per_node_reference(estimator, scan_points):
 @pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed: only the numpy path exists")
 def test_compiled_path_equals_the_numpy_path(estimator, scan_points, monkeypatch):
     """Fails if the compiled kernels and the numpy path differ by more than 1e-9 mm anywhere (values, node std,
-    noise), with a transform folded in, several threads and blocks of points and of nodes, NaN rows and outliers."""
+    noise) or their correlation sums by more than 1e-9 relative, with a transform folded in, several threads and
+    blocks of points and of nodes, NaN rows and outliers."""
     monkeypatch.setattr(kernels, "NODE_BLOCK", 500)  # the patch's 1,405 nodes in three blocks on the numpy path
     rotation = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     transform = np.eye(4)
@@ -141,6 +142,7 @@ def test_compiled_path_equals_the_numpy_path(estimator, scan_points, monkeypatch
     np.testing.assert_array_equal(np.isnan(fast.normal_displacement), np.isnan(slow.normal_displacement))
     np.testing.assert_allclose(fast.normal_displacement, slow.normal_displacement, rtol=0, atol=1e-9)
     np.testing.assert_allclose(fast.error_model.node_std, slow.error_model.node_std, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(fast.error_model.correlation, slow.error_model.correlation, rtol=1e-9, atol=0)
     assert abs(fast.noise_rms - slow.noise_rms) < 1e-9
     assert np.isfinite(fast.normal_displacement).mean() > 0.8
 
@@ -254,6 +256,46 @@ def test_the_kernel_pass_equals_sparse_products(estimator, compiled):
     np.testing.assert_allclose(mixed, expected, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(squared, kernel.multiply(kernel) @ counts, rtol=1e-12, atol=0)
     np.testing.assert_array_equal(nearby, (kernel >= 0.75**2).astype(float) @ counts)
+
+
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.skipif(
+    not kernels.HAVE_NUMBA, reason="numba is not installed: only the numpy path exists"))])
+def test_the_error_model_sums_equal_dense_products_of_the_equivalent_weights(estimator, scan_points, compiled):
+    """The scan error model's weights: node i's intercept is linear in its points' distances, a_i = sum over the
+    kernel-weighted points of d (c_i + w_i . p) (p about the skin centroid), so kernels.node_fits' rows [c_i, w_i]
+    must give the fitted intercept from the mixed moments [sum d, sum d p]; kernels.covariance_sums forms t (A D A^T t)
+    without an N x N matrix (A = L or 2 L - L L, L_ij = K_ij (c_i n_j + w_i . P_j)) and kernels.twiced_variance the
+    diagonals of L D L^T and A D A^T. Fails if the rows are not the fit's equivalent kernel (a wrong sign, frame or
+    inverse row: 1e-9 relative on the patch scan's intercepts), or if either sum differs by more than 1e-9 relative
+    from dense products (a transposed product taken the wrong way round: K is not symmetric; a dropped L L term;
+    cells without points, where D is 0, or t = 0 mishandled; a numpy twin computing something else)."""
+    n = estimator.points_.shape[0]
+    previous = kernels.use_compiled(compiled)
+    try:
+        cells = estimator._scan_points(scan_points, moments=True, fast=compiled, rows=False)[5]
+        raw = estimator._raw_moments(cells, np.arange(n), compiled)
+        mixed = estimator.kernel_ @ raw
+        coef, _, _, rows = estimator._node_fits(mixed, compiled, equivalent=True)
+        fitted = np.isfinite(coef[:, 0])
+        intercept = rows[:, 0] * mixed[:, 10] + np.einsum("nd,nd->n", rows[:, 1:], mixed[:, 11:14])
+        np.testing.assert_allclose(intercept[fitted], coef[fitted, 0], rtol=1e-9, atol=1e-9)
+        rng = np.random.default_rng(9)
+        rows = rows * rng.uniform(0.5, 1.5, (n, 1))  # other numbers through the same algebra
+        raw[rng.random(n) < 0.1, :4] = 0.0  # cells without points
+        t = rng.uniform(0.5, 2.0, n) * (rng.random(n) > 0.1)
+        kernel = estimator.kernel_
+        weights = kernel.toarray() * (rows[:, :1] * raw[None, :, 0] + rows[:, 1:] @ raw[:, 1:4].T)
+        inverse = np.diag(np.where(raw[:, 0] > 0, 1.0 / np.maximum(raw[:, 0], 1.0), 0.0))
+        twiced_weights = 2.0 * weights - weights @ weights
+        args = (kernel.indptr, kernel.indices, kernel.data, rows, raw)
+        for twiced, a in ((False, weights), (True, twiced_weights)):
+            got = kernels.covariance_sums(*args, t, twiced, compiled)
+            np.testing.assert_allclose(got, t * (a @ inverse @ a.T @ t), rtol=1e-9, atol=1e-9 * np.abs(got).max())
+        plain, twiced = kernels.twiced_variance(*args, compiled)
+    finally:
+        kernels.use_compiled(previous)
+    np.testing.assert_allclose(plain, np.diag(weights @ inverse @ weights.T), rtol=1e-9, atol=0)
+    np.testing.assert_allclose(twiced, np.diag(twiced_weights @ inverse @ twiced_weights.T), rtol=1e-9, atol=0)
 
 
 def test_triangle_areas_by_blocks_are_the_analytic_areas():

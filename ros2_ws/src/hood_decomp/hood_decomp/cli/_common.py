@@ -70,7 +70,7 @@ def add_inputs(parser: argparse.ArgumentParser, repeatable: bool = False) -> Non
     """--field FIELD.vtu / --scan SCAN.ply into ``args.inputs`` (:data:`Inputs`): one field or the views of one part
     (--scan, repeatable), or with ``repeatable`` any number of either (at least one is checked by
     :func:`read_fields`); each --scan optionally followed by its --scanner-pose POSE.json (``args.scanner_poses``,
-    :data:`Poses`); and --min-coverage."""
+    :data:`Poses`); --min-coverage and --marker-std-mm (``args.marker_std_mm``)."""
     pose_help = ("JSON 4 x 4 row-major transform, mm, part <- scanner, of the --scan just before it; with several "
                  "--scan views every view needs one (or a pose stored in its PLY)")
     if repeatable:
@@ -87,6 +87,10 @@ def add_inputs(parser: argparse.ArgumentParser, repeatable: bool = False) -> Non
     parser.add_argument("--scanner-pose", action=_ScannerPose, metavar="POSE.json", help=pose_help)
     parser.add_argument("--min-coverage", type=finite(0.0, 1.0), default=0.2,
                         help="smallest fraction of skin nodes the field must cover (default 0.2)")
+    parser.add_argument("--marker-std-mm", type=finite(0.0, 10.0, low_open=True), default=None, metavar="MM",
+                        help="the scanner's calibrated marker-centre noise (mm per coordinate) for the marker "
+                        "registration's pose covariance; default: estimated from the scan's own marker residual (8 "
+                        "markers give it 18 degrees of freedom: the stated uncertainties then have Student-t tails)")
     parser.set_defaults(inputs=None, scanner_poses=None)
 
 
@@ -272,13 +276,13 @@ def _scan_inputs(inputs: Inputs, poses: Poses) -> list[tuple[Path, Path | None]]
 
 def read_fields(inputs: Inputs | None, skin: SkinSurface, min_coverage: float,
                 poses: Poses | None = None, one_part: bool = False,
-                views: Sequence[ScanView] | None = None) -> list[DisplacementField]:
+                views: Sequence[ScanView] | None = None, marker_std_mm: float | None = None) -> list[DisplacementField]:
     """The displacement fields of --field and --scan inputs, in their order; FieldError when there is none.
 
     The scans are the views of one part, fused into one field in the place of the first (each with its
     --scanner-pose from ``poses``, else the pose its PLY stores), when ``one_part`` (a verb that reads one part) or
     when any scan has a --scanner-pose; otherwise every scan is a field of its own. ``views``: those fused scans'
-    views when the caller read them already (:func:`read_bases_and_field`).
+    views when the caller read them already (:func:`read_bases_and_field`). ``marker_std_mm``: --marker-std-mm.
     """
     from hood_decomp.io.fields import read_field
     from hood_decomp.io.scans import fused_field_from_scan_files
@@ -294,10 +298,11 @@ def read_fields(inputs: Inputs | None, skin: SkinSurface, min_coverage: float,
             fields.append(read_field(path, skin)[0])
         elif one_part or poses:
             if not fused_done:
-                fields.append(fused_field_from_scan_files(skin, scans, min_coverage, views).field)
+                fields.append(fused_field_from_scan_files(skin, scans, min_coverage, views, marker_std_mm).field)
                 fused_done = True
         else:
-            fields.append(fused_field_from_scan_files(skin, [(path, None)], min_coverage).field)
+            fields.append(fused_field_from_scan_files(skin, [(path, None)], min_coverage,
+                                                      marker_std_mm=marker_std_mm).field)
     return fields
 
 
@@ -318,7 +323,7 @@ def read_bases_and_field(args: argparse.Namespace, meanwhile: Callable[[Bases], 
         bases = load_bases(args.bases, mapped=True)  # a verb's process ends soon: the file's pages as they are
         pending = None if meanwhile is None else pool.submit(meanwhile, bases)
         fields = read_fields(args.inputs, bases.skin, args.min_coverage, args.scanner_poses, one_part=True,
-                             views=None if early is None else early.result())
+                             views=None if early is None else early.result(), marker_std_mm=args.marker_std_mm)
         if pending is not None:
             with contextlib.suppress(HoodDecompError):
                 pending.result()

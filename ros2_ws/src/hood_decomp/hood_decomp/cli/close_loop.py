@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
         raise ModelIdMismatchError(f"model {args.model} has model_id {model.model_id!r}, bases {args.bases} "
                                    f"{bases.model_id!r}: build the bases from this model")
     fields = apply_reference(args, bases, read_fields(args.inputs, bases.skin, args.min_coverage,
-                                                      args.scanner_poses))
+                                                      args.scanner_poses, marker_std_mm=args.marker_std_mm))
     truth = _read_truth(args.truth, len(fields))
     ensemble = None
     if args.ensemble is not None:

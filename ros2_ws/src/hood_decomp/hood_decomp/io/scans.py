@@ -38,16 +38,18 @@ def scan_file_views(scans: Sequence[ScanInput]) -> list[ScanView]:
 
 
 def fused_field_from_scan_files(skin: SkinSurface, scans: Sequence[ScanInput], min_coverage: float = 0.2,
-                                views: Sequence[ScanView] | None = None) -> FusedField:
+                                views: Sequence[ScanView] | None = None,
+                                marker_std_mm: float | None = None) -> FusedField:
     """The field of one part from its views' scan files (:func:`scan_file_view`), fused
     (:func:`hood_decomp.core.scan.fusion.fuse_views`): a lone scan without a pose is in the part frame (or registered
     by its markers); several views each need a pose, and one without is refused by its file name. ``min_coverage``
     applies to the fused field (and to a lone scan). ``views``: :func:`scan_file_views` of ``scans`` when the caller
-    read them already (a one-off run reads them while the bases load). Raises ScanError naming the file and its
+    read them already (a one-off run reads them while the bases load). ``marker_std_mm``: the scanner's stated
+    marker-centre noise (None: estimated per scan from its marker residual). Raises ScanError naming the file and its
     problem."""
     views = scan_file_views(scans) if views is None else views
     fused = fuse_views(skin, views, min_coverage=min_coverage,
-                       min_view_coverage=min_coverage if len(views) == 1 else 0.02)
+                       min_view_coverage=min_coverage if len(views) == 1 else 0.02, marker_std_mm=marker_std_mm)
     for view in fused.views:
         logger.info("scan %s: %s pose, registered by %s, coverage %.1f%%, noise %.4f mm", Path(view.name).name,
                     view.pose_source, view.registration.method, 100 * view.field.coverage, view.field.noise_rms)

@@ -19,7 +19,9 @@ second pass (:func:`outliers`): residuals, outliers and the noise sums in one pa
 size; then (:func:`kernel_sums`) one pass over the node kernel takes the dropped points back out of the mixed
 moments and sums what the support test and the error model need, so that no transposed, squared or thresholded copy
 of the kernel is built when a process starts (those took 0.2 s of CPU and 90 MB in a one-off run at paper
-resolution).
+resolution). The error model's correlation sums (:func:`covariance_sums`) go over the kernel two or four more times
+with the plane fit's equivalent weights made as they are used; :func:`twiced_variance` (once per skin) takes the
+kernel's two-ring product. The compiled loops get the index arrays as unsigned views (:func:`_unsigned`).
 """
 
 from __future__ import annotations
@@ -212,13 +214,14 @@ def _raw_moments_numpy(cells, basis, rows):
     return out
 
 
-def _node_fits_numpy(mixed, frames, t1x, t2x, coef, weight, inflation):
+def _node_fits_numpy(mixed, frames, t1x, t2x, coef, weight, inflation, rows):
     for start in range(0, mixed.shape[0], NODE_BLOCK):
         part = slice(start, start + NODE_BLOCK)
-        _node_fits_block(mixed[part], frames[part], t1x[part], t2x[part], coef[part], weight[part], inflation[part])
+        _node_fits_block(mixed[part], frames[part], t1x[part], t2x[part], coef[part], weight[part], inflation[part],
+                         None if rows is None else rows[part])
 
 
-def _node_fits_block(mixed, frames, t1x, t2x, coef, weight, inflation):
+def _node_fits_block(mixed, frames, t1x, t2x, coef, weight, inflation, rows):
     s0, s1, d0, d1 = mixed[:, 0], mixed[:, 1:4], mixed[:, 10], mixed[:, 11:14]
     ts = np.einsum("nkd,nd->nk", frames[:, :2], s1)
     td = np.einsum("nkd,nd->nk", frames[:, :2], d1)
@@ -233,6 +236,15 @@ def _node_fits_block(mixed, frames, t1x, t2x, coef, weight, inflation):
     coef[:, 2] = (c02 * r0 + c12 * r1 + c22 * r2) * inv_det
     weight[:] = s0
     inflation[:] = s0 * (c00 * inv_det)
+    if rows is None:
+        return
+    # the equivalent kernel's row sides [c, w] (first row rho of the inverse normal matrix, about the centroid;
+    # zero where singular): c = rho_0 - rho_1 t1 . x - rho_2 t2 . x, w = rho_1 t1 + rho_2 t2
+    inv0 = np.where(np.isfinite(inv_det), inv_det, 0.0)
+    r0, r1, r2 = c00 * inv0, c01 * inv0, c02 * inv0
+    rows[:, 0] = r0 - r1 * t1x - r2 * t2x
+    for dim in range(3):
+        rows[:, 1 + dim] = r1 * tangents[0][dim] + r2 * tangents[1][dim]
 
 
 def _kernel_sums_numpy(indptr, indices, data, counts, rows, mark, removed, near, mixed, squared, nearby):
@@ -252,6 +264,44 @@ def _kernel_sums_numpy(indptr, indices, data, counts, rows, mark, removed, near,
         squared[start:stop] = sp.csr_matrix((k * k, j, local), shape=(stop - start, n)) @ counts
         nearby[start:stop] = sp.csr_matrix(((k >= near).astype(np.float64), j, local), shape=(stop - start, n)) @ counts
         start = stop
+
+def _covariance_sums_numpy(indptr, indices, data, rows, sums, t, twiced, out):
+    # L = K (rows sums^T) elementwise, rows [c, w], sums [n, P]: L^T x = sums . (K^T (rows x)) and
+    # L x = rows . (K (sums x)), sparse products with four columns (K^T a CSC view of K: no transposed copy)
+    n = indptr.size - 1
+    kernel = sp.csr_matrix((data, indices, indptr), shape=(n, n))
+    sums = sums[:, :4]
+
+    def back(x):
+        total = kernel.T @ (rows * x[:, None])
+        return sums[:, 0] * total[:, 0] + (sums[:, 1] * total[:, 1] + sums[:, 2] * total[:, 2]
+                                           + sums[:, 3] * total[:, 3])
+
+    def forward(x):
+        total = kernel @ (sums * x[:, None])
+        return rows[:, 0] * total[:, 0] + (rows[:, 1] * total[:, 1] + rows[:, 2] * total[:, 2]
+                                           + rows[:, 3] * total[:, 3])
+
+    y = back(t)
+    if twiced:
+        y = 2.0 * y - back(y)
+    count = sums[:, 0]
+    y = np.where(count > 0, y / np.where(count > 0, count, 1.0), 0.0)
+    f = forward(y)
+    out[:] = t * (2.0 * f - forward(f) if twiced else f)
+
+
+def _twiced_variance_numpy(indptr, indices, data, rows, sums, plain, twiced):
+    n = indptr.size - 1
+    row = np.repeat(np.arange(n), np.diff(indptr))
+    weights = sp.csr_matrix((data * np.einsum("zd,zd->z", rows[row], sums[indices, :4]), indices, indptr),
+                            shape=(n, n))
+    count = sums[:, 0]
+    inverse = np.where(count > 0, 1.0 / np.where(count > 0, count, 1.0), 0.0)
+    plain[:] = weights.multiply(weights) @ inverse
+    both = 2.0 * weights - weights @ weights
+    twiced[:] = both.multiply(both) @ inverse
+
 
 # ------------------------------------------------------------------------------------------------ compiled path
 def _locate_block_loop(points, start, stop, affine, hi, strides, table, cell_mm, nodes, max_d,
@@ -355,7 +405,7 @@ def _raw_moments_loop(cells, basis, rows):
     return out
 
 
-def _node_fits_loop(mixed, frames, t1x, t2x, coef, weight, inflation):
+def _node_fits_loop(mixed, frames, t1x, t2x, coef, weight, inflation, rows):
     for i in range(mixed.shape[0]):
         s0, d0 = mixed[i, 0], mixed[i, 10]
         ts0 = frames[i, 0, 0] * mixed[i, 1] + frames[i, 0, 1] * mixed[i, 2] + frames[i, 0, 2] * mixed[i, 3]
@@ -371,6 +421,12 @@ def _node_fits_loop(mixed, frames, t1x, t2x, coef, weight, inflation):
         coef[i, 2] = (c02 * r0 + c12 * r1 + c22 * r2) * inv_det
         weight[i] = s0
         inflation[i] = s0 * (c00 * inv_det)
+        if rows is not None:
+            inv0 = inv_det if np.isfinite(inv_det) else 0.0
+            r0, r1, r2 = c00 * inv0, c01 * inv0, c02 * inv0
+            rows[i, 0] = r0 - r1 * t1x[i] - r2 * t2x[i]
+            for dim in range(3):
+                rows[i, 1 + dim] = r1 * frames[i, 0, dim] + r2 * frames[i, 1, dim]
 
 
 def _kernel_sums_loop(indptr, indices, data, counts, rows, mark, removed, near, mixed, squared, nearby):
@@ -400,6 +456,110 @@ def _kernel_sums_loop(indptr, indices, data, counts, rows, mark, removed, near, 
                 mixed[i, col] -= taken[col]
 
 
+def _covariance_sums_loop(indptr, indices, data, rows, sums, t, twiced, out):
+    n = indptr.size - 1  # rows: [c_i, w_i]; sums: [n_j, P_j] in its first four columns
+    # the plain fit recomputes L's entries in its two passes (storing them, 32 MB at paper resolution, cost more);
+    # the twiced one stores them for its four
+    weights = np.empty(indices.size if twiced else 0)
+    back = np.zeros(n)
+    for i in range(n):
+        r0, r1, r2, r3, ti = rows[i, 0], rows[i, 1], rows[i, 2], rows[i, 3], t[i]
+        if ti == 0.0 and not twiced:  # nothing to add
+            continue
+        for e in range(indptr[i], indptr[i + 1]):
+            j = indices[e]
+            value = data[e] * (r0 * sums[j, 0] + (r1 * sums[j, 1] + r2 * sums[j, 2] + r3 * sums[j, 3]))
+            if twiced:
+                weights[e] = value
+            back[j] += value * ti
+    if twiced:  # A^T t = 2 L^T t - L^T (L^T t)
+        again = np.zeros(n)
+        for i in range(n):
+            bi = back[i]
+            for e in range(indptr[i], indptr[i + 1]):
+                again[indices[e]] += weights[e] * bi
+        for j in range(n):
+            back[j] = 2.0 * back[j] - again[j]
+    for j in range(n):  # D A^T t
+        back[j] = back[j] / sums[j, 0] if sums[j, 0] > 0 else 0.0
+    if twiced:  # A y = 2 L y - L (L y), the second product only where t is not 0
+        forward = np.empty(n)
+        for i in range(n):
+            total = 0.0
+            for e in range(indptr[i], indptr[i + 1]):
+                total += weights[e] * back[indices[e]]
+            forward[i] = total
+        for i in range(n):
+            total = 0.0
+            if t[i] != 0.0:
+                for e in range(indptr[i], indptr[i + 1]):
+                    total += weights[e] * forward[indices[e]]
+            out[i] = t[i] * (2.0 * forward[i] - total)
+    else:  # L y where t is not 0
+        for i in range(n):
+            total = 0.0
+            if t[i] != 0.0:
+                r0, r1, r2, r3 = rows[i, 0], rows[i, 1], rows[i, 2], rows[i, 3]
+                for e in range(indptr[i], indptr[i + 1]):
+                    j = indices[e]
+                    total += data[e] * (r0 * sums[j, 0] + (r1 * sums[j, 1] + r2 * sums[j, 2] + r3 * sums[j, 3])
+                                        ) * back[j]
+            out[i] = t[i] * total
+
+
+def _twiced_variance_loop(indptr, indices, data, rows, sums, plain, twiced):
+    n = indptr.size - 1
+    count = sums[:, 0]
+    weights = np.empty(indices.size)
+    for i in range(n):
+        for e in range(indptr[i], indptr[i + 1]):
+            j = indices[e]
+            weights[e] = data[e] * (rows[i, 0] * sums[j, 0] + rows[i, 1] * sums[j, 1] + rows[i, 2] * sums[j, 2]
+                                    + rows[i, 3] * sums[j, 3])
+    row = np.zeros(n)  # row i of 2 L - L L, dense, reset after each row
+    seen = np.full(n, -1, np.int64)
+    touched = np.empty(n, np.int64)
+    for i in range(n):
+        m = 0
+        square = 0.0
+        for e in range(indptr[i], indptr[i + 1]):
+            j = indices[e]
+            if count[j] > 0:
+                square += weights[e] * weights[e] / count[j]
+            if seen[j] != i:
+                seen[j] = i
+                touched[m] = j
+                m += 1
+            row[j] += 2.0 * weights[e]
+        for e in range(indptr[i], indptr[i + 1]):
+            k = indices[e]
+            a = weights[e]
+            for f in range(indptr[k], indptr[k + 1]):
+                j = indices[f]
+                if seen[j] != i:
+                    seen[j] = i
+                    touched[m] = j
+                    m += 1
+                row[j] -= a * weights[f]
+        total = 0.0
+        for q in range(m):
+            j = touched[q]
+            if count[j] > 0:
+                total += row[j] * row[j] / count[j]
+            row[j] = 0.0
+        plain[i] = square
+        twiced[i] = total
+
+
+def _unsigned(fast: bool, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Index arrays (the kernel's, the grid's nodes, the points' nodes) as unsigned views for the compiled loops:
+    numba checks every signed index for a negative one to wrap around (the loops over the kernel's entries ran 2-3
+    times slower); unchanged for numpy."""
+    if not fast or _MODE is False:
+        return arrays
+    return tuple(a.view(a.dtype.str.replace("i", "u")) for a in arrays)
+
+
 def _kernel(name: str, fast: bool = True):
     """The compiled loop ``name`` when ``fast`` and the compiled path is not switched off (numba imported and the
     loops compiled, or loaded from numba's cache, on first use), else the numpy function of the same job."""
@@ -414,7 +574,8 @@ def _kernel(name: str, fast: bool = True):
             for helper in ("_cell", "_add_one", "_second_moments", "_tangent_forms", "_plane_system"):
                 module[helper] = njit(nogil=True, cache=True, inline="always")(module[helper])
             for loop in ("_locate_block_loop", "_add_moments_loop", "_plane_residuals_loop", "_outliers_loop",
-                         "_raw_moments_loop", "_node_fits_loop", "_kernel_sums_loop"):  # fmt: skip
+                         "_raw_moments_loop", "_node_fits_loop", "_kernel_sums_loop", "_covariance_sums_loop",
+                         "_twiced_variance_loop"):  # fmt: skip
                 _JIT[loop] = njit(nogil=True, cache=True)(module[loop])
     return _JIT[name]
 
@@ -433,21 +594,22 @@ def locate_block(points: np.ndarray, start: int, stop: int, affine: np.ndarray, 
     first ``count`` entries of the out buffers (each at least stop - start long); with ``cells`` (N, 9) float64
     their moments are added to it. ``fast``: the compiled path where it is not switched off (all functions here).
     """
-    return int(_kernel("_locate_block_loop", fast)(points, start, stop, affine, hi, strides, table, cell_mm, nodes,
-                                                   max_d, out_row, out_j, out_u, out_v, out_d, cells))  # fmt: skip
+    return int(_kernel("_locate_block_loop", fast)(points, start, stop, affine, hi, strides, *_unsigned(fast, table),
+                                                   cell_mm, nodes, max_d, out_row, out_j, out_u, out_v, out_d,
+                                                   cells))  # fmt: skip
 
 
 def add_moments(j: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, sign: float, cells: np.ndarray,
                 fast: bool = True) -> None:
     """cells (N, 9) += sign * per-node sums of [1, u, v, uu, uv, vv, d, du, dv] of the points (K,) at nodes j."""
-    _kernel("_add_moments_loop", fast)(j, u, v, d, float(sign), cells)
+    _kernel("_add_moments_loop", fast)(*_unsigned(fast, j), u, v, d, float(sign), cells)
 
 
 def plane_residuals(j: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, coef: np.ndarray,
                     fast: bool = True) -> np.ndarray:
     """Residuals (K,) float32 mm of the points (nodes j, u, v, d (K,)) from their own node's plane coef (N, 3)."""
     out = np.empty(j.size, np.float32)
-    _kernel("_plane_residuals_loop", fast)(j, u, v, d, coef, out)
+    _kernel("_plane_residuals_loop", fast)(*_unsigned(fast, j), u, v, d, coef, out)
     return out
 
 
@@ -458,7 +620,7 @@ def outliers(j: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, coef: n
     exceeds ``limit`` mm, and the count and sum of squares (mm^2) of the other finite residuals. No array of K
     residuals is formed (blocks on the numpy path, one loop compiled)."""
     drop = np.empty(j.size, np.int64)  # only the pages written become resident: a few outliers
-    count, inliers, squares = _kernel("_outliers_loop", fast)(j, u, v, d, coef, float(limit), drop)
+    count, inliers, squares = _kernel("_outliers_loop", fast)(*_unsigned(fast, j), u, v, d, coef, float(limit), drop)
     return drop[:count].copy(), int(inliers), float(squares)
 
 
@@ -468,15 +630,19 @@ def raw_moments(cells: np.ndarray, basis: np.ndarray, rows: np.ndarray, fast: bo
     return _kernel("_raw_moments_loop", fast)(cells, basis, rows)
 
 
-def node_fits(mixed: np.ndarray, frames: np.ndarray, t1x: np.ndarray, t2x: np.ndarray,
-              fast: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+def node_fits(mixed: np.ndarray, frames: np.ndarray, t1x: np.ndarray, t2x: np.ndarray, fast: bool = True,
+              equivalent: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """Per node the weighted plane fit from mixed raw moments (N, 14): coefficients (N, 3) [a mm, b_u, b_v], weight
-    (N,) and intercept variance inflation (N,); the 3x3 normal equations solved in closed form (adjugate), NaN where
-    singular."""
+    (N,), intercept variance inflation (N,) and the fit's equivalent kernel as rows (N, 4) [c_i, w_i]: the intercept
+    is rho_i . [sum d, sum d u, sum d v] over the kernel-weighted points, rho_i the first row of the inverse normal
+    matrix, and cell j's points sum to [n_j, t1_i . (P_j - n_j x_i), t2_i . (P_j - n_j x_i)] in node i's frame (P_j
+    their position sum about the centroid), so it takes c_i n_j + w_i . P_j of them with c_i = rho_i0 - rho_i1
+    t1_i . x_i - rho_i2 t2_i . x_i and w_i = rho_i1 t1_i + rho_i2 t2_i (zero where singular; None unless
+    ``equivalent``). The 3x3 normal equations solved in closed form (adjugate), NaN where singular."""
     n = mixed.shape[0]
-    coef, weight, inflation = np.empty((n, 3)), np.empty(n), np.empty(n)
-    _kernel("_node_fits_loop", fast)(mixed, frames, t1x, t2x, coef, weight, inflation)
-    return coef, weight, inflation
+    coef, weight, inflation, rows = np.empty((n, 3)), np.empty(n), np.empty(n), np.empty((n, 4)) if equivalent else None
+    _kernel("_node_fits_loop", fast)(mixed, frames, t1x, t2x, coef, weight, inflation, rows)
+    return coef, weight, inflation, rows
 
 
 def kernel_sums(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kernel_data: np.ndarray, counts: np.ndarray,
@@ -496,7 +662,38 @@ def kernel_sums(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kernel_da
     mark[rows] = np.arange(rows.size)
     squared, nearby = np.empty(n), np.empty(n)
     counts = np.ascontiguousarray(counts, dtype=np.float64)  # once: a column of the cell sums would be copied per block
-    _kernel("_kernel_sums_loop", fast)(kernel_indptr, kernel_indices, kernel_data, counts, rows, mark,
+    _kernel("_kernel_sums_loop", fast)(*_unsigned(fast, kernel_indptr, kernel_indices), kernel_data, counts, rows, mark,
                                        np.ascontiguousarray(removed, dtype=np.float64), float(near), mixed, squared,
                                        nearby)  # fmt: skip
     return squared, nearby
+
+
+def covariance_sums(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kernel_data: np.ndarray, rows: np.ndarray,
+                    raw: np.ndarray, t: np.ndarray, twiced: bool, fast: bool = True) -> np.ndarray:
+    """t (A D A^T t) (N,), elementwise, for t (N,), D = diag(1 / n) (zero where n is 0) and A the node values'
+    weights on the cells' mean distances (with t = 1 / s the correlation sums of ScanFieldEstimator._error_model):
+    the plane fit's equivalent weights L_ij = K_ij (c_i n_j + w_i . P_j) on the pattern of the (N, N) CSR kernel K
+    (indptr, indices, data), or A = 2 L - L L with ``twiced``.
+
+    rows (N, 4): [c_i, w_i] (:func:`node_fits`); the cells' counts n_j and position sums P_j about the skin centroid:
+    the first four columns of their raw moments (N, 14) (:func:`raw_moments`). Compiled: two passes over K (plain,
+    L's entries made as they are used) or four (twiced, L stored in the first);
+    numpy: sparse products with four columns, L never formed. The same numbers to rounding."""
+    out = np.empty(kernel_indptr.size - 1)
+    _kernel("_covariance_sums_loop", fast)(*_unsigned(fast, kernel_indptr, kernel_indices), kernel_data, rows, raw,
+                                           np.ascontiguousarray(t, dtype=np.float64), bool(twiced), out)
+    return out
+
+
+def twiced_variance(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kernel_data: np.ndarray, rows: np.ndarray,
+                    raw: np.ndarray,
+                    fast: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """The diagonals (N,) of L D L^T and of (2 L - L L) D (2 L - L L)^T, D = diag(1 / n) (zero where n is 0), for the
+    equivalent weights L of :func:`covariance_sums` (same arguments): the plain and the twiced fit's node
+    variance per unit point noise. The twiced one needs L L, two rings wide: row by row into a dense scratch row
+    (compiled) or scipy's sparse product (numpy)."""
+    n = kernel_indptr.size - 1
+    plain, twiced = np.empty(n), np.empty(n)
+    _kernel("_twiced_variance_loop", fast)(*_unsigned(fast, kernel_indptr, kernel_indices), kernel_data, rows,
+                                           np.ascontiguousarray(raw[:, :4]), plain, twiced)
+    return plain, twiced

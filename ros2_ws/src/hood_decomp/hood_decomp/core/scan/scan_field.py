@@ -63,11 +63,6 @@ _QUADRIC_NEIGHBOURS = 13
 # 17,000-83,000 mm^2 on the default hood (5 states), 3,700-9,000 mm^2 on the coarse one (8 states). Set where the
 # within-model test's false-alarm rate on 120 default scans came down (300 nodes: 12.5 %; 1000 nodes: none).
 SMOOTHING_BIAS_AREA_MM2 = 59_000.0
-# Node variance of the twiced fit over the plain one (ScanFieldEstimator._twice): the point weights become about
-# 2 k - k * k, wider and partly negative. Measured, 30 repeated coarse scans of one state at 0.02 mm noise: median
-# 1.81 at interior nodes, 1.69 at free edges (10-90 %: 1.4-2.0, mostly the 30 repeats' own scatter); the exact
-# value per node would take the kernel's two-ring product on every scan.
-TWICING_VARIANCE = 1.8
 # Twicing by default only at smoothing radii above this (mm). The bias grows as the radius squared times the
 # displacement's curvature (a property of the part, not of the mesh): 0.009-0.011 mm RMS at the coarse hood's 50 mm,
 # 0.002-0.0027 mm at the default hood's 19 mm, so about 0.0004 mm at the paper mesh's 7.8 mm, the level of the
@@ -487,12 +482,14 @@ class ScanFieldEstimator:
         """
         return kernels.raw_moments(cells, self.moment_basis_, rows, fast)
 
-    def _node_fits(self, mixed: np.ndarray, fast: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _node_fits(self, mixed: np.ndarray, fast: bool = True, equivalent: bool = False
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
         """Weighted plane fits d = a + b_u u + b_v v per node from kernel-mixed raw moments (N, 14): each node's 3x3
         normal equations in its own tangent frame.
-        Returns coefficients (N, 3) [a mm, b_u, b_v], weighted point count (N,) and intercept variance inflation (N,).
+        Returns coefficients (N, 3) [a mm, b_u, b_v], weighted point count (N,), intercept variance inflation (N,) and
+        with ``equivalent`` the equivalent kernel's rows (N, 4) [c_i, w_i] (:func:`kernels.node_fits`), else None.
         """
-        return kernels.node_fits(mixed, self.frames_, self.t1_dot_x_, self.t2_dot_x_, fast)
+        return kernels.node_fits(mixed, self.frames_, self.t1_dot_x_, self.t2_dot_x_, fast, equivalent)
 
     def field(self, points_mm: np.ndarray, transform: np.ndarray | None = None) -> DisplacementField:
         """The signed normal displacement (N,) mm of every skin node from scan points (M, 3), mm, in the part frame
@@ -507,8 +504,9 @@ class ScanFieldEstimator:
         n = self.points_.shape[0]
         if j.size == 0:
             return DisplacementField(self.skin_.model_id, np.full(n, np.nan), 0.0, float("nan"))
-        mixed = self.kernel_ @ self._raw_moments(cells, np.arange(n), fast)
-        coef, _, _ = self._node_fits(mixed, fast)
+        raw = self._raw_moments(cells, np.arange(n), fast)
+        mixed = self.kernel_ @ raw
+        coef = self._node_fits(mixed, fast)[0]
         logger.info("first pass: %d points on the skin", j.size)
         # Second pass: drop points far from their own node's fit and take their sums out of the cells and, through
         # the few kernel columns of those cells, out of the mixed moments. The residuals go by blocks (none of the
@@ -527,9 +525,11 @@ class ScanFieldEstimator:
         # One pass over the kernel: the dropped points' moments out of the mixed moments (through the kernel columns
         # of their cells), and the per-node sums the support test and the error model need.
         kernel = self.kernel_
+        removed_raw = self._raw_moments(removed, rows, fast)
         squared, nearby = kernels.kernel_sums(kernel.indptr, kernel.indices, kernel.data, cells[:, 0], rows,
-                                              self._raw_moments(removed, rows, fast), _NEAR_WEIGHT, mixed, fast)
-        coef, weight, inflation = self._node_fits(mixed, fast)
+                                              removed_raw, _NEAR_WEIGHT, mixed, fast)
+        raw[rows] -= removed_raw  # the kept points' raw moments (linear in the cell sums): their counts and positions
+        coef, weight, inflation, rows = self._node_fits(mixed, fast, equivalent=True)
         if self.twicing_:  # a second twicing pass removes little more (coarse: bias RMS 0.0043 -> 0.0035 mm)
             coef = coef + self._twice(cells, coef, mixed, fast)
         supported = (
@@ -541,7 +541,7 @@ class ScanFieldEstimator:
         value = np.where(supported, coef[:, 0], np.nan)
         noise = float(np.sqrt(squares / inliers)) if inliers else float("nan")
         logger.info("second pass: %d inliers, %d of %d nodes seen", j.size - drop.size, supported.sum(), n)
-        errors = self._error_model(cells[:, 0], squared, weight, inflation, supported, noise)
+        errors = self._error_model(raw, squared, weight, inflation, rows, supported, noise, fast)
         return DisplacementField(self.skin_.model_id, value, float(supported.mean()), noise, errors)
 
     def _twice(self, cells: np.ndarray, coef: np.ndarray, mixed: np.ndarray, fast: bool) -> np.ndarray:
@@ -564,30 +564,56 @@ class ScanFieldEstimator:
         twice[:, 10:] = self.kernel_ @ self._raw_moments(residual, np.arange(cells.shape[0]), fast)[:, 10:]
         return self._node_fits(twice, fast)[0]
 
-    def _error_model(self, counts: np.ndarray, squared: np.ndarray, weight: np.ndarray, inflation: np.ndarray,
-                     supported: np.ndarray, noise_mm: float) -> FieldErrorModel:
+    def _twicing_variance(self) -> np.ndarray:
+        """(N,) the twiced fit's node variance over the plain fit's, from the skin's own kernel at one point per node
+        (uniform density): diag((2 L - L L) D (2 L - L L)^T) / diag(L D L^T) (:func:`kernels.twiced_variance`).
+        Per scan that diagonal would take the kernel's two-ring product (about 14M terms on the default hood, a
+        quarter of the scan's time); the ratio depends on the kernel's shape and the skin's edges and cut-outs, not on
+        the scan: 1.7-1.8 inside, less at free edges. Where a scan's own hole makes a node one-sided the interior
+        ratio over-states its variance by about 7 % (conservative)."""
+        n = self.points_.shape[0]
+        cells = np.zeros((n, 9))
+        cells[:, 0] = 1.0
+        fast = kernels.for_points(0)  # compiled only where the kernels are loaded already
+        raw = self._raw_moments(cells, np.arange(n), fast)
+        kernel = self.kernel_
+        plain, twiced = kernels.twiced_variance(kernel.indptr, kernel.indices, kernel.data,
+                                                self._node_fits(kernel @ raw, fast, equivalent=True)[3], raw, fast)
+        return np.where(plain > 0, twiced / np.where(plain > 0, plain, 1.0), 1.0)
+
+    def _error_model(self, raw: np.ndarray, squared: np.ndarray, weight: np.ndarray, inflation: np.ndarray,
+                     rows: np.ndarray, supported: np.ndarray, noise_mm: float, fast: bool) -> FieldErrorModel:
         """The node errors this smoothing makes of independent point noise (``noise_mm`` per point, along the normal).
 
-        Node i's value is about sum_p k_i(p) d_p / W_i over the points p of the cells j (n_j points each, kernel
-        weight K_ij, W_i = sum_j K_ij n_j), so Cov(a_i, a_k) = noise^2 sum_j K_ij K_kj n_j / (W_i W_k): the node std
-        is noise sqrt(sum_j K_ij^2 n_j) / W_i, times the square root of the plane fit's intercept inflation (one-sided
-        support), and the correlation sum g_i = sum_k Cov_ik / (s_i s_k) takes two sparse products (no N x N matrix).
-        counts (N,): the cells' point counts n_j; squared (N,): sum_j K_ij^2 n_j (:func:`kernels.kernel_sums`).
+        The node values are a = A m of the cells' mean distances m (Var m_j = noise^2 / n_j), A = L the plane fit's
+        equivalent weights (L_ij = K_ij (c_i n_j + w_i . P_j), :func:`kernels.covariance_sums`) or A = 2 L - L L for
+        the twiced fit (the residual fit adds L (m - a)), so Cov(a) = noise^2 A D A^T, D = diag(1 / n).
+        Node std: noise sqrt(sum_j K_ij^2 n_j) / W_i times the square root of the fit's intercept inflation (the
+        diagonal of L D L^T where the kernel's square is locally proportional to it; measured 0.96-1.0 of a Monte
+        Carlo of the smoother, 1.08 at free edges), for the twiced fit times :meth:`_twicing_variance`. squared (N,):
+        sum_j K_ij^2 n_j (:func:`kernels.kernel_sums`); weight W (N,), inflation (N,), rows (N, 4) [c_i, w_i] of L:
+        the second pass's :func:`kernels.node_fits`; raw (N, 14): the kept points' raw moments per cell (counts,
+        position sums).
+        Correlation sum g_i = sum_k Cov_ik / (s_i s_k) = (A D A^T t)_i / s_i, t = 1 / s: two (plain) or four (twiced)
+        products with L (:func:`kernels.covariance_sums`), no N x N matrix. A smooth projection of the field sees
+        these row sums: the kernel-average model they replace over-stated it 1.4 times (issue 15 run 7).
         """
         if not np.isfinite(noise_mm):
             return FieldErrorModel.none()
         with np.errstate(invalid="ignore", divide="ignore"):
-            spread = np.sqrt(squared) / weight  # std per unit point noise, before inflation
-            t = np.where(supported, 1.0 / (weight * spread), 0.0)  # 1 / (W_k s_k)
-            correlation = t * (self.kernel_ @ (counts * (self.kernel_.T @ t)))
+            spread = np.sqrt(squared * np.maximum(inflation, 1.0)) / weight  # std per unit point noise
         if self.twicing_:
-            # The twiced weights 2 k - k * k sum to one like k's: a smooth average of the nodes keeps its variance
-            # (the sums of Cov_ik), the node variance grows, so the correlation sum shrinks by the same factor.
-            spread = spread * np.sqrt(TWICING_VARIANCE)
-            correlation = correlation / TWICING_VARIANCE
-        std = np.where(supported, noise_mm * spread * np.sqrt(np.maximum(inflation, 1.0)), np.nan)
-        return FieldErrorModel("scan", std, np.where(supported, np.maximum(correlation, 1.0), 1.0),
-                               float(self.radius_mm_), bias_correlation=self.bias_correlation_)
+            if not hasattr(self, "twicing_variance_"):  # once per estimator, at its first twiced scan
+                self.twicing_variance_ = self._twicing_variance()
+            spread = spread * np.sqrt(self.twicing_variance_)
+        supported = supported & np.isfinite(spread) & (spread > 0)
+        t = np.where(supported, 1.0 / np.where(supported, spread, 1.0), 0.0)
+        kernel = self.kernel_
+        correlation = kernels.covariance_sums(kernel.indptr, kernel.indices, kernel.data, rows, raw, t, self.twicing_,
+                                              fast)
+        return FieldErrorModel("scan", np.where(supported, noise_mm * spread, np.nan),
+                               np.where(supported, np.maximum(correlation, 1.0), 1.0), float(self.radius_mm_),
+                               bias_correlation=self.bias_correlation_)
 
 
 _PREPARED: dict[tuple, ScanFieldEstimator] = {}
