@@ -129,3 +129,31 @@ def test_mapped_load_views_the_file_and_still_checks_it(saved, points, fresh_cac
         h5["pca/components"][0, 0] += 1e-9
     with pytest.raises(BasisError, match="bases_id"):
         load_bases(altered, mapped=True)
+
+
+def test_twicing_variance_is_stored_and_files_without_it_still_scan(saved, points, fresh_cache, tmp_path, monkeypatch):
+    """Fails if the twiced fit's variance ratio is not stored with the prepared skin (a one-off scan then rebuilds it
+    from the kernel's two-ring product, 0.1 s on the default hood), if a stored one is not used, or if a file written
+    before it existed (no /scan_skin/twicing_variance, its prepared_id over the other arrays) no longer scans or
+    gives another node std."""
+    _, path = saved
+    with h5py.File(path, "r") as h5:
+        assert "scan_skin/twicing_variance" in h5
+    expected = field_from_scan(load_bases(path).skin, points)[0]
+    older = tmp_path / "older.h5"
+    shutil.copy(path, older)
+    with h5py.File(older, "r+") as h5:
+        del h5["scan_skin/twicing_variance"]
+        arrays = {name: h5[f"scan_skin/{name}"][()] for name in h5["scan_skin"]}
+        h5["scan_skin"].attrs["prepared_id"] = prepared_id(h5.attrs["bases_id"], arrays)
+    monkeypatch.setattr(scan_field, "_PREPARED", {})
+    again = field_from_scan(load_bases(older).skin, points)[0]
+    np.testing.assert_allclose(again.error_model.node_std, expected.error_model.node_std, rtol=1e-12)
+    monkeypatch.setattr(scan_field, "_PREPARED", {})
+
+    def refuse(_self):
+        raise AssertionError("the stored twicing variance was rebuilt")
+
+    monkeypatch.setattr(ScanFieldEstimator, "_twicing_variance", refuse)
+    stored = field_from_scan(load_bases(path).skin, points)[0]
+    np.testing.assert_array_equal(stored.error_model.node_std, expected.error_model.node_std)

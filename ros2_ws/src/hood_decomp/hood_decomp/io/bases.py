@@ -114,7 +114,8 @@ def prepared_id(content_id: str, arrays: dict[str, np.ndarray]) -> str:
     or moved from another bases file is refused."""
     from hood_decomp.core.scan.scan_field import PREPARED_SKIN
 
-    return fingerprint(content_id, *(item for name in PREPARED_SKIN for item in (name, np.asarray(arrays[name]))))
+    return fingerprint(content_id, *(item for name in PREPARED_SKIN if name in arrays
+                                     for item in (name, np.asarray(arrays[name]))))
 
 
 def zones_id(content_id: str, zones: tuple[ToleranceZone, ...]) -> str:
@@ -349,7 +350,7 @@ def load_scan_skin(path: str | Path, content_id: str, n_nodes: int, mapped: bool
     nodes (ScanFieldEstimator.prepared_skin arrays). Raises BasisError when the file changed since (another
     bases_id), the group is malformed (kinds, named shapes, finiteness) or its content does not match its
     ``prepared_id``; index ranges are checked by ``ScanFieldEstimator.fit``. ``mapped``: see :func:`load_bases`."""
-    from hood_decomp.core.scan.scan_field import PREPARED_SKIN
+    from hood_decomp.core.scan.scan_field import PREPARED_OPTIONAL, PREPARED_SKIN
 
     path = Path(path)
     with open_hdf5(path, "bases file", BasisError) as h5:
@@ -358,7 +359,8 @@ def load_scan_skin(path: str | Path, content_id: str, n_nodes: int, mapped: bool
             raise BasisError(f"{path} changed since it was loaded (another bases_id); load it again")
         read.bind("N", n_nodes, "skin/points")
         read.bind("N1", n_nodes + 1, "skin/points plus one")
-        arrays = {name: read.array(f"scan_skin/{name}", dims, kind) for name, (dims, kind) in PREPARED_SKIN.items()}
+        arrays = {name: read.array(f"scan_skin/{name}", dims, kind) for name, (dims, kind) in PREPARED_SKIN.items()
+                  if name not in PREPARED_OPTIONAL or f"scan_skin/{name}" in h5}
         stored = read.attr("scan_skin", "prepared_id", "str")
     if prepared_id(content_id, arrays) != stored:
         raise BasisError(f"{path}: scan_skin does not match its prepared_id {stored!r} (altered after it was "

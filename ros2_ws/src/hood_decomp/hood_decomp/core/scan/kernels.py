@@ -268,6 +268,8 @@ def _kernel_sums_numpy(indptr, indices, data, counts, rows, mark, removed, near,
 def _covariance_sums_numpy(indptr, indices, data, rows, sums, t, twiced, out):
     # L = K (rows sums^T) elementwise, rows [c, w], sums [n, P]: L^T x = sums . (K^T (rows x)) and
     # L x = rows . (K (sums x)), sparse products with four columns (K^T a CSC view of K: no transposed copy)
+    import scipy.sparse as sp
+
     n = indptr.size - 1
     kernel = sp.csr_matrix((data, indices, indptr), shape=(n, n))
     sums = sums[:, :4]
@@ -292,6 +294,8 @@ def _covariance_sums_numpy(indptr, indices, data, rows, sums, t, twiced, out):
 
 
 def _twiced_variance_numpy(indptr, indices, data, rows, sums, plain, twiced):
+    import scipy.sparse as sp
+
     n = indptr.size - 1
     row = np.repeat(np.arange(n), np.diff(indptr))
     weights = sp.csr_matrix((data * np.einsum("zd,zd->z", rows[row], sums[indices, :4]), indices, indptr),

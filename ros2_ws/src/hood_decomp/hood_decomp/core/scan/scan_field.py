@@ -86,7 +86,10 @@ PREPARED_SKIN: dict[str, tuple[tuple[str, ...], str]] = {
     "quadric": (("N", "5"), "float"), "node_radius": (("N",), "float"), "grid_origin": (("3",), "float"),
     "grid_cell": (("1",), "float"), "grid_shape": (("3",), "integer"), "grid_table": (("G",), "integer"),
     "kernel_indptr": (("N1",), "integer"), "kernel_indices": (("Z",), "integer"), "kernel_data": (("Z",), "float"),
+    "twicing_variance": (("N",), "float"),
 }  # fmt: skip
+#: arrays of PREPARED_SKIN a prepared skin may lack: made at the first scan that needs them (files written before)
+PREPARED_OPTIONAL = frozenset({"twicing_variance"})
 
 
 @dataclass(frozen=True)
@@ -119,13 +122,15 @@ def _unique_edges(triangles: np.ndarray, n: int) -> np.ndarray:
 def _check_prepared(prepared: Mapping[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
     """The arrays of a prepared skin for a skin of ``n`` nodes, checked (shapes, kinds, finiteness, index ranges);
     raises ScanError naming the first problem."""
-    missing = sorted(set(PREPARED_SKIN) - set(prepared))
+    missing = sorted(set(PREPARED_SKIN) - PREPARED_OPTIONAL - set(prepared))
     if missing:
         raise ScanError(f"prepared skin lacks {', '.join(missing)}")
-    arrays = {name: np.asarray(prepared[name]) for name in PREPARED_SKIN}
+    arrays = {name: np.asarray(prepared[name]) for name in PREPARED_SKIN if name in prepared}
     sizes = {"N": n, "N1": n + 1, "G": int(np.prod(arrays["grid_shape"])) if arrays["grid_shape"].size == 3 else -1,
              "Z": arrays["kernel_indices"].size}  # fmt: skip
     for name, (dims, kind) in PREPARED_SKIN.items():
+        if name not in arrays:
+            continue
         array = arrays[name]
         expected = tuple(int(d) if d.isdigit() else sizes[d] for d in dims)
         if array.shape != expected:
@@ -134,8 +139,9 @@ def _check_prepared(prepared: Mapping[str, np.ndarray], n: int) -> dict[str, np.
             raise ScanError(f"prepared skin {name} holds {array.dtype}, expected integers")
         if kind == "float" and not np.all(np.isfinite(array)):
             raise ScanError(f"prepared skin {name} holds non-finite values")
-    positive = ("spacing", "radius", "grid_cell", "node_radius", "grid_shape")
-    bad = [name for name in positive if np.any(arrays[name] <= 0)] + (["gate2"] if np.any(arrays["gate2"] < 0) else [])
+    positive = ("spacing", "radius", "grid_cell", "node_radius", "grid_shape", "twicing_variance")
+    bad = [name for name in positive if name in arrays and np.any(arrays[name] <= 0)]
+    bad += ["gate2"] if np.any(arrays["gate2"] < 0) else []
     if np.any(arrays["kernel_data"] < 0) or np.any(arrays["kernel_data"] > 1):  # biweight values
         bad.append("kernel_data")
     indptr, indices, table = arrays["kernel_indptr"], arrays["kernel_indices"], arrays["grid_table"]
@@ -254,6 +260,8 @@ class ScanFieldEstimator:
             self._set_grid(prepared["grid_origin"], float(prepared["grid_cell"][0]), prepared["grid_shape"],
                            prepared["grid_table"])  # fmt: skip
             self.node_radius_mm_ = prepared["node_radius"]
+            if self.twicing_ and "twicing_variance" in prepared:
+                self.twicing_variance_ = prepared["twicing_variance"]
             import scipy.sparse as sp
 
             kernel = (prepared["kernel_data"], prepared["kernel_indices"], prepared["kernel_indptr"])
@@ -359,9 +367,13 @@ class ScanFieldEstimator:
 
     def prepared_skin(self) -> dict[str, np.ndarray]:
         """What :meth:`fit` builds slowly, as arrays (names and shapes: ``PREPARED_SKIN``) to store with the bases
-        and give back to ``fit(skin, prepared=...)``: grid, quadrics, gates, kernel (CSR) and node radii."""
+        and give back to ``fit(skin, prepared=...)``: grid, quadrics, gates, kernel (CSR), node radii and, for a twiced
+        fit, :meth:`_twicing_variance` (0.1 s a process on the default hood otherwise)."""
         self._check_fitted()
-        return {
+        if self.twicing_ and not hasattr(self, "twicing_variance_"):
+            self.twicing_variance_ = self._twicing_variance()
+        twicing = {"twicing_variance": self.twicing_variance_} if self.twicing_ else {}
+        return twicing | {
             "spacing": np.array([self.spacing_mm_]), "radius": np.array([self.radius_mm_]),
             "gate2": self.gate2_, "quadric": self.quadric_, "node_radius": self.node_radius_mm_,
             "grid_origin": self.grid_origin_, "grid_cell": np.array([self.grid_cell_mm_]),
