@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from hood_decomp.core.scan import kernels
+from hood_decomp.core.scan import kernels, scan_field
 from hood_decomp.core.scan.scan_field import ScanFieldEstimator, warm_up
 from hood_decomp.core.types import SkinSurface
 from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
@@ -260,7 +260,8 @@ def test_the_kernel_pass_equals_sparse_products(estimator, compiled):
 
 @pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.skipif(
     not kernels.HAVE_NUMBA, reason="numba is not installed: only the numpy path exists"))])
-def test_the_error_model_sums_equal_dense_products_of_the_equivalent_weights(estimator, scan_points, compiled):
+def test_the_error_model_sums_equal_dense_products_of_the_equivalent_weights(estimator, scan_points, compiled,
+                                                                              monkeypatch):
     """The scan error model's weights: node i's intercept is linear in its points' distances, a_i = sum over the
     kernel-weighted points of d (c_i + w_i . p) (p about the skin centroid), so kernels.node_fits' rows [c_i, w_i]
     must give the fitted intercept from the mixed moments [sum d, sum d p]; kernels.covariance_sums forms t (A D A^T t)
@@ -268,7 +269,9 @@ def test_the_error_model_sums_equal_dense_products_of_the_equivalent_weights(est
     diagonals of L D L^T and A D A^T. Fails if the rows are not the fit's equivalent kernel (a wrong sign, frame or
     inverse row: 1e-9 relative on the patch scan's intercepts), or if either sum differs by more than 1e-9 relative
     from dense products (a transposed product taken the wrong way round: K is not symmetric; a dropped L L term;
-    cells without points, where D is 0, or t = 0 mishandled; a numpy twin computing something else)."""
+    cells without points, where D is 0, or t = 0 mishandled; a numpy twin computing something else). The sums and
+    the kernel's products run by blocks of rows on threads (one per part of kernels.row_parts): here three, so a
+    part's rows lost, counted twice or summed into another part's output fail too."""
     n = estimator.points_.shape[0]
     previous = kernels.use_compiled(compiled)
     try:
@@ -288,6 +291,10 @@ def test_the_error_model_sums_equal_dense_products_of_the_equivalent_weights(est
         inverse = np.diag(np.where(raw[:, 0] > 0, 1.0 / np.maximum(raw[:, 0], 1.0), 0.0))
         twiced_weights = 2.0 * weights - weights @ weights
         args = (kernel.indptr, kernel.indices, kernel.data, rows, raw)
+        monkeypatch.setattr(kernels, "BLOCK_POINTS", kernel.nnz // 4)  # parts of at least this many entries
+        assert len(kernels.row_parts(kernel.indptr, 3)) == 3
+        monkeypatch.setattr(estimator, "kernel_blocks_", scan_field._row_blocks(kernel, 3))
+        np.testing.assert_array_equal(estimator._smooth(raw), kernel @ raw)
         for twiced, a in ((False, weights), (True, twiced_weights)):
             got = kernels.covariance_sums(*args, t, twiced, compiled)
             np.testing.assert_allclose(got, t * (a @ inverse @ a.T @ t), rtol=1e-9, atol=1e-9 * np.abs(got).max())

