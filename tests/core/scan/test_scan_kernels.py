@@ -241,6 +241,7 @@ def test_the_kernel_pass_equals_sparse_products(estimator, compiled):
     kernel = sp.block_diag([estimator.kernel_] * 5, format="csr")  # five copies: more than one block
     n = kernel.shape[0]
     assert abs(kernel - kernel.T).max() > 0.1 and kernel.nnz > kernels.BLOCK_POINTS
+    assert len(kernels.row_parts(kernel.indptr, 2)) == 2  # the compiled loop: two runs of rows on two threads
     rng = np.random.default_rng(5)
     counts = rng.integers(0, 20, n).astype(float)
     rows = np.sort(rng.choice(n, 200, replace=False))

@@ -613,7 +613,14 @@ def node_fits(mixed: np.ndarray, frames: np.ndarray, t1x: np.ndarray, t2x: np.nd
     ``equivalent``). The 3x3 normal equations solved in closed form (adjugate), NaN where singular."""
     n = mixed.shape[0]
     coef, weight, inflation, rows = np.empty((n, 3)), np.empty(n), np.empty(n), np.empty((n, 4)) if equivalent else None
-    _kernel("_node_fits_loop", fast)(mixed, frames, t1x, t2x, coef, weight, inflation, rows)
+    loop = _kernel("_node_fits_loop", fast)
+    edges = np.linspace(0, n, max(1, min(_workers(fast), n // NODE_BLOCK)) + 1).astype(np.int64)
+
+    def part(k: int) -> None:  # nodes edges[k]:edges[k + 1], on a thread of their own
+        s = slice(int(edges[k]), int(edges[k + 1]))
+        loop(mixed[s], frames[s], t1x[s], t2x[s], coef[s], weight[s], inflation[s], None if rows is None else rows[s])
+
+    on_threads(part, edges.size - 1)
     return coef, weight, inflation, rows
 
 
@@ -634,9 +641,18 @@ def kernel_sums(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kernel_da
     mark[rows] = np.arange(rows.size)
     squared, nearby = np.empty(n), np.empty(n)
     counts = np.ascontiguousarray(counts, dtype=np.float64)  # once: a column of the cell sums would be copied per block
-    _kernel("_kernel_sums_loop", fast)(*_unsigned(fast, kernel_indptr, kernel_indices), kernel_data, counts, rows, mark,
-                                       np.ascontiguousarray(removed, dtype=np.float64), float(near), mixed, squared,
-                                       nearby)  # fmt: skip
+    removed = np.ascontiguousarray(removed, dtype=np.float64)
+    loop = _kernel("_kernel_sums_loop", fast)
+    indptr, indices = _unsigned(fast, kernel_indptr, kernel_indices)
+    # the compiled loop takes a run of rows as its indptr's slice (entry offsets stay absolute); the numpy path whole
+    parts = row_parts(kernel_indptr, _workers(fast))
+
+    def part(k: int) -> None:
+        a, b = parts[k]
+        loop(indptr[a : b + 1], indices, kernel_data, counts, rows, mark, removed, float(near), mixed[a:b],
+             squared[a:b], nearby[a:b])
+
+    on_threads(part, len(parts))
     return squared, nearby
 
 
@@ -653,7 +669,7 @@ def covariance_sums(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kerne
     numpy: sparse products with four columns, L never formed. The same numbers to rounding."""
     n = kernel_indptr.size - 1
     indptr, indices = _unsigned(fast, kernel_indptr, kernel_indices)
-    parts = row_parts(kernel_indptr, min(os.cpu_count() or 1, 4) if fast else 1)
+    parts = row_parts(kernel_indptr, _workers(fast))
     back_part, forward_part = _kernel("_equivalent_back_loop", fast), _kernel("_equivalent_forward_loop", fast)
     t = np.ascontiguousarray(t, dtype=np.float64)
 
@@ -674,6 +690,12 @@ def covariance_sums(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kerne
     y = np.where(count > 0, y / np.where(count > 0, count, 1.0), 0.0)
     f = forward(y)
     return t * (2.0 * f - forward(f) if twiced else f)
+
+
+def _workers(fast: bool) -> int:
+    """Threads for a loop over the kernel's rows or the nodes: one per core up to 4 on the compiled path (its loops
+    release the GIL), one on the numpy path (which works by blocks of its own)."""
+    return min(os.cpu_count() or 1, 4) if fast and _MODE is not False else 1
 
 
 def row_parts(indptr: np.ndarray, parts: int) -> list[tuple[int, int]]:
