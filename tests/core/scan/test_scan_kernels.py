@@ -270,9 +270,9 @@ def test_the_error_model_sums_equal_dense_products_of_the_equivalent_weights(est
     diagonals of L D L^T and A D A^T. Fails if the rows are not the fit's equivalent kernel (a wrong sign, frame or
     inverse row: 1e-9 relative on the patch scan's intercepts), or if either sum differs by more than 1e-9 relative
     from dense products (a transposed product taken the wrong way round: K is not symmetric; a dropped L L term;
-    cells without points, where D is 0, or t = 0 mishandled; a numpy twin computing something else). The sums and
-    the kernel's products run by blocks of rows on threads (one per part of kernels.row_parts): here three, so a
-    part's rows lost, counted twice or summed into another part's output fail too."""
+    cells without points, where D is 0, or t = 0 mishandled; a numpy twin computing something else). The kernel's
+    products (ScanFieldEstimator._smooth) run by blocks of rows on threads (kernels.row_parts): here three, so a
+    block's rows lost or written to another block's place fail too."""
     n = estimator.points_.shape[0]
     previous = kernels.use_compiled(compiled)
     try:

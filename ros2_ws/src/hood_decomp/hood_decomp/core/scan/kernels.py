@@ -267,26 +267,22 @@ def _kernel_sums_numpy(indptr, indices, data, counts, rows, mark, removed, near,
         nearby[start:stop] = sp.csr_matrix(((k >= near).astype(np.float64), j, local), shape=(stop - start, n)) @ counts
         start = stop
 
-def _equivalent_block(indptr, indices, data, start, stop):
+def _equivalent_back_numpy(indptr, indices, data, rows, sums, x, out):
+    # L^T x = sums . (K^T (rows x)): a sparse product with four columns (K^T a CSC view: no transposed copy)
     import scipy.sparse as sp  # imported where used (0.16 s): --help and verbs without it do not pay
 
-    first, last = indptr[start], indptr[stop]
-    return sp.csr_matrix((data[first:last], indices[first:last], indptr[start : stop + 1] - first),
-                         shape=(stop - start, indptr.size - 1))
-
-
-def _equivalent_back_numpy(indptr, indices, data, rows, sums, x, start, stop, out):
-    # L^T x = sums . (K^T (rows x)): a sparse product with four columns (K^T a CSC view: no transposed copy)
-    total = _equivalent_block(indptr, indices, data, start, stop).T @ (rows[start:stop] * x[start:stop, None])
+    n = indptr.size - 1
+    total = sp.csr_matrix((data, indices, indptr), shape=(n, n)).T @ (rows * x[:, None])
     out += sums[:, 0] * total[:, 0] + (sums[:, 1] * total[:, 1] + sums[:, 2] * total[:, 2] + sums[:, 3] * total[:, 3])
 
 
-def _equivalent_forward_numpy(indptr, indices, data, rows, sums, x, start, stop, out):
+def _equivalent_forward_numpy(indptr, indices, data, rows, sums, x, out):
     # L x = rows . (K (sums x))
-    total = _equivalent_block(indptr, indices, data, start, stop) @ (sums[:, :4] * x[:, None])
-    rows = rows[start:stop]
-    out[start:stop] = rows[:, 0] * total[:, 0] + (rows[:, 1] * total[:, 1] + rows[:, 2] * total[:, 2]
-                                                  + rows[:, 3] * total[:, 3])
+    import scipy.sparse as sp
+
+    n = indptr.size - 1
+    total = sp.csr_matrix((data, indices, indptr), shape=(n, n)) @ (sums * x[:, None])
+    out[:] = rows[:, 0] * total[:, 0] + (rows[:, 1] * total[:, 1] + rows[:, 2] * total[:, 2] + rows[:, 3] * total[:, 3])
 
 
 def _twiced_variance_numpy(indptr, indices, data, rows, sums, plain, twiced):
@@ -456,9 +452,9 @@ def _kernel_sums_loop(indptr, indices, data, counts, rows, mark, removed, near, 
                 mixed[i, col] -= taken[col]
 
 
-def _equivalent_back_loop(indptr, indices, data, rows, sums, x, start, stop, out):
-    # out += L[start:stop]^T x[start:stop], L_ij = K_ij (c_i n_j + w_i . P_j) made as it is used
-    for i in range(start, stop):
+def _equivalent_back_loop(indptr, indices, data, rows, sums, x, out):
+    # out += L^T x, L_ij = K_ij (c_i n_j + w_i . P_j) made as it is used
+    for i in range(indptr.size - 1):
         xi = x[i]
         if xi == 0.0:
             continue
@@ -468,9 +464,9 @@ def _equivalent_back_loop(indptr, indices, data, rows, sums, x, start, stop, out
             out[j] += data[e] * (r0 * sums[j, 0] + (r1 * sums[j, 1] + r2 * sums[j, 2] + r3 * sums[j, 3]))
 
 
-def _equivalent_forward_loop(indptr, indices, data, rows, sums, x, start, stop, out):
-    # out[start:stop] = L[start:stop] x
-    for i in range(start, stop):
+def _equivalent_forward_loop(indptr, indices, data, rows, sums, x, out):
+    # out = L x
+    for i in range(indptr.size - 1):
         r0, r1, r2, r3 = rows[i, 0], rows[i, 1], rows[i, 2], rows[i, 3]
         total = 0.0
         for e in range(indptr[i], indptr[i + 1]):
@@ -664,29 +660,31 @@ def covariance_sums(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kerne
     (indptr, indices, data), or A = 2 L - L L with ``twiced``.
 
     rows (N, 4): [c_i, w_i] (:func:`node_fits`); the cells' counts n_j and position sums P_j about the skin centroid:
-    the first four columns of their raw moments (N, 14) (:func:`raw_moments`). Compiled: two passes over K (plain,
-    L's entries made as they are used) or four (twiced, L stored in the first);
-    numpy: sparse products with four columns, L never formed. The same numbers to rounding."""
+    the first four columns of their raw moments (N, 14) (:func:`raw_moments`). Compiled: two passes over K (plain)
+    or four (twiced), L's entries made as they are used; numpy: sparse products with four columns, L never formed.
+    The same numbers to rounding."""
     n = kernel_indptr.size - 1
     indptr, indices = _unsigned(fast, kernel_indptr, kernel_indices)
-    parts = row_parts(kernel_indptr, _workers(fast))
-    back_part, forward_part = _kernel("_equivalent_back_loop", fast), _kernel("_equivalent_forward_loop", fast)
+    back_rows, forward_rows = _kernel("_equivalent_back_loop", fast), _kernel("_equivalent_forward_loop", fast)
     t = np.ascontiguousarray(t, dtype=np.float64)
+    # n_j and P_j side by side (the raw moments' rows are 112 bytes: 16.6 -> 13.3 ms a call at paper resolution); on
+    # one thread: two, each over half the rows, took 16-21 ms (both bound by the same random reads of these sums)
+    sums = np.ascontiguousarray(raw[:, :4], dtype=np.float64)
 
-    def back(x: np.ndarray) -> np.ndarray:  # L^T x, each thread its rows into its own sums
-        partial = [np.zeros(n) for _ in parts]
-        on_threads(lambda k: back_part(indptr, indices, kernel_data, rows, raw, x, *parts[k], partial[k]), len(parts))
-        return sum(partial[1:], partial[0])
+    def back(x: np.ndarray) -> np.ndarray:  # L^T x
+        out = np.zeros(n)
+        back_rows(indptr, indices, kernel_data, rows, sums, x, out)
+        return out
 
-    def forward(x: np.ndarray) -> np.ndarray:  # L x, each thread its rows
+    def forward(x: np.ndarray) -> np.ndarray:  # L x
         out = np.empty(n)
-        on_threads(lambda k: forward_part(indptr, indices, kernel_data, rows, raw, x, *parts[k], out), len(parts))
+        forward_rows(indptr, indices, kernel_data, rows, sums, x, out)
         return out
 
     y = back(t)
     if twiced:
         y = 2.0 * y - back(y)
-    count = raw[:, 0]
+    count = sums[:, 0]
     y = np.where(count > 0, y / np.where(count > 0, count, 1.0), 0.0)
     f = forward(y)
     return t * (2.0 * f - forward(f) if twiced else f)
