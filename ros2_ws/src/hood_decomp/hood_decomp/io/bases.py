@@ -238,8 +238,9 @@ def load_bases(path: str | Path, mapped: bool = False) -> Bases:
     file: every dataset and attribute of docs/bases_schema.md present with its kind, its shape consistent with the
     others (named dimensions), its floats finite, its indices in range, and the content matching ``bases_id``.
 
-    mapped: the float arrays (and the prepared scan skin's) are read-only views of the file mapped into memory
-    (:class:`~hood_decomp.io.hdf5.Reader`), for a process that ends soon after, as a command-line verb does."""
+    mapped: the arrays stored plainly (the floats, the prepared scan skin's) are read-only views of the file mapped
+    into memory (:class:`~hood_decomp.io.hdf5.Reader`), for a process that ends soon after, as a command-line verb
+    does."""
     path = Path(path)
     with open_hdf5(path, "bases file", BasisError) as h5:
         read = Reader(h5, path, BasisError, mapped)

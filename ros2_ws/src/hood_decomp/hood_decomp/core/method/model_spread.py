@@ -71,8 +71,6 @@ class PhysicalResponses:
                 self.thermal_w3 + (calibrated.R_3d - model.R_3d) @ m)
 
 
-
-
 def factor_names(reduced: ReducedModel, physics: PhysicalResponses) -> list[str]:
     """Names of the physical factors: compliance, gas_spring, thickness per sheet group, then per pad stiffness and
     preload."""

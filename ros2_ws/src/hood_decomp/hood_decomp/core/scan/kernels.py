@@ -690,10 +690,15 @@ def covariance_sums(kernel_indptr: np.ndarray, kernel_indices: np.ndarray, kerne
     return t * (2.0 * f - forward(f) if twiced else f)
 
 
+def threads() -> int:
+    """Threads the scan step runs its parallel parts on: one per core, up to 4."""
+    return min(os.cpu_count() or 1, 4)
+
+
 def _workers(fast: bool) -> int:
-    """Threads for a loop over the kernel's rows or the nodes: one per core up to 4 on the compiled path (its loops
-    release the GIL), one on the numpy path (which works by blocks of its own)."""
-    return min(os.cpu_count() or 1, 4) if fast and _MODE is not False else 1
+    """Threads for a compiled loop over the kernel's rows or the nodes (:func:`threads`: its loops release the GIL);
+    one on the numpy path (which works by blocks of its own)."""
+    return threads() if fast and _MODE is not False else 1
 
 
 def row_parts(indptr: np.ndarray, parts: int) -> list[tuple[int, int]]:

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import os
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -279,7 +278,7 @@ class ScanFieldEstimator:
 
             kernel = (prepared["kernel_data"], prepared["kernel_indices"], prepared["kernel_indptr"])
             self.kernel_ = sp.csr_matrix(kernel, shape=(n, n))
-        self.kernel_blocks_ = _row_blocks(self.kernel_, min(os.cpu_count() or 1, 4))
+        self.kernel_blocks_ = _row_blocks(self.kernel_, kernels.threads())
         # What a located point reads of its node, in one row: position in grid units, frame, quadric, squared gate.
         grid_position = (points - self.grid_origin_) / self.grid_cell_mm_
         self.node_table_ = np.column_stack([grid_position, self.frames_.reshape(n, 9), self.quadric_, self.gate2_])
@@ -384,9 +383,7 @@ class ScanFieldEstimator:
         and give back to ``fit(skin, prepared=...)``: grid, quadrics, gates, kernel (CSR), node radii and, for a twiced
         fit, :meth:`_twicing_variance` (0.1 s a process on the default hood otherwise)."""
         self._check_fitted()
-        if self.twicing_ and not hasattr(self, "twicing_variance_"):
-            self.twicing_variance_ = self._twicing_variance()
-        twicing = {"twicing_variance": self.twicing_variance_} if self.twicing_ else {}
+        twicing = {"twicing_variance": self._twicing_ratio()} if self.twicing_ else {}
         return twicing | {
             "spacing": np.array([self.spacing_mm_]), "radius": np.array([self.radius_mm_]),
             "gate2": self.gate2_, "quadric": self.quadric_, "node_radius": self.node_radius_mm_,
@@ -426,7 +423,7 @@ class ScanFieldEstimator:
         block = kernels.BLOCK_POINTS
         n_blocks = -(-m // block)
         if workers <= 0:
-            workers = min(os.cpu_count() or 1, 4, m // _CHUNK_POINTS)
+            workers = min(kernels.threads(), m // _CHUNK_POINTS)
         workers = max(1, min(workers, n_blocks))
         out = (np.empty(m if rows else 0, np.int64), np.empty(m, np.int32), np.empty(m, np.float32),
                np.empty(m, np.float32), np.empty(m, np.float32))  # fmt: skip
@@ -605,6 +602,13 @@ class ScanFieldEstimator:
         twice[:, 10:] = self._smooth(self._raw_moments(residual, np.arange(cells.shape[0]), fast)[:, 10:])
         return self._node_fits(twice, fast)[0]
 
+    def _twicing_ratio(self) -> np.ndarray:
+        """``twicing_variance_`` (N,): taken from the prepared skin, else :meth:`_twicing_variance` once per
+        estimator."""
+        if not hasattr(self, "twicing_variance_"):
+            self.twicing_variance_ = self._twicing_variance()
+        return self.twicing_variance_
+
     def _twicing_variance(self) -> np.ndarray:
         """(N,) the twiced fit's node variance over the plain fit's, from the skin's own kernel at one point per node
         (uniform density): diag((2 L - L L) D (2 L - L L)^T) / diag(L D L^T) (:func:`kernels.twiced_variance`).
@@ -619,7 +623,8 @@ class ScanFieldEstimator:
         raw = self._raw_moments(cells, np.arange(n), fast)
         kernel = self.kernel_
         plain, twiced = kernels.twiced_variance(kernel.indptr, kernel.indices, kernel.data,
-                                                self._node_fits(kernel @ raw, fast, equivalent=True)[3], raw, fast)
+                                                self._node_fits(self._smooth(raw), fast, equivalent=True)[3], raw,
+                                                fast)
         return np.where(plain > 0, twiced / np.where(plain > 0, plain, 1.0), 1.0)
 
     def _error_model(self, raw: np.ndarray, squared: np.ndarray, weight: np.ndarray, inflation: np.ndarray,
@@ -644,9 +649,7 @@ class ScanFieldEstimator:
         with np.errstate(invalid="ignore", divide="ignore"):
             spread = np.sqrt(squared * np.maximum(inflation, 1.0)) / weight  # std per unit point noise
         if self.twicing_:
-            if not hasattr(self, "twicing_variance_"):  # once per estimator, at its first twiced scan
-                self.twicing_variance_ = self._twicing_variance()
-            spread = spread * np.sqrt(self.twicing_variance_)
+            spread = spread * np.sqrt(self._twicing_ratio())
         supported = supported & np.isfinite(spread) & (spread > 0)
         t = np.where(supported, 1.0 / np.where(supported, spread, 1.0), 0.0)
         kernel = self.kernel_
