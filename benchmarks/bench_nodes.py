@@ -8,7 +8,9 @@ drivers), each sent when the previous one was answered; target: N of N delivered
 
     scripts/with-env python benchmarks/bench_nodes.py --resolution default [--soak-seconds 300] [--best-effort 100]
 
-Latency is reported for the first scan (the nodes just activated) and as the median and max over all scans. With
+Latency is reported for the first scan (the nodes just activated) and as the median and max over all scans, and the
+boundary state's split into the scan node's and the estimator's handler times (their OK diagnostics' ``seconds``)
+and the rest (transport of the cloud and the field, executor wake-ups). With
 --inspection-parts N the same nodes then serve N four-view inspections of --inspection-points points per view
 (benchmarks/bench_inspection.py, last view to the InspectPart result), so one command gives both of issue 17's
 latency figures:
@@ -155,7 +157,18 @@ def main() -> int:
                     if s.level == DiagnosticStatus.ERROR and any(v.key == "stamp" and v.value == key
                                                                  for v in s.values)]
 
+        def node_seconds(stamp: int, node: str) -> float:
+            """The node's handler time for this stamp (its OK diagnostic's ``seconds``), NaN if not (yet) seen."""
+            key = f"{stamp // 1_000_000_000}.{stamp % 1_000_000_000:09d}"
+            for array in diagnostics:
+                for s in array.status:
+                    values = {v.key: v.value for v in s.values}
+                    if s.name == f"hood_decomp/{node}" and values.get("stamp") == key and "seconds" in values:
+                        return float(values["seconds"])
+            return float("nan")
+
         latencies = {"boundary_state": [], "effects": []}
+        handler = {"scan": [], "estimator": []}
         for i in range(args.scans):  # one at a time: latency, not queueing
             stamp = 1_000_000_000 * (i + 1)
             publish(i, stamp)
@@ -163,7 +176,11 @@ def main() -> int:
                 raise RuntimeError(f"scan {i} not answered in 120 s: {refused(stamp)}")
             latencies["boundary_state"].append(arrival[("hood_decomp/boundary_state", stamp)] - sent[stamp])
             latencies["effects"].append(arrival[("hood_decomp/effects", stamp)] - sent[stamp])
-            log(f"scan {i}: state {latencies['boundary_state'][-1]:.3f} s, effects {latencies['effects'][-1]:.3f} s")
+            peer.wait(lambda s=stamp: not np.isnan(node_seconds(s, "hood_decomp_estimator")), 5)
+            for node in handler:
+                handler[node].append(node_seconds(stamp, f"hood_decomp_{node}"))
+            log(f"scan {i}: state {latencies['boundary_state'][-1]:.3f} s (scan node {handler['scan'][-1]:.3f}, "
+                f"estimator {handler['estimator'][-1]:.3f}), effects {latencies['effects'][-1]:.3f} s")
         soak = {}
         if args.soak_seconds:
             rss = []
@@ -226,13 +243,18 @@ def main() -> int:
     finally:
         peer.close()
         stop_nodes(processes)
+    # the rest of a scan's latency (transport of the cloud and the field, executor wake-ups) by difference
+    latencies["transport"] = [total - a - b for total, a, b in zip(latencies["boundary_state"], handler["scan"],
+                                                                    handler["estimator"], strict=True)]
+    latencies.update({f"{node} node handler": seconds for node, seconds in handler.items()})
     summary = {key: {"first_s": v[0], "median_s": statistics.median(v), "max_s": max(v)}
                for key, v in latencies.items()}
     print(f"Node latency, {args.resolution} resolution ({len(skin.points):,} skin nodes), {args.points:,}-point "
           f"scans, {platform.machine()}, {psutil.cpu_count()} cores")
     print(f"{'from scan published to':32s} {'first s':>10s} {'median s':>10s} {'max s':>10s}")
     for key, value in summary.items():
-        print(f"{key + ' received':32s} {value['first_s']:10.3f} {value['median_s']:10.3f} {value['max_s']:10.3f}")
+        label = key + " received" if key in ("boundary_state", "effects") else "  of which " + key
+        print(f"{label:32s} {value['first_s']:10.3f} {value['median_s']:10.3f} {value['max_s']:10.3f}")
     if soak:
         print(f"sustained 1 Hz for {soak['seconds']:.0f} s: {soak['scans']} scans, {soak['lost']} lost; node RSS MB "
               f"(scan, estimator, decomposition) per tenth of the run: {soak['rss_mb_every_tenth']}")

@@ -4,6 +4,9 @@ serving."""
 
 from __future__ import annotations
 
+import os
+import time
+
 import numpy as np
 import pytest
 
@@ -29,8 +32,10 @@ pytestmark = pytest.mark.ros
 @pytest.fixture(scope="module")
 def running(coarse_hood, tmp_path_factory):
     logs = tmp_path_factory.mktemp("node_logs")
-    processes = start_nodes(coarse_hood.bases_path, nodes=("estimator_node", "decomposition_node"),
-                            extra_params=["pair_timeout_s:=30.0"], log_dir=logs)  # pairing never times out here
+    with pytest.MonkeyPatch.context() as patch:  # the nodes start in a cell's environment, without a BLAS setting
+        patch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+        processes = start_nodes(coarse_hood.bases_path, nodes=("estimator_node", "decomposition_node"),
+                                extra_params=["pair_timeout_s:=30.0"], log_dir=logs)  # pairing never times out here
     peer = Participant("test_nodes")
     received = {topic: peer.collect(topic, cls) for topic, cls in (
         ("hood_decomp/boundary_state", BoundaryState), ("hood_decomp/boundary_correction", BoundaryCorrection),
@@ -290,3 +295,30 @@ def test_the_estimator_node_answers_one_field_at_configure_and_keeps_nothing_of_
     found = json.loads(line[len("WARM "):])
     assert found == {"state": "inactive", "answered": ["warm-up"], "received": 0, "remembered": []}, found
     assert "warm-up of" not in done.stdout + done.stderr, "the warm-up failed (the node said so in its log)"
+
+
+def test_nodes_run_one_blas_thread_and_report_their_handler_time(coarse_hood, running):
+    """Fails if a node process keeps OpenBLAS's default thread count (one per core: its idle workers spin between
+    the estimator's small products and made a field take 2-3.5 s instead of 0.3 s on a loaded 2-core cell computer),
+    or if an answered message's OK diagnostic lacks its handler time or states one longer than the message's whole
+    round trip."""
+    peer, received, _, connected, logs = running
+    assert connected, f"nodes did not come up; logs in {logs}"
+    assert (os.cpu_count() or 1) > 1, "this check needs a machine on which OpenBLAS would start several threads"
+    diagnostics = received["/diagnostics"]
+    for node in ("hood_decomp_estimator", "hood_decomp_decomposition"):
+        assert latest_heartbeat(diagnostics, node)["blas_threads"] == "1", node
+    states = received["hood_decomp/boundary_state"]
+    before = len(states)
+    member = solve_members(coarse_hood.reduced, np.zeros((1, len(coarse_hood.reduced.names))))
+    sent = time.perf_counter()
+    peer.publishers["hood_decomp/displacement"].publish(_field_msg(coarse_hood, member.normal_displacement[0], 41))
+    assert peer.wait(lambda: len(states) > before, 60.0)
+    round_trip = time.perf_counter() - sent
+    assert peer.wait(lambda: any(stamp_of(s) == "41.000000000" and s.level == DiagnosticStatus.OK
+                                 for array in diagnostics for s in array.status
+                                 if s.name == "hood_decomp/hood_decomp_estimator"), 10.0)
+    seconds = [float(kv.value) for array in diagnostics for s in array.status
+               if s.name == "hood_decomp/hood_decomp_estimator" and stamp_of(s) == "41.000000000"
+               for kv in s.values if kv.key == "seconds"]
+    assert len(seconds) == 1 and 0.0 < seconds[0] < round_trip, (seconds, round_trip)

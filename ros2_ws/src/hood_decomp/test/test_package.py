@@ -21,7 +21,7 @@ ROSDEP_KEYS = {
     "numpy": "python3-numpy", "scipy": "python3-scipy", "h5py": "python3-h5py", "yaml": "python3-yaml",
     "matplotlib": "python3-matplotlib", "dask": "python3-dask", "distributed": "python3-distributed",
     "meshio": "python3-meshio-pip", "open3d": "python3-open3d-pip", "rosbags": "python3-rosbags-pip",
-    "numba": "python3-numba",
+    "numba": "python3-numba", "threadpoolctl": "python3-threadpoolctl",
 }
 # CHOLMOD when installed, scipy's SuperLU otherwise; tf2_ros where a full ROS install has it, else the package's own
 # listener of /tf (tf2_msgs, declared)

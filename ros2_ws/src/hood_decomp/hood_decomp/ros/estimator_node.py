@@ -33,7 +33,7 @@ from hood_decomp.core.types import FieldErrorModel, ParameterEstimate
 from hood_decomp.errors import HoodDecompError
 from hood_decomp.io.history import HistoryWriter, PartRecord, bases_file_id, inspection_record
 from hood_decomp.ros import messages
-from hood_decomp.ros.node_common import ERROR, HoodNode, declare, declare_list, parse_entries, spin
+from hood_decomp.ros.node_common import ERROR, HoodNode, declare, declare_list, parse_entries, spin, through_middleware
 
 METHODS = ("contact", "pca")
 #: seconds between two retries of a history that could not be written
@@ -219,7 +219,7 @@ class EstimatorNode(HoodNode):
                                  bias_correlation=smoothing_bias_correlation(bases.skin))
         field = CoreField(bases.model_id, np.array(bases.pca.mean_field_, dtype=float), 1.0, 0.05, errors)
         header = Header()
-        _, estimate, correction = self.answer(messages.field_to_msg(field, header, "warm-up"))
+        _, estimate, correction = self.answer(through_middleware(messages.field_to_msg(field, header, "warm-up")))
         messages.estimate_to_msg(estimate, header, "warm-up")
         messages.correction_to_msg(correction, header, "warm-up")
 

@@ -16,6 +16,7 @@ import logging
 import os
 import pathlib
 import socket
+import time
 import traceback
 from collections import OrderedDict
 from collections.abc import Callable, MutableMapping
@@ -113,6 +114,37 @@ def fastdds_profile() -> pathlib.Path:
     return pathlib.Path(__file__).resolve().parents[2] / "config" / "fastdds.xml"
 
 
+def one_blas_thread(environment: MutableMapping[str, str] = os.environ) -> None:
+    """One OpenBLAS thread in a node process unless the user set ``OPENBLAS_NUM_THREADS``: the nodes' linear algebra
+    is many small products (the estimator's K x K solves, N x K projections) between which OpenBLAS's idle workers
+    spin, on the cores the scan path's own threads and the other two nodes need. Measured under load 10 on 2 cores:
+    the estimator's handler took 2.2-3.5 s per field with the default threads, 0.28-0.32 s with one (issue 19). The
+    environment variable covers BLAS libraries loaded later (scipy's), threadpoolctl the one numpy has loaded."""
+    if "OPENBLAS_NUM_THREADS" in environment:
+        return
+    environment["OPENBLAS_NUM_THREADS"] = "1"
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1, user_api="blas")
+
+
+def blas_threads() -> int:
+    """The largest thread count of the BLAS libraries loaded in this process (0 when none is)."""
+    from threadpoolctl import threadpool_info
+
+    return max((int(library["num_threads"]) for library in threadpool_info() if library["user_api"] == "blas"),
+               default=0)
+
+
+def through_middleware(message: Any) -> Any:
+    """``message`` serialised and taken back as the middleware hands a received one to a callback. A warm-up sends a
+    scan-sized message through this once, so that the first real one does not pay the first large allocation of the
+    conversion: a 1M-point cloud took 45-145 ms the first time in a fresh process, 4-20 ms afterwards (issue 19)."""
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    return deserialize_message(serialize_message(message), type(message))
+
+
 def use_fastdds_profile(environment: MutableMapping[str, str] = os.environ) -> None:
     """Point Fast DDS at the package's profile unless the user chose one (``FASTDDS_DEFAULT_PROFILES_FILE`` set, even
     empty, is theirs). In this process it must happen before the first rclpy.init; for a child, pass its env."""
@@ -151,12 +183,14 @@ def message_stamp(message: Any) -> Any:
 
 def guarded(node: Node, diagnostics: Diagnostics, what: str,
             handler: Callable[[Any], dict[str, object] | None]) -> Callable[[Any], None]:
-    """Wrap a subscription callback: success -> OK diagnostic with the handler's key-values; a HoodDecompError ->
-    ERROR diagnostic naming the problem; anything else -> ERROR with the exception type (and the traceback in the
-    log). The node never dies from one message."""
+    """Wrap a subscription callback: success -> OK diagnostic with the handler's key-values and ``seconds``, the
+    handler's wall time (the node's share of a message's latency); a HoodDecompError -> ERROR diagnostic naming the
+    problem; anything else -> ERROR with the exception type (and the traceback in the log). The node never dies from
+    one message."""
 
     def callback(message: Any) -> None:
         stamp = message_stamp(message)
+        start = time.perf_counter()
         try:
             values = handler(message) or {}
         except HoodDecompError as error:
@@ -171,7 +205,7 @@ def guarded(node: Node, diagnostics: Diagnostics, what: str,
                                error=type(error).__name__)
             return
         diagnostics.processed += 1
-        diagnostics.report(OK, f"{what} ok", stamp, **values)
+        diagnostics.report(OK, f"{what} ok", stamp, **values, seconds=f"{time.perf_counter() - start:.4f}")
 
     return callback
 
@@ -360,8 +394,8 @@ class HoodNode(LifecycleNode):
     def heartbeat_values(self) -> dict[str, object]:
         """Key-values of the heartbeat: the state, per output topic its matched subscriptions and per input topic its
         matched publishers (DDS matches each pair on both sides; a sender that counts our subscription may not be
-        counted by it yet, and a best-effort subscription loses what comes before)."""
-        return {"state": self.state,
+        counted by it yet, and a best-effort subscription loses what comes before), and the BLAS threads in use."""
+        return {"state": self.state, "blas_threads": blas_threads(),
                 **{f"subscribers {entity.topic_name}": entity.get_subscription_count()
                    for entity in self._outputs if isinstance(entity, LifecyclePublisher)},
                 **{f"publishers {entity.topic_name}": entity.get_publisher_count()
@@ -483,7 +517,8 @@ class HoodNode(LifecycleNode):
 def spin(node_factory: Callable[[], HoodNode], args: list[str] | None = None) -> int:
     """Console-script body: init, build the node (unconfigured; configured and activated here when its
     ``autostart`` parameter is true), spin until Ctrl-C or shutdown, clean up. Two executor threads: the heartbeat
-    goes out while a message is processed."""
+    goes out while a message is processed. One BLAS thread unless the user chose otherwise (:func:`one_blas_thread`)."""
+    one_blas_thread()
     use_fastdds_profile()
     rclpy.init(args=args)
     node = None

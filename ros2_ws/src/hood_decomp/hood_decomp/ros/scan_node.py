@@ -25,8 +25,11 @@ from hood_decomp.core.types import DisplacementField as CoreField
 from hood_decomp.errors import ScanError
 from hood_decomp.ros import messages
 from hood_decomp.ros.inspection import InspectionServer
-from hood_decomp.ros.node_common import HoodNode, declare, declare_list, spin
+from hood_decomp.ros.node_common import HoodNode, declare, declare_list, spin, through_middleware
 from hood_decomp.ros.poses import PoseSources, PoseTopic, tf_lookup
+
+#: points of the warm-up scan at configure: a cell's scan size (bench_nodes' 1M-point clouds)
+WARM_UP_POINTS = 1_000_000
 
 
 class ScanNode(HoodNode):
@@ -86,10 +89,12 @@ class ScanNode(HoodNode):
                          for bases in self.variant_bases.values()}
         header = Header(frame_id=self.param("part_frame"))
         for estimator, clouds in self.prepared.values():
-            field = warm_up(estimator)  # the first scan then runs at steady-state speed (issue 19)
-            # and so do the node's own conversions: a cloud in, a field and its displacement cloud out (not published)
-            messages.scan_to_mm(messages.points_to_cloud(estimator.points_, header), self.param("marker_field"), {})
-            messages.field_to_msg(field, header, "warm-up")
+            field = warm_up(estimator, WARM_UP_POINTS)  # the first scan then runs at steady-state speed (issue 19)
+            # and so do the node's own conversions: a scan-sized cloud in (as the middleware hands it over), a field
+            # and its displacement cloud out (nothing published)
+            cloud = messages.points_to_cloud(np.resize(estimator.points_, (WARM_UP_POINTS, 3)), header)
+            messages.scan_to_mm(through_middleware(cloud), self.param("marker_field"), {})
+            through_middleware(messages.field_to_msg(field, header, "warm-up"))
             clouds.displacement(field, header)
         self.field_pub = self.publisher(DisplacementField, "hood_decomp/displacement", latest=True)
         self.cloud_pub = self.publisher(PointCloud2, "hood_decomp/displacement_cloud")
