@@ -320,3 +320,29 @@ def test_triangle_areas_by_blocks_are_the_analytic_areas():
     skin = SkinSurface(corners.reshape(-1, 3), np.tile([0.0, 0.0, 1.0], (3 * count, 1)),
                        np.arange(3 * count).reshape(count, 3), "triangles")  # fmt: skip
     np.testing.assert_allclose(skin.triangle_areas(), legs[:, 0] * legs[:, 1] / 2, rtol=1e-9)
+
+
+@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed: only the numpy path exists")
+def test_a_cloud_in_no_spatial_order_is_sorted_by_tiles_the_same_way_on_both_paths(estimator, scan_points):
+    """Fails if a scanned cloud (line order) is copied or reordered, if a shuffled one is not sorted into tiles of
+    TILE_CELLS grid cells (checked against tile indices computed here from the grid's origin and cell), if points are
+    lost, duplicated or altered by the sort, if the two paths order differently, or if the field of the shuffled
+    cloud is not the field of the scanned one (to 1e-9 mm: below 100k points every residual enters the noise scale,
+    so nothing but the summation order differs)."""
+    affine, hi = estimator._grid_map(None)
+    cell = estimator.grid_cell_mm_
+    shuffled = scan_points[np.random.default_rng(7).permutation(scan_points.shape[0])]
+    for fast in (True, False):
+        assert kernels.tile_order(scan_points, affine, hi, cell, fast) is scan_points
+    fast, slow = (kernels.tile_order(shuffled, affine, hi, cell, path) for path in (True, False))
+    np.testing.assert_array_equal(fast, slow)
+    last = np.floor(hi / kernels.TILE_CELLS)
+    tiles = np.clip(np.floor((fast - estimator.grid_origin_) / cell / kernels.TILE_CELLS), 0, last)
+    tiles[np.isnan(tiles)] = 0
+    key = (tiles[:, 0] * (last[1] + 1) + tiles[:, 1]) * (last[2] + 1) + tiles[:, 2]
+    assert np.all(np.diff(key) >= 0) and np.unique(key).size > 10
+    np.testing.assert_array_equal(np.unique(fast, axis=0), np.unique(shuffled, axis=0))
+    assert np.isnan(fast).any(axis=1).sum() == np.isnan(shuffled).any(axis=1).sum()
+    scanned, sorted_ = (estimator.field(points).normal_displacement for points in (scan_points, shuffled))
+    np.testing.assert_array_equal(np.isfinite(scanned), np.isfinite(sorted_))
+    assert np.nanmax(np.abs(scanned - sorted_)) < 1e-9

@@ -416,10 +416,7 @@ class ScanFieldEstimator:
         """
         m = points.shape[0]
         fast = kernels.for_points(m) if fast is None else fast
-        rotation, shift = (np.eye(3), np.zeros(3)) if transform is None else (transform[:3, :3], transform[:3, 3])
-        scale = 1.0 / self.grid_cell_mm_
-        affine = np.column_stack([rotation * scale, (shift - self.grid_origin_) * scale])
-        hi = self.grid_shape_.astype(np.float64) - 1.0
+        affine, hi = self._grid_map(transform)
         block = kernels.BLOCK_POINTS
         n_blocks = -(-m // block)
         if workers <= 0:
@@ -456,6 +453,14 @@ class ScanFieldEstimator:
             if moments:
                 cells[0] += cells[w]
         return (out[0][:total] if rows else None, *(a[:total] for a in out[1:]), cells[0])
+
+    def _grid_map(self, transform: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The (3, 4) affine map of a point to grid units (``transform`` (4, 4) first, when given) and the last cell
+        index (3,) per axis."""
+        rotation, shift = (np.eye(3), np.zeros(3)) if transform is None else (transform[:3, :3], transform[:3, 3])
+        scale = 1.0 / self.grid_cell_mm_
+        affine = np.column_stack([rotation * scale, (shift - self.grid_origin_) * scale])
+        return affine, self.grid_shape_.astype(np.float64) - 1.0
 
     def _locate(
         self, points: np.ndarray, transform: np.ndarray | None = None
@@ -523,6 +528,8 @@ class ScanFieldEstimator:
         self._check_fitted()
         points = np.asarray(points_mm, dtype=np.float64)
         fast = kernels.for_points(points.shape[0])  # one choice for the whole scan
+        # a cloud in no spatial order (shuffled, hashed) is sorted by tiles first: the field needs no point order
+        points = kernels.tile_order(points, *self._grid_map(transform), self.grid_cell_mm_, fast)
         _, j, u, v, d, cells = self._scan_points(points, transform, moments=True, fast=fast, rows=False)
         n = self.points_.shape[0]
         if j.size == 0:
