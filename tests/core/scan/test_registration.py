@@ -6,7 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hood_decomp.core.scan.registration import register_scan, rigid_from_markers, rotation_from_vector
+from hood_decomp.core.scan.registration import (
+    check_marker_noise,
+    marker_pose_covariance,
+    register_scan,
+    rigid_from_markers,
+    rotation_from_vector,
+)
 from hood_decomp.core.scan.scan_field import ScanFieldEstimator, field_from_scan
 from hood_decomp.errors import ScanError
 from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
@@ -29,7 +35,7 @@ def estimator(skin):
 
 
 def _scan(skin, truth, seed=0, **config):
-    cfg = ScannerConfig(n_points=100_000, noise_mm=0.05, **config)
+    cfg = ScannerConfig(**{"n_points": 100_000, "noise_mm": 0.05, **config})
     return synthesize_scan(skin, along_normals(skin, truth), cfg, seed)
 
 
@@ -119,3 +125,41 @@ def test_bad_registration_input_is_refused(skin, truth, estimator):
         register_scan(scan.points, estimator, markers_mm=scan.markers, markers_nominal_mm=scan.markers_nominal[::-1])
     with pytest.raises(ScanError, match=r"\(4, 4\)"):
         register_scan(scan.points, estimator, scanner_pose=np.eye(3))
+
+
+def test_a_stated_marker_noise_is_checked_against_the_marker_residual(skin, truth, estimator):
+    """Fails if a stated marker noise reaches the field's pose covariance unchecked (stated 3 times too small, or 5
+    times too large, it must be rejected by name on every scan and replaced by the residual's estimate), if a right
+    statement is rejected more often than the 0.1 % rate allows (at most 1 of 16), or if the statistic is not
+    chi-square with 3K - 6 dof (its mean over the right statements must be within 3.3 standard errors of the dof).
+    Truth: the synthetic scanner's marker-centre noise, 0.03 mm per coordinate, 8 markers."""
+    true_mm, chi2, wrongly_rejected = 0.03, [], 0
+    for seed in range(16):
+        scan = _scan(skin, truth, seed=200 + seed, n_points=10_000, marker_noise_mm=true_mm)
+        for stated in (true_mm, true_mm / 3, true_mm * 5):
+            field, registration = field_from_scan(skin, scan.points, markers_mm=scan.markers,
+                                                  markers_nominal_mm=scan.markers_nominal, estimator=estimator,
+                                                  min_coverage=0.0, marker_std_mm=stated)
+            check = registration.marker_noise
+            assert check.dof == 3 * len(scan.markers) - 6 == 18
+            used = stated if check.accepted else check.estimated_mm
+            np.testing.assert_allclose(field.errors.pose_covariance,
+                                       marker_pose_covariance(scan.markers_nominal, used)[0], rtol=1e-12)
+            if stated == true_mm:
+                chi2.append(check.chi2)
+                wrongly_rejected += not check.accepted
+            else:
+                word = "too small" if stated < true_mm else "too large"
+                assert not check.accepted and word in check.reason and check.used_mm == check.estimated_mm, check
+    assert wrongly_rejected <= 1
+    assert abs(np.mean(chi2) - 18.0) < 3.3 * np.sqrt(2 * 18 / len(chi2)), np.mean(chi2)
+
+
+def test_the_marker_noise_check_refuses_what_it_cannot_judge():
+    """Fails if a check without enough markers or of a non-positive stated noise gives a verdict instead of a
+    named error."""
+    with pytest.raises(ScanError, match="at least 3 markers"):
+        check_marker_noise(0.01, 2, 0.01)
+    for bad in (0.0, -0.01, float("nan")):
+        with pytest.raises(ScanError, match="finite number > 0"):
+            check_marker_noise(0.01, 8, bad)

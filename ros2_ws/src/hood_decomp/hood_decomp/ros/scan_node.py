@@ -40,6 +40,10 @@ class ScanNode(HoodNode):
                      "the part frame: id, x, y, z (metres) per marker; the cloud reports measured centres as points "
                      "whose marker_field is the id (-1 for surface points)")
         declare(self, "marker_field", "marker_id", "per-point field holding marker ids")
+        declare(self, "marker_std_mm", 0.0, "the scanner's calibrated marker-centre noise, mm per coordinate, for "
+                "the marker registration's pose covariance; 0: not stated, estimated from each cloud's marker "
+                "residual. A stated value that residual rejects (chi-square, 3K - 6 dof, two-sided 0.1 %) is replaced "
+                "by the estimate and reported as a WARN on /diagnostics", 0.0, 10.0)
         declare(self, "max_points", 5_000_000, "largest cloud accepted (points)", 1, 100_000_000)
         declare(self, "min_coverage", 0.2, "smallest seen fraction of the skin", 0.0, 1.0)
         use_tf = declare(self, "use_tf", True, "take each cloud's pose from TF (part_frame <- the cloud's frame at "
@@ -65,10 +69,14 @@ class ScanNode(HoodNode):
                 self.get_logger().error(f"no TF: {error} (build ros2_ws/src/tf2_msgs or install tf2_ros)")
         self.poses = PoseSources(sources)
         self.inspection = InspectionServer(self, bases_and_estimator=self.bases_and_estimator,
+                                           marker_std_mm=self.marker_std_mm,
                                            publish_field=self.publish_field, parameter=self.param,
                                            serving=lambda: self.state == "active")
 
     def check_parameter(self, parameter: Parameter) -> str:
+        if parameter.name == "marker_std_mm" and not (isinstance(parameter.value, float)
+                                                      and 0.0 <= parameter.value <= 10.0):
+            return f"a number of mm in [0, 10] (0: not stated), got {parameter.value!r}"
         if parameter.name not in ("scanner_pose", "marker_positions") or parameter.value is None:
             return super().check_parameter(parameter)
         values = np.asarray(parameter.value, dtype=float)
@@ -98,6 +106,10 @@ class ScanNode(HoodNode):
         # reliable and best-effort scanner drivers both connect; each cloud is taken once
         self.subscription(PointCloud2, "scan/points", self.guarded("scan", self.on_cloud), any_reliability=True)
 
+    def marker_std_mm(self) -> float | None:
+        """The stated marker-centre noise (parameter marker_std_mm), None when not stated (0)."""
+        return float(self.param("marker_std_mm")) or None
+
     def bases_and_estimator(self, variant: str) -> tuple[Any, Any]:
         """The bases and the prepared scan-field estimator of a part variant ("" = the default bases)."""
         bases = self.bases_for_variant(variant)
@@ -123,13 +135,15 @@ class ScanNode(HoodNode):
         bases, estimator = self.bases_and_estimator("")  # a lone cloud is of the default variant
         field, registration = field_from_scan(bases.skin, points_mm, scanner_pose=pose.pose_mm,
                                               markers_mm=markers_mm, markers_nominal_mm=markers_nominal_mm,
-                                              min_coverage=self.param("min_coverage"), estimator=estimator)
+                                              min_coverage=self.param("min_coverage"), estimator=estimator,
+                                              marker_std_mm=self.marker_std_mm())
         part_id = messages.part_id_of(msg)  # a cloud names no part: one id per stamp (an inspection names its own)
         self.publish_field(field, msg.header, part_id)
         return {"part_id": part_id, "points": points_mm.shape[0],
                 "markers": 0 if markers_mm is None else len(markers_mm), "coverage": f"{field.coverage:.3f}",
                 "noise_rms_mm": f"{field.noise_rms:.4f}", "registration": registration.method,
-                "overlap": f"{registration.overlap:.3f}", "pose_source": pose.report}
+                "overlap": f"{registration.overlap:.3f}", "pose_source": pose.report,
+                **messages.marker_check_values(registration.marker_noise)}
 
     def publish_field(self, field: CoreField, header: Header, part_id: str) -> None:
         header.frame_id = self.param("part_frame")
