@@ -385,7 +385,9 @@ def test_a_stated_marker_noise_the_markers_reject_is_warned_and_not_used(cell):
     residual: stated 10 times below the synthetic scanner's marker noise (0.001 against 0.01 mm), a lone cloud's
     diagnostic must be a WARN saying "too small" and the published field's pose covariance the one of the
     residual's estimate (the stated value's is 100 times smaller); stated right (0.01 mm), an OK diagnostic and the
-    stated value's covariance. The parameter callback refuses NaN and negative values. Truth: the scanner's marker
+    stated value's covariance. Stated 1.4 times too small (0.0072 mm), two clouds each pass their own check (p 0.0016
+    and 0.021) but the second must be a WARN for "the last 2 clouds" (pooled p 0.00014): fails if the node does not
+    pool its clouds' residuals. The parameter callback refuses NaN and negative values. Truth: the scanner's marker
     noise and the nominal centres of the markers the view saw."""
     from hood_decomp.core.scan.registration import marker_pose_covariance
 
@@ -413,5 +415,12 @@ def test_a_stated_marker_noise_the_markers_reject_is_warned_and_not_used(cell):
             expected = marker_pose_covariance(scan.markers_nominal, used)[0]
             np.testing.assert_allclose(field.errors.pose_covariance, expected, rtol=2e-3,
                                        atol=1e-9 * np.abs(expected).max())
+        assert _set_marker_std(peer, 0.0072) == (True, "")
+        for sec, view, level in ((613, scans[1], DiagnosticStatus.OK), (614, scans[2], DiagnosticStatus.WARN)):
+            _send_view(peer, view, f"camera_marker_{sec}", sec)
+            assert peer.wait(lambda sec=sec: _scan_status(peer, sec) is not None, 60.0)
+            status = _scan_status(peer, sec)
+            assert status.level == level, status.message
+        assert "the last 2 clouds" in status.message and "too small" in status.message, status.message
     finally:
         _set_marker_std(peer, 0.0)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from hood_decomp.core.scan.registration import (
+    MarkerNoiseHistory,
     check_marker_noise,
     marker_pose_covariance,
     register_scan,
@@ -153,6 +154,27 @@ def test_a_stated_marker_noise_is_checked_against_the_marker_residual(skin, trut
                 assert not check.accepted and word in check.reason and check.used_mm == check.estimated_mm, check
     assert wrongly_rejected <= 1
     assert abs(np.mean(chi2) - 18.0) < 3.3 * np.sqrt(2 * 18 / len(chi2)), np.mean(chi2)
+
+
+def test_a_scanners_recent_clouds_reject_an_understatement_one_cloud_lets_through(skin, truth):
+    """Fails if the scan node's history does not pool the clouds' marker residuals: stated 1.5 times too small
+    (0.02 against the synthetic scanner's 0.03 mm), one cloud's check alone lets it through in at least a third of
+    30 clouds (it rejects with P = 0.35 each; measured 16 of 30), the pooled check (20 clouds) rejects it in at
+    least 27 of them (from the 5th cloud on with P >= 0.95 each; measured 30); a right statement is rejected at
+    most once in 30; a new statement starts a new pool; without a statement or markers nothing is checked."""
+    history, right, own_rejected, pooled_rejected, right_rejected = MarkerNoiseHistory(), MarkerNoiseHistory(), 0, 0, 0
+    for seed in range(30):
+        scan = _scan(skin, truth, seed=300 + seed, n_points=2_000, marker_noise_mm=0.03)
+        used, check = history.statement(0.02, scan.markers, scan.markers_nominal)
+        assert check.clouds == min(seed + 1, 20) and check.dof == 18 * check.clouds
+        assert used == (0.02 if check.accepted else None)
+        pooled_rejected += not check.accepted
+        own_rejected += not check_marker_noise(np.sqrt(check.estimated_mm**2 * 18 / 8), 8, 0.02).accepted
+        right_rejected += not right.statement(0.03, scan.markers, scan.markers_nominal)[1].accepted
+    assert own_rejected <= 20 and pooled_rejected >= 27 and right_rejected <= 1, (own_rejected, pooled_rejected)
+    assert history.statement(0.05, scan.markers, scan.markers_nominal)[1].clouds == 1
+    assert history.statement(None, scan.markers, scan.markers_nominal) == (None, None)
+    assert history.statement(0.05, None, None) == (0.05, None)
 
 
 def test_the_marker_noise_check_refuses_what_it_cannot_judge():

@@ -77,14 +77,17 @@ class InspectionServer:
     (DisplacementField, header, part_id) -> None publishes the fused field the way the node publishes every field;
     parameter: name -> the node's current value of ``inspection_timeout_s`` (a goal's timeout when it states none)
     and ``result_timeout_s`` (module docstring), read when used; serving: () -> whether the node takes clouds (a goal
-    is rejected otherwise); marker_std_mm: () -> the scanner's stated marker-centre noise, mm (None: estimated per
-    view; a stated value its markers reject is replaced and the view's diagnostic warns); min_view_coverage:
-    smallest skin fraction one view must show.
+    is rejected otherwise); marker_statement: (markers (K, 3) mm or None, their nominal centres) -> (the marker
+    noise to register the view with, None: estimated; the check of the scanner's stated noise over its recent
+    clouds or None): the node's (:class:`~hood_decomp.core.scan.registration.MarkerNoiseHistory`); a rejected
+    statement makes the view's diagnostic warn; min_view_coverage: smallest skin fraction one view must show.
     """
 
     def __init__(self, node: Any, *, bases_and_estimator: Callable[[str], tuple[Any, Any]],
                  publish_field: Callable[[DisplacementField, Any, str], None], parameter: Callable[[str], Any],
-                 serving: Callable[[], bool], marker_std_mm: Callable[[], float | None] = lambda: None,
+                 serving: Callable[[], bool],
+                 marker_statement: Callable[[Any, Any], tuple[float | None, Any]] = lambda markers, nominal: (None,
+                                                                                                            None),
                  min_view_coverage: float = 0.02) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
         from hood_decomp_msgs.action import InspectPart
@@ -98,7 +101,7 @@ class InspectionServer:
         self.publish_field = publish_field
         self.parameter = parameter
         self.serving = serving
-        self.marker_std_mm = marker_std_mm
+        self.marker_statement = marker_statement
         self.min_view_coverage = min_view_coverage
         self._lock = threading.Lock()  # the node's executor has two threads: a cloud and the goal may meet
         self.part: _Part | None = None
@@ -182,10 +185,11 @@ class InspectionServer:
                 raise ScanError(f"{name}: no pose from TF, scan/pose or the scanner_pose parameter "
                                 f"({'; '.join(pose.skipped) or 'no source'})")
             bases, estimator = self.bases_and_estimator(part.variant)
+            marker_std_mm, pooled = self.marker_statement(view.markers_mm, view.markers_nominal_mm)
             result = view_field(bases.skin, ScanView(view.points_mm, view.scanner_pose, view.markers_mm,
                                                view.markers_nominal_mm, name=name, pose_source=pose.source),
                                 estimator=estimator, min_coverage=self.min_view_coverage,
-                                marker_std_mm=self.marker_std_mm())
+                                marker_std_mm=marker_std_mm)
         except ScanError as error:
             part.refused += 1
             part.reports.append(f"refused: {error}")
@@ -201,9 +205,9 @@ class InspectionServer:
         if result.pose_correction_mm == result.pose_correction_mm:  # not NaN: markers refined the pose
             report += (f", markers moved it {result.pose_correction_mm:.3f} mm / {result.pose_correction_deg:.4f} deg "
                        "from its pose")
-        check = result.registration.marker_noise
-        if check is not None and not check.accepted:
-            report += f", {check.reason}"
+        marker_check = marker_check_values(pooled, result.registration.marker_noise)
+        if "warning" in marker_check:
+            report += f", {marker_check['warning']}"
         part.reports.append(report)
         coverage = self._feedback(part, report)
         if len(part.views) >= part.expected:
@@ -211,7 +215,7 @@ class InspectionServer:
                 part.close("complete")
         return {"part_id": part.part_id, "view": number, "pose_source": pose.source, "registration": registration,
                 "view_coverage": f"{result.field.coverage:.3f}", "fused_coverage": f"{coverage:.3f}",
-                **marker_check_values(result.registration.marker_noise)}
+                **marker_check}
 
     def _feedback(self, part: _Part, last: str) -> float:
         bases, _ = self.bases_and_estimator(part.variant)

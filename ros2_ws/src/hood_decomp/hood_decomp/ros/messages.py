@@ -401,14 +401,16 @@ def calibration_to_params(pose_mm: np.ndarray, markers_mm: Mapping[int | str, Se
     return pose.ravel().tolist(), markers
 
 
-def marker_check_values(check: MarkerNoiseCheck | None) -> dict[str, str]:
+def marker_check_values(pooled: MarkerNoiseCheck | None, own: MarkerNoiseCheck | None) -> dict[str, str]:
     """The scan node's diagnostic key-values of a stated marker noise's check
-    (:func:`hood_decomp.core.scan.registration.check_marker_noise`): stated, estimated and used noise (mm), the
-    chi-square with its dof and p-value, and ``warning`` (the reason) when the residual rejected the stated value,
-    which makes the diagnostic a WARN (:func:`hood_decomp.ros.node_common.guarded`). Empty without a check."""
+    (:func:`hood_decomp.core.scan.registration.check_marker_noise`), the pooled one over the scanner's recent clouds
+    when it rejected the statement, else the cloud's own: stated, estimated and used noise (mm), the chi-square with
+    its dof and p-value, and ``warning`` (the reason) when it was rejected, which makes the diagnostic a WARN
+    (:func:`hood_decomp.ros.node_common.guarded`). Empty without a check."""
+    check = pooled if pooled is not None and not pooled.accepted else own
     if check is None:
         return {}
     values = {"marker_std_stated_mm": f"{check.stated_mm:.4g}", "marker_std_estimated_mm": f"{check.estimated_mm:.4g}",
               "marker_std_used_mm": f"{check.used_mm:.4g}", "marker_chi2": f"{check.chi2:.2f} ({check.dof} dof)",
-              "marker_p_value": f"{check.p_value:.2g}"}
+              "marker_p_value": f"{check.p_value:.2g}", "marker_clouds": str(check.clouds)}
     return {**values, "warning": check.reason} if check.reason else values
