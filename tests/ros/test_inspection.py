@@ -17,7 +17,7 @@ from tests.required import require_import
 require_import("hood_decomp_msgs.action", "colcon build", "run inside scripts/with-env after scripts/setup.sh")
 from action_msgs.msg import GoalStatus
 from builtin_interfaces.msg import Duration, Time
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import TransformStamped
 from hood_decomp_msgs.action import InspectPart
 from hood_decomp_msgs.msg import DisplacementField
@@ -363,3 +363,64 @@ def test_two_variants_are_served_by_one_node_selected_by_the_goal(cell, zoned, c
     assert result.model_id == zoned.h20_model_id != coarse_hood.bases.model_id
     assert result.boundary_state.model_id == zoned.h20_model_id
     assert [z.name for z in result.zones] == ["whole"] and result.zones_ok and result.zones[0].coverage > 0.8
+
+
+def _scan_status(peer, stamp_sec: int):
+    """The scan node's DiagnosticStatus about the cloud stamped ``stamp_sec`` (None before it came)."""
+    return next((status for array in peer.diagnostics for status in array.status if status.name.endswith("_scan")
+                 and any(kv.key == "stamp" and kv.value == f"{stamp_sec}.000000000" for kv in status.values)), None)
+
+
+def _set_marker_std(peer, value) -> tuple[bool, str]:
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+
+    request = SetParameters.Request(parameters=[Parameter("marker_std_mm", value=value).to_parameter_msg()])
+    result = peer.call("/hood_decomp_scan/set_parameters", SetParameters, request, 30.0).results[0]
+    return result.successful, result.reason
+
+
+def test_a_stated_marker_noise_the_markers_reject_is_warned_and_not_used(cell):
+    """Fails if the scan node uses its marker_std_mm parameter without checking it against the cloud's marker
+    residual: stated 10 times below the synthetic scanner's marker noise (0.001 against 0.01 mm), a lone cloud's
+    diagnostic must be a WARN saying "too small" and the published field's pose covariance the one of the
+    residual's estimate (the stated value's is 100 times smaller); stated right (0.01 mm), an OK diagnostic and the
+    stated value's covariance. Stated 1.4 times too small (0.0072 mm), two clouds each pass their own check (p 0.0016
+    and 0.021) but the second must be a WARN for "the last 2 clouds" (pooled p 0.00014): fails if the node does not
+    pool its clouds' residuals. The parameter callback refuses NaN and negative values. Truth: the scanner's marker
+    noise and the nominal centres of the markers the view saw."""
+    from hood_decomp.core.scan.registration import marker_pose_covariance
+
+    peer, _, _, scans, _, fields, ready, _ = cell
+    assert ready
+    scan = scans[1]
+    try:
+        assert not _set_marker_std(peer, float("nan"))[0] and not _set_marker_std(peer, -0.01)[0]
+        for sec, stated in ((611, 0.001), (612, 0.01)):
+            assert _set_marker_std(peer, stated) == (True, "")
+            _send_view(peer, scan, f"camera_marker_{sec}", sec)
+            assert peer.wait(lambda sec=sec: _scan_status(peer, sec) is not None and any(
+                f.part_id == f"stamp-{sec}.000000000" for f in fields), 60.0)
+            status = _scan_status(peer, sec)
+            values = {kv.key: kv.value for kv in status.values}
+            assert values["registration"].startswith("markers"), values
+            field = messages.msg_to_field(next(f for f in fields if f.part_id == f"stamp-{sec}.000000000"))
+            used = float(values["marker_std_used_mm"])
+            if stated == 0.001:
+                assert status.level == DiagnosticStatus.WARN and "too small" in status.message, status.message
+                assert used == float(values["marker_std_estimated_mm"]) > 0.005, values
+            else:
+                assert status.level == DiagnosticStatus.OK, status.message
+                assert used == stated
+            expected = marker_pose_covariance(scan.markers_nominal, used)[0]
+            np.testing.assert_allclose(field.errors.pose_covariance, expected, rtol=2e-3,
+                                       atol=1e-9 * np.abs(expected).max())
+        assert _set_marker_std(peer, 0.0072) == (True, "")
+        for sec, view, level in ((613, scans[1], DiagnosticStatus.OK), (614, scans[2], DiagnosticStatus.WARN)):
+            _send_view(peer, view, f"camera_marker_{sec}", sec)
+            assert peer.wait(lambda sec=sec: _scan_status(peer, sec) is not None, 60.0)
+            status = _scan_status(peer, sec)
+            assert status.level == level, status.message
+        assert "the last 2 clouds" in status.message and "too small" in status.message, status.message
+    finally:
+        _set_marker_std(peer, 0.0)

@@ -6,7 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hood_decomp.core.scan.registration import register_scan, rigid_from_markers, rotation_from_vector
+from hood_decomp.core.scan.registration import (
+    MarkerNoiseHistory,
+    check_marker_noise,
+    marker_pose_covariance,
+    register_scan,
+    rigid_from_markers,
+    rotation_from_vector,
+)
 from hood_decomp.core.scan.scan_field import ScanFieldEstimator, field_from_scan
 from hood_decomp.errors import ScanError
 from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
@@ -29,7 +36,7 @@ def estimator(skin):
 
 
 def _scan(skin, truth, seed=0, **config):
-    cfg = ScannerConfig(n_points=100_000, noise_mm=0.05, **config)
+    cfg = ScannerConfig(**{"n_points": 100_000, "noise_mm": 0.05, **config})
     return synthesize_scan(skin, along_normals(skin, truth), cfg, seed)
 
 
@@ -119,3 +126,62 @@ def test_bad_registration_input_is_refused(skin, truth, estimator):
         register_scan(scan.points, estimator, markers_mm=scan.markers, markers_nominal_mm=scan.markers_nominal[::-1])
     with pytest.raises(ScanError, match=r"\(4, 4\)"):
         register_scan(scan.points, estimator, scanner_pose=np.eye(3))
+
+
+def test_a_stated_marker_noise_is_checked_against_the_marker_residual(skin, truth, estimator):
+    """Fails if a stated marker noise reaches the field's pose covariance unchecked (stated 3 times too small, or 5
+    times too large, it must be rejected by name on every scan and replaced by the residual's estimate), if a right
+    statement is rejected more often than the 0.1 % rate allows (at most 1 of 16), or if the statistic is not
+    chi-square with 3K - 6 dof (its mean over the right statements must be within 3.3 standard errors of the dof).
+    Truth: the synthetic scanner's marker-centre noise, 0.03 mm per coordinate, 8 markers."""
+    true_mm, chi2, wrongly_rejected = 0.03, [], 0
+    for seed in range(16):
+        scan = _scan(skin, truth, seed=200 + seed, n_points=10_000, marker_noise_mm=true_mm)
+        for stated in (true_mm, true_mm / 3, true_mm * 5):
+            field, registration = field_from_scan(skin, scan.points, markers_mm=scan.markers,
+                                                  markers_nominal_mm=scan.markers_nominal, estimator=estimator,
+                                                  min_coverage=0.0, marker_std_mm=stated)
+            check = registration.marker_noise
+            assert check.dof == 3 * len(scan.markers) - 6 == 18
+            used = stated if check.accepted else check.estimated_mm
+            np.testing.assert_allclose(field.errors.pose_covariance,
+                                       marker_pose_covariance(scan.markers_nominal, used)[0], rtol=1e-12)
+            if stated == true_mm:
+                chi2.append(check.chi2)
+                wrongly_rejected += not check.accepted
+            else:
+                word = "too small" if stated < true_mm else "too large"
+                assert not check.accepted and word in check.reason and check.used_mm == check.estimated_mm, check
+    assert wrongly_rejected <= 1
+    assert abs(np.mean(chi2) - 18.0) < 3.3 * np.sqrt(2 * 18 / len(chi2)), np.mean(chi2)
+
+
+def test_a_scanners_recent_clouds_reject_an_understatement_one_cloud_lets_through(skin, truth):
+    """Fails if the scan node's history does not pool the clouds' marker residuals: stated 1.5 times too small
+    (0.02 against the synthetic scanner's 0.03 mm), one cloud's check alone lets it through in at least a third of
+    30 clouds (it rejects with P = 0.35 each; measured 16 of 30), the pooled check (20 clouds) rejects it in at
+    least 27 of them (from the 5th cloud on with P >= 0.95 each; measured 30); a right statement is rejected at
+    most once in 30; a new statement starts a new pool; without a statement or markers nothing is checked."""
+    history, right, own_rejected, pooled_rejected, right_rejected = MarkerNoiseHistory(), MarkerNoiseHistory(), 0, 0, 0
+    for seed in range(30):
+        scan = _scan(skin, truth, seed=300 + seed, n_points=2_000, marker_noise_mm=0.03)
+        used, check = history.statement(0.02, scan.markers, scan.markers_nominal)
+        assert check.clouds == min(seed + 1, 20) and check.dof == 18 * check.clouds
+        assert used == (0.02 if check.accepted else None)
+        pooled_rejected += not check.accepted
+        own_rejected += not check_marker_noise(np.sqrt(check.estimated_mm**2 * 18 / 8), 8, 0.02).accepted
+        right_rejected += not right.statement(0.03, scan.markers, scan.markers_nominal)[1].accepted
+    assert own_rejected <= 20 and pooled_rejected >= 27 and right_rejected <= 1, (own_rejected, pooled_rejected)
+    assert history.statement(0.05, scan.markers, scan.markers_nominal)[1].clouds == 1
+    assert history.statement(None, scan.markers, scan.markers_nominal) == (None, None)
+    assert history.statement(0.05, None, None) == (0.05, None)
+
+
+def test_the_marker_noise_check_refuses_what_it_cannot_judge():
+    """Fails if a check without enough markers or of a non-positive stated noise gives a verdict instead of a
+    named error."""
+    with pytest.raises(ScanError, match="at least 3 markers"):
+        check_marker_noise(0.01, 2, 0.01)
+    for bad in (0.0, -0.01, float("nan")):
+        with pytest.raises(ScanError, match="finite number > 0"):
+            check_marker_noise(0.01, 8, bad)

@@ -24,7 +24,8 @@ from hood_decomp.io.json_values import json_ready
 
 if TYPE_CHECKING:  # only for annotations: a verb's --help does not load the method
     from hood_decomp.core.method.bases import Bases
-    from hood_decomp.core.scan.fusion import ScanView
+    from hood_decomp.core.scan.fusion import FusedField, ScanView
+    from hood_decomp.core.scan.registration import MarkerNoiseCheck
     from hood_decomp.core.types import DisplacementField, SkinSurface
 
 #: what ``args.inputs`` holds: ("field" or "scan", path) in the order given on the command line
@@ -276,13 +277,16 @@ def _scan_inputs(inputs: Inputs, poses: Poses) -> list[tuple[Path, Path | None]]
 
 def read_fields(inputs: Inputs | None, skin: SkinSurface, min_coverage: float,
                 poses: Poses | None = None, one_part: bool = False,
-                views: Sequence[ScanView] | None = None, marker_std_mm: float | None = None) -> list[DisplacementField]:
+                views: Sequence[ScanView] | None = None, marker_std_mm: float | None = None,
+                marker_checks: list[dict] | None = None) -> list[DisplacementField]:
     """The displacement fields of --field and --scan inputs, in their order; FieldError when there is none.
 
     The scans are the views of one part, fused into one field in the place of the first (each with its
     --scanner-pose from ``poses``, else the pose its PLY stores), when ``one_part`` (a verb that reads one part) or
     when any scan has a --scanner-pose; otherwise every scan is a field of its own. ``views``: those fused scans'
-    views when the caller read them already (:func:`read_bases_and_field`). ``marker_std_mm``: --marker-std-mm.
+    views when the caller read them already (:func:`read_bases_and_field`). ``marker_std_mm``: --marker-std-mm;
+    ``marker_checks``: a list that receives :func:`marker_check_payload` of every scan view registered by markers
+    with it (what the JSON reports; a rejected value is also a warning line on stderr).
     """
     from hood_decomp.io.fields import read_field
     from hood_decomp.io.scans import fused_field_from_scan_files
@@ -293,26 +297,49 @@ def read_fields(inputs: Inputs | None, skin: SkinSurface, min_coverage: float,
     scans = _scan_inputs(inputs, poses)
     fields: list[DisplacementField] = []
     fused_done = False
+
+    def field_of(fused: FusedField) -> DisplacementField:
+        if marker_checks is not None:
+            marker_checks.extend(marker_check_payload(view.name, view.registration.marker_noise)
+                                 for view in fused.views if view.registration.marker_noise is not None)
+        return fused.field
+
     for kind, path in inputs:
         if kind == "field":
             fields.append(read_field(path, skin)[0])
         elif one_part or poses:
             if not fused_done:
-                fields.append(fused_field_from_scan_files(skin, scans, min_coverage, views, marker_std_mm).field)
+                fields.append(field_of(fused_field_from_scan_files(skin, scans, min_coverage, views, marker_std_mm)))
                 fused_done = True
         else:
-            fields.append(fused_field_from_scan_files(skin, [(path, None)], min_coverage,
-                                                      marker_std_mm=marker_std_mm).field)
+            fields.append(field_of(fused_field_from_scan_files(skin, [(path, None)], min_coverage,
+                                                               marker_std_mm=marker_std_mm)))
     return fields
 
 
-def read_bases_and_field(args: argparse.Namespace, meanwhile: Callable[[Bases], object] | None = None
-                         ) -> tuple[Bases, DisplacementField]:
+def marker_checks_or_none(args: argparse.Namespace, checks: list[dict]) -> list[dict] | None:
+    """The JSON's ``marker_noise_checks``: null without --marker-std-mm (nothing stated, nothing checked), else one
+    :func:`marker_check_payload` per scan view registered by markers."""
+    return None if args.marker_std_mm is None else checks
+
+
+def marker_check_payload(view: str, check: MarkerNoiseCheck) -> dict:
+    """The check of a stated marker noise (core.scan.registration.check_marker_noise) as the JSON reports it:
+    ``view``, ``stated_mm``, ``estimated_mm``, ``used_mm`` (what the pose covariance used), ``chi2``, ``dof``,
+    ``p_value`` (two-sided), ``alpha``, ``accepted`` and ``reason`` ("" when accepted)."""
+    return {"view": view, "stated_mm": check.stated_mm, "estimated_mm": check.estimated_mm,
+            "used_mm": check.used_mm, "chi2": check.chi2, "dof": check.dof, "p_value": check.p_value,
+            "alpha": check.alpha, "accepted": check.accepted, "reason": check.reason}
+
+
+def read_bases_and_field(args: argparse.Namespace, meanwhile: Callable[[Bases], object] | None = None,
+                         marker_checks: list[dict] | None = None) -> tuple[Bases, DisplacementField]:
     """The bases of --bases and the one field of --field or of the --scan views of one part (:func:`add_bases`,
     :func:`add_inputs`). The scan files are read in a second thread while the bases load (neither needs the other;
     a bad bases file still fails first, by its own error). ``meanwhile(bases)``: work that needs only the bases, run
     in a second thread while the field is made (a scan: its prepared skin and scan path), finished before this
-    returns; a HoodDecompError there is left to the caller's own call of that work, which raises it again."""
+    returns; a HoodDecompError there is left to the caller's own call of that work, which raises it again.
+    ``marker_checks``: as :func:`read_fields`."""
     from hood_decomp.io.bases import load_bases
     from hood_decomp.io.scans import scan_file_views
 
@@ -323,7 +350,8 @@ def read_bases_and_field(args: argparse.Namespace, meanwhile: Callable[[Bases], 
         bases = load_bases(args.bases, mapped=True)  # a verb's process ends soon: the file's pages as they are
         pending = None if meanwhile is None else pool.submit(meanwhile, bases)
         fields = read_fields(args.inputs, bases.skin, args.min_coverage, args.scanner_poses, one_part=True,
-                             views=None if early is None else early.result(), marker_std_mm=args.marker_std_mm)
+                             views=None if early is None else early.result(), marker_std_mm=args.marker_std_mm,
+                             marker_checks=marker_checks)
         if pending is not None:
             with contextlib.suppress(HoodDecompError):
                 pending.result()

@@ -22,6 +22,7 @@ from hood_decomp.cli._common import (
     check_output,
     finite,
     input_paths,
+    marker_checks_or_none,
     model_inputs,
     read_fields,
     write_json,
@@ -112,8 +113,10 @@ def run(args: argparse.Namespace) -> int:
     if model.model_id != bases.model_id:
         raise ModelIdMismatchError(f"model {args.model} has model_id {model.model_id!r}, bases {args.bases} "
                                    f"{bases.model_id!r}: build the bases from this model")
+    checks: list[dict] = []
     fields = apply_reference(args, bases, read_fields(args.inputs, bases.skin, args.min_coverage,
-                                                      args.scanner_poses, marker_std_mm=args.marker_std_mm))
+                                                      args.scanner_poses, marker_std_mm=args.marker_std_mm,
+                                                      marker_checks=checks))
     truth = _read_truth(args.truth, len(fields))
     ensemble = None
     if args.ensemble is not None:
@@ -128,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
     payload["inputs"] = [str(path) for _, path in args.inputs]
     payload["candidates"] = list(candidates.names)
     payload["candidates_without_effect"] = list(candidates.dropped)
+    payload["marker_noise_checks"] = marker_checks_or_none(args, checks)
     with written_whole_directory(args.out) as directory:
         figures = plot_residual_maps(bases.skin, result, directory)
         figures.append(plot_before_after(result, directory / "before_after.png", truth))

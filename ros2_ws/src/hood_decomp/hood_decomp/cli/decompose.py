@@ -14,6 +14,7 @@ from hood_decomp.cli._common import (
     check_output,
     emit_json,
     finite,
+    marker_checks_or_none,
     read_bases_and_field,
 )
 
@@ -38,7 +39,8 @@ def run(args: argparse.Namespace) -> int:
     inputs = check_json(args)
     if args.plots is not None:
         check_output(args.plots, inputs, "--plots", directory=True)
-    bases, field = read_bases_and_field(args)
+    checks: list[dict] = []
+    bases, field = read_bases_and_field(args, marker_checks=checks)
     estimate = estimate_field(bases, field, args.method, args.min_coverage)
     result = decompose_field(bases, field, estimate, min_share=args.min_share, min_coverage=args.min_coverage)
     payload = {
@@ -48,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
         # has no trustworthy decomposition either
         "within_model": estimate.within_model,
         "within_model_p_value": estimate.check.p_value,
+        "marker_noise_checks": marker_checks_or_none(args, checks),
     }
     if args.plots is not None:
         from hood_decomp.plots.method import plot_contributions

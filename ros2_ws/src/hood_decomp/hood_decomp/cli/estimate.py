@@ -12,6 +12,7 @@ from hood_decomp.cli._common import (
     check_json,
     emit_json,
     finite,
+    marker_checks_or_none,
     read_bases_and_field,
 )
 
@@ -106,12 +107,13 @@ def run(args: argparse.Namespace) -> int:
 
     check_json(args)
     # the estimator is fitted (0.1-0.4 s at paper resolution) while the scan is read and turned into a field
+    checks: list[dict] = []
     bases, field = read_bases_and_field(args, lambda bases: bases.prepare_estimation(
-        args.method, args.min_coverage, args.temperature_k))
+        args.method, args.min_coverage, args.temperature_k), marker_checks=checks)
     estimate = estimate_field(bases, field, args.method, args.min_coverage, args.temperature_k)
     payload = estimate_payload(estimate, bases.pca.n_bilateral_)
     payload.update(bases_provenance(bases), reference=None if args.reference is None else str(args.reference),
-                   temperature_k=args.temperature_k)
+                   temperature_k=args.temperature_k, marker_noise_checks=marker_checks_or_none(args, checks))
     payload.update(zones_payload(zone_verdicts(field, bases.tolerance_zones)))
     emit_json(payload, args.json)
     return 0

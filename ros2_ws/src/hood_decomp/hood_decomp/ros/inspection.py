@@ -41,7 +41,7 @@ from hood_decomp.core.method.tolerance import zone_verdicts
 from hood_decomp.core.scan.fusion import ScanView, ViewResult, fuse_fields, view_field
 from hood_decomp.core.types import DisplacementField
 from hood_decomp.errors import HoodDecompError, ScanError
-from hood_decomp.ros.messages import M_PER_MM, zone_verdicts_to_msg
+from hood_decomp.ros.messages import M_PER_MM, marker_check_values, zone_verdicts_to_msg
 from hood_decomp.ros.poses import ResolvedPose
 
 ACTION = "hood_decomp/inspect_part"
@@ -77,12 +77,18 @@ class InspectionServer:
     (DisplacementField, header, part_id) -> None publishes the fused field the way the node publishes every field;
     parameter: name -> the node's current value of ``inspection_timeout_s`` (a goal's timeout when it states none)
     and ``result_timeout_s`` (module docstring), read when used; serving: () -> whether the node takes clouds (a goal
-    is rejected otherwise); min_view_coverage: smallest skin fraction one view must show.
+    is rejected otherwise); marker_statement: (markers (K, 3) mm or None, their nominal centres) -> (the marker
+    noise to register the view with, None: estimated; the check of the scanner's stated noise over its recent
+    clouds or None): the node's (:class:`~hood_decomp.core.scan.registration.MarkerNoiseHistory`); a rejected
+    statement makes the view's diagnostic warn; min_view_coverage: smallest skin fraction one view must show.
     """
 
     def __init__(self, node: Any, *, bases_and_estimator: Callable[[str], tuple[Any, Any]],
                  publish_field: Callable[[DisplacementField, Any, str], None], parameter: Callable[[str], Any],
-                 serving: Callable[[], bool], min_view_coverage: float = 0.02) -> None:
+                 serving: Callable[[], bool],
+                 marker_statement: Callable[[Any, Any], tuple[float | None, Any]] = lambda markers, nominal: (None,
+                                                                                                            None),
+                 min_view_coverage: float = 0.02) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
         from hood_decomp_msgs.action import InspectPart
         from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState, MoveVerification
@@ -95,6 +101,7 @@ class InspectionServer:
         self.publish_field = publish_field
         self.parameter = parameter
         self.serving = serving
+        self.marker_statement = marker_statement
         self.min_view_coverage = min_view_coverage
         self._lock = threading.Lock()  # the node's executor has two threads: a cloud and the goal may meet
         self.part: _Part | None = None
@@ -178,9 +185,11 @@ class InspectionServer:
                 raise ScanError(f"{name}: no pose from TF, scan/pose or the scanner_pose parameter "
                                 f"({'; '.join(pose.skipped) or 'no source'})")
             bases, estimator = self.bases_and_estimator(part.variant)
+            marker_std_mm, pooled = self.marker_statement(view.markers_mm, view.markers_nominal_mm)
             result = view_field(bases.skin, ScanView(view.points_mm, view.scanner_pose, view.markers_mm,
                                                view.markers_nominal_mm, name=name, pose_source=pose.source),
-                                estimator=estimator, min_coverage=self.min_view_coverage)
+                                estimator=estimator, min_coverage=self.min_view_coverage,
+                                marker_std_mm=marker_std_mm)
         except ScanError as error:
             part.refused += 1
             part.reports.append(f"refused: {error}")
@@ -196,13 +205,17 @@ class InspectionServer:
         if result.pose_correction_mm == result.pose_correction_mm:  # not NaN: markers refined the pose
             report += (f", markers moved it {result.pose_correction_mm:.3f} mm / {result.pose_correction_deg:.4f} deg "
                        "from its pose")
+        marker_check = marker_check_values(pooled, result.registration.marker_noise)
+        if "warning" in marker_check:
+            report += f", {marker_check['warning']}"
         part.reports.append(report)
         coverage = self._feedback(part, report)
         if len(part.views) >= part.expected:
             with self._lock:
                 part.close("complete")
         return {"part_id": part.part_id, "view": number, "pose_source": pose.source, "registration": registration,
-                "view_coverage": f"{result.field.coverage:.3f}", "fused_coverage": f"{coverage:.3f}"}
+                "view_coverage": f"{result.field.coverage:.3f}", "fused_coverage": f"{coverage:.3f}",
+                **marker_check}
 
     def _feedback(self, part: _Part, last: str) -> float:
         bases, _ = self.bases_and_estimator(part.variant)

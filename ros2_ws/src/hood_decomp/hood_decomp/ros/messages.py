@@ -2,7 +2,8 @@
 
 Per-node arrays are copied once into the message's float32 array (``array.array('f')``), never element by element.
 Besides the project messages: the scan cloud in (:func:`scan_to_mm`), the skin clouds out (:class:`SkinClouds`) and
-the scan node's cell calibration parameters (:func:`calibration_from_params`, :func:`calibration_to_params`).
+the scan node's cell calibration parameters (:func:`calibration_from_params`, :func:`calibration_to_params`) and its
+diagnostic key-values of a stated marker noise's check (:func:`marker_check_values`).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from hood_decomp.core.scan.registration import MarkerNoiseCheck
 from hood_decomp.core.types import (
     BoundaryCorrection,
     Decomposition,
@@ -397,3 +399,18 @@ def calibration_to_params(pose_mm: np.ndarray, markers_mm: Mapping[int | str, Se
     markers = [value for marker_id, position in markers_mm.items()
                for value in (float(marker_id), *(np.asarray(position, dtype=float) * M_PER_MM))]
     return pose.ravel().tolist(), markers
+
+
+def marker_check_values(pooled: MarkerNoiseCheck | None, own: MarkerNoiseCheck | None) -> dict[str, str]:
+    """The scan node's diagnostic key-values of a stated marker noise's check
+    (:func:`hood_decomp.core.scan.registration.check_marker_noise`), the pooled one over the scanner's recent clouds
+    when it rejected the statement, else the cloud's own: stated, estimated and used noise (mm), the chi-square with
+    its dof and p-value, and ``warning`` (the reason) when it was rejected, which makes the diagnostic a WARN
+    (:func:`hood_decomp.ros.node_common.guarded`). Empty without a check."""
+    check = pooled if pooled is not None and not pooled.accepted else own
+    if check is None:
+        return {}
+    values = {"marker_std_stated_mm": f"{check.stated_mm:.4g}", "marker_std_estimated_mm": f"{check.estimated_mm:.4g}",
+              "marker_std_used_mm": f"{check.used_mm:.4g}", "marker_chi2": f"{check.chi2:.2f} ({check.dof} dof)",
+              "marker_p_value": f"{check.p_value:.2g}", "marker_clouds": str(check.clouds)}
+    return {**values, "warning": check.reason} if check.reason else values

@@ -184,9 +184,10 @@ def message_stamp(message: Any) -> Any:
 def guarded(node: Node, diagnostics: Diagnostics, what: str,
             handler: Callable[[Any], dict[str, object] | None]) -> Callable[[Any], None]:
     """Wrap a subscription callback: success -> OK diagnostic with the handler's key-values and ``seconds``, the
-    handler's wall time (the node's share of a message's latency); a HoodDecompError -> ERROR diagnostic naming the
-    problem; anything else -> ERROR with the exception type (and the traceback in the log). The node never dies from
-    one message."""
+    handler's wall time (the node's share of a message's latency); WARN with the message ``<what> done with a
+    warning: <warning>`` when they hold a non-empty ``warning`` (served, but something the operator must know); a
+    HoodDecompError -> ERROR diagnostic naming the problem; anything else -> ERROR with the exception type (and the
+    traceback in the log). The node never dies from one message."""
 
     def callback(message: Any) -> None:
         stamp = message_stamp(message)
@@ -205,7 +206,13 @@ def guarded(node: Node, diagnostics: Diagnostics, what: str,
                                error=type(error).__name__)
             return
         diagnostics.processed += 1
-        diagnostics.report(OK, f"{what} ok", stamp, **values, seconds=f"{time.perf_counter() - start:.4f}")
+        values["seconds"] = f"{time.perf_counter() - start:.4f}"
+        warning = str(values.pop("warning", "") or "")
+        if warning:
+            node.get_logger().warning(f"{what}: {warning}")
+            diagnostics.report(WARN, f"{what} done with a warning: {warning}", stamp, **values)
+        else:
+            diagnostics.report(OK, f"{what} ok", stamp, **values)
 
     return callback
 

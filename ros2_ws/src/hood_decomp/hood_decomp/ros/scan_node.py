@@ -21,6 +21,7 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
 from hood_decomp.core.scan.fusion import ScanView
+from hood_decomp.core.scan.registration import MarkerNoiseHistory
 from hood_decomp.core.types import DisplacementField as CoreField
 from hood_decomp.errors import ScanError
 from hood_decomp.ros import messages
@@ -43,6 +44,11 @@ class ScanNode(HoodNode):
                      "the part frame: id, x, y, z (metres) per marker; the cloud reports measured centres as points "
                      "whose marker_field is the id (-1 for surface points)")
         declare(self, "marker_field", "marker_id", "per-point field holding marker ids")
+        declare(self, "marker_std_mm", 0.0, "the scanner's calibrated marker-centre noise, mm per coordinate, for "
+                "the marker registration's pose covariance; 0: not stated, estimated from each cloud's marker "
+                "residual. A stated value the marker residuals reject (chi-square, 3K - 6 dof per cloud, two-sided "
+                "0.1 %; the cloud alone and pooled over the last 20 clouds under the same value) is replaced by the "
+                "estimate and reported as a WARN on /diagnostics", 0.0, 10.0)
         declare(self, "max_points", 5_000_000, "largest cloud accepted (points)", 1, 100_000_000)
         declare(self, "min_coverage", 0.2, "smallest seen fraction of the skin", 0.0, 1.0)
         use_tf = declare(self, "use_tf", True, "take each cloud's pose from TF (part_frame <- the cloud's frame at "
@@ -56,6 +62,7 @@ class ScanNode(HoodNode):
         declare(self, "result_timeout_s", 30.0, "how long an inspection waits for the estimator's answer to its "
                 "fused field (s)", 0.1, 3600.0)
         self.prepared: dict[str, tuple[Any, messages.SkinClouds]] = {}  # model_id -> (estimator, skin clouds)
+        self.marker_history = MarkerNoiseHistory()
         self.field_pub = self.cloud_pub = None
         # pose sources listen from the start (TF arrives before the first cloud), in the order of the module docstring
         wait_s = self.param("pose_wait_s")
@@ -68,10 +75,14 @@ class ScanNode(HoodNode):
                 self.get_logger().error(f"no TF: {error} (build ros2_ws/src/tf2_msgs or install tf2_ros)")
         self.poses = PoseSources(sources)
         self.inspection = InspectionServer(self, bases_and_estimator=self.bases_and_estimator,
+                                           marker_statement=self.marker_statement,
                                            publish_field=self.publish_field, parameter=self.param,
                                            serving=lambda: self.state == "active")
 
     def check_parameter(self, parameter: Parameter) -> str:
+        if parameter.name == "marker_std_mm" and not (isinstance(parameter.value, float)
+                                                      and 0.0 <= parameter.value <= 10.0):
+            return f"a number of mm in [0, 10] (0: not stated), got {parameter.value!r}"
         if parameter.name not in ("scanner_pose", "marker_positions") or parameter.value is None:
             return super().check_parameter(parameter)
         values = np.asarray(parameter.value, dtype=float)
@@ -103,6 +114,12 @@ class ScanNode(HoodNode):
         # reliable and best-effort scanner drivers both connect; each cloud is taken once
         self.subscription(PointCloud2, "scan/points", self.guarded("scan", self.on_cloud), any_reliability=True)
 
+    def marker_statement(self, markers_mm: Any, markers_nominal_mm: Any) -> tuple[float | None, Any]:
+        """The marker noise to register a cloud with and the check of the stated one over this scanner's recent
+        clouds (parameter marker_std_mm, 0: not stated; core.scan.registration.MarkerNoiseHistory)."""
+        return self.marker_history.statement(float(self.param("marker_std_mm")) or None, markers_mm,
+                                             markers_nominal_mm)
+
     def bases_and_estimator(self, variant: str) -> tuple[Any, Any]:
         """The bases and the prepared scan-field estimator of a part variant ("" = the default bases)."""
         bases = self.bases_for_variant(variant)
@@ -126,15 +143,18 @@ class ScanNode(HoodNode):
             view = ScanView(points_mm, pose.pose_mm, markers_mm, markers_nominal_mm, pose_source=pose.source)
             return {**self.inspection.add_view(msg.header, view, pose), "points": points_mm.shape[0]}
         bases, estimator = self.bases_and_estimator("")  # a lone cloud is of the default variant
+        marker_std_mm, pooled = self.marker_statement(markers_mm, markers_nominal_mm)
         field, registration = field_from_scan(bases.skin, points_mm, scanner_pose=pose.pose_mm,
                                               markers_mm=markers_mm, markers_nominal_mm=markers_nominal_mm,
-                                              min_coverage=self.param("min_coverage"), estimator=estimator)
+                                              min_coverage=self.param("min_coverage"), estimator=estimator,
+                                              marker_std_mm=marker_std_mm)
         part_id = messages.part_id_of(msg)  # a cloud names no part: one id per stamp (an inspection names its own)
         self.publish_field(field, msg.header, part_id)
         return {"part_id": part_id, "points": points_mm.shape[0],
                 "markers": 0 if markers_mm is None else len(markers_mm), "coverage": f"{field.coverage:.3f}",
                 "noise_rms_mm": f"{field.noise_rms:.4f}", "registration": registration.method,
-                "overlap": f"{registration.overlap:.3f}", "pose_source": pose.report}
+                "overlap": f"{registration.overlap:.3f}", "pose_source": pose.report,
+                **messages.marker_check_values(pooled, registration.marker_noise)}
 
     def publish_field(self, field: CoreField, header: Header, part_id: str) -> None:
         header.frame_id = self.param("part_frame")

@@ -25,6 +25,8 @@ to the part frame: x_part = R x_scan + t.
 
 from __future__ import annotations
 
+import threading
+from collections import deque
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -64,8 +66,11 @@ class RegistrationResult:
     iterations, converged: of the fine alignment.
     pose_covariance: (6, 6) covariance of the coarse transform's error as a twist [omega rad (3), t mm (3)] about
         ``pose_center`` (3,) mm, part frame: sigma_m^2 (sum_k J_k^T J_k)^-1 over the markers (J_k = [-[q_k]x, I],
-        q_k the nominal marker about its centroid), sigma_m the marker noise per coordinate (stated, or from the
-        marker residual with 3K - 6 degrees of freedom); zeros without markers (a nominal pose states none).
+        q_k the nominal marker about its centroid), sigma_m the marker noise per coordinate (stated and not rejected
+        by ``marker_noise``'s check, else from the marker residual with 3K - 6 degrees of freedom); zeros without
+        markers (a nominal pose states none).
+    marker_noise: the check of a stated marker noise against the marker residual (:func:`check_marker_noise`);
+        None when no marker noise was stated or there were no markers.
     """
 
     transform: np.ndarray
@@ -85,6 +90,111 @@ class RegistrationResult:
     alignment_std_mm: float
     pose_covariance: np.ndarray
     pose_center: np.ndarray
+    marker_noise: MarkerNoiseCheck | None = None
+
+
+#: default rate at which a correctly stated marker noise is rejected by :func:`check_marker_noise` (two-sided)
+MARKER_CHECK_ALPHA = 0.001
+
+
+@dataclass(frozen=True)
+class MarkerNoiseCheck:
+    """A stated marker-centre noise checked against the registration's own marker residual.
+
+    With K markers of isotropic Gaussian centre noise sigma per coordinate, the residual sum of squares of the rigid
+    fit over sigma^2 is chi-square with dof = 3K - 6 (18 for 8 markers). The stated value is rejected when that
+    statistic is outside the two-sided (1 - alpha) interval: a scanner stating 2 times too little noise gives about
+    4 times the expected statistic (p below 1e-9 for 8 markers), one stating too much too small a statistic.
+
+    stated_mm: the stated noise; estimated_mm: the cloud's own estimate sqrt(RSS / dof); used_mm: what the pose
+    covariance uses (stated, or the estimate when rejected); chi2, dof, p_value (two-sided), alpha; reason: "" when
+    accepted, else one line naming the stated and the estimated noise and the test; clouds: how many clouds the
+    statistic pools (1: this one; :class:`MarkerNoiseHistory`).
+    """
+
+    stated_mm: float
+    estimated_mm: float
+    used_mm: float
+    chi2: float
+    dof: int
+    p_value: float
+    alpha: float
+    reason: str
+    clouds: int = 1
+
+    @property
+    def accepted(self) -> bool:
+        return not self.reason
+
+
+def check_marker_noise(marker_rms_mm: float, n_markers: int, stated_mm: float, alpha: float = MARKER_CHECK_ALPHA,
+                       earlier: tuple[float, int, int] = (0.0, 0, 0)) -> MarkerNoiseCheck:
+    """Check ``stated_mm`` (marker-centre noise per coordinate, mm) against the RMS marker residual of a rigid fit
+    to ``n_markers`` (>= 3) markers (RSS = K rms^2) at the two-sided rate ``alpha``; see :class:`MarkerNoiseCheck`.
+    ``earlier``: (RSS mm^2, dof, clouds) of the same scanner's earlier clouds under the same statement
+    (:class:`MarkerNoiseHistory`), pooled with this one; the estimate used on rejection stays this cloud's own.
+    """
+    from scipy.special import chdtrc  # chi-square survival function (scipy.stats.chi2.sf), imported when used
+
+    if n_markers < 3:
+        raise ScanError(f"a marker noise check needs at least 3 markers; got {n_markers}")
+    if not (np.isfinite(stated_mm) and stated_mm > 0):
+        raise ScanError(f"a stated marker noise must be a finite number > 0 mm, got {stated_mm}")
+    own_rss, own_dof = n_markers * marker_rms_mm**2, 3 * n_markers - 6
+    rss, dof, clouds = earlier[0] + own_rss, earlier[1] + own_dof, earlier[2] + 1
+    chi2 = rss / stated_mm**2
+    upper = float(chdtrc(dof, chi2))
+    p_value = float(min(1.0, 2.0 * min(upper, 1.0 - upper)))
+    estimated = float(np.sqrt(own_rss / own_dof))
+    reason = ""
+    if p_value < alpha:
+        direction = "too small" if upper < 0.5 else "too large"
+        residual = "the marker residual" if clouds == 1 else f"the marker residuals of the last {clouds} clouds"
+        reason = (f"stated marker noise {stated_mm:.4g} mm is {direction} for {residual} (chi-square {chi2:.1f} "
+                  f"with {dof} dof, p = {p_value:.1e} < {alpha:g}): the pose covariance uses the estimated "
+                  f"{estimated:.4g} mm")
+    return MarkerNoiseCheck(float(stated_mm), estimated, estimated if reason else float(stated_mm), float(chi2),
+                            dof, p_value, float(alpha), reason, clouds)
+
+
+#: how many of a scanner's recent clouds :class:`MarkerNoiseHistory` pools
+MARKER_CHECK_CLOUDS = 20
+
+
+class MarkerNoiseHistory:
+    """One scanner's stated marker noise checked over its recent clouds (the scan node keeps one).
+
+    A scanner's marker-centre noise is a constant of the scanner, so the residuals of its clouds under one statement
+    pool: one cloud's 18 dof (8 markers) let 11 % of 2 x understatements through and with them the tails of the
+    stated std (issue 15 run 9); 20 clouds' 360 dof reject a 1.5 x understatement almost surely. A new statement
+    starts afresh. ``window``: clouds pooled (the latest included).
+    """
+
+    def __init__(self, window: int = MARKER_CHECK_CLOUDS, alpha: float = MARKER_CHECK_ALPHA) -> None:
+        self.window = window
+        self.alpha = alpha
+        self._stated: float | None = None
+        self._clouds: deque[tuple[float, int]] = deque(maxlen=max(window - 1, 0))
+        self._lock = threading.Lock()
+
+    def statement(self, stated_mm: float | None, markers_mm: np.ndarray | None,
+                  markers_nominal_mm: np.ndarray | None) -> tuple[float | None, MarkerNoiseCheck | None]:
+        """For one cloud with its markers (K, 3) measured and nominal (None: none): the marker noise to register it
+        with (``marker_std_mm`` of :func:`register_scan`: the statement when the pooled check accepts it, whose own
+        check then still applies; None, i.e. estimated, when it rejects it) and the pooled check (None without a
+        statement or with fewer than 3 markers)."""
+        if stated_mm is None or markers_mm is None or markers_nominal_mm is None or len(markers_mm) < 3:
+            return stated_mm, None
+        _, rms = rigid_from_markers(markers_mm, markers_nominal_mm)
+        n_markers = len(markers_mm)
+        with self._lock:
+            if stated_mm != self._stated:
+                self._clouds.clear()
+                self._stated = stated_mm
+            earlier = (sum(r for r, _ in self._clouds), sum(d for _, d in self._clouds), len(self._clouds))
+            check = check_marker_noise(rms, n_markers, stated_mm, self.alpha, earlier)
+            self._clouds.append((n_markers * rms**2, 3 * n_markers - 6))
+        return (stated_mm if check.accepted else None), check
 
 
 def marker_pose_covariance(nominal_mm: np.ndarray, marker_std_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -167,19 +277,23 @@ def register_scan(
     max_marker_rms_mm: float = 0.5,
     max_iterations: int = 10,
     marker_std_mm: float | None = None,
+    marker_check_alpha: float = MARKER_CHECK_ALPHA,
 ) -> RegistrationResult:
     """Register finite scan points (M, 3), mm, scanner frame, to the nominal skin; see the module docstring.
 
     tolerance_mm: the fine alignment corrects a rigid-motion direction only if the datum determines it to this RMS
         displacement over the skin.
     marker_std_mm: the scanner's marker-centre noise per coordinate (mm) for the pose covariance; None: estimated
-        from the marker residual (3K - 6 degrees of freedom).
+        from the marker residual (3K - 6 degrees of freedom). A stated value is checked against that residual
+        (:func:`check_marker_noise` at ``marker_check_alpha``); when rejected the estimate is used and
+        ``marker_noise.reason`` says why, so a scanner stating too little noise cannot narrow the stated std.
     Raises ScanError when the markers do not fit each other (RMS above ``max_marker_rms_mm``: wrong matching or a
     moved marker) or a datum mask does not match the skin.
     """
     points = np.asarray(points_mm, dtype=np.float64)
     n_markers, marker_rms = 0, float("nan")
     pose_covariance, pose_center = np.zeros((6, 6)), np.zeros(3)
+    marker_noise = None
     if markers_mm is not None and markers_nominal_mm is not None:
         coarse, marker_rms = rigid_from_markers(markers_mm, markers_nominal_mm)
         n_markers = int(np.asarray(markers_mm).shape[0])
@@ -190,8 +304,10 @@ def register_scan(
             )
         method = "markers"
         # K markers (K >= 3) leave 3K - 6 >= 3 degrees of freedom for their noise; marker_rms^2 is sum / K
-        sigma_m = float(marker_std_mm) if marker_std_mm is not None else marker_rms * np.sqrt(
-            n_markers / (3 * n_markers - 6))
+        sigma_m = marker_rms * np.sqrt(n_markers / (3 * n_markers - 6))
+        if marker_std_mm is not None:
+            marker_noise = check_marker_noise(marker_rms, n_markers, float(marker_std_mm), marker_check_alpha)
+            sigma_m = marker_noise.used_mm
         pose_covariance, pose_center = marker_pose_covariance(markers_nominal_mm, sigma_m)
     elif scanner_pose is not None:
         coarse = np.asarray(scanner_pose, dtype=np.float64)
@@ -236,6 +352,7 @@ def register_scan(
         alignment_std_mm=fine.field_std,
         pose_covariance=pose_covariance,
         pose_center=pose_center,
+        marker_noise=marker_noise,
     )
 
 

@@ -774,7 +774,9 @@ def field_from_scan(
     min_coverage: minimum fraction of skin nodes with a value; min_overlap: minimum fraction of scan points on the skin.
     estimator: a fitted ScanFieldEstimator (else one is prepared and cached for this skin).
     marker_std_mm: the scanner's marker-centre noise (mm per coordinate), for the registration's pose covariance;
-        None: estimated from the marker residual.
+        None: estimated from the marker residual. A stated value the marker residual rejects
+        (``registration.marker_noise``, :func:`~hood_decomp.core.scan.registration.check_marker_noise`) is replaced
+        by the estimate, with a warning logged.
     Returns the DisplacementField with its error model (node std and correlation of the smoothing, the marker
     registration's pose covariance) (paper: the condensed signed distance field) and the RegistrationResult.
     Raises ScanError for an empty or all-NaN scan, a scan in metres, no overlap with the part or too little coverage.
@@ -792,6 +794,8 @@ def field_from_scan(
         marker_std_mm=marker_std_mm,
     )
     logger.info("registered by %s: overlap %.1f%%", registration.method, 100.0 * registration.overlap)
+    if registration.marker_noise is not None and not registration.marker_noise.accepted:
+        logger.warning("marker registration: %s", registration.marker_noise.reason)
     if registration.overlap < min_overlap:
         raise ScanError(
             f"scan does not overlap the part: {registration.overlap:.2%} of {points.shape[0]} points lie within "
