@@ -315,7 +315,11 @@ def discrepancy_modes(residuals: np.ndarray, settings: np.ndarray, modes: np.nda
       Leave-one-out extrapolates a left-out +m from -m, so a curvature q a^2 leaves 2 q m^2 in *both* residuals of
       the pair, while the full calibration (slope 0 over the pair) leaves q a^2: taken as slopes, as before, the pair
       counted it about 2.4 times in std (LOCK_L 98.7 % covered; benchmarks/RESULTS.md, session 8); the 2 m^2 takes
-      it once. Each pair's share is 2 / (the entries moving the parameter);
+      it once. Several pairs of one parameter (+-0.8 and +-0.4 mm: 25 entries) sample the same g_i and h_i: they
+      give one slope and one curvature row, the pairs combined by least squares (weights m^2 and m^4, the inverse
+      of their noise variance), not a row per pair, whose inner pair's rows divided the noise by 2 m and 2 m^2 and
+      stated 4-9 x the error variance (98.2 % covered on the CalculiX stand-in, 100 % for HINGE_X and LOCK_L;
+      benchmarks/RESULTS.md, session 10). The rows' share is 2 (pairs) / (the entries moving the parameter);
     - any other entry j: (r_j - r_0) / |s_j|, an error per mm along u_j = s_j / |s_j|, weighted by
       w_j = sum_i u_ji^2 variance_i / n_i (n_i = sum_j u_ji^2 over the moved entries).
 
@@ -350,11 +354,20 @@ def discrepancy_modes(residuals: np.ndarray, settings: np.ndarray, modes: np.nda
             pairs.append((j, partner[0]))
     paired = {j for pair in pairs for j in pair}
     rows = [base]
-    for j, k in pairs:
-        i = int(np.flatnonzero(settings[j])[0])
-        m, share = abs(settings[j, i]), 2.0 / counts[i]
-        rows.append((eye[j] - eye[k]) / (2.0 * m) * np.sqrt(share * variance[i]))
-        rows.append(((eye[j] + eye[k]) / 2.0 - base) / (2.0 * m * m) * np.sqrt(share * fourth[i]))
+    for i in range(settings.shape[1]):
+        own = [(j, k) for j, k in pairs if settings[j, i] != 0.0]
+        if not own:
+            continue
+        # one slope and one curvature row per parameter, whatever its number of pairs: the pairs' estimates of the
+        # same g_i (h_i) combined by least squares (noise var 1 / m^2 (1 / m^4) each), not one row per pair
+        m = np.array([abs(settings[j, i]) for j, _ in own])
+        share = 2.0 * len(own) / counts[i]
+        slope = sum(w * (eye[j] - eye[k]) / (2.0 * mk) for (j, k), mk, w in zip(own, m, m**2 / np.sum(m**2),
+                                                                              strict=True))
+        curvature = sum(w * ((eye[j] + eye[k]) / 2.0 - base) / (2.0 * mk * mk)
+                        for (j, k), mk, w in zip(own, m, m**4 / np.sum(m**4), strict=True))
+        rows.append(slope * np.sqrt(share * variance[i]))
+        rows.append(curvature * np.sqrt(share * fourth[i]))
     for j, u in zip(moved, directions, strict=True):
         if j not in paired:
             weight = (u**2 / np.where(counts > 0, counts, 1.0)) @ variance
