@@ -95,7 +95,7 @@ def test_noisy_light_touch_bilateral_states_within_their_std(coarse_hood) -> Non
     commanded position is not observable there (it may be reported lifted), but its reaction must not land on the
     bilateral states unstated: when the best contact state has the pad lifted, the touching state's own (larger)
     covariance counts. Before (main 45b5b9a): LOCK_R RMS 1.27, max 4.3, 86.7 % inside its 95 % interval; after
-    1.06, 2.9, 92.7 %."""
+    1.09, 2.9, 92.7 % (benchmarks/RESULTS.md, issue 21: the contact-aware estimator on partial contact)."""
     case = coarse_hood
     reduced = case.reduced
     B = reduced.n_bilateral
