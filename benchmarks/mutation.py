@@ -223,9 +223,10 @@ NOTES += (
          "a pad without springs is never touching, and the compression is read only for touching pads"),
     Note("contact_estimation", "core/NumberReplacer",
          "compression_std = np.sqrt(max(float(grad @ cov @ grad), 0.0))",
-         "compression_std = np.sqrt(max(float(grad @ cov @ grad), -1.0))", "equivalent",
-         "differs only when round-off makes the quadratic form negative: then NaN, and max(LIFTED_COMPRESSION_MM, "
-         "NaN) is LIFTED_COMPRESSION_MM, as max(LIFTED_COMPRESSION_MM, 0) is (a RuntimeWarning aside)"),
+         "compression_std = np.sqrt(max(float(grad @ cov @ grad), -1.0))", "justified",
+         "differs only when round-off makes the quadratic form negative (NaN std: the touch reported lifted); the "
+         "variance is >= 0 mathematically and no finite test input was found that rounds it below 0 (issue 21 "
+         "removed the 1e-7 mm floor that made this equivalent)"),
     Note("contact_estimation", "core/NumberReplacer",
          'f_std = np.sqrt(np.clip(np.einsum("st,tu,su->s", df, cov, df), 0.0, None))',
          'f_std = np.sqrt(np.clip(np.einsum("st,tu,su->s", df, cov, df), -1.0, None))', "justified",

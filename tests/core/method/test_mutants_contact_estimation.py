@@ -145,25 +145,24 @@ def test_a_light_touch_on_a_measured_field_is_reported_lifted(skin, n_bilateral,
 
 
 @pytest.mark.parametrize("n_bilateral, pad", [(4, 0), (3, 1)])
-def test_a_touch_below_the_compression_floor_is_lifted(skin, n_bilateral, pad):
-    """Fails if a pad compressed by 5e-8 mm in all (below LIFTED_COMPRESSION_MM = 1e-7 mm: no load the field can
-    show) is not reported lifted at the part's position, on a noise-free field: the position of the fit without the
-    touch (the part and the other states without its 5e-8 mm load: they move by about 1e-7 mm)."""
-    assert ce.LIFTED_COMPRESSION_MM == 1e-7
+@pytest.mark.parametrize("compression", [5e-8, 1e-10])
+def test_a_noise_free_touch_however_light_is_estimated_exactly(skin, n_bilateral, pad, compression):
+    """Fails if a pad compressed by 5e-8 or 1e-10 mm in all is not estimated exactly (1e-9 mm) on a noise-free field,
+    or if the 5e-8 mm touch is reported lifted: a fixed compression floor (main's LIFTED_COMPRESSION_MM = 1e-7 mm)
+    reported it lifted at the part's position, although a noise-free field shows its load (on hood-paper's rigid
+    buffers 1e-7 mm is 70 N per spring, and the bilateral states took the reaction). A 1e-10 mm touch may be within
+    round-off of lifted (then its value is the part's position, 1e-10 mm from the commanded one)."""
+    assert not hasattr(ce, "LIFTED_COMPRESSION_MM")
     model = make_reduced_model(skin, seed=0, n_bilateral=n_bilateral, springs_per_pad=3)
-    column = n_bilateral + pad
     k = model.k[0]
-    state = _light_touch(model, np.array([*A[:n_bilateral], 0.4, 0.6]), pad, 5e-8 * k)
+    state = _light_touch(model, np.array([*A[:n_bilateral], 0.4, 0.6]), pad, compression * k)
     truth = simulate(model, state)
     springs = model.pad_of == pad
-    assert 0 < np.sum(truth["f"][springs] / model.k[springs]) < 1e-7
-    z = model.z0 + model.Sa @ state[:n_bilateral] + model.H @ truth["f"]
-    position = np.min((z - model.preload)[springs])
+    assert 0 < np.sum(truth["f"][springs] / model.k[springs]) < 2 * compression
     n = len(state)
     estimate = ContactEstimator().fit(model, -np.ones(n), np.ones(n)).estimate(field_of(skin, truth["w"]))
-    assert estimate.lifted.tolist() == [i == column for i in range(n)]
-    assert estimate.values[column] == pytest.approx(position, abs=1e-6)
-    np.testing.assert_allclose(np.delete(estimate.values, column), np.delete(state, column), atol=1e-6)
+    assert not estimate.lifted.any() or compression < 1e-9
+    np.testing.assert_allclose(estimate.values, state, rtol=0, atol=1e-9)
 
 
 def hand_model(pad_of, z0, Sa, H, preload, n_b: int = 1) -> ReducedModel:
