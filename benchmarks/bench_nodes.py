@@ -93,6 +93,8 @@ def main() -> int:
     parser.add_argument("--resolution", default="default", choices=("coarse", "default", "paper"))
     parser.add_argument("--points", type=int, default=1_000_000)
     parser.add_argument("--scans", type=int, default=10, help="scans for the latency figures")
+    parser.add_argument("--gap-s", type=float, default=0.0,
+                        help="idle seconds between the latency scans (a cell's takt: caches go cold between parts)")
     parser.add_argument("--soak-seconds", type=float, default=0.0, help="length of the one-scan-per-second run")
     parser.add_argument("--best-effort", type=int, default=0,
                         help="also send this many clouds from a best-effort publisher, one per answer")
@@ -181,6 +183,8 @@ def main() -> int:
                 handler[node].append(node_seconds(stamp, f"hood_decomp_{node}"))
             log(f"scan {i}: state {latencies['boundary_state'][-1]:.3f} s (scan node {handler['scan'][-1]:.3f}, "
                 f"estimator {handler['estimator'][-1]:.3f}), effects {latencies['effects'][-1]:.3f} s")
+            if args.gap_s:
+                peer.wait(lambda: False, args.gap_s)
         soak = {}
         if args.soak_seconds:
             rss = []
@@ -273,7 +277,7 @@ def main() -> int:
     OUT.mkdir(exist_ok=True)
     (OUT / f"bench_nodes_{args.resolution}.json").write_text(json.dumps({
         "benchmark": "nodes", "resolution": args.resolution, "skin_nodes": len(skin.points), "points": args.points,
-        "latency": summary, "soak": soak, "best_effort": best_effort, "inspection": inspection, "oversize": oversize,
+        "latency": summary, "gap_s": args.gap_s, "soak": soak, "best_effort": best_effort, "inspection": inspection, "oversize": oversize,
         "cloud_bytes": len(serialize_message(clouds[0])),
         "date": time.strftime("%Y-%m-%d"), "machine": f"{platform.node()} {platform.machine()}"}, indent=2) + "\n")
     return 0
