@@ -161,32 +161,75 @@ def test_command_line_on_hood_paper(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert decomposition["reconstruction_rms_mm"] < 0.01
 
 
-def test_rigid_buffer_member_against_calculix(coarse_hood_paper) -> None:
-    """Fails if a hood-paper member whose left buffer pushes (BUFFER_L = +1 mm) is not CalculiX's contact solution
-    too: CalculiX (S8R, linear) holding exactly the pad nodes the LCP says touch must find them pushing (no pull
-    beyond 2 % of the buffer load) and every other pad node clear of its buffer, with the buffer's total reaction
-    within 4 % and the member's response (member minus the rank-0 member, both from CalculiX) within 5 % of its peak
-    at every node and within 1.5 % in RMS (a global difference, not one at the lock reinforcement's edge, would fail
-    it), its 3D translations consistent with the normal field. Measured: reaction 250 vs 256 N, response 3.9 % at
-    the worst node (2 mm outside the lock reinforcement), 0.93 % RMS (the issue's 3 % is not met on this member; the
-    rank-0 load case itself differs by 8.9 % coarse, 2.6 % at default resolution: RESULTS.md)."""
+@pytest.fixture(scope="module")
+def ccx_rank0(coarse_hood_paper):
+    """CalculiX's rank-0 member of the coarse hood-paper (both buffers lifted, nothing held): one ccx job."""
     from hood_decomp.core.fe.calculix import check_contact_set
     from tests.required import ensure_ccx
 
     ensure_ccx()
     case = coarse_hood_paper
     names = list(case.model.names)
+    members = solve_members(case.reduced, np.zeros((1, len(names))))
+    return check_contact_set(case.model, np.zeros(len(names)), members.pad_forces[0], case.skin.normals)
+
+
+def test_rigid_buffer_member_against_calculix(coarse_hood_paper, ccx_rank0) -> None:
+    """Fails if a hood-paper member whose left buffer pushes (BUFFER_L = +1 mm) is not CalculiX's contact solution
+    too: CalculiX (S8R, linear) holding exactly the pad springs (here one node each) the LCP says push must find them
+    pushing (no pull beyond 2 % of the buffer load) and every other pad node clear of its buffer (no sinking beyond
+    2e-3 mm: the contact edge's node, 0.2 % of the 1 mm motion; a wrong contact edge sinks by 0.01 mm or more), with
+    the buffer's total reaction within 4 % and the member's response (member minus the rank-0 member, both from
+    CalculiX) within 5 % of its peak at every node and within 1.5 % in RMS (a global difference, not one at the lock
+    reinforcement's edge, would fail it), its 3D translations consistent with the normal field. Measured: reaction
+    250 vs 256 N, held springs' smallest reaction -0.07 N, a free edge node 0.0014 mm below the buffer (springs held
+    by *EQUATION; 0.003 mm above it when the nodes were held by *BOUNDARY: ccx ties a shell node's expanded nodes
+    differently for the two), response 3.9 % at the worst node (2 mm outside
+    the lock reinforcement), 0.93 % RMS (the issue's 3 % is not met on this member's coarse grid: 2.6 % on 101 x
+    117, RESULTS.md)."""
+    from hood_decomp.core.fe.calculix import check_contact_set
+
+    case = coarse_hood_paper
+    names = list(case.model.names)
     state = np.zeros(len(names))
     state[names.index("BUFFER_L")] = 1.0
     members = solve_members(case.reduced, np.stack([np.zeros(len(names)), state]))
-    base = check_contact_set(case.model, np.zeros(len(names)), members.pad_forces[0], case.skin.normals)
+    base = ccx_rank0
     pushed = check_contact_set(case.model, state, members.pad_forces[1], case.skin.normals)
     assert not any(t.any() for t in base.touching) and pushed.touching[0].any() and not pushed.touching[1].any()
     load = members.reactions[1, 0]
-    assert load > 100.0 and pushed.certified(0.02 * load)
+    assert load > 100.0 and pushed.certified(0.02 * load, 2e-3)
     assert pushed.reaction[0] == pytest.approx(load, rel=0.04)
     ours = members.normal_displacement[1] - members.normal_displacement[0]
     theirs = pushed.normal - base.normal
     assert np.abs(theirs - ours).max() < 0.05 * np.abs(ours).max()
     assert np.sqrt(np.mean((theirs - ours) ** 2)) < 0.015 * np.abs(ours).max()
     assert np.allclose(np.einsum("na,na->n", pushed.skin_displacement, case.skin.normals), pushed.normal)
+
+
+def test_held_spring_is_the_weighted_mean_of_its_nodes_in_calculix(coarse_hood_paper, ccx_rank0) -> None:
+    """Fails if CalculiX's held pad spring is not the embedded solver's rigid spring where a spring averages several
+    nodes (the finer meshes' case; here one spring per buffer over all 14 coarse pad nodes, pad_lattice 1): its
+    *EQUATION must hold the area-weighted mean of the nodes at the commanded position (wrong weights, an unnormalised
+    sum, or the reference held elsewhere would move the patch), and the spring's reaction read back from the pad
+    nodes' element forces must be ours within 4 % and push (a sign or a node-set error fails), with the response
+    (member minus rank 0) within 5 % of its peak and 1.5 % in RMS, as the one-node springs of the test above.
+    Measured: 163.3 vs 162.0 N, response 3.4 % of its 0.69 mm peak, 1.0 % RMS."""
+    from hood_decomp.core.fe.calculix import check_contact_set
+    from hood_decomp.core.fe.solver import build_solver, reduce_model
+
+    case = coarse_hood_paper
+    names = list(case.model.names)
+    state = np.zeros(len(names))
+    state[names.index("BUFFER_L")] = 1.0
+    reduced = reduce_model(build_solver(case.model, pad_lattice=1))
+    members = solve_members(reduced, np.stack([np.zeros(len(names)), state]))
+    assert members.pad_forces.shape == (2, 2) and members.pad_forces[1, 0] > 100.0 and members.pad_forces[1, 1] == 0
+    pushed = check_contact_set(case.model, state, members.pad_forces[1], case.skin.normals, pad_lattice=1)
+    assert pushed.touching[0].sum() > 10 and not pushed.touching[1].any()
+    assert pushed.spring_reaction[0] == pytest.approx(members.pad_forces[1, 0], rel=0.04)
+    assert pushed.certified(0.02 * members.pad_forces[1, 0])
+    ours = members.normal_displacement[1] - members.normal_displacement[0]
+    theirs = pushed.normal - ccx_rank0.normal
+    assert np.abs(theirs - ours).max() < 0.05 * np.abs(ours).max()
+    assert np.sqrt(np.mean((theirs - ours) ** 2)) < 0.015 * np.abs(ours).max()

@@ -284,23 +284,28 @@ def reduce_model_calculix(model: PartModel, scheduler: str | None = None, pad_la
 
 
 def write_member_deck(model: PartModel, state: np.ndarray, path: str | Path, buffers: str = "unilateral",
-                      nlgeom: bool = True, gap_stiffness: float = 1.0e7,
-                      touching: list[np.ndarray] | None = None) -> Path:
+                      nlgeom: bool = True, gap_stiffness: float = 1.0e7, springs: np.ndarray | None = None,
+                      pad_lattice: int = PAD_LATTICE) -> Path:
     """One ensemble member as a CalculiX deck with the buffers as ccx sees them: the load case with the bilateral
     parameters at ``state`` (P,) mm (model.names order) and each unilateral boundary either
 
     - ``"unilateral"``: one GAPUNI element per patch node (gap stiffness ``gap_stiffness`` N/mm) between the node and
       a ground node held at the commanded position along the pad axis, so the node may lift off but not sink below it
       (ccx's gap elements act only with NLGEOM, so ``nlgeom`` must be True); or
-    - ``"held"``: patch nodes held at the commanded position along the axis (bilateral, no contact): all of them,
-      or where ``touching`` (one bool array per unilateral boundary, over its patch nodes) is True. Holding the
-      nodes an LCP solution says touch gives a linear job whose reactions and free nodes certify that contact state
-      (Signorini: reactions push, free nodes do not sink below the buffer); holding all measures geometric
-      nonlinearity alone (``nlgeom`` True or False).
-    The deck prints the translations of every node and the reactions of the pad nodes (``NPAD``).
+    - ``"held"``: held at the commanded position along the axis (bilateral, no contact): every patch node when
+      ``springs`` is None (geometric nonlinearity alone, ``nlgeom`` True or False); else the pad springs
+      (:func:`~hood_decomp.core.fe.solver.pad_springs` with ``pad_lattice``, in its order) where ``springs`` (S,)
+      is True, each as the embedded solver's rigid spring: one ``*EQUATION`` holds the area-weighted mean axial
+      displacement of its nodes at the commanded position (against a reference node of set ``NSPRING`` held there;
+      the equation spreads the spring's force with the same weights), its nodes otherwise free. Holding the
+      springs an LCP solution says push gives a linear job whose spring reactions and free springs certify that
+      contact state (Signorini: reactions push, free springs do not sink below the buffer) at any mesh resolution.
+    The deck prints the translations of every node and the reactions of the pad nodes (``NPAD``: with held springs,
+    the element forces their equations balance).
 
-    Like-for-like with the embedded solver where each pad spring holds one node (the coarse hood: 14 springs on 14
-    nodes per buffer); on finer meshes a spring averages several nodes and ccx's node-wise gaps are stiffer.
+    GAPUNI and all-nodes holding are like-for-like with the embedded solver only where each pad spring holds one node
+    (the coarse hood: 14 springs on 14 nodes per buffer); on finer meshes a spring averages several nodes and
+    node-wise gaps are stiffer. ``springs`` is like for like at every resolution.
     """
     if buffers not in ("unilateral", "held"):
         raise SolverError(f"buffers must be 'unilateral' or 'held', got {buffers!r}")
@@ -329,15 +334,17 @@ def write_member_deck(model: PartModel, state: np.ndarray, path: str | Path, buf
     nodes_lines, element_lines, boundary_lines = [], [], []
     first_ground = n + n_mid + 1
     count = 0
-    for u, (nodes, axis, position) in enumerate(pads):
+    if springs is not None:
+        if buffers != "held":
+            raise SolverError("held springs need buffers='held'")
+        equation_lines, reference_lines = _held_springs(model, state, springs, pad_lattice, first_ground)
+        boundary_lines += reference_lines
+        if equation_lines:
+            text = text.replace("*STEP\n*STATIC", "\n".join(equation_lines) + "\n*STEP\n*STATIC", 1)
+    for nodes, axis, position in pads if springs is None else ():
         a = int(np.flatnonzero(axis)[0])
         sign = float(axis[a])
-        held = np.ones(len(nodes), dtype=bool) if touching is None else np.asarray(touching[u], dtype=bool)
-        if held.shape != nodes.shape:
-            raise SolverError(f"touching[{u}] must hold {len(nodes)} flags (the patch nodes), got {held.shape}")
-        for node, hold in zip(nodes, held, strict=True):
-            if buffers == "held" and not hold:
-                continue
+        for node in nodes:
             if buffers == "held":
                 boundary_lines.append(f"{node + 1},{a + 1},{a + 1},{sign * position:.12g}")
                 continue
@@ -366,22 +373,60 @@ def write_member_deck(model: PartModel, state: np.ndarray, path: str | Path, buf
     return path
 
 
+def _held_springs(model: PartModel, state: np.ndarray, springs: np.ndarray, pad_lattice: int,
+                  first_reference: int) -> tuple[list[str], list[str]]:
+    """Deck lines holding pad springs ``springs`` (S,) bool like the embedded solver's rigid springs: the reference
+    nodes (``NSPRING``, numbered from ``first_reference``, at each spring's weighted centre) and one ``*EQUATION``
+    per held spring (sum_i w_i u_i . axis - u_ref . axis = 0, the reference held at the commanded position), then
+    their ``*BOUNDARY`` lines. Returns (lines before the step, boundary lines)."""
+    pads = pad_springs(model, pad_lattice)
+    springs = np.asarray(springs, dtype=bool)
+    if springs.shape != pads.k.shape:
+        raise SolverError(f"springs must hold {len(pads.k)} flags (the pad springs), got {springs.shape}")
+    n_bilateral = len(model.bilateral)
+    nodes_lines, equations, boundary = ["*NODE, NSET=NSPRING"], ["*EQUATION"], []
+    for count, s in enumerate(np.flatnonzero(springs)):
+        column = pads.loads[:, s].tocoo()
+        axis = np.asarray(model.boundary(model.unilateral[pads.pad_of[s]].boundary).axis, dtype=float)
+        a = int(np.flatnonzero(axis)[0])
+        along = column.row % 6 == a
+        nodes, weights = column.row[along] // 6, column.data[along]  # weights w_i * axis[a], summing to axis[a]
+        order = np.argsort(-np.abs(weights))  # the largest weight is ccx's dependent term
+        nodes, weights = nodes[order], weights[order]
+        reference = first_reference + count
+        centre = (np.abs(weights) @ model.nodes[nodes]) / np.abs(weights).sum()
+        nodes_lines.append(f"{reference}," + ",".join(map(_real, centre)))
+        terms = [f"{node + 1},{a + 1},{_real(w)}" for node, w in zip(nodes, weights, strict=True)]
+        terms.append(f"{reference},{a + 1},-1.0")
+        equations.append(str(len(terms)))
+        equations += [",".join(terms[i:i + 4]) for i in range(0, len(terms), 4)]  # ccx: at most 4 terms a line
+        position = state[n_bilateral + pads.pad_of[s]]
+        boundary += [f"{reference},{b + 1},{b + 1},{(position if b == a else 0.0):.12g}" for b in range(3)]
+    if len(equations) == 1:
+        return [], []
+    return nodes_lines + equations, boundary
+
+
 def read_dat_reactions(path: str | Path) -> dict[int, np.ndarray]:
-    """Reaction forces (3,) N by node index (0-based) from the last 'forces' block of a ccx .dat file."""
+    """Reaction forces (3,) N by node index (0-based) from the 'forces' blocks of a ccx .dat file: every printed node
+    set, the last increment's value where a node is printed in several increments."""
     text = Path(path).read_text().splitlines()
     starts = [i for i, line in enumerate(text) if line.strip().startswith("forces")]
     if not starts:
         raise SolverError(f"{path}: no reaction force block")
     out: dict[int, np.ndarray] = {}
-    for line in text[starts[-1] + 1:]:
-        fields = line.split()
-        if not fields:
-            if out:
+    for start in starts:
+        read = 0
+        for line in text[start + 1:]:
+            fields = line.split()
+            if not fields:
+                if read:
+                    break
+                continue
+            if len(fields) != 4:
                 break
-            continue
-        if len(fields) != 4:
-            break
-        out[int(fields[0]) - 1] = np.array([float(v) for v in fields[1:]])
+            out[int(fields[0]) - 1] = np.array([float(v) for v in fields[1:]])
+            read += 1
     return out
 
 
@@ -398,22 +443,26 @@ class ContactCheck:
     """A member solved by CalculiX with the contact set of an LCP solution held (:func:`check_contact_set`).
 
     normal: (N,) mm skin normal displacement; skin_displacement: (N, 3) mm skin translations. touching: per unilateral
-    boundary, (patch nodes,) bool, the held nodes.
+    boundary, (patch nodes,) bool, the nodes of its held springs. spring_reaction: (S,) N, CalculiX's reaction of each
+    held pad spring along its axis (NaN: free). spring_gap: (S,) mm, each free spring's clearance (weighted mean axial
+    displacement minus the commanded position; NaN: held).
     reaction: (U,) N, CalculiX's total reaction of each buffer along its axis. held_reaction_min: (U,) N, the
-    smallest reaction of a held node (NaN: none held). free_gap_min: (U,) mm, the smallest clearance of a free pad
-    node above its buffer (NaN: none free). The contact set is CalculiX's solution too when held nodes push and free
-    nodes clear (Signorini); ``certified(tolerance_n, tolerance_mm)`` says whether they do.
+    smallest reaction of a held spring (NaN: none held). free_gap_min: (U,) mm, the smallest clearance of a free pad
+    spring above its buffer (NaN: none free). The contact set is CalculiX's solution too when held springs push and
+    free springs clear (Signorini); ``certified(tolerance_n, tolerance_mm)`` says whether they do.
     """
 
     normal: np.ndarray
     skin_displacement: np.ndarray
     touching: tuple[np.ndarray, ...]
+    spring_reaction: np.ndarray
+    spring_gap: np.ndarray
     reaction: np.ndarray
     held_reaction_min: np.ndarray
     free_gap_min: np.ndarray
 
     def certified(self, tolerance_n: float, tolerance_mm: float = 1e-3) -> bool:
-        """True when no held node pulls by more than ``tolerance_n`` N and no free node sinks by ``tolerance_mm``."""
+        """True when no held spring pulls by more than ``tolerance_n`` N and no free one sinks by ``tolerance_mm``."""
         pulls = np.nan_to_num(self.held_reaction_min, nan=0.0) >= -tolerance_n
         sinks = np.nan_to_num(self.free_gap_min, nan=0.0) >= -tolerance_mm
         return bool(np.all(pulls & sinks))
@@ -421,33 +470,42 @@ class ContactCheck:
 
 def check_contact_set(model: PartModel, state: np.ndarray, pad_forces: np.ndarray, normals: np.ndarray,
                       pad_lattice: int = PAD_LATTICE, workdir: str | None = None) -> ContactCheck:
-    """Solve member ``state`` (P,) mm with CalculiX (linear, S8R) holding the nodes of every pad spring that pushes
-    in ``pad_forces`` (S,) N (an LCP solution of the embedded solver) at the commanded buffer position, the other pad
-    nodes free. ``normals`` (N, 3): the skin's unit normals. Exact like for like where each spring holds one node (the
-    coarse hood); where a spring averages several, holding all of them is stiffer. Raises SolverError."""
+    """Solve member ``state`` (P,) mm with CalculiX (linear, S8R) holding every pad spring that pushes in
+    ``pad_forces`` (S,) N (an LCP solution of the embedded solver) at the commanded buffer position as the embedded
+    solver's rigid spring does (its nodes' weighted mean, :func:`write_member_deck`), the other springs free: like
+    for like at every mesh resolution. ``normals`` (N, 3): the skin's unit normals. Raises SolverError."""
     pads = pad_springs(model, pad_lattice)
     pad_forces = np.asarray(pad_forces, dtype=float)
     if pad_forces.shape != pads.k.shape:
         raise SolverError(f"expected {len(pads.k)} pad spring forces, got {pad_forces.shape}")
-    patches = [patch_nodes(model, model.boundary(p.boundary)) for p in model.unilateral]
-    touching = []
-    for u, nodes in enumerate(patches):
-        pushing = [pads.loads[:, k].indices // 6 for k in np.flatnonzero((pads.pad_of == u) & (pad_forces > 0))]
-        touching.append(np.isin(nodes, np.concatenate(pushing)) if pushing else np.zeros(len(nodes), dtype=bool))
+    held = pad_forces > 0
     with tempfile.TemporaryDirectory(dir=workdir) as directory:
-        deck = write_member_deck(model, state, Path(directory) / "deck.inp", "held", nlgeom=False,
-                                 touching=touching).read_text()
+        deck = write_member_deck(model, state, Path(directory) / "deck.inp", "held", nlgeom=False, springs=held,
+                                 pad_lattice=pad_lattice).read_text()
     u, reactions = run_member_job(deck, len(model.nodes), workdir)
+    # ccx reports a node's reaction as the elements' force on it, so an unattached reference node shows none; a
+    # spring's force is what its equation puts on its pad nodes: their element forces less the applied load (gravity)
+    load = load_vector(model).reshape(-1, 6)[:, :3]
+    axes = [np.asarray(model.boundary(p.boundary).axis, dtype=float) for p in model.unilateral]
+    spring_reaction = np.full(len(held), np.nan)
+    for s in np.flatnonzero(held):
+        nodes = np.unique(pads.loads[:, s].indices // 6)
+        spring_reaction[s] = sum(float((reactions[node] - load[node]) @ axes[pads.pad_of[s]]) for node in nodes)
+    full = np.zeros(6 * len(model.nodes))
+    full.reshape(-1, 6)[:, :3] = u
     n_bilateral = len(model.bilateral)
-    reaction, held_min, gap_min = [], [], []
-    for index, (parameter, nodes) in enumerate(zip(model.unilateral, patches, strict=True)):
-        axis = np.asarray(model.boundary(parameter.boundary).axis, dtype=float)
-        held = touching[index]
-        rz = np.array([reactions[n] @ axis for n in nodes[held]])
-        gap = u[nodes[~held]] @ axis - state[n_bilateral + index]
+    spring_gap = pads.loads.T @ full - state[n_bilateral + pads.pad_of]
+    spring_gap[held] = np.nan
+    touching, reaction, held_min, gap_min = [], [], [], []
+    for index, parameter in enumerate(model.unilateral):
+        nodes = patch_nodes(model, model.boundary(parameter.boundary))
+        mine = pads.pad_of == index
+        pushing = [pads.loads[:, k].indices // 6 for k in np.flatnonzero(mine & held)]
+        touching.append(np.isin(nodes, np.concatenate(pushing)) if pushing else np.zeros(len(nodes), dtype=bool))
+        rz, gap = spring_reaction[mine & held], spring_gap[mine & ~held]
         reaction.append(rz.sum() if rz.size else 0.0)
         held_min.append(rz.min() if rz.size else np.nan)
         gap_min.append(gap.min() if gap.size else np.nan)
     normal = np.einsum("na,na->n", u[model.skin_nodes], normals)
-    return ContactCheck(normal, u[model.skin_nodes], tuple(touching), np.array(reaction), np.array(held_min),
-                        np.array(gap_min))
+    return ContactCheck(normal, u[model.skin_nodes], tuple(touching), spring_reaction, spring_gap,
+                        np.array(reaction), np.array(held_min), np.array(gap_min))
