@@ -277,7 +277,8 @@ def main() -> int:
     OUT.mkdir(exist_ok=True)
     (OUT / f"bench_nodes_{args.resolution}.json").write_text(json.dumps({
         "benchmark": "nodes", "resolution": args.resolution, "skin_nodes": len(skin.points), "points": args.points,
-        "latency": summary, "gap_s": args.gap_s, "soak": soak, "best_effort": best_effort, "inspection": inspection, "oversize": oversize,
+        "latency": summary, "gap_s": args.gap_s, "soak": soak, "best_effort": best_effort, "inspection": inspection,
+        "oversize": oversize,
         "cloud_bytes": len(serialize_message(clouds[0])),
         "date": time.strftime("%Y-%m-%d"), "machine": f"{platform.node()} {platform.machine()}"}, indent=2) + "\n")
     return 0
