@@ -150,12 +150,15 @@ def child(resolution_dir: str, cloud: str, repeats: int) -> None:
     from hood_decomp.core.scan.scan_field import field_from_scan, prepared_estimator
     from hood_decomp.io.bases import load_bases
     from hood_decomp.io.ply import read_scan
+    from hood_decomp.ros.node_common import keep_freed_memory, small_pages_from_now
 
+    keep_freed_memory()  # the scan node's process settings (node_common.spin, on_configure)
     directory = Path(resolution_dir)
     t0 = time.perf_counter()
     bases = load_bases(directory / "bases.h5")
     estimator = prepared_estimator(bases.skin)  # the prepared skin read from the file
     load_s = time.perf_counter() - t0
+    small_pages_from_now()
     kernels.load()  # as the scan node does in its warm-up: the compiled path at every size (loaded at the first call)
     t0 = time.perf_counter()
     points = read_scan(cloud).points
@@ -188,6 +191,36 @@ def child(resolution_dir: str, cloud: str, repeats: int) -> None:
         "rss_before_mb": before, "scan_peak_rss_mb": peak, "coverage": field.coverage,
         "rms_error_mm": float(np.sqrt(np.mean(error[seen] ** 2))), "noise_rms_mm": field.noise_rms,
     }))  # fmt: skip
+
+
+def linearity_child(resolution_dir: str, cloud: str, sizes: list[int], rounds: int) -> None:
+    """The scan step's work per point, one process: clouds of ``sizes`` points drawn from ``cloud`` in its order (as
+    the per-size clouds are), one thread, CPU seconds per field, the sizes interleaved round by round (forwards, then
+    backwards) so that a drifting load and the heap's state reach every size alike. Prints one JSON line."""
+    from hood_decomp.core.scan import kernels
+    from hood_decomp.core.scan.scan_field import prepared_estimator
+    from hood_decomp.io.bases import load_bases
+    from hood_decomp.io.ply import read_scan
+    from hood_decomp.ros.node_common import keep_freed_memory, small_pages_from_now
+
+    keep_freed_memory()
+    kernels.threads = lambda: 1  # work, not wall: one thread, so the other engineers' load does not split it
+    estimator = prepared_estimator(load_bases(Path(resolution_dir) / "bases.h5").skin)
+    kernels.load()
+    small_pages_from_now()
+    full = read_scan(cloud).points
+    rng = np.random.default_rng(11)
+    clouds = {s: full if s >= full.shape[0] else full[np.sort(rng.choice(full.shape[0], s, False))] for s in sizes}
+    for points in clouds.values():
+        estimator.field(points)
+    cpu: dict[int, list[float]] = {s: [] for s in sizes}
+    for r in range(rounds):
+        for s in sizes if r % 2 == 0 else sizes[::-1]:
+            t0 = time.process_time()
+            estimator.field(clouds[s])
+            cpu[s].append(time.process_time() - t0)
+    print(json.dumps({"points": [int(clouds[s].shape[0]) for s in sizes],
+                      "median_cpu_s": [float(np.median(cpu[s])) for s in sizes], "cpu_s": [cpu[s] for s in sizes]}))
 
 
 # What `hood-decomp estimate --bases B --scan S --json J` does (cli/estimate.py, cli/_common.py: read_fields), by
@@ -285,10 +318,19 @@ def main() -> int:
     parser.add_argument("--quick", action="store_true", help="a short check: default resolution, 1e5 and 1e6 "
                         "points, 2 repeats, 1 uncapped CloudCompare run")
     parser.add_argument("--work", default=None, help="work directory (default: a temporary one, removed)")
+    parser.add_argument("--linearity-sizes", default="1e6,2e6,3e6,4e6,6e6,8e6,1e7",
+                        help="sizes of the work-per-point run (one process, one thread, CPU time, drawn from the "
+                        "largest cloud); empty: none")
+    parser.add_argument("--linearity-rounds", type=int, default=7)
     parser.add_argument("--child", nargs=2, metavar=("RESOLUTION_DIR", "CLOUD"), help=argparse.SUPPRESS)
+    parser.add_argument("--linearity-child", nargs=2, metavar=("RESOLUTION_DIR", "CLOUD"), help=argparse.SUPPRESS)
     args = parser.parse_args()
+    linearity_sizes = [int(float(s)) for s in args.linearity_sizes.split(",") if s]
     if args.child:
         child(*args.child, args.repeats)
+        return 0
+    if args.linearity_child:
+        linearity_child(*args.linearity_child, linearity_sizes, args.linearity_rounds)
         return 0
     if args.quick:
         args.resolutions, args.sizes, args.f2f_sizes = "default", "1e5,1e6", "1e6"
@@ -361,6 +403,15 @@ def main() -> int:
             info["linearity"] = {**info["fit"], "scan_peak_rss_mb_at_largest": top["scan_peak_rss_mb"],
                                  "largest_points": top["points"]}  # fmt: skip
             info["sizes"] = per_size
+            largest = info["clouds"][max(sizes)]
+            if linearity_sizes and max(linearity_sizes) <= largest["points"]:
+                done = subprocess.run([sys.executable, __file__, "--linearity-sizes", args.linearity_sizes,
+                                       "--linearity-rounds", str(args.linearity_rounds), "--linearity-child",
+                                       str(directory), largest["path"]], capture_output=True, text=True, check=True)
+                work_run = json.loads(done.stdout.strip().splitlines()[-1])
+                info["work_per_point"] = {**work_run, "fit": linear_fit(np.array(work_run["points"], float),
+                                                                        np.array(work_run["median_cpu_s"]))}
+                log(f"{resolution}: work per point measured (load {load()})")
             results["resolutions"][resolution] = info
             (out_dir / "bench_scan.json").write_text(json.dumps(results, indent=1, default=str))
     finally:
@@ -406,6 +457,12 @@ def main() -> int:
               f"{fit['marginal_bottom_ns']:.1f} ns/point at the bottom, {fit['marginal_top_ns']:.1f} at the top "
               f"(ratio {show(ratio, '.2f')}, target <= 1.15); scan-step peak "
               f"{fit['scan_peak_rss_mb_at_largest']:.0f} MB at {fit['largest_points']:,} points (target < 1024)")
+        work = info.get("work_per_point")
+        if work and work["fit"]:
+            marginal = ", ".join(f"{k} {v:.1f}" for k, v in work["fit"]["marginal_ns_per_point"].items())
+            print(f"{resolution}: work per point (one thread, CPU time, sizes interleaved in one process): "
+                  f"{work['fit']['a_s'] * 1e3:.1f} ms + {work['fit']['b_ns_per_point']:.1f} ns x points; marginal "
+                  f"ns/point {marginal}; top / bottom {show(work['fit']['top_over_bottom'], '.2f')}")
     return 0
 
 

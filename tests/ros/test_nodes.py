@@ -300,14 +300,15 @@ def test_the_estimator_node_answers_one_field_at_configure_and_keeps_nothing_of_
 def test_nodes_run_one_blas_thread_and_report_their_handler_time(coarse_hood, running):
     """Fails if a node process keeps OpenBLAS's default thread count (one per core: its idle workers spin between
     the estimator's small products and made a field take 2-3.5 s instead of 0.3 s on a loaded 2-core cell computer),
-    or if an answered message's OK diagnostic lacks its handler time or states one longer than the message's whole
-    round trip."""
+    if it gives freed memory back to the kernel between messages (``memory_kept``), or if an answered message's OK
+    diagnostic lacks its handler time or states one longer than the message's whole round trip."""
     peer, received, _, connected, logs = running
     assert connected, f"nodes did not come up; logs in {logs}"
     assert (os.cpu_count() or 1) > 1, "this check needs a machine on which OpenBLAS would start several threads"
     diagnostics = received["/diagnostics"]
     for node in ("hood_decomp_estimator", "hood_decomp_decomposition"):
-        assert latest_heartbeat(diagnostics, node)["blas_threads"] == "1", node
+        heartbeat = latest_heartbeat(diagnostics, node)
+        assert heartbeat["blas_threads"] == "1" and heartbeat["memory_kept"] == "True", (node, heartbeat)
     states = received["hood_decomp/boundary_state"]
     before = len(states)
     member = solve_members(coarse_hood.reduced, np.zeros((1, len(coarse_hood.reduced.names))))
