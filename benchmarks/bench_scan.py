@@ -53,6 +53,10 @@ sys.path.insert(0, str(ROOT))
 CLOUDCOMPARE = "CloudCompare"
 
 
+#: points per view of the work-per-point run's merged views
+VIEW_POINTS = 1_000_000
+
+
 def log(line: str) -> None:
     print(f"[bench_scan {time.strftime('%H:%M:%S')}] {line}", file=sys.stderr, flush=True)
 
@@ -193,10 +197,12 @@ def child(resolution_dir: str, cloud: str, repeats: int) -> None:
     }))  # fmt: skip
 
 
-def linearity_child(resolution_dir: str, cloud: str, sizes: list[int], rounds: int) -> None:
-    """The scan step's work per point, one process: clouds of ``sizes`` points drawn from ``cloud`` in its order (as
-    the per-size clouds are), one thread, CPU seconds per field, the sizes interleaved round by round (forwards, then
-    backwards) so that a drifting load and the heap's state reach every size alike. Prints one JSON line."""
+def linearity_child(resolution_dir: str, cloud: str, sizes: list[int], views: list[int], rounds: int) -> None:
+    """The scan step's work per point, one process, one thread, CPU seconds per field, for two ways a cloud grows:
+    one view made denser (clouds of ``sizes`` points drawn from ``cloud`` in its order, as the per-size clouds are)
+    and more views (``views`` counts of 1M-point views, each drawn from ``cloud`` on its own, one after the other in
+    one cloud, as a robot's views of the part are merged). The clouds are interleaved round by round (forwards, then
+    backwards) so that a drifting load and the heap's state reach all alike. Prints one JSON line."""
     from hood_decomp.core.scan import kernels
     from hood_decomp.core.scan.scan_field import prepared_estimator
     from hood_decomp.io.bases import load_bases
@@ -210,17 +216,25 @@ def linearity_child(resolution_dir: str, cloud: str, sizes: list[int], rounds: i
     small_pages_from_now()
     full = read_scan(cloud).points
     rng = np.random.default_rng(11)
-    clouds = {s: full if s >= full.shape[0] else full[np.sort(rng.choice(full.shape[0], s, False))] for s in sizes}
-    for points in clouds.values():
-        estimator.field(points)
-    cpu: dict[int, list[float]] = {s: [] for s in sizes}
+
+    def drawn(size: int) -> np.ndarray:
+        return full if size >= full.shape[0] else full[np.sort(rng.choice(full.shape[0], size, False))]
+
+    merged = np.concatenate([drawn(VIEW_POINTS) for _ in range(max(views, default=0))])
+    clouds = {**{("denser", s): drawn(s) for s in sizes}, **{("views", k): merged[: k * VIEW_POINTS] for k in views}}
+    keys = list(clouds)
+    for key in keys:
+        estimator.field(clouds[key])
+    cpu: dict[tuple[str, int], list[float]] = {key: [] for key in keys}
     for r in range(rounds):
-        for s in sizes if r % 2 == 0 else sizes[::-1]:
+        for key in keys if r % 2 == 0 else keys[::-1]:
             t0 = time.process_time()
-            estimator.field(clouds[s])
-            cpu[s].append(time.process_time() - t0)
-    print(json.dumps({"points": [int(clouds[s].shape[0]) for s in sizes],
-                      "median_cpu_s": [float(np.median(cpu[s])) for s in sizes], "cpu_s": [cpu[s] for s in sizes]}))
+            estimator.field(clouds[key])
+            cpu[key].append(time.process_time() - t0)
+    print(json.dumps({series: {"points": [int(clouds[key].shape[0]) for key in keys if key[0] == series],
+                               "median_cpu_s": [float(np.median(cpu[key])) for key in keys if key[0] == series],
+                               "cpu_s": [cpu[key] for key in keys if key[0] == series]}
+                      for series in ("denser", "views")}))  # fmt: skip
 
 
 # What `hood-decomp estimate --bases B --scan S --json J` does (cli/estimate.py, cli/_common.py: read_fields), by
@@ -321,16 +335,19 @@ def main() -> int:
     parser.add_argument("--linearity-sizes", default="1e6,2e6,3e6,4e6,6e6,8e6,1e7",
                         help="sizes of the work-per-point run (one process, one thread, CPU time, drawn from the "
                         "largest cloud); empty: none")
+    parser.add_argument("--linearity-views", default="1,2,4,6,8,10",
+                        help="view counts of the work-per-point run's merged 1M-point views; empty: none")
     parser.add_argument("--linearity-rounds", type=int, default=7)
     parser.add_argument("--child", nargs=2, metavar=("RESOLUTION_DIR", "CLOUD"), help=argparse.SUPPRESS)
     parser.add_argument("--linearity-child", nargs=2, metavar=("RESOLUTION_DIR", "CLOUD"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     linearity_sizes = [int(float(s)) for s in args.linearity_sizes.split(",") if s]
+    linearity_views = [int(k) for k in args.linearity_views.split(",") if k]
     if args.child:
         child(*args.child, args.repeats)
         return 0
     if args.linearity_child:
-        linearity_child(*args.linearity_child, linearity_sizes, args.linearity_rounds)
+        linearity_child(*args.linearity_child, linearity_sizes, linearity_views, args.linearity_rounds)
         return 0
     if args.quick:
         args.resolutions, args.sizes, args.f2f_sizes = "default", "1e5,1e6", "1e6"
@@ -404,13 +421,15 @@ def main() -> int:
                                  "largest_points": top["points"]}  # fmt: skip
             info["sizes"] = per_size
             largest = info["clouds"][max(sizes)]
-            if linearity_sizes and max(linearity_sizes) <= largest["points"]:
+            if (linearity_sizes or linearity_views) and max(linearity_sizes, default=0) <= largest["points"]:
                 done = subprocess.run([sys.executable, __file__, "--linearity-sizes", args.linearity_sizes,
-                                       "--linearity-rounds", str(args.linearity_rounds), "--linearity-child",
-                                       str(directory), largest["path"]], capture_output=True, text=True, check=True)
+                                       "--linearity-views", args.linearity_views, "--linearity-rounds",
+                                       str(args.linearity_rounds), "--linearity-child", str(directory),
+                                       largest["path"]], capture_output=True, text=True, check=True)  # fmt: skip
                 work_run = json.loads(done.stdout.strip().splitlines()[-1])
-                info["work_per_point"] = {**work_run, "fit": linear_fit(np.array(work_run["points"], float),
-                                                                        np.array(work_run["median_cpu_s"]))}
+                info["work_per_point"] = {series: {**run, "fit": linear_fit(np.array(run["points"], float),
+                                                                            np.array(run["median_cpu_s"]))}
+                                          for series, run in work_run.items() if run["points"]}  # fmt: skip
                 log(f"{resolution}: work per point measured (load {load()})")
             results["resolutions"][resolution] = info
             (out_dir / "bench_scan.json").write_text(json.dumps(results, indent=1, default=str))
@@ -457,12 +476,16 @@ def main() -> int:
               f"{fit['marginal_bottom_ns']:.1f} ns/point at the bottom, {fit['marginal_top_ns']:.1f} at the top "
               f"(ratio {show(ratio, '.2f')}, target <= 1.15); scan-step peak "
               f"{fit['scan_peak_rss_mb_at_largest']:.0f} MB at {fit['largest_points']:,} points (target < 1024)")
-        work = info.get("work_per_point")
-        if work and work["fit"]:
+    for resolution, info in results["resolutions"].items():
+        for series, work in info.get("work_per_point", {}).items():
+            if not work["fit"]:
+                continue
             marginal = ", ".join(f"{k} {v:.1f}" for k, v in work["fit"]["marginal_ns_per_point"].items())
-            print(f"{resolution}: work per point (one thread, CPU time, sizes interleaved in one process): "
+            how = "one view made denser" if series == "denser" else f"merged views of {VIEW_POINTS:,} points"
+            print(f"{resolution}, work per point, {how} (one thread, CPU time, one process, interleaved): "
                   f"{work['fit']['a_s'] * 1e3:.1f} ms + {work['fit']['b_ns_per_point']:.1f} ns x points; marginal "
-                  f"ns/point {marginal}; top / bottom {show(work['fit']['top_over_bottom'], '.2f')}")
+                  f"ns/point {marginal}; top / bottom {show(work['fit']['top_over_bottom'], '.2f')} (target "
+                  f"0.85-1.15)")
     return 0
 
 
