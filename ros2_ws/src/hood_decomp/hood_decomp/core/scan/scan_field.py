@@ -56,8 +56,8 @@ _QUADRIC_NEIGHBOURS = 13
 # The FALLBACK for a skin prepared without its part's fields (no bases, or bases without a reduced model): a skin
 # prepared with its bases stores the bias correlation measured on the part's own FE states (core/loop/scan_skin.py,
 # ``bias_correlation`` of PREPARED_SKIN; issue 15 run 10: coarse 57, default 5,000 nodes, where this area gives 157
-# and 1,000). How far the smoothing bias is correlated, as an area of the skin (mm^2): one physical number for every
-# mesh of a part. As a node count (1000, tuned on the default hood's 59 mm^2 nodes) it stood for 6.4 times the area on the
+# and 1,000). How far the smoothing bias is correlated, as an area of the skin (mm^2): one physical number for
+# every mesh of a part. As a node count (1000, tuned on the default hood's 59 mm^2 nodes) it stood for 6.4 times the area on the
 # coarse hood's 375 mm^2 nodes: the bias allowance was 30-130 times the bias' mean smooth projection there, stds up
 # to 1.6 times the RMS error (97.4-99.95 % inside the 95 % interval, no false alarm in 2,000 scans; benchmarks/
 # RESULTS.md, issue 15 run 5). Measured against the FE truth
