@@ -56,14 +56,10 @@ _QUADRIC_NEIGHBOURS = 13
 # The FALLBACK for a skin prepared without its part's fields (no bases, or bases without a reduced model): a skin
 # prepared with its bases stores the bias correlation measured on the part's own FE states (core/loop/scan_skin.py,
 # ``bias_correlation`` of PREPARED_SKIN; issue 15 run 10: coarse 57, default 5,000 nodes, where this area gives 157
-# and 1,000). How far the smoothing bias is correlated, as an area of the skin (mm^2): one physical number for
-# every mesh of a part. As a node count (1000, tuned on the default hood's 59 mm^2 nodes) it stood for 6.4 times the area on the
-# coarse hood's 375 mm^2 nodes: the bias allowance was 30-130 times the bias' mean smooth projection there, stds up
-# to 1.6 times the RMS error (97.4-99.95 % inside the 95 % interval, no false alarm in 2,000 scans; benchmarks/
-# RESULTS.md, issue 15 run 5). Measured against the FE truth
-# (noise-free scans, the bias projected on the skin's degree-2 smooth fields, mean over the fields per state):
-# 17,000-83,000 mm^2 on the default hood (5 states), 3,700-9,000 mm^2 on the coarse one (8 states). Set where the
-# within-model test's false-alarm rate on 120 default scans came down (300 nodes: 12.5 %; 1000 nodes: none).
+# and 1,000). How far the smoothing bias is correlated, as an area of the skin (mm^2). As a node count (1000, tuned
+# on the default hood's 59 mm^2 nodes) it stood for 6.4 times the area on the coarse hood's 375 mm^2 nodes (issue 15
+# run 5). Set where the within-model test's false-alarm rate on 120 default scans came down (300 nodes: 12.5 %;
+# 1000 nodes: none).
 SMOOTHING_BIAS_AREA_MM2 = 59_000.0
 # Twicing by default only at smoothing radii above this (mm). The bias grows as the radius squared times the
 # displacement's curvature (a property of the part, not of the mesh): 0.009-0.011 mm RMS at the coarse hood's 50 mm,
