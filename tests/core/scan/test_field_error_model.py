@@ -96,11 +96,11 @@ def test_marker_pose_covariance_matches_the_scatter_of_marker_fits():
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")
 def test_the_smoothing_bias_allowance_matches_the_bias_on_a_coarse_mesh(coarse_hood):
-    """The area FALLBACK (a skin prepared without its part's fields: this bare skin; the measured per-skin value is
-    the next test's). The scan step's smoothing bias against the FE truth on the coarse hood (375 mm^2 nodes), 4
-    states, 0.02 mm noise, points in the part frame: the allowance the one error model makes for it on a smooth
-    unit-norm field's coefficient (``ModelCheck.bias_mm2``: the rough excess over the node noise times the bias' correlation sum) must
-    cover the bias' largest projection on the skin's degree-2 smooth fields within a factor 2 in every state, and
+    """The area FALLBACK (a skin prepared without its part's fields: this bare skin; the measured per-skin value is the
+    next test's). The scan step's smoothing bias against the FE truth on the coarse hood (375 mm^2 nodes), 4 states,
+    0.02 mm noise, points in the part frame: the allowance the one error model makes for it on a smooth unit-norm
+    field's coefficient (``ModelCheck.bias_mm2``: the rough excess over the node noise times the bias' correlation sum)
+    must cover the bias' largest projection on the skin's degree-2 smooth fields within a factor 2 in every state, and
     not exceed its mean projection more than 20 times (median over the states).
     Fails if the bias correlation is a node count again (tuned on the default hood's 59 mm^2 nodes: 30-80 times
     the mean projection here, the coarse scans' 97.4-99.95 % coverage and no false alarm of run 4), or if the bias
