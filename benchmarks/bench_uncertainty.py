@@ -38,9 +38,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from hood_decomp.core.fe.ensemble import simulate_setting, solve_members  # noqa: E402
+from hood_decomp.core.loop.scan_skin import prepared_scan_skin  # noqa: E402
 from hood_decomp.core.method.bases import estimate_field  # noqa: E402
 from hood_decomp.core.method.correction import CorrectionPolicy, plan_correction  # noqa: E402
-from hood_decomp.core.scan.scan_field import field_from_scan, prepared_estimator  # noqa: E402
+from hood_decomp.core.scan.scan_field import ScanFieldEstimator, field_from_scan  # noqa: E402
 from hood_decomp.core.types import DisplacementField, FieldErrorModel  # noqa: E402
 from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan  # noqa: E402
 from tests.conftest import _hood_case  # noqa: E402
@@ -219,7 +220,10 @@ def main() -> int:
     results["noise"] = summary(rows, names)
     save()
 
-    est = prepared_estimator(skin)
+    # the prepared skin a bases file stores: the smoothing bias' correlation measured on the part (issue 15 run 10)
+    est = ScanFieldEstimator().fit(skin, prepared=prepared_scan_skin(bases))
+    results["bias_correlation"] = est.bias_correlation_
+    log(f"bias correlation {est.bias_correlation_:.1f} nodes (measured: {est.bias_measured_})")
     drawn: dict = {}  # the last scan's draws
 
     def scan(state, noise, marker_noise, extra_3d=None, holes=None):

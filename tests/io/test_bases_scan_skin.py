@@ -44,6 +44,17 @@ def fresh_cache(monkeypatch):
     monkeypatch.setattr(scan_field, "_STORED", {})
 
 
+def _rewritten(path, target, edit):
+    """A copy of the bases file ``path`` at ``target`` whose /scan_skin ``edit(h5)`` changed, its prepared_id
+    recomputed over what is left (a file written before a dataset existed, or a forger's)."""
+    shutil.copy(path, target)
+    with h5py.File(target, "r+") as h5:
+        edit(h5)
+        arrays = {name: h5[f"scan_skin/{name}"][()] for name in h5["scan_skin"]}
+        h5["scan_skin"].attrs["prepared_id"] = prepared_id(h5.attrs["bases_id"], arrays)
+    return target
+
+
 def _no_rebuild(monkeypatch):
     def refuse(*_args, **_kwargs):
         raise AssertionError("the prepared skin was rebuilt")
@@ -140,12 +151,7 @@ def test_twicing_variance_is_stored_and_files_without_it_still_scan(saved, point
     with h5py.File(path, "r") as h5:
         assert "scan_skin/twicing_variance" in h5
     expected = field_from_scan(load_bases(path).skin, points)[0]
-    older = tmp_path / "older.h5"
-    shutil.copy(path, older)
-    with h5py.File(older, "r+") as h5:
-        del h5["scan_skin/twicing_variance"]
-        arrays = {name: h5[f"scan_skin/{name}"][()] for name in h5["scan_skin"]}
-        h5["scan_skin"].attrs["prepared_id"] = prepared_id(h5.attrs["bases_id"], arrays)
+    older = _rewritten(path, tmp_path / "older.h5", lambda h5: h5.__delitem__("scan_skin/twicing_variance"))
     monkeypatch.setattr(scan_field, "_PREPARED", {})
     again = field_from_scan(load_bases(older).skin, points)[0]
     np.testing.assert_allclose(again.error_model.node_std, expected.error_model.node_std, rtol=1e-12)
@@ -157,3 +163,40 @@ def test_twicing_variance_is_stored_and_files_without_it_still_scan(saved, point
     monkeypatch.setattr(ScanFieldEstimator, "_twicing_variance", refuse)
     stored = field_from_scan(load_bases(path).skin, points)[0]
     np.testing.assert_array_equal(stored.error_model.node_std, expected.error_model.node_std)
+
+
+def test_bias_correlation_is_stored_and_files_without_it_measure_it(saved, points, fresh_cache, tmp_path,
+                                                                     monkeypatch):
+    """Fails if the scan step's bias correlation measured on the part (core.loop.scan_skin) is not stored with the
+    prepared skin or not carried by a scanned field's error model (the area fallback instead), or if a file written
+    before it existed (no /scan_skin/bias_correlation, its prepared_id over the other arrays) does not measure the
+    same value from its bases at the first scan."""
+    bases, path = saved
+    with h5py.File(path, "r") as h5:
+        stored = float(h5["scan_skin/bias_correlation"][0])
+    fallback = scan_field.smoothing_bias_correlation(bases.skin)
+    assert np.isfinite(stored) and stored > 0 and abs(stored - fallback) > 1e-6 * fallback
+    assert field_from_scan(load_bases(path).skin, points)[0].error_model.bias_correlation == stored
+    older = _rewritten(path, tmp_path / "older.h5", lambda h5: h5.__delitem__("scan_skin/bias_correlation"))
+    monkeypatch.setattr(scan_field, "_PREPARED", {})
+    loaded = load_bases(older)
+    again = field_from_scan(loaded.skin, points)[0]
+    assert again.error_model.bias_correlation == pytest.approx(stored, rel=1e-9)
+
+
+@pytest.mark.parametrize("value", [-3.0, 0.0, float("nan")])
+def test_a_prepared_skin_with_a_bad_bias_correlation_is_refused_by_name(saved, points, fresh_cache, tmp_path, value):
+    """Fails if a prepared skin whose bias correlation is negative, zero or NaN reaches a field (a negative one
+    would make the within-model test's covariance indefinite, zero drop the bias allowance so every scan alarms)
+    instead of a named refusal: ScanError from the arrays themselves, and from a file whose prepared_id was
+    recomputed by a forger (the reader refuses a NaN by name first)."""
+    bases, path = saved
+    arrays = ScanFieldEstimator().fit(bases.skin).prepared_skin() | {"bias_correlation": np.array([value])}
+    with pytest.raises(ScanError, match="bias_correlation"):
+        ScanFieldEstimator().fit(bases.skin, prepared=arrays)
+    def forge(h5):
+        h5["scan_skin/bias_correlation"][0] = value
+
+    forged = _rewritten(path, tmp_path / "forged.h5", forge)
+    with pytest.raises((ScanError, BasisError), match="bias_correlation"):
+        field_from_scan(load_bases(forged).skin, points)

@@ -279,8 +279,10 @@ def test_the_nodes_state_the_same_std_as_the_core_path_for_a_multi_view_part(cel
     fused in this process (fuse_views, estimate_field): e.g. when the message drops the views' registration errors
     and the estimator falls back to their one-pose summary, which on this part is 5 % or more larger for at least
     one parameter (checked here, so the comparison can tell the two apart)."""
+    from hood_decomp.core.loop.scan_skin import prepared_scan_skin
     from hood_decomp.core.method.bases import estimate_field
     from hood_decomp.core.scan.fusion import ScanView, fuse_views
+    from hood_decomp.core.scan.scan_field import ScanFieldEstimator
 
     peer, client, _, scans, _, _, ready, _ = cell
     assert ready
@@ -288,7 +290,9 @@ def test_the_nodes_state_the_same_std_as_the_core_path_for_a_multi_view_part(cel
     assert result.success and result.views_used == 3, result.message
     views = [ScanView(s.points, s.true_transform, s.markers, s.markers_nominal, name=f"view {k}", pose_source="file")
              for k, s in enumerate(scans)]
-    fused = fuse_views(coarse_hood.skin, views).field
+    # the preparation the nodes read from the bases file (its measured bias correlation), not a bare skin's fallback
+    estimator = ScanFieldEstimator().fit(coarse_hood.skin, prepared=prepared_scan_skin(coarse_hood.bases))
+    fused = fuse_views(coarse_hood.skin, views, estimator=estimator).field
     assert len(fused.errors.view_poses) == 3
     core = estimate_field(coarse_hood.bases, fused)
     one_pose = estimate_field(coarse_hood.bases, dataclasses.replace(

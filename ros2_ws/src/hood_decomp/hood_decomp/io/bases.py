@@ -223,9 +223,9 @@ def save_bases(path: str | Path, bases: Bases, *, scan_skin: bool = True) -> Non
                     model.attrs[item.name] = value
 
         if scan_skin:
-            from hood_decomp.core.scan.scan_field import ScanFieldEstimator
+            from hood_decomp.core.loop.scan_skin import prepared_scan_skin
 
-            arrays = ScanFieldEstimator().fit(bases.skin).prepared_skin()
+            arrays = prepared_scan_skin(bases)  # with the smoothing bias' correlation measured on the part's states
             group = h5.create_group("scan_skin")
             group.attrs["prepared_id"] = prepared_id(content_id, arrays)
             for name, values in arrays.items():  # plain: every one-off scan reads them whole (the lookup grid and
@@ -342,8 +342,23 @@ def load_bases(path: str | Path, mapped: bool = False) -> Bases:
     if has_scan_skin:  # read when the first scan of this skin needs it (not for a field or a decomposition)
         from hood_decomp.core.scan.scan_field import register_prepared_skin
 
-        register_prepared_skin(skin, lambda: load_scan_skin(path, stored_id, skin.n_nodes, mapped))
+        held = weakref.ref(bases)  # the registry must not keep the bases alive
+        register_prepared_skin(skin, lambda: _with_bias(load_scan_skin(path, stored_id, skin.n_nodes, mapped),
+                                                        held()))
     return bases
+
+
+def _with_bias(arrays: dict[str, np.ndarray], bases: Bases | None) -> dict[str, np.ndarray]:
+    """A prepared skin of a file written before the smoothing bias' correlation was stored with it (issue 15 run
+    10): measured now from ``bases`` (core.loop.scan_skin; about a second at default resolution, once a process);
+    as read when it is stored, or the bases are gone (the scan step then states its area fallback)."""
+    if "bias_correlation" in arrays or bases is None:
+        return arrays
+    from hood_decomp.core.loop.scan_skin import measured_bias_correlation
+    from hood_decomp.core.scan.scan_field import ScanFieldEstimator
+
+    value = measured_bias_correlation(ScanFieldEstimator().fit(bases.skin, prepared=arrays), bases)
+    return arrays if value is None else arrays | {"bias_correlation": np.array([value])}
 
 
 def load_scan_skin(path: str | Path, content_id: str, n_nodes: int, mapped: bool = False) -> dict[str, np.ndarray]:

@@ -280,7 +280,9 @@ def _smooth_split(r: np.ndarray, design: np.ndarray, modes: np.ndarray, weight: 
     zm = to_z.T @ (design.T @ moved)
     projected = to_s.T @ (modes.T @ moved - zq.T @ zm)
     rough_registration = float(np.sum(moved**2) - np.sum(zm**2) - np.sum(projected**2))
-    return to_z.shape[1], c, smooth_cov, float(r @ r - zr @ zr - c @ c), fitted_weight, rough_registration, projected
+    rough = np.sum(r * r, axis=0) - np.sum(zr * zr, axis=0) - np.sum(c * c, axis=0)  # per column for r (n, k)
+    return to_z.shape[1], c, smooth_cov, float(rough) if r.ndim == 1 else rough, fitted_weight, rough_registration, \
+        projected
 
 
 def node_variance(errors: FieldErrorModel, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
@@ -435,6 +437,28 @@ def local_p_value(rings: sp.csr_matrix, residual: np.ndarray, variance_mm2: np.n
     z = np.abs(total[usable]) / np.sqrt(spread)
     dof = spread**2 / np.maximum(level**2 / nu + smooth**2 / smooth_dof, 1e-300 * spread**2)
     return float(min(1.0, 2.0 * usable.sum() * np.min(t_sf(z, np.minimum(dof, 1e12)))))
+
+
+def bias_correlation_of(bias: np.ndarray, design: np.ndarray | None, errors: FieldErrorModel, modes: np.ndarray
+                        ) -> float:
+    """The correlation sum (nodes) that makes :func:`check_residual`'s bias allowance equal to the mean smooth
+    projection of the biases ``bias`` (N, k) mm (noise-free: a field's making minus its truth; NaN where unseen).
+
+    The test measures a bias' level per node from the rough residual, b = rough energy / expected rough energy x
+    mean node variance (:func:`split_level`, at noise scale 1), and allows b x bias_correlation on each smooth
+    coefficient c (the M' modes outside ``design`` (N, p)). So the honest sum is E|c|^2 / M' over E b, here the
+    ratio of the sums over the k biases, with the test's own split (its expected rough energy from ``errors``: the
+    node variances and correlation sums of the field's making, any scale). modes: (N, M) :func:`smooth_modes`."""
+    bias = np.asarray(bias, dtype=float)
+    seen = np.all(np.isfinite(bias), axis=1)
+    variance, correlation = node_variance(errors, bias.shape[0])
+    v = variance[seen]
+    design = np.zeros((int(seen.sum()), 0)) if design is None else np.asarray(design, float)[seen]
+    _, c, smooth_cov, rough, fitted_weight, _, _ = _smooth_split(
+        bias[seen], design, modes[seen], v * correlation[seen], np.zeros((int(seen.sum()), 0)))
+    expected = float(v.sum()) - fitted_weight - float(np.trace(smooth_cov))
+    per_node = float(np.sum(rough)) / max(expected, 1e-300) * float(v.mean())
+    return float(np.sum(c * c)) / max(c.shape[0], 1) / max(per_node, 1e-300)
 
 
 def split_level(scale: float, errors: FieldErrorModel, mean_variance: float) -> tuple[float, float]:

@@ -53,14 +53,13 @@ _MAX_GRID_CELLS = 12_000_000
 _CHUNK_POINTS = 200_000
 # Nominal nodes used for each node's quadric (the node itself included).
 _QUADRIC_NEIGHBOURS = 13
-# How far the smoothing bias is correlated, as an area of the skin (mm^2): one physical number for every mesh of a
-# part. As a node count (1000, tuned on the default hood's 59 mm^2 nodes) it stood for 6.4 times the area on the
-# coarse hood's 375 mm^2 nodes: the bias allowance was 30-130 times the bias' mean smooth projection there, stds up
-# to 1.6 times the RMS error (97.4-99.95 % inside the 95 % interval, no false alarm in 2,000 scans; benchmarks/
-# RESULTS.md, issue 15 run 5). Measured against the FE truth
-# (noise-free scans, the bias projected on the skin's degree-2 smooth fields, mean over the fields per state):
-# 17,000-83,000 mm^2 on the default hood (5 states), 3,700-9,000 mm^2 on the coarse one (8 states). Set where the
-# within-model test's false-alarm rate on 120 default scans came down (300 nodes: 12.5 %; 1000 nodes: none).
+# The FALLBACK for a skin prepared without its part's fields (no bases, or bases without a reduced model): a skin
+# prepared with its bases stores the bias correlation measured on the part's own FE states (core/loop/scan_skin.py,
+# ``bias_correlation`` of PREPARED_SKIN; issue 15 run 10: coarse 57, default 5,000 nodes, where this area gives 157
+# and 1,000). How far the smoothing bias is correlated, as an area of the skin (mm^2). As a node count (1000, tuned
+# on the default hood's 59 mm^2 nodes) it stood for 6.4 times the area on the coarse hood's 375 mm^2 nodes (issue 15
+# run 5). Set where the within-model test's false-alarm rate on 120 default scans came down (300 nodes: 12.5 %;
+# 1000 nodes: none).
 SMOOTHING_BIAS_AREA_MM2 = 59_000.0
 # Twicing by default only at smoothing radii above this (mm). The bias grows as the radius squared times the
 # displacement's curvature (a property of the part, not of the mesh): 0.009-0.011 mm RMS at the coarse hood's 50 mm,
@@ -73,8 +72,9 @@ _NEAR_WEIGHT = 0.75**2
 
 
 def smoothing_bias_correlation(skin: SkinSurface) -> float:
-    """The scan step's smoothing bias on ``skin`` as a correlation sum in nodes (``FieldErrorModel.bias_correlation``):
-    :data:`SMOOTHING_BIAS_AREA_MM2` over the skin's area per node (mm^2 from its (T, 3) triangles)."""
+    """The scan step's smoothing bias on ``skin`` as a correlation sum in nodes (``FieldErrorModel.bias_correlation``)
+    where none was measured for it: :data:`SMOOTHING_BIAS_AREA_MM2` over the skin's area per node (mm^2 from its
+    (T, 3) triangles)."""
     return SMOOTHING_BIAS_AREA_MM2 * skin.n_nodes / max(float(np.sum(skin.triangle_areas())), 1e-300)
 
 
@@ -85,10 +85,11 @@ PREPARED_SKIN: dict[str, tuple[tuple[str, ...], str]] = {
     "quadric": (("N", "5"), "float"), "node_radius": (("N",), "float"), "grid_origin": (("3",), "float"),
     "grid_cell": (("1",), "float"), "grid_shape": (("3",), "integer"), "grid_table": (("G",), "integer"),
     "kernel_indptr": (("N1",), "integer"), "kernel_indices": (("Z",), "integer"), "kernel_data": (("Z",), "float"),
-    "twicing_variance": (("N",), "float"),
+    "twicing_variance": (("N",), "float"), "bias_correlation": (("1",), "float"),
 }  # fmt: skip
-#: arrays of PREPARED_SKIN a prepared skin may lack: made at the first scan that needs them (files written before)
-PREPARED_OPTIONAL = frozenset({"twicing_variance"})
+#: arrays of PREPARED_SKIN a prepared skin may lack: made at the first scan that needs them (files written before);
+#: ``bias_correlation`` is measured from the part's own fields (core.loop.scan_skin), without it the area fallback
+PREPARED_OPTIONAL = frozenset({"twicing_variance", "bias_correlation"})
 
 
 @dataclass(frozen=True)
@@ -151,7 +152,7 @@ def _check_prepared(prepared: Mapping[str, np.ndarray], n: int) -> dict[str, np.
             raise ScanError(f"prepared skin {name} holds {array.dtype}, expected integers")
         if kind == "float" and not np.all(np.isfinite(array)):
             raise ScanError(f"prepared skin {name} holds non-finite values")
-    positive = ("spacing", "radius", "grid_cell", "node_radius", "grid_shape", "twicing_variance")
+    positive = ("spacing", "radius", "grid_cell", "node_radius", "grid_shape", "twicing_variance", "bias_correlation")
     bad = [name for name in positive if name in arrays and np.any(arrays[name] <= 0)]
     bad += ["gate2"] if np.any(arrays["gate2"] < 0) else []
     if np.any(arrays["kernel_data"] < 0) or np.any(arrays["kernel_data"] > 1):  # biweight values
@@ -248,7 +249,10 @@ class ScanFieldEstimator:
         self.twicing_ = self.radius_mm_ > TWICING_MIN_RADIUS_MM if self.twicing is None else bool(self.twicing)
         self.center_ = points.mean(axis=0)
         self.skin_size_mm_ = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))  # bounding-box diagonal
-        self.bias_correlation_ = smoothing_bias_correlation(skin)
+        measured = prepared is not None and "bias_correlation" in prepared
+        self.bias_measured_ = measured
+        self.bias_correlation_ = (float(prepared["bias_correlation"][0]) if measured
+                                  else smoothing_bias_correlation(skin))
         self.points_ = points
         tangent1, tangent2 = _tangent_frames(normals)
         self.frames_ = np.stack([tangent1, tangent2, normals], axis=1)  # (N, 3, 3) rows t1, t2, n
@@ -381,9 +385,12 @@ class ScanFieldEstimator:
     def prepared_skin(self) -> dict[str, np.ndarray]:
         """What :meth:`fit` builds slowly, as arrays (names and shapes: ``PREPARED_SKIN``) to store with the bases
         and give back to ``fit(skin, prepared=...)``: grid, quadrics, gates, kernel (CSR), node radii and, for a twiced
-        fit, :meth:`_twicing_variance` (0.1 s a process on the default hood otherwise)."""
+        fit, :meth:`_twicing_variance` (0.1 s a process on the default hood otherwise); ``bias_correlation`` when the
+        estimator was fitted with a measured one (:meth:`smoothing_bias`, core.loop.scan_skin)."""
         self._check_fitted()
         twicing = {"twicing_variance": self._twicing_ratio()} if self.twicing_ else {}
+        if self.bias_measured_:
+            twicing["bias_correlation"] = np.array([self.bias_correlation_])
         return twicing | {
             "spacing": np.array([self.spacing_mm_]), "radius": np.array([self.radius_mm_]),
             "gate2": self.gate2_, "quadric": self.quadric_, "node_radius": self.node_radius_mm_,
@@ -633,6 +640,61 @@ class ScanFieldEstimator:
                                                 self._node_fits(self._smooth(raw), fast, equivalent=True)[3], raw,
                                                 fast)
         return np.where(plain > 0, twiced / np.where(plain > 0, plain, 1.0), 1.0)
+
+    def smoothing_bias(self, fields: np.ndarray, tangential: np.ndarray | None = None
+                       ) -> tuple[np.ndarray, FieldErrorModel]:
+        """What this scan step makes of noise-free displacement fields, normal part (N, k) mm, sampled once per node:
+        its bias (N, k) mm (node value - field; NaN where a node's fit is singular or inflated beyond
+        ``max_inflation``) and the error model (:meth:`_error_model`) of such a uniform sampling at unit point noise.
+
+        The same linear smoother as :meth:`field` (the plane fit and, where on, its twicing pass), on cells holding
+        one point at their node: the node values are A s with A the fit's equivalent weights, so the bias is
+        A s - u, mostly the kernel's second moment times the displacement's curvature (issue 15 run 6).
+        tangential: (N, k, 3) mm the fields' in-plane displacement, None for none. A scan sees the displaced surface
+        at the nominal node, not the displaced node: s = u - u_t . grad u (the surface slid along itself by u_t),
+        a smooth term of the order of the in-plane motion times the displacement's slope (0.003 mm RMS on coarse
+        states where a hinge slides the hood by about a millimetre; issue 15 run 10); grad u is the plane fit's
+        slope of u. No outlier pass: on a scan it drops 4-sigma points of a noise of 0.01-0.05 mm, not the
+        displacement's curvature, which on a noise-free cloud it would (tests/core/scan/test_field_error_model.py).
+        The nominal geometry's own floor (the quadrics against the scanned surface, 0.0004 mm RMS on the coarse hood)
+        is not in it."""
+        self._check_fitted()
+        fields = np.asarray(fields, dtype=np.float64)
+        n = self.points_.shape[0]
+        if fields.ndim != 2 or fields.shape[0] != n or not np.all(np.isfinite(fields)):
+            raise ScanError(f"fields must be a finite (N={n}, k) array in mm; got shape {fields.shape}")
+        if tangential is not None and np.shape(tangential) != (*fields.shape, 3):
+            raise ScanError(f"tangential must be (N, k, 3) like fields {fields.shape}; got {np.shape(tangential)}")
+        fast = kernels.for_points(0)  # compiled only where the kernels are loaded already
+        cells = np.zeros((n, 9))
+        cells[:, 0] = 1.0
+        rows = np.arange(n)
+        raw = self._raw_moments(cells, rows, fast)
+        mixed = self._smooth(raw)
+        _, weight, inflation, equivalent = self._node_fits(mixed, fast, equivalent=True)
+
+        def smoothed(values: np.ndarray) -> np.ndarray:  # plane fits (N, 3) of node values (N,), twicing aside
+            cells[:, 6] = values
+            raw[:, 10:] = self._raw_moments(cells, rows, fast)[:, 10:]
+            mixed[:, 10:] = self._smooth(raw[:, 10:])
+            return self._node_fits(mixed, fast)[0]
+
+        bias = np.empty_like(fields)
+        for k in range(fields.shape[1]):
+            seen = fields[:, k]
+            if tangential is not None:  # the slope in the node frame: d = a + b_u u + b_v v
+                slope = smoothed(seen)[:, 1:]
+                along = np.einsum("nd,nad->na", np.asarray(tangential[:, k], float), self.frames_[:, :2])
+                seen = seen - np.nan_to_num(np.sum(along * slope, axis=1))
+            coef = smoothed(seen)
+            if self.twicing_:
+                coef = coef + self._twice(cells, coef, mixed, fast)
+            bias[:, k] = coef[:, 0] - fields[:, k]
+        supported = np.isfinite(bias).all(axis=1) & (inflation <= self.max_inflation) & (weight > 0)
+        bias[~supported] = np.nan
+        squared = self.kernel_.multiply(self.kernel_) @ cells[:, 0]
+        errors = self._error_model(raw, squared, weight, inflation, equivalent, supported, 1.0, fast)
+        return bias, errors
 
     def _error_model(self, raw: np.ndarray, squared: np.ndarray, weight: np.ndarray, inflation: np.ndarray,
                      rows: np.ndarray, supported: np.ndarray, noise_mm: float, fast: bool) -> FieldErrorModel:
