@@ -175,7 +175,7 @@ def calibrated_bases(bases, physics: PhysicalResponses, truth, rng: np.random.Ge
     reduced, calibration = calibrate(bases.reduced_model, physics, entries, bases.skin,
                                      (bases.pca.lower_, bases.pca.upper_))
     return rebuild_bases(bases, reduced, json.dumps(calibration.record(), sort_keys=True), physics,
-                         calibration.discrepancy, calibration.local_mm2)
+                         **calibration.error_terms())
 
 
 def main() -> int:

@@ -52,8 +52,7 @@ def run(args: argparse.Namespace) -> int:
     record = calibration.record()
     record["settings_mm"] = {e.name: e.setting for e in read}
     record["from_bases_id"] = bases_id(bases)
-    calibrated = rebuild_bases(bases, reduced, json.dumps(record, sort_keys=True), physics, calibration.discrepancy,
-                               calibration.local_mm2)
+    calibrated = rebuild_bases(bases, reduced, json.dumps(record, sort_keys=True), physics, **calibration.error_terms())
     with written_whole(out) as temporary:
         save_bases(temporary, calibrated)
     print(f"wrote {out}: calibration {record['id']} from {len(entries)} entries, leave-one-out RMS "

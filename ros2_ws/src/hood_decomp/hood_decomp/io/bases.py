@@ -48,6 +48,8 @@ _REDUCED_DIMS = {
     "preload": ("S",), "pad_of": ("S",), "w0_3d": ("N", "3"), "R_3d": ("N", "3", "B"), "G_3d": ("N", "3", "S"),
 }  # fmt: skip
 _THERMAL_DIMS = {"w": ("N",), "z": ("S",), "w3": ("N", "3")}
+#: calibrated bases' optional discrepancy terms since session 11 (core.method.bases.Bases): name -> column dimension
+_DISCREPANCY_TERMS = {"discrepancy_noise": "DW", "calibration_noise": "DE"}
 
 
 def bases_id(bases: Bases) -> str:
@@ -75,6 +77,9 @@ def bases_id(bases: Bases) -> str:
         items += ["discrepancy", bases.discrepancy]
     if bases.discrepancy_local is not None:
         items += ["discrepancy_local", bases.discrepancy_local]
+    for name in _DISCREPANCY_TERMS:  # absent before session 11: those files keep their ids
+        if getattr(bases, name) is not None:
+            items += [name, getattr(bases, name)]
     if bases.measured_effects:
         items += ["measured_effects", "\x00".join(bases.measured_effects)]
     return fingerprint(*items)
@@ -184,6 +189,9 @@ def save_bases(path: str | Path, bases: Bases, *, scan_skin: bool = True) -> Non
             h5.create_dataset("discrepancy", data=bases.discrepancy)
         if bases.discrepancy_local is not None:
             h5.create_dataset("discrepancy_local", data=bases.discrepancy_local)
+        for name in _DISCREPANCY_TERMS:
+            if getattr(bases, name) is not None:
+                h5.create_dataset(name, data=getattr(bases, name))
         skin = h5.create_group("skin")
         skin.attrs["model_id"] = bases.skin.model_id
         for name in ("points", "normals", "triangles"):
@@ -318,6 +326,12 @@ def load_bases(path: str | Path, mapped: bool = False) -> Bases:
         local = read.array("discrepancy_local", ("N",)) if "discrepancy_local" in h5 else None
         if local is not None and (discrepancy is None or np.any(local < 0)):
             raise BasisError(f"{path}: discrepancy_local must be non-negative variances beside /discrepancy")
+        # optional (issue 16, session 11): the discrepancy rows' expected noise (N, K) and the correction's own
+        # error (N, r) mm; a file without them (calibrated before) counts D D^T as it is
+        terms = {name: read.array(name, ("N", dim)) if name in h5 else None
+                 for name, dim in _DISCREPANCY_TERMS.items()}
+        if any(value is not None for value in terms.values()) and discrepancy is None:
+            raise BasisError(f"{path}: {' and '.join(n for n, v in terms.items() if v is not None)} need /discrepancy")
         has_scan_skin = version >= 3 and "scan_skin" in h5
         # optional (issue 17): acceptance criteria, outside bases_id, bound to it by their own zones_id
         zones = _read_zones(read, stored_id) if "tolerance_zones" in h5 else ()
@@ -333,7 +347,8 @@ def load_bases(path: str | Path, mapped: bool = False) -> Bases:
                         ("reduced model", None if reduced is None else reduced.model_id)):
         if other is not None and other != model_id:
             raise BasisError(f"{path}: {what} model_id {other!r} differs from the file's {model_id!r}")
-    bases = Bases(model_id, skin, pca, hier, reduced, calibration, thermal, zones, discrepancy, measured, local)
+    bases = Bases(model_id, skin, pca, hier, reduced, calibration, thermal, zones, discrepancy, measured, local,
+                  **terms)
     if bases_id(bases) != stored_id:
         raise BasisError(f"{path}: content does not match its bases_id {stored_id!r} (the file was altered after "
                          "it was written: a rewritten model_id or array); rebuild it with `hood-decomp bases`")

@@ -26,9 +26,12 @@ in this order:
 Judged by leave-one-out: each entry is predicted by the calibration fitted on the others (its RMS error is recorded).
 What the calibrated model still gets wrong is measured there too and stated: the **model discrepancy**
 (:func:`discrepancy_modes`), a low-rank covariance of the skin field built from the leave-one-out residuals on the
-smooth modes, scaled to a part anywhere in the bases' range, each curvature counted once and the estimate's own
-uncertainty (the noise of the entries it is made from) carried, not subtracted. The bases carry it
-(``Bases.discrepancy``) and every estimate's covariance and the within-model test count it as a field error.
+smooth modes, scaled to a part anywhere in the bases' range, each curvature counted once; beside it the rows'
+expected noise (:func:`discrepancy_noise_modes`), which every estimate nets along its own gains (the entries' noise
+is not the part's), and the calibrated model's own error from the entries' noise at a part (its correction, by a
+parametric bootstrap, and its physical factors), which it adds. The bases carry the three (``Bases.discrepancy``,
+``discrepancy_noise``, ``calibration_noise``) and every estimate's covariance and the within-model test count them
+as a field error.
 Honest calibration:
 
 - too few entries for what is fitted (a response no two other entries move, so leave-one-out cannot judge it) is
@@ -56,7 +59,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from hood_decomp.core.fe.contact import contact_state
-from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solve_members
+from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solve_members, validation_plan
 from hood_decomp.core.method.bases import Bases, build_bases
 from hood_decomp.core.method.model_spread import PhysicalResponses, apply_factors, factor_names
 from hood_decomp.core.method.residual import DEFAULT_NOISE_MM, ring_incidence, skin_adjacency
@@ -80,6 +83,12 @@ SETTING_SIGMAS = 4.0
 SMOOTH_MODES = 100
 #: total pad force unit of the correction's regressors (N): the pad columns of Delta are per kN
 FORCE_UNIT_N = 1000.0
+#: states drawn over the range at which the entries' noise in the calibrated model is carried to a part
+#: (:meth:`_Problem.correction_spread`, :meth:`_Problem.factor_noise`)
+RANGE_SAMPLES = 32
+#: the correction's parametric bootstrap (:meth:`_Problem.correction_spread`): draws and seed
+BOOTSTRAP_DRAWS = 40
+BOOTSTRAP_SEED = 16
 
 
 @dataclass(frozen=True)
@@ -102,7 +111,9 @@ class Calibration:
     discrepancy: (N, k) mm the model discrepancy modes (:func:`discrepancy_modes`); rough_rms_mm: the leave-one-out
     residual RMS outside the smooth modes beyond the noise (not in the discrepancy: 0 when the noise explains it);
     local_mm2: (N,) mm^2 where that rough model error lies, per node on the scale of a one-ring
-    (:func:`local_discrepancy`)."""
+    (:func:`local_discrepancy`); discrepancy_noise: (N, K) mm the discrepancy rows' expected noise
+    (:func:`discrepancy_noise_modes`, subtracted along each estimate's gains); calibration_noise: (N, r) mm the
+    calibrated model's error from the entries' noise in its correction and its factors (added)."""
 
     factors: dict[str, float]
     factor_std: dict[str, float]
@@ -116,6 +127,14 @@ class Calibration:
     discrepancy: np.ndarray
     rough_rms_mm: float
     local_mm2: np.ndarray
+    discrepancy_noise: np.ndarray | None = None
+    calibration_noise: np.ndarray | None = None
+
+    def error_terms(self) -> dict[str, np.ndarray | None]:
+        """What the calibrated bases state about this calibration's model error, as :func:`rebuild_bases` takes it:
+        discrepancy, discrepancy_local, discrepancy_noise, calibration_noise."""
+        return {"discrepancy": self.discrepancy, "discrepancy_local": self.local_mm2,
+                "discrepancy_noise": self.discrepancy_noise, "calibration_noise": self.calibration_noise}
 
     def record(self) -> dict:
         """The calibration as JSON-ready data (what the bases file records): factors, rank, entries with their
@@ -133,7 +152,11 @@ class Calibration:
                             "rough_rms_mm": self.rough_rms_mm,
                             "local_rms_mm": float(np.sqrt(np.mean(self.local_mm2)))},
         }
-        body["id"] = fingerprint(json.dumps(body, sort_keys=True), self.correction, self.discrepancy, self.local_mm2)
+        terms = {"noise_rms_mm": self.discrepancy_noise, "calibration_noise_rms_mm": self.calibration_noise}
+        body["discrepancy"].update({key: float(np.sqrt(np.sum(value**2) / value.shape[0]))
+                                    for key, value in terms.items() if value is not None})
+        body["id"] = fingerprint(json.dumps(body, sort_keys=True), self.correction, self.discrepancy, self.local_mm2,
+                                 *(value for value in terms.values() if value is not None))
         return body
 
 
@@ -239,22 +262,31 @@ class _Problem:
                 break
         return theta, np.linalg.inv(jac.T @ jac)
 
-    def regressors(self, forces: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """X (m, 1 + B + U): 1, the bilateral states and the total pad forces (kN) of entries ``rows``."""
+    def regressors(self, forces: np.ndarray, rows: np.ndarray, settings: np.ndarray | None = None) -> np.ndarray:
+        """X (m, 1 + B + U): 1, the bilateral states and the total pad forces (kN) of entries ``rows`` (or of
+        ``settings`` (m, P) mm, other states)."""
         B = self.reduced.n_bilateral
-        return np.hstack([np.ones((len(rows), 1)), self.settings[rows, :B], forces / FORCE_UNIT_N])
+        states = self.settings[rows] if settings is None else settings
+        return np.hstack([np.ones((len(rows), 1)), states[:, :B], forces / FORCE_UNIT_N])
 
-    def fit_correction(self, theta: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, int]:
-        """The low-rank correction (N, q) from entries ``rows`` after physical factors theta, and its rank.
+    def fit_correction(self, theta: np.ndarray, rows: np.ndarray, values: np.ndarray | None = None
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The low-rank correction (N, q) from entries ``rows`` after physical factors theta, the smooth-mode
+        directions it keeps (K, rank), orthonormal, and its regressors X (m, q). values: (M, N) other entry fields
+        (the bootstrap's, :meth:`correction_spread`), else the entries'.
 
         The residuals are projected on the skin's smooth modes (:attr:`modes`, orthonormal (N, K)): a model error is
         smooth, noise is not, so the noise the correction can pick up lives in K dimensions instead of N (an unseen
         node counts as no residual). C (K, q) is the least-squares regression on X, whitened by (X^T X)^(1/2) and
         truncated to the singular values above the largest of a pure-noise (K, q) matrix."""
-        fields, forces = self.predict(theta, rows)
+        return self._correction(*self.predict(theta, rows), rows, values)
+
+    def _correction(self, fields: np.ndarray, forces: np.ndarray, rows: np.ndarray, values: np.ndarray | None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`fit_correction` from the entries' model fields (m, N) and pad forces (m, U) after the factors."""
         X = self.regressors(forces, rows)
         q = X.shape[1]
-        residual = ((self.Y[rows] - fields) * self.mask[rows]) @ self.modes  # (m, K)
+        residual = (((self.Y if values is None else values)[rows] - fields) * self.mask[rows]) @ self.modes  # (m, K)
         gram = X.T @ X
         coefficients = np.linalg.solve(gram + 1e-12 * np.trace(gram) * np.eye(q), X.T @ residual).T  # (K, q)
         values, vectors = np.linalg.eigh(gram)
@@ -264,7 +296,54 @@ class _Problem:
         sigma = float(np.sqrt(np.mean(self.noise[rows] ** 2)))
         threshold = RANK_SIGMAS * sigma * (np.sqrt(self.modes.shape[1]) + np.sqrt(q))
         rank = int(np.sum(s > threshold))
-        return self.modes @ ((u[:, :rank] * s[:rank]) @ vt[:rank] @ inverse_root), rank
+        return self.modes @ ((u[:, :rank] * s[:rank]) @ vt[:rank] @ inverse_root), u[:, :rank], X
+
+    def correction_spread(self, theta: np.ndarray, calibrated: ReducedModel, correction: np.ndarray,
+                          states: np.ndarray) -> np.ndarray:
+        """(N, r) mm: the calibrated model's error from the entries' noise in its correction, at parts at ``states``
+        (n, P) mm, by a parametric bootstrap: the calibrated model's own entry fields plus fresh noise of each entry's
+        level, the correction fitted again (its rank and directions chosen again: the choice is part of its error,
+        which a fixed-subspace formula misses), its change carried to the parts' regressors; the deviations'
+        second moment over :data:`BOOTSTRAP_DRAWS` draws, reduced to the singular values above 1e-3 of the largest.
+        Every part of the plant shares this error, so leave-one-out cannot show it."""
+        fitted = normal_fields(calibrated, self.settings)[0]
+        parts = self.regressors(normal_fields(calibrated, states)[1], np.arange(len(states)), states)
+        rng = np.random.default_rng(BOOTSTRAP_SEED)
+        everything = np.arange(len(self.names))
+        predicted = self.predict(theta, everything)  # the same for every draw: the factors stay
+        deviations = []
+        for _ in range(BOOTSTRAP_DRAWS):
+            drawn = np.where(self.mask, fitted + rng.normal(size=fitted.shape) * self.noise[:, None], 0.0)
+            again, _, _ = self._correction(*predicted, everything, drawn)
+            # the corrections live in the smooth modes: their coordinates (K, n) lose nothing
+            deviations.append(self.modes.T @ (again - correction) @ parts.T)
+        stacked = np.hstack(deviations) / np.sqrt(BOOTSTRAP_DRAWS * len(states))
+        u, s, _ = np.linalg.svd(stacked, full_matrices=False)
+        keep = s > 1e-3 * s[0] if s.size and s[0] > 0 else np.zeros(s.size, bool)
+        return self.modes @ (u[:, keep] * s[keep])
+
+    def factor_noise(self, theta: np.ndarray, covariance: np.ndarray, states: np.ndarray) -> np.ndarray:
+        """(N, r) mm: the calibrated model's error from the entries' noise in its physical factors theta (fit
+        covariance (F, F)), at parts at ``states`` (n, P) mm: the field's finite-difference sensitivity along each
+        principal direction of the covariance, stacked over the states (/ sqrt(n)) and reduced to the singular
+        values above 1e-3 of the largest. Not reduced by what the correction would absorb of it (an upper bound)."""
+        values, vectors = np.linalg.eigh(0.5 * (covariance + covariance.T))
+        base = normal_fields(apply_factors(self.reduced, self.physics, theta, full=False), states)[0]
+        columns = []
+        for value, vector in zip(values, vectors.T, strict=True):
+            if value <= 0:
+                continue
+            direction = vector * np.sqrt(value)
+            step = FD_STEP / max(float(np.max(np.abs(direction))), 1e-300)
+            moved = normal_fields(apply_factors(self.reduced, self.physics, theta + step * direction, full=False),
+                                  states)[0]
+            columns.append((moved - base) / step)  # (n, N) per unit sigma along the direction
+        if not columns:
+            return np.zeros((base.shape[1], 0))
+        stacked = np.concatenate(columns, axis=0).T / np.sqrt(len(states))  # (N, F n)
+        u, s, _ = np.linalg.svd(stacked, full_matrices=False)
+        keep = s > 1e-3 * s[0] if s.size and s[0] > 0 else np.zeros(s.size, bool)
+        return u[:, keep] * s[keep]
 
     def setting_error(self, theta: np.ndarray, row: int) -> tuple[float, str]:
         """The entry's setting test (module docstring) with physical factors theta fitted without it: the largest
@@ -333,9 +412,20 @@ def discrepancy_modes(residuals: np.ndarray, settings: np.ndarray, modes: np.nda
 
     M entries give a covariance estimate with about M degrees of freedom (k <= M directions): the within-model test
     refers its statistic to a Hotelling-type law with that many (:func:`core.method.residual.check_residual`, the
-    bases' ``discrepancy_dof``), not to a chi-square that takes the estimate as exact."""
-    coordinates = residuals @ modes  # (M, K)
-    M = coordinates.shape[0]
+    bases' ``discrepancy_dof``), not to a chi-square that takes the estimate as exact.
+
+    The rows' noise is not the part's error, though: the part's own measurement term already carries noise, and the
+    calibrated model's share of the entries' noise is the correction's estimation error, not a left-out entry's
+    noise. :func:`discrepancy_noise_modes` states the rows' expected noise W W^T, which the estimate's covariance
+    subtracts along its own gains (:func:`core.method.estimation.parameter_covariance`), and
+    :meth:`_Problem.correction_spread` and :meth:`_Problem.factor_noise` the calibrated model's own error from the
+    entries' noise at a part's state, which it adds."""
+    return modes @ (_discrepancy_rows(settings, variance, fourth) @ (residuals @ modes)).T
+
+
+def _discrepancy_rows(settings: np.ndarray, variance: np.ndarray, fourth: np.ndarray) -> np.ndarray:
+    """The rows A (k, M) of :func:`discrepancy_modes`: D^T = A (leave-one-out residuals on the modes)."""
+    M = settings.shape[0]
     size = np.linalg.norm(settings, axis=1)
     reference = size == 0.0
     if not reference.any():
@@ -372,7 +462,43 @@ def discrepancy_modes(residuals: np.ndarray, settings: np.ndarray, modes: np.nda
         if j not in paired:
             weight = (u**2 / np.where(counts > 0, counts, 1.0)) @ variance
             rows.append((eye[j] - base) * np.sqrt(weight) / size[j])
-    return modes @ (np.array(rows) @ coordinates).T
+    return np.array(rows)
+
+
+def loo_smoother(design: np.ndarray) -> np.ndarray:
+    """L (M, M): the leave-one-out residuals' dependence on the entries' noise through a least-squares regression on
+    ``design`` (M, q): r_j = sum_k L_jk eps_k with L_jj = 1 and L_jk = -x_j^T (X_-j^T X_-j)^+ x_k (the left-out
+    entry's own noise, minus the fit of the others' noise at its regressors)."""
+    M = design.shape[0]
+    smoother = np.eye(M)
+    for j in range(M):
+        others = np.delete(np.arange(M), j)
+        gram = design[others].T @ design[others]
+        smoother[j, others] = -design[j] @ np.linalg.pinv(gram) @ design[others].T
+    return smoother
+
+
+def discrepancy_noise_modes(settings: np.ndarray, modes: np.ndarray, variance: np.ndarray, fourth: np.ndarray,
+                            noise: np.ndarray, smoother: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    """W (N, K) mm: the expected noise of the discrepancy's rows, E[noise part of D D^T] = W W^T.
+
+    settings, modes, variance, fourth: as :func:`discrepancy_modes`; noise: (M,) mm the entries' white noise std;
+    smoother: (M, M) :func:`loo_smoother` of the correction's regression; kept: (K, r) orthonormal, the smooth-mode
+    directions the correction keeps. On the kept directions a leave-one-out residual is L eps (the left-out entry's
+    noise and the others' through the refit), on the rest the entry's own noise alone: with A the rows,
+    c_kept = ||A L diag(noise)||_F^2 and c_drop = ||A diag(noise)||_F^2 per mode, white within each part.
+
+    Why it is stated and not subtracted here: D D^T has rank k (the rows) in K = 100 modes, so the rows' noise
+    (c per mode, c K in all) sits in the rows' k directions; subtracting c I and clipping to a covariance would leave
+    (K - k) / K of it. Along a fixed gain g, g^T D D^T g - g^T W W^T g is unbiased, which is where the estimate
+    takes it: along each parameter's gain (:func:`core.method.estimation.parameter_covariance`). Measured before
+    (benchmarks/RESULTS.md, session 10): the rows' noise was 1.8-2.5 x the part's measurement variance along the
+    bilateral gains, counted on top of the part's own noise (LOCK_L stated 1.76 x its actual error variance)."""
+    rows = _discrepancy_rows(settings, variance, fourth)
+    c_kept = float(np.sum((rows @ smoother * noise) ** 2))
+    c_drop = float(np.sum((rows * noise) ** 2))
+    complement = np.linalg.svd(np.eye(modes.shape[1]) - kept @ kept.T)[0][:, :modes.shape[1] - kept.shape[1]]
+    return modes @ np.hstack([kept * np.sqrt(c_kept), complement * np.sqrt(c_drop)])
 
 
 def local_discrepancy(residuals: np.ndarray, mask: np.ndarray, noise: np.ndarray, modes: np.ndarray,
@@ -489,14 +615,15 @@ def calibrate(reduced: ReducedModel, physics: PhysicalResponses, entries: list[C
         if excess > 0:
             raise CalibrationError(f"calibration entry {entries[j].name}: its known setting of {label} disagrees with "
                                    f"the other entries by {excess:.3f} mm beyond the tolerance (a wrong reading?)")
-        correction_j, _ = problem.fit_correction(theta_j, others)
+        correction_j, _, _ = problem.fit_correction(theta_j, others)
         model_j = with_correction(apply_factors(reduced, physics, theta_j, full=False), correction_j, normals)
         predicted = normal_fields(model_j, problem.settings[j][None, :])[0][0]
         seen = problem.mask[j]
         loo_residual[j] = np.where(seen, problem.Y[j] - predicted, 0.0)
         loo[j] = float(np.sqrt(np.mean(loo_residual[j, seen] ** 2)))
         logger.info("calibration: leave-one-out %d/%d (%s): %.4f mm", j + 1, M, entries[j].name, loo[j])
-    correction, rank = problem.fit_correction(theta, everything)
+    correction, kept, design = problem.fit_correction(theta, everything)
+    rank = kept.shape[1]
     calibrated = with_correction(apply_factors(reduced, physics, theta), correction, normals)
     fitted = normal_fields(calibrated, problem.settings)[0]
     residual = np.sqrt(np.sum(((problem.Y - fitted) * problem.mask) ** 2, axis=1) / problem.mask.sum(axis=1))
@@ -506,8 +633,14 @@ def calibrate(reduced: ReducedModel, physics: PhysicalResponses, entries: list[C
     lower, upper = (np.asarray(bound, float) for bound in state_range)
     width = np.where(upper > lower, upper - lower, 1.0)
     fourth = np.where(upper > lower, (upper**5 - lower**5) / (5.0 * width), lower**4)
-    discrepancy = discrepancy_modes(loo_residual, problem.settings, problem.modes,
-                                    (lower**2 + lower * upper + upper**2) / 3.0, fourth)
+    variance = (lower**2 + lower * upper + upper**2) / 3.0
+    discrepancy = discrepancy_modes(loo_residual, problem.settings, problem.modes, variance, fourth)
+    discrepancy_noise = discrepancy_noise_modes(problem.settings, problem.modes, variance, fourth, problem.noise,
+                                                loo_smoother(design), kept)
+    # what the entries' noise leaves in the calibrated model at parts over the range: its correction, its factors
+    states = validation_plan(lower, upper, RANGE_SAMPLES, seed=16)
+    calibration_noise = np.hstack([problem.correction_spread(theta, calibrated, correction, states),
+                                   problem.factor_noise(theta, covariance, states)])
     # what leave-one-out leaves outside the smooth modes beyond the noise: not in the discrepancy, so recorded
     outside = (np.sum(loo_residual**2, axis=1) - np.sum((loo_residual @ problem.modes) ** 2, axis=1)
                - (problem.mask.sum(axis=1) - problem.modes.shape[1]) * problem.noise**2)
@@ -520,7 +653,8 @@ def calibrate(reduced: ReducedModel, physics: PhysicalResponses, entries: list[C
                                                                                       strict=True)),
         correction=correction, rank=rank, entries=problem.names, loo_rms_mm=loo,
         noise_mm=float(np.sqrt(np.mean(problem.noise**2))), residual_rms_mm=residual, setting_error_mm=setting_error,
-        discrepancy=discrepancy, rough_rms_mm=rough, local_mm2=local)
+        discrepancy=discrepancy, rough_rms_mm=rough, local_mm2=local, discrepancy_noise=discrepancy_noise,
+        calibration_noise=calibration_noise)
     logger.info("calibration: correction rank %d, leave-one-out RMS %.4f mm, discrepancy rank %d RMS %.4f mm "
                 "(outside the smooth modes %.4f mm)", rank, np.sqrt(np.mean(loo**2)), discrepancy.shape[1],
                 np.sqrt(np.sum(discrepancy**2) / skin.n_nodes), rough)
@@ -529,7 +663,8 @@ def calibrate(reduced: ReducedModel, physics: PhysicalResponses, entries: list[C
 
 def rebuild_bases(bases: Bases, reduced: ReducedModel, calibration: str = "",
                   physics: PhysicalResponses | None = None, discrepancy: np.ndarray | None = None,
-                  discrepancy_local: np.ndarray | None = None) -> Bases:
+                  discrepancy_local: np.ndarray | None = None, discrepancy_noise: np.ndarray | None = None,
+                  calibration_noise: np.ndarray | None = None) -> Bases:
     """Both bases rebuilt from a (calibrated) reduced model: the full-factorial ensemble by exact contact and
     superposition, then PCA and hierarchical basis with the original bases' settings. ``calibration``: the JSON record
     the new bases carry (their bases_id changes with it; the model_id stays); ``physics``: the FE model's responses
@@ -537,8 +672,10 @@ def rebuild_bases(bases: Bases, reduced: ReducedModel, calibration: str = "",
     (:meth:`PhysicalResponses.thermal`), goes into the bases (the temperature term); ``discrepancy``: (N, k) mm the
     calibration's model discrepancy modes (:attr:`Calibration.discrepancy`), which the estimates' covariance and the
     within-model test then count; ``discrepancy_local``: (N,) mm^2 its rough part per node
-    (:attr:`Calibration.local_mm2`), which the test's one-ring part counts. The tolerance zones (acceptance criteria
-    on the same skin) are kept."""
+    (:attr:`Calibration.local_mm2`), which the test's one-ring part counts; ``discrepancy_noise``,
+    ``calibration_noise``: the rows' expected noise and the correction's own error (:attr:`Calibration.
+    discrepancy_noise`, :attr:`Calibration.calibration_noise`). The tolerance zones (acceptance criteria on the same
+    skin) are kept."""
     lower, upper = bases.pca.lower_, bases.pca.upper_
     commanded, rank = factorial_plan(lower, upper)
     logger.info("rebuilding the ensemble: %d members", len(commanded))
@@ -547,7 +684,8 @@ def rebuild_bases(bases: Bases, reduced: ReducedModel, calibration: str = "",
                           bases.hierarchical.epsilon_)
     thermal = None if physics is None else physics.thermal(bases.reduced_model, reduced)
     return replace(rebuilt, calibration=calibration, thermal=thermal, physics=physics, discrepancy=discrepancy,
-                   discrepancy_local=discrepancy_local,
+                   discrepancy_local=discrepancy_local, discrepancy_noise=discrepancy_noise,
+                   calibration_noise=calibration_noise,
                    tolerance_zones=bases.tolerance_zones, measured_effects=bases.measured_effects)
 
 
@@ -592,9 +730,11 @@ __all__ = [
     "apply_factors",
     "calibrate",
     "discrepancy_modes",
+    "discrepancy_noise_modes",
     "factor_names",
     "factor_std",
     "local_discrepancy",
+    "loo_smoother",
     "one_at_a_time",
     "rebuild_bases",
     "relative_field",

@@ -66,6 +66,14 @@ class Bases:
     #: the discrepancy's part outside the smooth modes it is stated on, per skin node (N,) mm^2
     #: (core.loop.calibration.local_discrepancy): the within-model test's one-ring part counts it. None: no term
     discrepancy_local: np.ndarray | None = None
+    #: the discrepancy rows' expected noise, (N, K) mm (core.loop.calibration.discrepancy_noise_modes): the
+    #: estimates' covariance subtracts W W^T from D D^T along its own gains (the part's own noise is counted by its
+    #: measurement term). None: D D^T counted as it is (bases calibrated before session 11)
+    discrepancy_noise: np.ndarray | None = None
+    #: the calibrated model's error from the calibration entries' noise (its correction and its physical factors),
+    #: (N, r) mm (core.loop.calibration, Calibration.calibration_noise): a low-rank field error the covariance and
+    #: the test add
+    calibration_noise: np.ndarray | None = None
     #: the FE model's responses to the physical factors (gas springs, sheet thickness; core.fe.solver
     #: physical_responses, thickness_sensitivities) of ``reduced_model``'s FE model: with them the estimates consider
     #: thickness and gas-spring force among the model's factors (model_spread). None: these two are not considered.
@@ -86,7 +94,8 @@ class Bases:
         prepared once."""
         if "test" not in self._tests:
             self._tests.setdefault("test", ResidualTest().fit(self.skin, self.discrepancy, self.discrepancy_dof,
-                                                              self.discrepancy_local))
+                                                              self.discrepancy_local, self.discrepancy_noise,
+                                                              self.calibration_noise))
         return self._tests["test"]
 
     @property
@@ -180,6 +189,7 @@ def rebuilt_like(rebuilt: Bases, source: Bases) -> Bases:
     return dataclasses.replace(rebuilt, calibration=source.calibration, thermal=source.thermal,
                                physics=source.physics if same else None,
                                discrepancy=source.discrepancy, discrepancy_local=source.discrepancy_local,
+                               discrepancy_noise=source.discrepancy_noise, calibration_noise=source.calibration_noise,
                                tolerance_zones=source.tolerance_zones,
                                measured_effects=source.measured_effects)
 

@@ -300,9 +300,9 @@ class ContactEstimator:
         # watches smooth fields outside everything the model can make (any pad force pattern, [R G]): the scan
         # step's bias is largest at the pads' kinks
         design = self.fields_.T @ best.lift
-        check, registration = judge(residual, design, errors, self.test_, 0.0, span=self.fields_.T)
+        check, registration, discrepancy = judge(residual, design, errors, self.test_, 0.0, span=self.fields_.T)
         theta_cov = parameter_covariance(design, best.normal_inverse, valid, errors, check.noise_scale, 0.0,
-                                         registration)
+                                         registration, discrepancy)
         out_values, covariance, lifted, unseen = self._report(best, theta, theta_cov, min_force_n)
         effects = self._factor_effects(best, theta, valid, theta_cov, min_force_n) if self.factors_ else None
         return _Fit(out_values, covariance, lifted, unseen, reconstruction, residual, rms, worst, check, effects)

@@ -87,7 +87,7 @@ def residual_stats(
 def judge(
     residual: np.ndarray, design: np.ndarray, errors: FieldErrorModel, test: ResidualTest | None, model_mm: float,
     span: np.ndarray | None = None,
-) -> tuple[ModelCheck, np.ndarray | None]:
+) -> tuple[ModelCheck, np.ndarray | None, tuple[np.ndarray, np.ndarray] | None]:
     """The within-model test of a fit on ``design`` (N, p) (``test``'s when given, else the level test without
     smooth modes) and the low-rank field errors (N, k) the covariance adds (the field's registration modes and the
     calibrated model's discrepancy modes, :meth:`ResidualTest.error_modes`; None without either). span: (N, q) all the
@@ -95,15 +95,19 @@ def judge(
 
     Without a ``test`` the estimator has no skin, so a registration covariance cannot reach the nodes and is left
     out (the covariance is then that of the field given its registration); the verbs and nodes always estimate
-    through the bases (estimate_field), which pass the skin's test. Close-loop's tracing estimates are made so."""
+    through the bases (estimate_field), which pass the skin's test. Close-loop's tracing estimates are made so.
+    Third: the discrepancy as measured and its rows' noise, (D, W) (:meth:`ResidualTest.discrepancy_pair`), which
+    the covariance nets along its gains; None when the bases state no noise (D is then among the error modes)."""
     if test is None:
-        return check_residual(residual, design, errors, model_mm=model_mm), None
-    return test.check(residual, design if span is None else span, errors, model_mm), test.error_modes(errors)
+        return check_residual(residual, design, errors, model_mm=model_mm), None, None
+    return (test.check(residual, design if span is None else span, errors, model_mm), test.error_modes(errors),
+            test.discrepancy_pair())
 
 
 def parameter_covariance(
     design: np.ndarray, inverse: np.ndarray, valid: np.ndarray, errors: FieldErrorModel, scale: float,
     model_mm: float, registration: np.ndarray | None,
+    discrepancy: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Covariance (q, q) of least-squares coefficients theta = inverse @ design[valid].T @ y (design (N, q)).
 
@@ -113,6 +117,14 @@ def parameter_covariance(
     the calibrated model's discrepancy, :meth:`ResidualTest.error_modes`): the correlation enters
     through g (exact for coefficients whose gain is smooth on the correlation scale). A uniform error model costs
     nothing beyond the normal matrix' inverse.
+
+    discrepancy: (D, W) the calibrated model's discrepancy as measured and its rows' expected noise
+    (:meth:`ResidualTest.discrepancy_pair`): along each coefficient's gain g, g^T (D D^T - W W^T) g is the unbiased
+    estimate of the model error the rows saw (their noise is the calibration entries', not the part's: the part's
+    own is in the first term), floored at 0; the rows as measured are scaled per coefficient to that variance,
+    S G D D^T G^T S, which keeps their correlations and a covariance. Clipping D D^T - W W^T to a covariance instead
+    (in the skin's modes, or in the q coefficients) keeps much of the noise: a known-law test stated 1.7 x the
+    actual variance that way, 1.4 x so (the floor's share), and 1.8 x with the rows as measured.
     """
     variance, correlation = node_variance(errors, valid.size)
     weight = (variance * correlation)[valid]
@@ -126,6 +138,12 @@ def parameter_covariance(
     if registration is not None:
         moved = inverse @ (design[valid].T @ registration[valid])
         covariance = covariance + moved @ moved.T
+    if discrepancy is not None:
+        seen, noise = (inverse @ (design[valid].T @ modes[valid]) for modes in discrepancy)
+        measured = np.sum(seen**2, axis=1)
+        netted = np.clip(measured - np.sum(noise**2, axis=1), 0.0, None)
+        share = np.sqrt(netted / np.where(measured > 0, measured, 1.0))
+        covariance = covariance + (share[:, None] * seen) @ (share[:, None] * seen).T
     return 0.5 * (covariance + covariance.T)
 
 
@@ -153,9 +171,10 @@ def estimate_pca(
     errors = field.errors
     design = basis.components_.T
     model_mm = basis.training_residual_rms_
-    check, registration = judge(residual, design, errors, test, model_mm)
+    check, registration, discrepancy = judge(residual, design, errors, test, model_mm)
     states = basis.component_states_
-    coeff_cov = parameter_covariance(design, inverse, valid, errors, check.noise_scale, model_mm, registration)
+    coeff_cov = parameter_covariance(design, inverse, valid, errors, check.noise_scale, model_mm, registration,
+                                     discrepancy)
     covariance = states.T @ coeff_cov @ states
 
     n_bilateral = basis.n_bilateral_

@@ -404,6 +404,20 @@ def check_residual(
     return ModelCheck(statistic, m, nu, p_value, float(alpha), p_value >= alpha, scale, source, n_effective, bias)
 
 
+def net_discrepancy(discrepancy: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """(N, d) modes of D D^T - W W^T within D's own directions, clipped to a covariance: the discrepancy as
+    measured (D (N, k) mm) less the expected noise of its rows (W (N, K) mm) where it lies. A covariance needs the
+    clip, which leaves the rows' noise outside their own k directions uncounted, but keeps the (K - k) / K of it
+    that lies inside (a covariance of k rows in K modes); the estimates net it along their gains instead
+    (:func:`~.estimation.parameter_covariance`)."""
+    basis = np.linalg.qr(discrepancy)[0]
+    inside = basis.T @ discrepancy
+    netted = inside @ inside.T - (basis.T @ noise) @ (basis.T @ noise).T
+    values, vectors = np.linalg.eigh(0.5 * (netted + netted.T))
+    keep = values > 0
+    return basis @ (vectors[:, keep] * np.sqrt(values[keep]))
+
+
 def ring_incidence(skin: SkinSurface) -> sp.csr_matrix:
     """(N, N) 0/1 one-ring incidence of the skin: each node with itself and its edge neighbours."""
     import scipy.sparse as sp
@@ -490,9 +504,17 @@ class ResidualTest:
         self.degree = degree
 
     def fit(self, skin: SkinSurface, discrepancy: np.ndarray | None = None, discrepancy_dof: float = np.inf,
-            discrepancy_local: np.ndarray | None = None) -> ResidualTest:
-        if discrepancy is not None and (np.ndim(discrepancy) != 2 or np.shape(discrepancy)[0] != skin.n_nodes):
-            raise FieldError(f"discrepancy modes have shape {np.shape(discrepancy)}, expected ({skin.n_nodes}, k)")
+            discrepancy_local: np.ndarray | None = None, discrepancy_noise: np.ndarray | None = None,
+            calibration_noise: np.ndarray | None = None) -> ResidualTest:
+        for what, modes in (("discrepancy", discrepancy), ("discrepancy noise", discrepancy_noise),
+                            ("correction noise", calibration_noise)):
+            if modes is not None and (np.ndim(modes) != 2 or np.shape(modes)[0] != skin.n_nodes):
+                raise FieldError(f"{what} modes have shape {np.shape(modes)}, expected ({skin.n_nodes}, k)")
+        if discrepancy is None and (discrepancy_noise is not None or calibration_noise is not None):
+            raise FieldError("discrepancy noise and calibration noise modes need the discrepancy modes")
+        self.discrepancy_noise_ = None if discrepancy_noise is None else np.asarray(discrepancy_noise, float)
+        self.calibration_noise_ = None if calibration_noise is None else np.asarray(calibration_noise, float)
+        self._tested: np.ndarray | None = None
         if not discrepancy_dof > 0:
             raise FieldError(f"discrepancy degrees of freedom must be positive, got {discrepancy_dof}")
         self.discrepancy_ = None if discrepancy is None else np.asarray(discrepancy, float)
@@ -523,8 +545,27 @@ class ResidualTest:
         """(N, k) every low-rank field error in absolute terms: the registration's (:meth:`registration`) and the
         model discrepancy's (``discrepancy_``); None without either. The estimate's covariance and the test take
         both from here, so the number that leaves the system and the test agree."""
-        parts = [m for m in (self.registration(errors), self.discrepancy_) if m is not None]
+        unpaired = self.discrepancy_ if self.discrepancy_noise_ is None else None
+        parts = [m for m in (self.registration(errors), unpaired, self.calibration_noise_) if m is not None]
         return np.hstack(parts) if parts else None
+
+    def discrepancy_pair(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(D, W): the discrepancy modes as measured and their rows' expected noise, which the estimate's covariance
+        nets along its own gains (:func:`~.estimation.parameter_covariance`); None when the bases state no noise
+        (then D is in :meth:`error_modes`)."""
+        if self.discrepancy_ is None or self.discrepancy_noise_ is None:
+            return None
+        return self.discrepancy_, self.discrepancy_noise_
+
+    def tested_discrepancy(self) -> np.ndarray | None:
+        """(N, d) the discrepancy the test's covariance counts: D D^T with W W^T netted where D has its directions
+        (:func:`net_discrepancy`) plus the correction's own error; D alone without a stated noise."""
+        if self.discrepancy_ is None or self.discrepancy_noise_ is None:
+            return self.discrepancy_
+        if self._tested is None:
+            parts = [net_discrepancy(self.discrepancy_, self.discrepancy_noise_), self.calibration_noise_]
+            self._tested = np.hstack([p for p in parts if p is not None])
+        return self._tested
 
     def check(self, residual: np.ndarray, design: np.ndarray | None, errors: FieldErrorModel,
               model_mm: float = 0.0) -> ModelCheck:
@@ -532,4 +573,4 @@ class ResidualTest:
         alpha."""
         rings = self.rings() if errors.bias_correlation <= 0 else None  # check_residual's local test needs it then
         return check_residual(residual, design, errors, self.modes_, self.registration(errors), model_mm, self.alpha,
-                              rings, self.discrepancy_, self.discrepancy_dof_, self.discrepancy_local_)
+                              rings, self.tested_discrepancy(), self.discrepancy_dof_, self.discrepancy_local_)
