@@ -71,6 +71,11 @@ def valid_normal_matrix(fields: np.ndarray, gram: np.ndarray, valid: np.ndarray)
     return part @ part.T
 
 
+def uniform(values: np.ndarray) -> bool:
+    """Whether positive node values (n,) are one value to round-off (a white uniform error model)."""
+    return bool(np.ptp(values) <= 1e-12 * values.max())
+
+
 @dataclass(frozen=True)
 class NodeWeight:
     """The weight W of a generalised least-squares fit over a field's seen nodes, applied by Woodbury, never as an
@@ -138,7 +143,7 @@ def node_weight(
     noise, bias = split_level(level, errors, float(variance[valid].mean()))
     diagonal = np.zeros(valid.size)
     diagonal[valid] = noise * (variance * correlation)[valid] + float(model_mm) ** 2 + bias
-    if modes is None and np.ptp(diagonal[valid]) <= 1e-12 * diagonal.max():
+    if modes is None and uniform(diagonal[valid]):
         return None
     weight = np.zeros(valid.size)
     weight[valid] = unit / diagonal[valid]
@@ -209,8 +214,13 @@ def fit_weight(
     (:func:`judge`), and the level test without smooth modes needs the ordinary fit's residual."""
     if test is None or errors.kind == "none":
         return None, None, None
+    valid = np.isfinite(centred)
+    variance, correlation = node_variance(errors, valid.size)
+    weight = (variance * correlation)[valid]
+    if not errors.has_pose and test.discrepancy_ is None and uniform(weight):
+        return None, None, None  # Sigma a multiple of I whatever the level: the ordinary fit is the GLS
     check, modes = judge(centred, span, errors, test, model_mm)
-    weight = node_weight(errors, np.isfinite(centred), check.noise_scale, model_mm, modes, unit)
+    weight = node_weight(errors, valid, check.noise_scale, model_mm, modes, unit)
     return weight, None if test.looks_at_fit(errors) else check, modes
 
 
@@ -231,7 +241,7 @@ def parameter_covariance(
     weight = (variance * correlation)[valid]
     scale, bias = split_level(scale, errors, float(variance[valid].mean()))
     model2 = float(model_mm) ** 2 + bias
-    if np.ptp(weight) <= 1e-12 * weight.max():
+    if uniform(weight):
         covariance = inverse * (scale * float(weight[0]) + model2)
     else:
         gain = inverse @ design[valid].T
