@@ -12,7 +12,9 @@ nodes unseen, timed as
   a smoothing-bias correlation of 1,000 nodes) with the skin's test: the generalised fit (Woodbury weight, the test
   made once before the fit, the sandwich);
 - ``scan, no bias term``: the same without the bias correlation, where the test's one-ring part looks at the fit's
-  own residual and the test is made twice (before the fit for the level, after it for the verdict).
+  own residual and the test is made twice (before the fit for the level, after it for the verdict);
+- ``scan, ordinary``: the ``scan`` field with the weighting switched off (``fit_weight`` patched to the ordinary fit,
+  as before issue 15 run 11): what the weighting itself costs is the difference to ``scan``.
 
 Prints the best of ``--repeat`` per case, CPU and wall, and writes benchmarks/out/gls.json. Run from the repository
 root (one core: ``OPENBLAS_NUM_THREADS=1``):
@@ -22,11 +24,13 @@ root (one core: ``OPENBLAS_NUM_THREADS=1``):
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import sys
 import time
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 
@@ -78,8 +82,9 @@ def main() -> int:
     root = np.diag([2e-5, 2e-5, 2e-5, 0.015, 0.015, 0.015]) @ rng.normal(size=(6, 6))
     scan = FieldErrorModel("scan", rng.uniform(0.01, 0.03, n), rng.uniform(1.0, 4.0, n), 3.0, root @ root.T,
                            skin.points.mean(axis=0))
-    models = {"plain": FieldErrorModel.none(), "stated": FieldErrorModel.stated(0.02, n),
-              "scan": dataclasses.replace(scan, bias_correlation=1000.0), "scan, no bias term": scan}
+    scan_biased = dataclasses.replace(scan, bias_correlation=1000.0)
+    models = {"plain": FieldErrorModel.none(), "stated": FieldErrorModel.stated(0.02, n), "scan": scan_biased,
+              "scan, no bias term": scan, "scan, ordinary": scan_biased}
     truth = rng.uniform(-0.5, 0.5, 6)
     pca_values = np.where(seen, (truth @ fields[:6]) + 0.01 * rng.normal(size=n), np.nan)
     contact_values = np.where(seen, make_ensemble(model, truth[None]).normal_displacement[0]
@@ -90,9 +95,14 @@ def main() -> int:
         contact_field = DisplacementField(skin.model_id, contact_values, float(seen.mean()), float("nan"), errors)
         with_test = None if case == "plain" else test
         estimator = contact if case != "plain" else ContactEstimator().fit(model, -np.ones(6), np.ones(6))
-        pca_wall, pca_cpu, pca_est = best_of(lambda f=pca_field, t=with_test: estimate_pca(pca, f, test=t),
-                                             args.repeat)
-        c_wall, c_cpu, c_est = best_of(lambda f=contact_field, e=estimator: e.estimate(f), args.repeat)
+        with contextlib.ExitStack() as stack:
+            if case == "scan, ordinary":
+                for module in ("estimation", "contact_estimation"):
+                    stack.enter_context(mock.patch(f"hood_decomp.core.method.{module}.fit_weight",
+                                                   lambda *_, **__: (None, None, None)))
+            pca_wall, pca_cpu, pca_est = best_of(lambda f=pca_field, t=with_test: estimate_pca(pca, f, test=t),
+                                                 args.repeat)
+            c_wall, c_cpu, c_est = best_of(lambda f=contact_field, e=estimator: e.estimate(f), args.repeat)
         results["cases"][case] = {"pca_wall_ms": 1e3 * pca_wall, "pca_cpu_ms": 1e3 * pca_cpu,
                                   "pca_weighting": pca_est.weighting, "contact_wall_ms": 1e3 * c_wall,
                                   "contact_cpu_ms": 1e3 * c_cpu, "contact_weighting": c_est.weighting}

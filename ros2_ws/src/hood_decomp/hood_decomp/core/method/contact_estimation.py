@@ -240,7 +240,7 @@ class ContactEstimator:
         else:
             noise2 = float(variance[valid].mean()) if errors.kind != "none" else 0.0
         weight, check, modes = (None, None, None) if noise2 <= 0 else fit_weight(
-            np.where(valid, y, np.nan), self.fields_.T, errors, self.test_, 0.0, unit=noise2)
+            y, valid, self.fields_.T, errors, self.test_, 0.0, unit=noise2)
         if weight is None:
             normal, total = valid_normal_matrix(self.fields_, self.gram_, valid), float(y @ y)
         else:

@@ -205,24 +205,24 @@ def judge(
 
 
 def fit_weight(
-    centred: np.ndarray, span: np.ndarray, errors: FieldErrorModel, test: ResidualTest | None, model_mm: float,
-    unit: float = 1.0,
+    centred: np.ndarray, valid: np.ndarray, span: np.ndarray, errors: FieldErrorModel, test: ResidualTest | None,
+    model_mm: float, unit: float = 1.0,
 ) -> tuple[NodeWeight | None, ModelCheck | None, np.ndarray | None]:
     """The weight of an estimator's fit (:func:`node_weight`) from the field before the fit, with the within-model
-    test and the low-rank field errors it used: centred (N,) mm the field minus the model's offset, NaN where unseen;
-    span (N, q) every field the model can make. The test projects the span out, so its level (and, unless it looks at
-    the fit's own residual, :meth:`ResidualTest.looks_at_fit`, its whole verdict) is the same for the field as for
-    any fit's residual: it is made here, once, and returned (None: the estimator judges its residual itself).
-    (None, None, None) without a test or an error model: with no skin no registration reaches the nodes
-    (:func:`judge`), and the level test without smooth modes needs the ordinary fit's residual."""
+    test and the low-rank field errors it used: centred (N,) mm the field minus the model's offset (any value where
+    unseen), valid (N,) the seen nodes; span (N, q) every field the model can make. The test projects the span out,
+    so its level (and, unless it looks at the fit's own residual, :meth:`ResidualTest.looks_at_fit`, its whole
+    verdict) is the same for the field as for any fit's residual: it is made here, once, and returned (None: the
+    estimator judges its residual itself). (None, None, None) without a test or an error model: with no skin no
+    registration reaches the nodes (:func:`judge`), and the level test without smooth modes needs the ordinary fit's
+    residual."""
     if test is None or errors.kind == "none":
         return None, None, None
-    valid = np.isfinite(centred)
     variance, correlation = node_variance(errors, valid.size)
     weight = (variance * correlation)[valid]
     if not errors.has_pose and uniform(weight):
         return None, None, None  # the weight a multiple of I whatever the level: the ordinary fit
-    check, modes = judge(centred, span, errors, test, model_mm)
+    check, modes = judge(np.where(valid, centred, np.nan), span, errors, test, model_mm)
     # the registration is weighed, a calibrated model's discrepancy only stated: it is estimated from a handful of
     # calibration entries, and a fit that leans away from its span leans on what the estimate missed (on 40 CalculiX
     # parts of the coarse hood 68 % of the errors inside the stated 95 % interval instead of >= 90 %)
@@ -279,12 +279,12 @@ def estimate_pca(
     errors = field.errors
     design = basis.components_.T
     model_mm = basis.training_residual_rms_
-    weight, check, registration = fit_weight(np.where(valid, centred, np.nan), design, errors, test, model_mm)
-    if weight is None:
-        normal = valid_normal_matrix(basis.components_, basis.gram_, valid)
+    weight, check, registration = fit_weight(centred, valid, design, errors, test, model_mm)
+    if weight is None:  # centred is 0 where unseen
+        normal, rhs = valid_normal_matrix(basis.components_, basis.gram_, valid), basis.components_ @ centred
     else:
-        normal = weight.normal(basis.components_)
-    coeff, inverse = solve_normal(normal, weighted_rhs(basis.components_, centred, valid, weight), "PCA pre-factors")
+        normal, rhs = weight.normal(basis.components_), weight.project(basis.components_, centred)
+    coeff, inverse = solve_normal(normal, rhs, "PCA pre-factors")
     reconstruction = basis.mean_field_ + coeff @ basis.components_
     residual, rms, worst = residual_stats(values, reconstruction, valid)
 
