@@ -37,10 +37,10 @@ def estimate_payload(estimate, n_bilateral: int) -> dict:
     to the part, add apart from it (core.method.model_spread: ``model_std_mm``, ``model_covariance_mm2`` and
     ``model_factors_mm``: factor -> label -> one-sigma effect, mm; null for the "pca" method), ``lifted`` for the
     unilateral boundaries, residual RMS and max (mm), coverage, ``weighting`` ("generalised": least squares weighted
-    by the field's error model, registration included; "ordinary": a field without one), within_model with the one test behind it
-    (``within_model_test``: p_value, alpha, statistic, dof, noise_scale, noise_source: "residual" when the field states
-    no error model and the noise level is estimated from the residual with ``denominator_dof`` degrees of freedom) and
-    method. ``measured_effects`` names the parameters without a boundary (measured effects: their value is an
+    by the field's error model, registration included; "ordinary": a field without one), within_model with the one
+    test behind it (``within_model_test``: p_value, alpha, statistic, dof, noise_scale, noise_source: "residual" when
+    the field states no error model and the noise level is estimated from the residual with ``denominator_dof``
+    degrees of freedom) and method. ``measured_effects`` names the parameters without a boundary (measured effects: their value is an
     amplitude); ``correction`` is what the estimator node would send the robot with the default policy
     (core.method.correction.plan_correction: the move per boundary, mm, never one for a measured effect or a lifted
     buffer; safe_to_apply, applicable, reason)."""
