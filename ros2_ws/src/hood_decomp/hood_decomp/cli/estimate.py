@@ -40,8 +40,8 @@ def estimate_payload(estimate, n_bilateral: int) -> dict:
     by the field's error model, registration included; "ordinary": a field without one), within_model with the one
     test behind it (``within_model_test``: p_value, alpha, statistic, dof, noise_scale, noise_source: "residual" when
     the field states no error model and the noise level is estimated from the residual with ``denominator_dof``
-    degrees of freedom) and method. ``measured_effects`` names the parameters without a boundary (measured effects: their value is an
-    amplitude); ``correction`` is what the estimator node would send the robot with the default policy
+    degrees of freedom) and method. ``measured_effects`` names the parameters without a boundary (measured effects:
+    their value is an amplitude); ``correction`` is what the estimator node would send the robot with the default policy
     (core.method.correction.plan_correction: the move per boundary, mm, never one for a measured effect or a lifted
     buffer; safe_to_apply, applicable, reason)."""
     from hood_decomp.core.method.correction import plan_correction
