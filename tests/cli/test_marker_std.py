@@ -42,10 +42,11 @@ def test_a_stated_marker_noise_replaces_the_estimate(coarse_hood, marker_scan, t
     dominates them on the coarse hood even in the generalised least-squares fit, which separates a pose error from
     HINGE_X's move by the surface's shape: HINGE_X's std moves by 0.1 %) by at least 1.8 times (the registration term
     alone by 2.29; measured 2.04-2.05 on 2026-11-25), and the JSON must report each check as accepted with the stated
-    value used."""
+    value used, and the fit as the generalised one."""
     first, _ = _estimate(coarse_hood, marker_scan, ["--marker-std-mm", "0.03"], tmp_path, capsys)
     [check] = first["marker_noise_checks"]
     assert check["accepted"] and check["used_mm"] == 0.03 and check["dof"] == 18, check  # the scanner's truth
+    assert first["weighting"] == "generalised"  # a registered scan's field is weighted by its error model
     estimated = check["estimated_mm"]
     runs = [_estimate(coarse_hood, marker_scan, ["--marker-std-mm", f"{factor * estimated:.6f}"], tmp_path, capsys)[0]
             for factor in (0.7, 1.6)]
