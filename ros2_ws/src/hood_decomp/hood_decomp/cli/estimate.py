@@ -36,11 +36,12 @@ def estimate_payload(estimate, n_bilateral: int) -> dict:
     (``covariance_mm2``: label -> label -> mm^2; the measurement's), what the model's physical factors, not calibrated
     to the part, add apart from it (core.method.model_spread: ``model_std_mm``, ``model_covariance_mm2`` and
     ``model_factors_mm``: factor -> label -> one-sigma effect, mm; null for the "pca" method), ``lifted`` for the
-    unilateral boundaries, residual RMS and max (mm), coverage, within_model with the one test behind it
-    (``within_model_test``: p_value, alpha, statistic, dof, noise_scale, noise_source: "residual" when the field states
-    no error model and the noise level is estimated from the residual with ``denominator_dof`` degrees of freedom) and
-    method. ``measured_effects`` names the parameters without a boundary (measured effects: their value is an
-    amplitude); ``correction`` is what the estimator node would send the robot with the default policy
+    unilateral boundaries, residual RMS and max (mm), coverage, ``weighting`` ("generalised": least squares weighted
+    by the field's error model, registration included; "ordinary": a field without one), within_model with the one
+    test behind it (``within_model_test``: p_value, alpha, statistic, dof, noise_scale, noise_source: "residual" when
+    the field states no error model and the noise level is estimated from the residual with ``denominator_dof``
+    degrees of freedom) and method. ``measured_effects`` names the parameters without a boundary (measured effects:
+    their value is an amplitude); ``correction`` is what the estimator node would send the robot with the default policy
     (core.method.correction.plan_correction: the move per boundary, mm, never one for a measured effect or a lifted
     buffer; safe_to_apply, applicable, reason)."""
     from hood_decomp.core.method.correction import plan_correction
@@ -70,6 +71,7 @@ def estimate_payload(estimate, n_bilateral: int) -> dict:
         "coverage": estimate.coverage,
         "within_model": estimate.within_model,
         "method": estimate.method,
+        "weighting": estimate.weighting,
         "measured_effects": [name for name, boundary in zip(names, estimate.boundary, strict=True) if not boundary],
         "correction": {
             "corrections_mm": dict(zip(names, correction.corrections, strict=True)),

@@ -328,6 +328,9 @@ class ParameterEstimate:
     model_effects: (F, P) mm, each factor's one-sigma effect on ``values`` (the uncertainty the model's not being
         calibrated to the part adds, apart from ``std``: a softer pad looks like a moved pad); None when not
         considered (the "pca" estimator, an estimate decoded from a message).
+    weighting: how the field was fitted: "generalised" (least squares weighted by the field's error model, its node
+        covariance with the registration's rigid-body modes: :mod:`hood_decomp.core.method.estimation`) or
+        "ordinary" (a field without an error model, or one whose covariance is a multiple of the identity).
     """
 
     model_id: str
@@ -349,6 +352,7 @@ class ParameterEstimate:
     measured_effect: np.ndarray | None = None
     model_factors: tuple[str, ...] = ()
     model_effects: np.ndarray | None = None
+    weighting: str = "ordinary"
 
     @property
     def model_covariance(self) -> np.ndarray | None:

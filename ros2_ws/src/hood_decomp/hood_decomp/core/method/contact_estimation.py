@@ -13,7 +13,10 @@ A lifted pad leaves no trace in the field: its value is the part's position ther
 the commanded position does not exceed.
 
 Everything per candidate works in the (B + S)-dimensional space of u = (a, f): the normal matrix of [R G] over the
-seen nodes is formed once per field, so a candidate costs O((B + S)^3), not O(N).
+seen nodes is formed once per field, so a candidate costs O((B + S)^3), not O(N). A field with an error model is
+fitted by generalised least squares (:mod:`.estimation`): the normal matrix, right-hand side and energy are the
+weighted ones, scaled by the field's noise level (``noise2``) so that noise2 x (normal matrix)^-1 stays the
+covariance and rss / noise2 the Mahalanobis energy every contact-state comparison below uses.
 """
 
 from __future__ import annotations
@@ -26,11 +29,14 @@ import numpy as np
 
 from hood_decomp.core.method.estimation import (
     DEFAULT_MIN_COVERAGE,
+    NodeWeight,
     check_field,
+    fit_weight,
     judge,
     parameter_covariance,
     residual_stats,
     valid_normal_matrix,
+    weighted_rhs,
 )
 from hood_decomp.core.method.model_spread import Factor, factor_effects
 from hood_decomp.core.method.residual import ResidualTest, node_variance
@@ -223,9 +229,6 @@ class ContactEstimator:
         n_nodes = model.w0.shape[0]
         values, valid = check_field(field, model.model_id, n_nodes, self.min_coverage)
         y = np.where(valid, values - model.w0, 0.0)
-        normal = valid_normal_matrix(self.fields_, self.gram_, valid)
-        rhs = self.fields_ @ y
-        total = float(y @ y)
         n_valid = int(valid.sum())
         errors = field.errors
         variance = node_variance(errors, n_nodes)[0]
@@ -236,6 +239,13 @@ class ContactEstimator:
             noise2 = float(field.noise_rms) ** 2
         else:
             noise2 = float(variance[valid].mean()) if errors.kind != "none" else 0.0
+        weight, check, modes = (None, None, None) if noise2 <= 0 else fit_weight(
+            y, valid, self.fields_.T, errors, self.test_, 0.0, unit=noise2)
+        if weight is None:
+            normal, total = valid_normal_matrix(self.fields_, self.gram_, valid), float(y @ y)
+        else:
+            normal, total = weight.normal(self.fields_), weight.energy(y)
+        rhs = weighted_rhs(self.fields_, y, valid, weight)
         problem, cache = (normal, rhs, total, noise2), {}
         candidates: dict[bytes, _Candidate] = {}
         for touching in self.touching_pads_:
@@ -249,7 +259,7 @@ class ContactEstimator:
         best = self._select(list(candidates.values()), n_valid)
         measured = noise2 > 0  # a noisy field: its noise level stated by noise_rms or by its error model
         min_force = self.measured_min_pad_force_n if measured else 0.0
-        fit = self._fit(best, values, valid, normal, errors, min_force)
+        fit = self._fit(best, values, valid, errors, min_force, weight, check, modes)
         if fit.unseen.any() and not measured:
             # Without a noise level nothing weighs the contact states (no spread term): a touch the field cannot show
             # (compression within LIFTED_SIGMAS of its std, the model's discrepancy included) is decided lifted, and
@@ -261,7 +271,7 @@ class ContactEstimator:
             cand, tension, penetration = self._evaluate(best.active & ~free, problem, cache)
             if cand.feasible and not tension.any() and not penetration.any():
                 best = candidates.setdefault(cand.active.tobytes(), cand)
-                fit = self._fit(best, values, valid, normal, errors, min_force)
+                fit = self._fit(best, values, valid, errors, min_force, weight, check, modes)
         covariance = fit.covariance + self._between_states(candidates.values(), best, fit.values, noise2, min_force)
         return ParameterEstimate(
             model_id=model.model_id,
@@ -282,16 +292,21 @@ class ContactEstimator:
             check=fit.check,
             model_factors=tuple(factor.name for factor in self.factors_),
             model_effects=fit.effects,
+            weighting="ordinary" if weight is None else "generalised",
         )
 
-    def _fit(self, best: _Candidate, values: np.ndarray, valid: np.ndarray, normal: np.ndarray,
-             errors: FieldErrorModel, min_force_n: float) -> _Fit:
-        """The reported fit of a contact state: refined theta, residual, within-model test and values."""
+    def _fit(self, best: _Candidate, values: np.ndarray, valid: np.ndarray, errors: FieldErrorModel,
+             min_force_n: float, weight: NodeWeight | None, check: ModelCheck | None,
+             registration: np.ndarray | None) -> _Fit:
+        """The reported fit of a contact state: refined theta, residual, within-model test and values; weight: the
+        generalised least-squares weight of the field (None: the ordinary fit); check: the field's within-model test
+        made before the fit (:func:`~.estimation.fit_weight`) and its low-rank field errors, None: judged here on the
+        fit's residual."""
         model = self.model_
         # One step of iterative refinement on the real residual: the normal equations square the condition number.
         u = best.lift @ best.theta + best.offset
         reconstruction = model.w0 + u @ self.fields_
-        correction_rhs = best.lift.T @ (self.fields_ @ np.where(valid, values - reconstruction, 0.0))
+        correction_rhs = best.lift.T @ weighted_rhs(self.fields_, values - reconstruction, valid, weight)
         theta = best.theta + best.normal_inverse @ correction_rhs
         u = best.lift @ theta + best.offset
         reconstruction = model.w0 + u @ self.fields_
@@ -300,19 +315,26 @@ class ContactEstimator:
         # watches smooth fields outside everything the model can make (any pad force pattern, [R G]): the scan
         # step's bias is largest at the pads' kinks
         design = self.fields_.T @ best.lift
-        check, registration, discrepancy = judge(residual, design, errors, self.test_, 0.0, span=self.fields_.T)
-        theta_cov = parameter_covariance(design, best.normal_inverse, valid, errors, check.noise_scale, 0.0,
-                                         registration, discrepancy)
+        discrepancy = None if self.test_ is None else self.test_.discrepancy_pair()
+        if check is None:
+            check, registration, discrepancy = judge(residual, design, errors, self.test_, 0.0, span=self.fields_.T)
+        if weight is None:
+            theta_cov = parameter_covariance(design, best.normal_inverse, valid, errors, check.noise_scale, 0.0,
+                                             registration, discrepancy)
+        else:
+            theta_cov = weight.covariance(design, best.normal_inverse, discrepancy)
         out_values, covariance, lifted, unseen = self._report(best, theta, theta_cov, min_force_n)
-        effects = self._factor_effects(best, theta, valid, theta_cov, min_force_n) if self.factors_ else None
+        effects = (self._factor_effects(best, theta, valid, theta_cov, min_force_n, weight) if self.factors_
+                   else None)
         return _Fit(out_values, covariance, lifted, unseen, reconstruction, residual, rms, worst, check, effects)
 
     def _factor_effects(self, best: _Candidate, theta: np.ndarray, valid: np.ndarray, theta_cov: np.ndarray,
-                        min_force_n: float) -> np.ndarray:
+                        min_force_n: float, weight: NodeWeight | None) -> np.ndarray:
         """(F, P) mm: the considered factors' effects (:func:`~.model_spread.factor_effects`) through this fit's
-        linear map, in the (B + S) space: a field change dw moves rhs by [R G]^T dw over the seen nodes."""
+        linear map, in the (B + S) space: a field change dw moves rhs by [R G]^T W dw over the seen nodes (the
+        weighted fit leans on non-rigid shape, which the factors move too)."""
         def to_theta(dw: np.ndarray) -> np.ndarray:
-            return best.normal_inverse @ (best.lift.T @ (self.fields_ @ np.where(valid, dw, 0.0)))
+            return best.normal_inverse @ (best.lift.T @ weighted_rhs(self.fields_, dw, valid, weight))
 
         def report(t: np.ndarray, springs: ReducedModel | None) -> np.ndarray:
             return self._report(best, t, theta_cov, min_force_n, springs)[0]

@@ -537,6 +537,13 @@ class ResidualTest:
             self._rings = ring_incidence(self.skin_)
         return self._rings
 
+    @staticmethod
+    def looks_at_fit(errors: FieldErrorModel) -> bool:
+        """Whether the check of a field with ``errors`` looks at the fit's own residual: its one-ring part does (a
+        field without a bias term); the rest projects every field the model can make out, so it judges the field
+        before any fit as it judges a fit's residual."""
+        return errors.bias_correlation <= 0
+
     def registration(self, errors: FieldErrorModel) -> np.ndarray | None:
         """(N, 6) field error per unit pose error of ``errors`` on this skin, None without a registration."""
         return errors.registration_modes(self.points_, self.normals_) if errors.has_pose else None
@@ -571,6 +578,6 @@ class ResidualTest:
               model_mm: float = 0.0) -> ModelCheck:
         """:func:`check_residual` with this skin's modes, registration and discrepancy modes and this test's
         alpha."""
-        rings = self.rings() if errors.bias_correlation <= 0 else None  # check_residual's local test needs it then
+        rings = self.rings() if self.looks_at_fit(errors) else None  # check_residual's local test needs it then
         return check_residual(residual, design, errors, self.modes_, self.registration(errors), model_mm, self.alpha,
                               rings, self.tested_discrepancy(), self.discrepancy_dof_, self.discrepancy_local_)
