@@ -7,6 +7,8 @@ need; every field is checked against ``Bases.model_id``.
 from __future__ import annotations
 
 import json
+import logging
+import time
 import weakref
 from dataclasses import fields
 from pathlib import Path
@@ -20,6 +22,8 @@ from hood_decomp.core.method.pca import PCA_FITTED_ARRAYS, PCABasis
 from hood_decomp.core.types import ReducedModel, SkinSurface, ToleranceZone, fingerprint
 from hood_decomp.errors import BasisError
 from hood_decomp.io.hdf5 import Reader, open_hdf5
+
+logger = logging.getLogger(__name__)
 
 FORMAT = "hood_decomp.bases"
 # 4: may hold /tolerance_zones and /parameters/measured_effects (written only then, so that a reader that does not
@@ -372,7 +376,11 @@ def _with_bias(arrays: dict[str, np.ndarray], bases: Bases | None) -> dict[str, 
     from hood_decomp.core.loop.scan_skin import measured_bias_correlation
     from hood_decomp.core.scan.scan_field import ScanFieldEstimator
 
+    started = time.perf_counter()
     value = measured_bias_correlation(ScanFieldEstimator().fit(bases.skin, prepared=arrays), bases)
+    if value is not None:  # every process reading this file pays it again (paper resolution: 5 s of CPU)
+        logger.warning("the bases file predates the stored scan-bias correlation: measured now in %.1f s; rebuild "
+                       "the bases (hood-decomp bases) to store it", time.perf_counter() - started)
     return arrays if value is None else arrays | {"bias_correlation": np.array([value])}
 
 
