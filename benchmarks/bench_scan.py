@@ -220,7 +220,7 @@ def linearity_child(resolution_dir: str, cloud: str, sizes: list[int], views: li
     def drawn(size: int) -> np.ndarray:
         return full if size >= full.shape[0] else full[np.sort(rng.choice(full.shape[0], size, False))]
 
-    merged = np.concatenate([drawn(VIEW_POINTS) for _ in range(max(views, default=0))])
+    merged = np.concatenate([drawn(VIEW_POINTS) for _ in range(max(views))]) if views else full[:0]
     clouds = {**{("denser", s): drawn(s) for s in sizes}, **{("views", k): merged[: k * VIEW_POINTS] for k in views}}
     keys = list(clouds)
     for key in keys:
