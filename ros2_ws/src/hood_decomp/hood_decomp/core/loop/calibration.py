@@ -317,10 +317,7 @@ class _Problem:
             again, _, _ = self._correction(*predicted, everything, drawn)
             # the corrections live in the smooth modes: their coordinates (K, n) lose nothing
             deviations.append(self.modes.T @ (again - correction) @ parts.T)
-        stacked = np.hstack(deviations) / np.sqrt(BOOTSTRAP_DRAWS * len(states))
-        u, s, _ = np.linalg.svd(stacked, full_matrices=False)
-        keep = s > 1e-3 * s[0] if s.size and s[0] > 0 else np.zeros(s.size, bool)
-        return self.modes @ (u[:, keep] * s[keep])
+        return self.modes @ _leading_modes(np.hstack(deviations) / np.sqrt(BOOTSTRAP_DRAWS * len(states)))
 
     def factor_noise(self, theta: np.ndarray, covariance: np.ndarray, states: np.ndarray) -> np.ndarray:
         """(N, r) mm: the calibrated model's error from the entries' noise in its physical factors theta (fit
@@ -340,10 +337,7 @@ class _Problem:
             columns.append((moved - base) / step)  # (n, N) per unit sigma along the direction
         if not columns:
             return np.zeros((base.shape[1], 0))
-        stacked = np.concatenate(columns, axis=0).T / np.sqrt(len(states))  # (N, F n)
-        u, s, _ = np.linalg.svd(stacked, full_matrices=False)
-        keep = s > 1e-3 * s[0] if s.size and s[0] > 0 else np.zeros(s.size, bool)
-        return u[:, keep] * s[keep]
+        return _leading_modes(np.concatenate(columns, axis=0).T / np.sqrt(len(states)))  # of (N, F n)
 
     def setting_error(self, theta: np.ndarray, row: int) -> tuple[float, str]:
         """The entry's setting test (module docstring) with physical factors theta fitted without it: the largest
@@ -421,6 +415,14 @@ def discrepancy_modes(residuals: np.ndarray, settings: np.ndarray, modes: np.nda
     :meth:`_Problem.correction_spread` and :meth:`_Problem.factor_noise` the calibrated model's own error from the
     entries' noise at a part's state, which it adds."""
     return modes @ (_discrepancy_rows(settings, variance, fourth) @ (residuals @ modes)).T
+
+
+def _leading_modes(stacked: np.ndarray) -> np.ndarray:
+    """(n, r) the low-rank factor U S of ``stacked`` (n, m) that keeps its singular values above 1e-3 of the
+    largest: a covariance stacked @ stacked.T stated in r modes."""
+    u, s, _ = np.linalg.svd(stacked, full_matrices=False)
+    keep = s > 1e-3 * s[0] if s.size and s[0] > 0 else np.zeros(s.size, bool)
+    return u[:, keep] * s[keep]
 
 
 def _discrepancy_rows(settings: np.ndarray, variance: np.ndarray, fourth: np.ndarray) -> np.ndarray:

@@ -35,7 +35,7 @@ from hood_decomp.core.method.estimation import (
     judge,
     parameter_covariance,
     residual_stats,
-    valid_normal_matrix,
+    weighted_normal,
     weighted_rhs,
 )
 from hood_decomp.core.method.model_spread import Factor, factor_effects
@@ -241,10 +241,8 @@ class ContactEstimator:
             noise2 = float(variance[valid].mean()) if errors.kind != "none" else 0.0
         weight, check, modes = (None, None, None) if noise2 <= 0 else fit_weight(
             y, valid, self.fields_.T, errors, self.test_, 0.0, unit=noise2)
-        if weight is None:
-            normal, total = valid_normal_matrix(self.fields_, self.gram_, valid), float(y @ y)
-        else:
-            normal, total = weight.normal(self.fields_), weight.energy(y)
+        normal = weighted_normal(self.fields_, self.gram_, valid, weight)
+        total = float(y @ y) if weight is None else weight.energy(y)
         rhs = weighted_rhs(self.fields_, y, valid, weight)
         problem, cache = (normal, rhs, total, noise2), {}
         candidates: dict[bytes, _Candidate] = {}

@@ -118,13 +118,13 @@ class NodeWeight:
                    discrepancy: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """(q, q) covariance of theta = inverse X^T W y, X = design (N, q) finite, inverse = (X^T W X)^-1: the
         sandwich G Sigma G^T with G = inverse X^T W (the GLS covariance when the weight is Sigma's own inverse), plus
-        the calibrated model's discrepancy (D, W) netted along G (:func:`netted_discrepancy`; None: none)."""
+        the calibrated model's discrepancy (D, W) netted along G (:func:`discrepancy_along_gains`; None: none)."""
         gain = self.apply(np.where(self.weight[:, None] > 0, design, 0.0))
         moved = self.modes.T @ gain
         spread = gain.T @ (self.diagonal[:, None] * gain) + moved.T @ moved
         covariance = inverse @ spread @ inverse
         if discrepancy is not None:
-            covariance = covariance + netted_discrepancy(*(inverse @ (gain.T @ m) for m in discrepancy))
+            covariance = covariance + discrepancy_along_gains(*(inverse @ (gain.T @ m) for m in discrepancy))
         return 0.5 * (covariance + covariance.T)
 
 
@@ -158,6 +158,12 @@ def node_weight(
     scaled = weight[:, None] * used
     inner = unit * np.eye(used.shape[1]) + used.T @ scaled
     return NodeWeight(weight, scaled, np.linalg.inv(0.5 * (inner + inner.T)), float(unit), diagonal, modes)
+
+
+def weighted_normal(fields: np.ndarray, gram: np.ndarray, valid: np.ndarray, weight: NodeWeight | None) -> np.ndarray:
+    """fields W fields^T (m, m) over the seen nodes: fields (m, N), gram (m, m) = fields @ fields.T; W the field's
+    weight, the identity for an ordinary fit (None: :func:`valid_normal_matrix`)."""
+    return valid_normal_matrix(fields, gram, valid) if weight is None else weight.normal(fields)
 
 
 def weighted_rhs(fields: np.ndarray, x: np.ndarray, valid: np.ndarray, weight: NodeWeight | None) -> np.ndarray:
@@ -234,9 +240,9 @@ def fit_weight(
     # calibration's own error only stated: they are estimated from a handful of calibration entries, and a fit that
     # leans away from their span leans on what the estimate missed (on 40 CalculiX parts of the coarse hood 68 % of
     # the errors inside the stated 95 % interval instead of >= 90 %)
-    registration = test.registration(errors)
+    stated = sum(m.shape[1] for m in test.stated_modes())
     weight = node_weight(errors, valid, check.noise_scale, model_mm, modes, unit,
-                         0 if registration is None else registration.shape[1])
+                         0 if modes is None else modes.shape[1] - stated)
     return weight, None if test.looks_at_fit(errors) else check, modes
 
 
@@ -275,11 +281,12 @@ def parameter_covariance(
         moved = inverse @ (design[valid].T @ registration[valid])
         covariance = covariance + moved @ moved.T
     if discrepancy is not None:
-        covariance = covariance + netted_discrepancy(*(inverse @ (design[valid].T @ m[valid]) for m in discrepancy))
+        gains = (inverse @ (design[valid].T @ m[valid]) for m in discrepancy)
+        covariance = covariance + discrepancy_along_gains(*gains)
     return 0.5 * (covariance + covariance.T)
 
 
-def netted_discrepancy(seen: np.ndarray, noise: np.ndarray) -> np.ndarray:
+def discrepancy_along_gains(seen: np.ndarray, noise: np.ndarray) -> np.ndarray:
     """(q, q) the calibrated model's discrepancy along an estimate's gains G (q, N) (:func:`parameter_covariance`):
     seen = G D (q, k) the discrepancy rows as measured, noise = G W (q, K) their expected noise. Per coefficient
     g^T (D D^T - W W^T) g, floored at 0, with the rows as measured scaled to it."""
@@ -309,11 +316,8 @@ def estimate_pca(
     design = basis.components_.T
     model_mm = basis.training_residual_rms_
     weight, check, registration = fit_weight(centred, valid, design, errors, test, model_mm)
-    if weight is None:  # centred is 0 where unseen
-        normal, rhs = valid_normal_matrix(basis.components_, basis.gram_, valid), basis.components_ @ centred
-    else:
-        normal, rhs = weight.normal(basis.components_), weight.project(basis.components_, centred)
-    coeff, inverse = solve_normal(normal, rhs, "PCA pre-factors")
+    normal = weighted_normal(basis.components_, basis.gram_, valid, weight)
+    coeff, inverse = solve_normal(normal, weighted_rhs(basis.components_, centred, valid, weight), "PCA pre-factors")
     reconstruction = basis.mean_field_ + coeff @ basis.components_
     residual, rms, worst = residual_stats(values, reconstruction, valid)
 

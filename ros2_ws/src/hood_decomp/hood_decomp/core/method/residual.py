@@ -552,9 +552,15 @@ class ResidualTest:
         """(N, k) every low-rank field error in absolute terms: the registration's (:meth:`registration`) and the
         model discrepancy's (``discrepancy_``); None without either. The estimate's covariance and the test take
         both from here, so the number that leaves the system and the test agree."""
-        unpaired = self.discrepancy_ if self.discrepancy_noise_ is None else None
-        parts = [m for m in (self.registration(errors), unpaired, self.calibration_noise_) if m is not None]
+        parts = [m for m in (self.registration(errors), *self.stated_modes()) if m is not None]
         return np.hstack(parts) if parts else None
+
+    def stated_modes(self) -> list[np.ndarray]:
+        """The calibrated model's low-rank errors (N, k_i) mm that :meth:`error_modes` adds after the registration's:
+        the discrepancy when no noise of its rows is stated, and the calibration's own error. The estimates state
+        them but do not weigh by them (:func:`~.estimation.fit_weight`)."""
+        unpaired = self.discrepancy_ if self.discrepancy_noise_ is None else None
+        return [m for m in (unpaired, self.calibration_noise_) if m is not None]
 
     def discrepancy_pair(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(D, W): the discrepancy modes as measured and their rows' expected noise, which the estimate's covariance
