@@ -74,13 +74,16 @@ def test_factor_effects_are_the_estimates_shift_under_the_changed_physics(coarse
     states (a wrong linear map, a sign, a missing 1/E on the pad forces or a stiffness step that is not one sigma).
     The fields state their noise (0.02 mm), as a scan's do: on a field stated noise-free a touch too light to show is
     reported from the fit without it (issue 16), a discrete choice no linearisation at one contact state follows, and
-    the gate acts on measured fields."""
+    the gate acts on measured fields. At states where every spring of every pad touches, as the sibling test: at a
+    light touch the estimate's contact choice is discrete, and on an AMD EPYC machine's BLAS one drawn state flipped
+    it (HINGE_X stated -0.0129 mm against a shift of -0.0083 mm), a linearisation no stated effect can follow."""
     reduced = coarse_hood.bases.reduced_model
     _check_effects(coarse_hood.bases, {
         "compliance (Young's modulus)": lambda sign, state: solve_members(
             _changed(reduced, compliance=np.exp(sign * SIGMA["compliance"])), state[None]),
         "pad stiffness": lambda sign, state: solve_members(
-            _changed(reduced, stiffness=np.exp(sign * SIGMA["pad_stiffness"])), state[None])}, seed=16)
+            _changed(reduced, stiffness=np.exp(sign * SIGMA["pad_stiffness"])), state[None])}, seed=16,
+        full_contact=True)
 
 
 def test_thickness_and_gas_spring_effects_are_the_shift_of_a_resolved_part(coarse_hood, physics):
