@@ -369,7 +369,7 @@ def load_bases(path: str | Path, mapped: bool = False) -> Bases:
 
 def _with_bias(arrays: dict[str, np.ndarray], bases: Bases | None) -> dict[str, np.ndarray]:
     """A prepared skin of a file written before the smoothing bias' correlation was stored with it (issue 15 run
-    10): measured now from ``bases`` (core.loop.scan_skin; about a second at default resolution, once a process);
+    10): measured now from ``bases`` (core.loop.scan_skin; about 2 s of CPU at default resolution, once a process);
     as read when it is stored, or the bases are gone (the scan step then states its area fallback)."""
     if "bias_correlation" in arrays or bases is None:
         return arrays
@@ -378,7 +378,7 @@ def _with_bias(arrays: dict[str, np.ndarray], bases: Bases | None) -> dict[str, 
 
     started = time.perf_counter()
     value = measured_bias_correlation(ScanFieldEstimator().fit(bases.skin, prepared=arrays), bases)
-    if value is not None:  # every process reading this file pays it again (paper resolution: 5 s of CPU)
+    if value is not None:  # every process reading this file pays it again
         logger.warning("the bases file predates the stored scan-bias correlation: measured now in %.1f s; rebuild "
                        "the bases (hood-decomp bases) to store it", time.perf_counter() - started)
     return arrays if value is None else arrays | {"bias_correlation": np.array([value])}

@@ -1,17 +1,21 @@
-"""The prepared scan skin of a set of bases, with the scan step's smoothing bias measured on the part's own fields.
+"""The prepared scan skin of a set of bases, with the scan step's own bias measured on the part's own fields.
 
 The scan step smooths; on a curved displacement that biases the node values (the kernel's second moment times the
-displacement's curvature), and the within-model test allows for it from each residual's rough excess times a
-correlation sum (``FieldErrorModel.bias_correlation``, core.method.residual.split_level). How large that sum is
-depends on the skin, the kernel and what the part's displacements look like, so it is measured once per prepared
-skin: the FE model's fields at states spread over the declared ranges, through the scan step's own smoother
-(:meth:`ScanFieldEstimator.smoothing_bias`), split by the test's own arithmetic
-(:func:`~hood_decomp.core.method.residual.bias_correlation_of`). Issue 15 run 10 (benchmarks/RESULTS.md) checks it
-against noise-free synthetic scans of FE states.
+displacement's curvature, one-sided fits at free edges), and the within-model test allows for it from each
+residual's rough excess times a correlation sum (``FieldErrorModel.bias_correlation``,
+core.method.residual.split_level). How large that sum is depends on the skin, the kernel and what the part's
+displacements look like, so it is measured once per prepared skin: the FE model's states spread over the declared
+ranges, scanned noise-free through the scan step's own field path (:meth:`ScanFieldEstimator.surface_samples`), minus
+what a scan reads of each state (its normal displacement less its slide along the surface, which the estimator takes
+out: core.method.surface_reading), split by the test's own arithmetic
+(:func:`~hood_decomp.core.method.residual.bias_correlation_of`). Issue 15 run 13 (benchmarks/RESULTS.md) checks it
+against noise-free synthetic scans of other FE states.
 """
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import logging
 
 import numpy as np
@@ -19,7 +23,9 @@ import numpy as np
 from hood_decomp.core.fe.ensemble import solve_members
 from hood_decomp.core.method.bases import Bases
 from hood_decomp.core.method.residual import DEFAULT_SMOOTH_DEGREE, bias_correlation_of, smooth_modes
+from hood_decomp.core.method.surface_reading import SurfaceGradient, slide
 from hood_decomp.core.scan.scan_field import ScanFieldEstimator
+from hood_decomp.core.types import FieldErrorModel
 
 logger = logging.getLogger(__name__)
 
@@ -29,36 +35,49 @@ BIAS_STATES = 24
 BIAS_SEED = 20261125
 
 
-def bias_fields(bases: Bases, count: int = BIAS_STATES, seed: int = BIAS_SEED
-                ) -> tuple[np.ndarray, np.ndarray] | None:
-    """The part at ``count`` states drawn uniformly over the bases' declared ranges, solved by the bases' reduced FE
-    model (exact contact): normal displacement (N, count) mm and in-plane displacement (N, count, 3) mm; None for
-    bases without a reduced model."""
+def state_bias(estimator: ScanFieldEstimator, gradient: SurfaceGradient, displacement: np.ndarray
+               ) -> tuple[np.ndarray, FieldErrorModel]:
+    """The scan step's bias on one state of the part, displaced by ``displacement`` (N, 3) mm: a noise-free scan of
+    it (:meth:`ScanFieldEstimator.surface_samples`, the Jacobian from ``gradient`` of the skin) through
+    ``estimator``'s field path without its outlier pass (on a noise-free cloud it would drop the curvature's own
+    residuals), minus what a scan reads of the state (its normal displacement less its slide, which the estimator
+    takes out): (N,) mm, NaN where unseen; and that field's error model per unit point noise."""
+    noise_free = copy.copy(estimator)
+    noise_free.outlier_sigma = np.inf
+    normal = np.sum(displacement * gradient.normals, axis=1)
+    jacobian = np.stack([gradient(displacement[:, c]) for c in range(3)], axis=1)
+    field = noise_free.field(noise_free.surface_samples(displacement, jacobian))
+    errors = field.error_model
+    unit = dataclasses.replace(errors, node_std=errors.node_std / max(field.noise_rms, 1e-300))
+    return field.normal_displacement - (normal - slide(gradient, normal, displacement)), unit
+
+
+def scan_bias(estimator: ScanFieldEstimator, bases: Bases, count: int = BIAS_STATES, seed: int = BIAS_SEED
+              ) -> tuple[np.ndarray, FieldErrorModel] | None:
+    """:func:`state_bias` (N, count) mm of ``count`` states drawn uniformly over the bases' declared ranges, solved
+    by the bases' reduced FE model (exact contact), and the error model of the last; None for bases without a
+    reduced model."""
     if bases.reduced_model is None:
         return None
     rng = np.random.default_rng(seed)
     states = rng.uniform(bases.pca.lower_, bases.pca.upper_, size=(count, len(bases.pca.lower_)))
     members = solve_members(bases.reduced_model, states)
-    normals = np.asarray(bases.skin.normals, float)
-    normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
-    moved = np.asarray(members.displacement, float)  # (count, N, 3)
-    normal = np.einsum("knd,nd->kn", moved, normals)
-    return normal.T, np.transpose(moved - normal[..., None] * normals, (1, 0, 2))
+    gradient = SurfaceGradient.fit(bases.skin)
+    biases = [state_bias(estimator, gradient, np.asarray(moved, float)) for moved in members.displacement]
+    return np.column_stack([bias for bias, _ in biases]), biases[-1][1]
 
 
 def measured_bias_correlation(estimator: ScanFieldEstimator, bases: Bases) -> float | None:
     """The bias correlation sum (nodes) of ``estimator`` (fitted to ``bases.skin``) on the part of ``bases``:
-    :func:`bias_correlation_of` of the scan step's bias on :func:`bias_fields` (its smoothing and the surface slid
-    along itself, :meth:`ScanFieldEstimator.smoothing_bias`) outside the PCA basis, with the error model of the same
-    smoother. None for bases without a reduced model (the scan step then states its area fallback,
-    ``SMOOTHING_BIAS_AREA_MM2``)."""
-    fields = bias_fields(bases)
-    if fields is None:
+    :func:`bias_correlation_of` of :func:`scan_bias` outside the PCA basis. None for bases without a reduced model
+    (the scan step then states its area fallback, ``SMOOTHING_BIAS_AREA_MM2``)."""
+    measured = scan_bias(estimator, bases)
+    if measured is None:
         return None
-    bias, errors = estimator.smoothing_bias(*fields)
+    bias, errors = measured
     modes = smooth_modes(np.asarray(bases.skin.points, float), DEFAULT_SMOOTH_DEGREE)
     value = bias_correlation_of(bias, bases.pca.components_.T, errors, modes)
-    logger.info("smoothing bias correlation measured on %d states: %.1f nodes (area fallback %.1f)",
+    logger.info("scan bias correlation measured on %d states: %.1f nodes (area fallback %.1f)",
                 bias.shape[1], value, estimator.bias_correlation_)
     return value
 

@@ -15,11 +15,12 @@ import numpy as np
 
 from hood_decomp.core.method.contact_estimation import ContactEstimator
 from hood_decomp.core.method.decomposition import decompose
-from hood_decomp.core.method.estimation import DEFAULT_MIN_COVERAGE, estimate_pca
+from hood_decomp.core.method.estimation import DEFAULT_MIN_COVERAGE, check_field, estimate_pca
 from hood_decomp.core.method.hierarchical import HierarchicalBasis
 from hood_decomp.core.method.model_spread import PhysicalResponses, factor_spread
 from hood_decomp.core.method.pca import PCABasis
 from hood_decomp.core.method.residual import DEFAULT_ALPHA, ResidualAnalysis, ResidualTest, analyse_residual
+from hood_decomp.core.method.surface_reading import SlideOfBasis
 from hood_decomp.core.types import (
     Decomposition,
     DisplacementField,
@@ -84,6 +85,8 @@ class Bases:
         default_factory=dict, init=False, repr=False, compare=False)
     # the skin's within-model test (its smooth modes), prepared on first use
     _tests: dict[str, ResidualTest] = dataclasses.field(default_factory=dict, init=False, repr=False, compare=False)
+    # what a scan reads less than the basis' fields (their slide along the skin), prepared on first use
+    _slides: dict[str, SlideOfBasis] = dataclasses.field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -97,6 +100,13 @@ class Bases:
                                                               self.discrepancy_local, self.discrepancy_noise,
                                                               self.calibration_noise))
         return self._tests["test"]
+
+    def slide(self) -> SlideOfBasis:
+        """The slide of this model's fields, what a scan reads less than them (:mod:`~.surface_reading`), prepared
+        once."""
+        if "slide" not in self._slides:
+            self._slides.setdefault("slide", SlideOfBasis.of(self.pca, self.skin))
+        return self._slides["slide"]
 
     @property
     def discrepancy_dof(self) -> float:
@@ -201,9 +211,17 @@ def estimate_field(
     """Estimate a field's parameter states: "contact" (default, needs the reduced model) or "pca" (the paper's).
     temperature_k: the part's temperature minus the model's reference temperature, K (needs bases with a thermal
     response; the PCA estimator removes the thermal field from the measured one, the contact-aware one also lets it
-    move the pads)."""
+    move the pads).
+
+    A scanned field (error model kind "scan") reads the displaced surface at the nominal nodes, which has slid along
+    itself where the part moves in its plane (:mod:`~.surface_reading`): the slide of the basis field that fits it is
+    added back first, so the estimate, its residual and its within-model test are of the node displacements the
+    model makes. Other fields (simulated, or with a user's stated noise) are taken as node displacements."""
     if method not in METHODS:
         raise BasisError(f"unknown estimation method {method!r}, expected one of {METHODS}")
+    if field.errors.kind == "scan":
+        values, _ = check_field(field, bases.model_id, bases.skin.n_nodes, min_coverage)  # named errors first
+        field = dataclasses.replace(field, normal_displacement=values + bases.slide()(values))
     if method == "pca":
         if temperature_k != 0.0 and np.shape(field.normal_displacement) == bases.pca.mean_field_.shape:
             thermal = bases.at_temperature(temperature_k).w0 - bases.reduced_model.w0

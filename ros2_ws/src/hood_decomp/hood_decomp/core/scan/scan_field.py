@@ -55,11 +55,11 @@ _CHUNK_POINTS = 200_000
 _QUADRIC_NEIGHBOURS = 13
 # The FALLBACK for a skin prepared without its part's fields (no bases, or bases without a reduced model): a skin
 # prepared with its bases stores the bias correlation measured on the part's own FE states (core/loop/scan_skin.py,
-# ``bias_correlation`` of PREPARED_SKIN; issue 15 run 10: coarse 57, default 5,000 nodes, where this area gives 157
-# and 1,000). How far the smoothing bias is correlated, as an area of the skin (mm^2). As a node count (1000, tuned
-# on the default hood's 59 mm^2 nodes) it stood for 6.4 times the area on the coarse hood's 375 mm^2 nodes (issue 15
-# run 5). Set where the within-model test's false-alarm rate on 120 default scans came down (300 nodes: 12.5 %;
-# 1000 nodes: none).
+# ``bias_correlation`` of PREPARED_SKIN; issue 15 run 13, the surface's slide taken out by the estimator: coarse 22,
+# default 45 nodes, where this area gives 157 and 1,000). How far the smoothing bias is correlated, as an area of the
+# skin (mm^2). As a node count (1000, tuned on the default hood's 59 mm^2 nodes) it stood for 6.4 times the area on
+# the coarse hood's 375 mm^2 nodes (issue 15 run 5). Set where the within-model test's false-alarm rate on 120
+# default scans came down (300 nodes: 12.5 %; 1000 nodes: none).
 SMOOTHING_BIAS_AREA_MM2 = 59_000.0
 # Twicing by default only at smoothing radii above this (mm). The bias grows as the radius squared times the
 # displacement's curvature (a property of the part, not of the mesh): 0.009-0.011 mm RMS at the coarse hood's 50 mm,
@@ -386,7 +386,7 @@ class ScanFieldEstimator:
         """What :meth:`fit` builds slowly, as arrays (names and shapes: ``PREPARED_SKIN``) to store with the bases
         and give back to ``fit(skin, prepared=...)``: grid, quadrics, gates, kernel (CSR), node radii and, for a twiced
         fit, :meth:`_twicing_variance` (0.1 s a process on the default hood otherwise); ``bias_correlation`` when the
-        estimator was fitted with a measured one (:meth:`smoothing_bias`, core.loop.scan_skin)."""
+        estimator was fitted with a measured one (:meth:`surface_samples`, core.loop.scan_skin)."""
         self._check_fitted()
         twicing = {"twicing_variance": self._twicing_ratio()} if self.twicing_ else {}
         if self.bias_measured_:
@@ -641,60 +641,35 @@ class ScanFieldEstimator:
                                                 fast)
         return np.where(plain > 0, twiced / np.where(plain > 0, plain, 1.0), 1.0)
 
-    def smoothing_bias(self, fields: np.ndarray, tangential: np.ndarray | None = None
-                       ) -> tuple[np.ndarray, FieldErrorModel]:
-        """What this scan step makes of noise-free displacement fields, normal part (N, k) mm, sampled once per node:
-        its bias (N, k) mm (node value - field; NaN where a node's fit is singular or inflated beyond
-        ``max_inflation``) and the error model (:meth:`_error_model`) of such a uniform sampling at unit point noise.
+    def surface_samples(self, displacement: np.ndarray, jacobian: np.ndarray) -> np.ndarray:
+        """(7 N, 3) mm, a noise-free scan of the skin displaced by ``displacement`` (N, 3) mm: per node the node and
+        a ring of six points a third of the mesh spacing out in its tangent plane, lifted onto its nominal quadric
+        (the surface this step measures against, so the undeformed part reads 4e-6 mm RMS on the coarse hood), each
+        moved by the node's displacement plus the tangential Jacobian ``jacobian`` (N, 3, 3) (d u_c / d x_d, 1) times
+        its offset. A displaced point may land in a neighbour's cell, as on a scan of a part that slid in its plane.
 
-        The same linear smoother as :meth:`field` (the plane fit and, where on, its twicing pass), on cells holding
-        one point at their node: the node values are A s with A the fit's equivalent weights, so the bias is
-        A s - u, mostly the kernel's second moment times the displacement's curvature (issue 15 run 6).
-        tangential: (N, k, 3) mm the fields' in-plane displacement, None for none. A scan sees the displaced surface
-        at the nominal node, not the displaced node: s = u - u_t . grad u (the surface slid along itself by u_t),
-        a smooth term of the order of the in-plane motion times the displacement's slope (0.003 mm RMS on coarse
-        states where a hinge slides the hood by about a millimetre; issue 15 run 10); grad u is the plane fit's
-        slope of u. No outlier pass: on a scan it drops 4-sigma points of a noise of 0.01-0.05 mm, not the
-        displacement's curvature, which on a noise-free cloud it would (tests/core/scan/test_field_error_model.py).
-        The nominal geometry's own floor (the quadrics against the scanned surface, 0.0004 mm RMS on the coarse hood)
-        is not in it."""
+        What the scan step's own bias is measured on (core.loop.scan_skin): the field of such a cloud, through
+        :meth:`field` itself (cells, kernel, free edges, twicing), minus what a scan reads of the state. The ring's
+        radius sets the rough part of that bias: against noise-free synthetic scans of other FE states (issue 15
+        run 13) it gives 0.92-1.06 of their bias correlation, where points spread uniformly over each node's area
+        (a ring at about 0.4 spacing) give 0.58-0.69 and one point per node 0.26-0.56."""
         self._check_fitted()
-        fields = np.asarray(fields, dtype=np.float64)
         n = self.points_.shape[0]
-        if fields.ndim != 2 or fields.shape[0] != n or not np.all(np.isfinite(fields)):
-            raise ScanError(f"fields must be a finite (N={n}, k) array in mm; got shape {fields.shape}")
-        if tangential is not None and np.shape(tangential) != (*fields.shape, 3):
-            raise ScanError(f"tangential must be (N, k, 3) like fields {fields.shape}; got {np.shape(tangential)}")
-        fast = kernels.for_points(0)  # compiled only where the kernels are loaded already
-        cells = np.zeros((n, 9))
-        cells[:, 0] = 1.0
-        rows = np.arange(n)
-        raw = self._raw_moments(cells, rows, fast)
-        mixed = self._smooth(raw)
-        _, weight, inflation, equivalent = self._node_fits(mixed, fast, equivalent=True)
-
-        def smoothed(values: np.ndarray) -> np.ndarray:  # plane fits (N, 3) of node values (N,), twicing aside
-            cells[:, 6] = values
-            raw[:, 10:] = self._raw_moments(cells, rows, fast)[:, 10:]
-            mixed[:, 10:] = self._smooth(raw[:, 10:])
-            return self._node_fits(mixed, fast)[0]
-
-        bias = np.empty_like(fields)
-        for k in range(fields.shape[1]):
-            seen = fields[:, k]
-            if tangential is not None:  # the slope in the node frame: d = a + b_u u + b_v v
-                slope = smoothed(seen)[:, 1:]
-                along = np.einsum("nd,nad->na", np.asarray(tangential[:, k], float), self.frames_[:, :2])
-                seen = seen - np.nan_to_num(np.sum(along * slope, axis=1))
-            coef = smoothed(seen)
-            if self.twicing_:
-                coef = coef + self._twice(cells, coef, mixed, fast)
-            bias[:, k] = coef[:, 0] - fields[:, k]
-        supported = np.isfinite(bias).all(axis=1) & (inflation <= self.max_inflation) & (weight > 0)
-        bias[~supported] = np.nan
-        squared = self.kernel_.multiply(self.kernel_) @ cells[:, 0]
-        errors = self._error_model(raw, squared, weight, inflation, equivalent, supported, 1.0, fast)
-        return bias, errors
+        displacement = np.asarray(displacement, dtype=np.float64)
+        jacobian = np.asarray(jacobian, dtype=np.float64)
+        if displacement.shape != (n, 3) or jacobian.shape != (n, 3, 3):
+            raise ScanError(f"displacement must be (N={n}, 3) and jacobian (N, 3, 3); got {displacement.shape} and "
+                            f"{jacobian.shape}")
+        angle = np.concatenate([[np.nan], 2.0 * np.pi * np.arange(6) / 6])
+        u = np.nan_to_num(np.cos(angle)) * self.spacing_mm_ / 3.0
+        v = np.nan_to_num(np.sin(angle)) * self.spacing_mm_ / 3.0
+        c = self.quadric_
+        z = c[:, :1] * u + c[:, 1:2] * v + c[:, 2:3] * u * u + c[:, 3:4] * u * v + c[:, 4:5] * v * v  # (N, 7)
+        offset = np.einsum("nk,nd->nkd", np.broadcast_to(u, z.shape), self.frames_[:, 0])
+        offset += np.einsum("nk,nd->nkd", np.broadcast_to(v, z.shape), self.frames_[:, 1])
+        offset += z[..., None] * self.frames_[:, None, 2]
+        moved = displacement[:, None, :] + np.einsum("ncd,nkd->nkc", jacobian, offset)
+        return (self.points_[:, None, :] + offset + moved).reshape(-1, 3)
 
     def _error_model(self, raw: np.ndarray, squared: np.ndarray, weight: np.ndarray, inflation: np.ndarray,
                      rows: np.ndarray, supported: np.ndarray, noise_mm: float, fast: bool) -> FieldErrorModel:
