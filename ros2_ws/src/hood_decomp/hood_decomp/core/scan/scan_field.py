@@ -95,7 +95,7 @@ PREPARED_SKIN: dict[str, tuple[tuple[str, ...], str]] = {
 }  # fmt: skip
 #: arrays of PREPARED_SKIN a prepared skin may lack: made at the first scan that needs them (files written before);
 #: ``bias_correlation`` is measured from the part's own fields (core.loop.scan_skin), without it the area fallback;
-#: without ``grid_brick`` (written before issue 19's fourth session) ``grid_table`` is in plain C order, laid out
+#: without ``grid_brick`` (written before issue 19, session 12) ``grid_table`` is in plain C order, laid out
 #: in bricks when the skin is fitted
 PREPARED_OPTIONAL = frozenset({"twicing_variance", "bias_correlation", "grid_brick"})
 
