@@ -200,3 +200,45 @@ def test_a_prepared_skin_with_a_bad_bias_correlation_is_refused_by_name(saved, p
     forged = _rewritten(path, tmp_path / "forged.h5", forge)
     with pytest.raises((ScanError, BasisError), match="bias_correlation"):
         field_from_scan(load_bases(forged).skin, points)
+
+
+def test_scan_skin_stored_before_the_bricks_loads_and_scans_the_same(saved, points, fresh_cache, tmp_path,
+                                                                      monkeypatch):
+    """Fails if a prepared skin written before the lookup table was laid out in bricks (no grid_brick, the table in
+    plain C order, a grid of any shape) is refused, rebuilt, or gives another field than a fresh preparation
+    (1e-12 mm): its table must be laid out in bricks at load, its last cells repeated to whole bricks."""
+    bases, path = saved
+
+    def plain_order(h5):
+        brick = h5["scan_skin/grid_brick"][()]
+        shape = h5["scan_skin/grid_shape"][()]
+        outer = shape // brick
+        table = h5["scan_skin/grid_table"][()].reshape(*outer, *brick).transpose(0, 3, 1, 4, 2, 5).reshape(shape)
+        table = table[: shape[0] - 1, : shape[1] - 1, : shape[2] - 1]  # no longer whole bricks
+        for name in ("grid_brick", "grid_table", "grid_shape"):
+            del h5[f"scan_skin/{name}"]
+        h5["scan_skin"].create_dataset("grid_table", data=table.ravel())
+        h5["scan_skin"].create_dataset("grid_shape", data=np.array(table.shape, np.int64))
+
+    old = _rewritten(path, tmp_path / "plain.h5", plain_order)
+    expected = ScanFieldEstimator().fit(bases.skin).field(points)
+    _no_rebuild(monkeypatch)
+    field, _ = field_from_scan(load_bases(old).skin, points)
+    assert field.coverage > 0.9
+    np.testing.assert_array_equal(np.isnan(field.normal_displacement), np.isnan(expected.normal_displacement))
+    np.testing.assert_allclose(field.normal_displacement, expected.normal_displacement, rtol=0, atol=1e-12)
+
+
+def test_a_forged_brick_is_refused(saved, points, fresh_cache, tmp_path):
+    """Fails if a grid_brick that is no power of two, or does not divide the grid's shape, reaches the lookup (a
+    read out of the table) instead of a named refusal."""
+    _, path = saved
+    for k, value in enumerate(([3, 4, 1], [8, 8, 8])):
+        def edit(h5, value=value):
+            h5["scan_skin/grid_brick"][...] = value
+
+        forged = _rewritten(path, tmp_path / f"brick{k}.h5", edit)
+        scan_field._PREPARED.clear()
+        scan_field._STORED.clear()
+        with pytest.raises(ScanError, match="out-of-range grid_brick"):
+            field_from_scan(load_bases(forged).skin, points)

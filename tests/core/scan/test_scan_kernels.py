@@ -346,3 +346,53 @@ def test_a_cloud_in_no_spatial_order_is_sorted_by_tiles_the_same_way_on_both_pat
     scanned, sorted_ = (estimator.field(points).normal_displacement for points in (scan_points, shuffled))
     np.testing.assert_array_equal(np.isfinite(scanned), np.isfinite(sorted_))
     assert np.nanmax(np.abs(scanned - sorted_)) < 1e-9
+
+
+def _plain_nearest_node_grid(est: ScanFieldEstimator) -> np.ndarray:
+    """The estimator's grid (origin, cell, shape) as a plain (S0, S1, S2) table of the node in the nearest node cell
+    (scipy's exact distance transform, the last node of a cell written wins): the lookup before the bricks."""
+    from scipy import ndimage
+
+    keys = np.floor((est.points_ - est.grid_origin_) / est.grid_cell_mm_).astype(np.int64)
+    table = np.full(tuple(est.grid_shape_), -1, np.int64)
+    table[keys[:, 0], keys[:, 1], keys[:, 2]] = np.arange(est.points_.shape[0])
+    nearest = ndimage.distance_transform_edt(table < 0, return_distances=False, return_indices=True)
+    return table[tuple(nearest)]
+
+
+@pytest.mark.parametrize("normal_axis", [2, 0])
+@pytest.mark.parametrize("compiled", [True, False] if kernels.HAVE_NUMBA else [False])
+def test_the_bricked_table_finds_each_points_node_of_the_plain_grid(skin, scan_points, normal_axis, compiled):
+    """Fails if a point's cell is read from the wrong entry of the bricked table (kernels.grid_layout, brick_order):
+    every point, on the skin, off it, outside the grid or NaN, must be located (node, u, v, d) exactly as a lookup of
+    the plain nearest-node grid followed by the gates written out here, on both paths; and for a skin whose normals
+    point along x instead of z, whose bricks lie across x."""
+    order = [(k + 2 - normal_axis) % 3 for k in range(3)]  # z to axis normal_axis, cyclically: a rotation
+    turned = SkinSurface(skin.points[:, order], skin.normals[:, order], skin.triangles, skin.model_id)
+    est = ScanFieldEstimator().fit(turned)
+    brick = np.full(3, scan_field.GRID_BRICK)
+    brick[normal_axis] = 1
+    np.testing.assert_array_equal(est.grid_brick_, brick)
+    assert np.all(est.grid_shape_ % brick == 0) and est.grid_table_.size == np.prod(est.grid_shape_)
+    rng = np.random.default_rng(5)
+    lo, hi = est.grid_origin_, est.grid_origin_ + est.grid_shape_ * est.grid_cell_mm_
+    box = rng.uniform(lo - 30.0, hi + 30.0, (20_000, 3))  # everywhere in the grid and around it
+    points = np.concatenate([scan_points[:, order], box])
+    previous = kernels.use_compiled(compiled)
+    try:
+        located = est.point_distances(points)
+    finally:
+        kernels.use_compiled(previous)
+    cells = np.floor((points - est.grid_origin_) / est.grid_cell_mm_)
+    cells = np.clip(np.nan_to_num(cells, nan=0.0), 0, est.grid_shape_ - 1).astype(np.int64)
+    j = _plain_nearest_node_grid(est)[cells[:, 0], cells[:, 1], cells[:, 2]]
+    offset = points - est.points_[j]
+    u, v, w = (np.einsum("md,md->m", offset, est.frames_[j, k]) for k in range(3))
+    q = est.quadric_[j]
+    d = w - (q[:, 0] * u + q[:, 1] * v + q[:, 2] * u * u + q[:, 3] * u * v + q[:, 4] * v * v)
+    with np.errstate(invalid="ignore"):
+        passed = (np.abs(d) <= est.max_distance_mm) & (u * u + v * v <= est.gate2_[j])
+    assert 0.3 * points.shape[0] < passed.sum() < points.shape[0] - 20_000  # on the skin and off it, both
+    np.testing.assert_array_equal(located.node, np.where(passed, j, -1))
+    np.testing.assert_allclose(located.distance[passed], d[passed], rtol=0, atol=1e-4)  # float32 storage
+    np.testing.assert_allclose(located.tangent[passed], np.column_stack([u, v])[passed], rtol=0, atol=1e-3)

@@ -10,9 +10,10 @@ another 0.3 s at exit (LLVM's teardown); the numpy path costs about 0.45 s of CP
 threads that share the GIL where the compiled loops do not. Whole one-off runs measured (benchmarks/RESULTS.md,
 issue 19): at 1 M points the numpy path took 0.3-0.5 s less CPU, at 5 M the two were even.
 
-Per point (:func:`locate_block`): grid coordinates from one affine map, the cell's node, the offset in the node's
-frame, the quadric distance, the gates; the points that pass are written to preallocated block buffers and (when
-``cells`` is given) their moments [1, u, v, uu, uv, vv, d, du, dv] are added to their node's cell sums, in one pass.
+Per point (:func:`locate_block`): grid coordinates from one affine map, the cell's node (a table laid out in
+bricks, :func:`grid_layout`), the offset in the node's frame, the quadric distance, the gates; the points that pass
+are written to preallocated block buffers and (when ``cells`` is given) their moments [1, u, v, uu, uv, vv, d, du,
+dv] are added to their node's cell sums, in one pass.
 Per node (:func:`raw_moments`, :func:`node_fits`): the cell sums to raw 3D moments (the second moments formed from
 the node's basis rows, :func:`_second_moments`: no per-node map stored), and the closed-form 3x3 plane fit. The
 second pass (:func:`outliers`): residuals, outliers and the noise sums in one pass, without an array of the scan's
@@ -93,17 +94,18 @@ def for_points(points: int) -> bool:
 
 
 # --------------------------------------------------------------------------------------------------- numpy path
-def _locate_block_numpy(points, start, stop, affine, hi, strides, table, cell_mm, nodes, max_d,
+def _locate_block_numpy(points, start, stop, affine, hi, layout, table, cell_mm, nodes, max_d,
                         out_row, out_j, out_u, out_v, out_d, cells):  # fmt: skip
     x, y, z = points[start:stop, 0], points[start:stop, 1], points[start:stop, 2]
     g = [x * affine[k, 0] + y * affine[k, 1] + z * affine[k, 2] + affine[k, 3] for k in range(3)]
-    flat = np.zeros(stop - start)
+    flat = np.zeros(stop - start, np.int64)
     for k in range(3):
         index = np.floor(g[k])
         np.fmax(index, 0.0, out=index)  # fmax/fmin, unlike clip, also send NaN to a border cell
         np.fmin(index, hi[k], out=index)
-        flat += index * strides[k]
-    j = table[flat.astype(np.int64)]
+        cell = index.astype(np.int64)
+        flat += (cell >> layout[k, 0]) * layout[k, 2] + (cell & layout[k, 1]) * layout[k, 3]
+    j = table[flat]
     # one gather (take: a fifth less CPU than nodes[j]): node position in grid units (3), frame rows t1, t2, n (9),
     # quadric (5), gate (1)
     node = np.take(nodes, j, axis=0)
@@ -324,7 +326,7 @@ def _twiced_variance_numpy(indptr, indices, data, rows, sums, plain, twiced):
 
 
 # ------------------------------------------------------------------------------------------------ compiled path
-def _locate_block_loop(points, start, stop, affine, hi, strides, table, cell_mm, nodes, max_d,
+def _locate_block_loop(points, start, stop, affine, hi, layout, table, cell_mm, nodes, max_d,
                        out_row, out_j, out_u, out_v, out_d, cells):  # fmt: skip
     count = 0
     for p in range(start, stop):
@@ -332,11 +334,8 @@ def _locate_block_loop(points, start, stop, affine, hi, strides, table, cell_mm,
         g0 = x * affine[0, 0] + y * affine[0, 1] + z * affine[0, 2] + affine[0, 3]
         g1 = x * affine[1, 0] + y * affine[1, 1] + z * affine[1, 2] + affine[1, 3]
         g2 = x * affine[2, 0] + y * affine[2, 1] + z * affine[2, 2] + affine[2, 3]
-        flat = 0.0
-        flat += _cell(g0, hi[0]) * strides[0]
-        flat += _cell(g1, hi[1]) * strides[1]
-        flat += _cell(g2, hi[2]) * strides[2]
-        j = table[np.int64(flat)]
+        j = table[_flat(np.int64(_cell(g0, hi[0])), layout, 0) + _flat(np.int64(_cell(g1, hi[1])), layout, 1)
+                  + _flat(np.int64(_cell(g2, hi[2])), layout, 2)]
         node = nodes[j]
         o0 = (g0 - node[0]) * cell_mm
         o1 = (g1 - node[1]) * cell_mm
@@ -380,6 +379,11 @@ def _tile_key(points, p, affine, hi, tile):
         g = x * affine[k, 0] + y * affine[k, 1] + z * affine[k, 2] + affine[k, 3]
         key = key * (np.int64(hi[k]) + 1) + np.int64(_cell(g / tile, hi[k]))
     return key
+
+
+def _flat(cell, layout, k):
+    # axis k's part of the table entry of a cell (its index ``cell`` along the axis): brick and place in the brick
+    return (cell >> layout[k, 0]) * layout[k, 2] + (cell & layout[k, 1]) * layout[k, 3]
 
 
 def _cell(g, hi):
@@ -588,7 +592,8 @@ def _kernel(name: str, fast: bool = True):
 
             module = globals()
             # called from the loops: compiled inline into them
-            for helper in ("_cell", "_tile_key", "_add_one", "_second_moments", "_tangent_forms", "_plane_system"):
+            for helper in ("_cell", "_flat", "_tile_key", "_add_one", "_second_moments", "_tangent_forms",
+                           "_plane_system"):
                 module[helper] = njit(nogil=True, cache=True, inline="always")(module[helper])
             for loop in ("_locate_block_loop", "_add_moments_loop", "_plane_residuals_loop", "_outliers_loop",
                          "_raw_moments_loop", "_node_fits_loop", "_kernel_sums_loop", "_equivalent_back_loop",
@@ -598,22 +603,47 @@ def _kernel(name: str, fast: bool = True):
 
 
 # ------------------------------------------------------------------------------------------------ the interface
-def locate_block(points: np.ndarray, start: int, stop: int, affine: np.ndarray, hi: np.ndarray, strides: np.ndarray,
+def locate_block(points: np.ndarray, start: int, stop: int, affine: np.ndarray, hi: np.ndarray, layout: np.ndarray,
                  table: np.ndarray, cell_mm: float, nodes: np.ndarray, max_d: float,
                  out_row: np.ndarray, out_j: np.ndarray, out_u: np.ndarray, out_v: np.ndarray, out_d: np.ndarray,
                  cells: np.ndarray | None, fast: bool = True) -> int:  # fmt: skip
     """Locate points[start:stop] (M, 3) mm; returns how many passed the gates.
 
     affine: (3, 4) map of a point to grid units (rotation, registration and cell size folded in); hi (3,) the last
-    cell index per axis; strides (3,) of the flat grid; table: flat grid -> nearest node (int32); nodes: (N, 18)
+    cell index per axis; layout (3, 4) int64: where a cell's node is in ``table`` (:func:`grid_layout`); table: the
+    grid's cells' nearest nodes (int32) in that order; nodes: (N, 18)
     per node [position in grid units (3), t1, t2, n (9), quadric c0..c4 (5), squared tangential gate (1)];
     max_d: largest |distance|, mm. The passing points' rows (int64), nodes (int32), u, v, d (float32, mm) go to the
     first ``count`` entries of the out buffers (each at least stop - start long); with ``cells`` (N, 9) float64
     their moments are added to it. ``fast``: the compiled path where it is not switched off (all functions here).
     """
-    return int(_kernel("_locate_block_loop", fast)(points, start, stop, affine, hi, strides, *_unsigned(fast, table),
+    return int(_kernel("_locate_block_loop", fast)(points, start, stop, affine, hi, layout, *_unsigned(fast, table),
                                                    cell_mm, nodes, max_d, out_row, out_j, out_u, out_v, out_d,
                                                    cells))  # fmt: skip
+
+
+def grid_layout(shape: np.ndarray, brick: np.ndarray) -> np.ndarray:
+    """Where the lookup grid's cell (c0, c1, c2) is in its flat table: sum over the axes k of
+    (c_k >> shift_k) * outer_k + (c_k & mask_k) * inner_k, returned as rows [shift, mask, outer, inner] (3, 4) int64.
+    shape (3,): cells per axis, whole bricks; brick (3,): cells per axis of a brick, powers of two. The table holds
+    the bricks in C order, each brick's cells in C order (:func:`brick_order`); brick (1, 1, 1) is the plain C
+    order of the whole grid."""
+    shape, brick = np.asarray(shape, np.int64), np.asarray(brick, np.int64)
+    outer = shape // brick
+    volume = int(np.prod(brick))
+    layout = np.empty((3, 4), np.int64)
+    layout[:, 0] = np.round(np.log2(brick)).astype(np.int64)
+    layout[:, 1] = brick - 1
+    layout[:, 2] = [outer[1] * outer[2] * volume, outer[2] * volume, volume]
+    layout[:, 3] = [brick[1] * brick[2], brick[2], 1]
+    return layout
+
+
+def brick_order(plain: np.ndarray, brick: np.ndarray) -> np.ndarray:
+    """The grid's table (S0, S1, S2) as the flat table of :func:`grid_layout` (each S_k a multiple of brick_k)."""
+    (s0, s1, s2), (b0, b1, b2) = plain.shape, (int(b) for b in brick)
+    bricks = plain.reshape(s0 // b0, b0, s1 // b1, b1, s2 // b2, b2).transpose(0, 2, 4, 1, 3, 5)
+    return np.ascontiguousarray(bricks).ravel()
 
 
 def tile_order(points: np.ndarray, affine: np.ndarray, grid_hi: np.ndarray, cell_mm: float,
