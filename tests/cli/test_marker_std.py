@@ -39,10 +39,11 @@ def _estimate(coarse_hood, scan, extra, tmp_path, capsys) -> tuple[dict, str]:
 def test_a_stated_marker_noise_replaces_the_estimate(coarse_hood, marker_scan, tmp_path, capsys):
     """Fails if --marker-std-mm does not reach the registration's pose covariance: two statements the marker
     residual accepts (0.7 and 1.6 times the residual's own estimate) must differ in the locks' std (the registration
-    dominates them on the coarse hood even in the generalised least-squares fit, which separates a pose error from
-    HINGE_X's move by the surface's shape: HINGE_X's std moves by 0.1 %) by at least 1.8 times (the registration term
-    alone by 2.29; measured 2.04-2.05 on 2026-11-25), and the JSON must report each check as accepted with the stated
-    value used, and the fit as the generalised one."""
+    is most of them on the coarse hood even in the generalised least-squares fit, which separates a pose error from
+    HINGE_X's move by the surface's shape: HINGE_X's std moves by 0.1 %) by at least 1.4 times (the registration term
+    alone by 2.29, an ignored statement by 1.0; measured 2.04-2.05 in session 11 and 1.65 since the scan's slide is
+    taken out: the other terms of the locks' variance are now about 0.7 of the registration's, 0.16 before), and the
+    JSON must report each check as accepted with the stated value used, and the fit as the generalised one."""
     first, _ = _estimate(coarse_hood, marker_scan, ["--marker-std-mm", "0.03"], tmp_path, capsys)
     [check] = first["marker_noise_checks"]
     assert check["accepted"] and check["used_mm"] == 0.03 and check["dof"] == 18, check  # the scanner's truth
@@ -55,7 +56,8 @@ def test_a_stated_marker_noise_replaces_the_estimate(coarse_hood, marker_scan, t
         assert check["accepted"] and check["used_mm"] == check["stated_mm"], check
     for lock in ("LOCK_L", "LOCK_R"):
         low, high = (run["std_mm"][lock] for run in runs)
-        assert high > 1.8 * low, (lock, low, high)
+        print(f"{lock} std {low:.4f} -> {high:.4f} mm ({high / low:.2f} x)")
+        assert high > 1.4 * low, (lock, low, high)
 
 
 def test_a_stated_marker_noise_the_markers_reject_is_named_and_not_used(coarse_hood, marker_scan, tmp_path,
