@@ -124,3 +124,38 @@ def test_a_scan_of_a_part_that_slid_is_estimated_within_the_model(default_hood):
     assert taken_out.check.p_value >= 0.01
     assert errors.max() < 0.002
     assert left_in.check.p_value < 1e-6
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")
+def test_a_scanned_field_of_a_known_setting_is_read_as_node_displacements(default_hood):
+    """Calibration entries and references are parts at known settings (core.loop.calibration): a scanned one
+    (noise-free synthetic scan, 500,000 points, true pose, of the default hood at HINGE_Y -0.9 mm) must come out
+    closer to the FE node normal displacement by at least half in RMS once its slide at that setting is added back
+    (measured: 0.0022 -> 0.0008 mm), a field stated by a user must pass unchanged, and a scanned
+    one without the skin is refused by name."""
+    from hood_decomp.core.fe.ensemble import solve_members
+    from hood_decomp.core.loop.calibration import as_node_displacement
+    from hood_decomp.core.loop.scan_skin import prepared_scan_skin
+    from hood_decomp.core.scan.scan_field import ScanFieldEstimator, field_from_scan
+    from hood_decomp.core.types import FieldErrorModel
+    from hood_decomp.errors import CalibrationError
+    from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
+
+    bases, skin, reduced = default_hood.bases, default_hood.skin, default_hood.reduced
+    estimator = ScanFieldEstimator(outlier_sigma=1e9).fit(skin, prepared=prepared_scan_skin(bases))
+    setting = np.array([0.2, -0.9, 0.3, -0.4, 0.5, 0.6])
+    member = solve_members(reduced, setting[None])
+    config = ScannerConfig(n_points=500_000, noise_mm=0.0, pose_error_deg=0.0, pose_error_mm=0.0, n_holes=0,
+                           outlier_fraction=0.0, dropout_fraction=0.0)
+    scan = synthesize_scan(skin, member.displacement[0], config, 3)
+    field = field_from_scan(skin, scan.points, scanner_pose=scan.true_transform, estimator=estimator)[0]
+    nodes = as_node_displacement(field, reduced, setting, skin)
+    truth = member.normal_displacement[0]
+    before, after = (float(np.sqrt(np.nanmean((f.normal_displacement - truth) ** 2))) for f in (field, nodes))
+    print(f"scan - u_n {before:.5f} mm RMS, as node displacements {after:.5f} mm")
+    assert after < 0.5 * before
+    stated = type(field)(field.model_id, field.normal_displacement, field.coverage, 0.02,
+                         FieldErrorModel.stated(0.02, skin.n_nodes))
+    assert as_node_displacement(stated, reduced, setting, skin) is stated
+    with pytest.raises(CalibrationError, match="needs the skin"):
+        as_node_displacement(field, reduced, setting, None)

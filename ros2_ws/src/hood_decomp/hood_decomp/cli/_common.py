@@ -116,7 +116,7 @@ def apply_reference(args: argparse.Namespace, bases: Bases, fields: list[Displac
         raise CalibrationError(f"--reference needs the bases' reduced model, which {args.bases} lacks")
     entry = read_entries(args.reference, bases.skin, args.min_coverage, single=True)[0]
     setting = entry.setting_vector(bases.names)
-    return [relative_field(bases.reduced_model, field, entry.field, setting) for field in fields]
+    return [relative_field(bases.reduced_model, field, entry.field, setting, bases.skin) for field in fields]
 
 
 def add_json(parser: argparse.ArgumentParser) -> None:

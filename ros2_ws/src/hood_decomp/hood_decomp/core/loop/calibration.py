@@ -63,6 +63,7 @@ from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solv
 from hood_decomp.core.method.bases import Bases, build_bases
 from hood_decomp.core.method.model_spread import PhysicalResponses, apply_factors, factor_names
 from hood_decomp.core.method.residual import DEFAULT_NOISE_MM, ring_incidence, skin_adjacency
+from hood_decomp.core.method.surface_reading import SurfaceGradient, slide
 from hood_decomp.core.types import DisplacementField, ReducedModel, SkinSurface, fingerprint
 from hood_decomp.errors import CalibrationError
 
@@ -595,6 +596,8 @@ def calibrate(reduced: ReducedModel, physics: PhysicalResponses, entries: list[C
             raise CalibrationError(f"calibration entry {entry.name}: field has "
                                    f"{np.shape(entry.field.normal_displacement)} values, expected "
                                    f"({reduced.w0.shape[0]},)")
+    entries = [replace(entry, field=as_node_displacement(entry.field, reduced, entry.setting, skin))
+               for entry in entries]
     problem = _Problem(entries, reduced, physics, np.zeros((skin.n_nodes, 0)))
     _check_support(problem, entries)
     problem.modes = smooth_modes(skin)  # after the checks: a refused calibration costs nothing
@@ -692,10 +695,13 @@ def rebuild_bases(bases: Bases, reduced: ReducedModel, calibration: str = "",
 
 
 def relative_field(reduced: ReducedModel, field: DisplacementField, reference: DisplacementField,
-                   setting: np.ndarray) -> DisplacementField:
+                   setting: np.ndarray, skin: SkinSurface | None = None) -> DisplacementField:
     """Reference-relative field: measured - reference + the model's own field at the reference's known setting
     (P,) mm, so a static model error cancels. Unseen where either is unseen; the error model's node variances add
-    (the correlation and pose of the measured field are kept; the reference's registration error adds as noise)."""
+    (the correlation and pose of the measured field are kept; the reference's registration error adds as noise).
+    A scanned reference reads its surface less its slide at that setting (core.method.surface_reading), which is
+    added back from the model (``skin`` needed): the result is then a scan of the measured part as the estimator
+    takes it, which takes the measured part's own slide out."""
     for what, other in (("field", field.model_id), ("reference", reference.model_id)):
         if other != reduced.model_id:
             raise CalibrationError(f"{what} model_id {other!r} is not the bases' {reduced.model_id!r}")
@@ -703,7 +709,8 @@ def relative_field(reduced: ReducedModel, field: DisplacementField, reference: D
     if setting.shape != (len(reduced.names),):
         raise CalibrationError(f"reference setting has shape {setting.shape}, expected ({len(reduced.names)},)")
     own = solve_members(reduced, setting[None, :]).normal_displacement[0]
-    values = np.asarray(field.normal_displacement, float) - np.asarray(reference.normal_displacement, float) + own
+    read = as_node_displacement(reference, reduced, setting, skin).normal_displacement
+    values = np.asarray(field.normal_displacement, float) - np.asarray(read, float) + own
     n = values.size
     errors = field.errors
     if errors.kind != "none" or reference.errors.kind != "none":
@@ -718,6 +725,23 @@ def relative_field(reduced: ReducedModel, field: DisplacementField, reference: D
                              noise_rms=noise if noise > 0 else np.nan, error_model=errors)
 
 
+def as_node_displacement(field: DisplacementField, reduced: ReducedModel, setting: np.ndarray,
+                         skin: SkinSurface | None) -> DisplacementField:
+    """A field of the part at a known setting (P,) mm as its nodes' displacement: a scanned one (error model kind
+    "scan") reads the surface less its slide along itself (core.method.surface_reading), which is added back from the
+    model's own displacement at that setting (``skin`` needed); any other field is taken as it is. Calibration
+    entries and references are such fields: without it the slide of their states (up to 0.003 mm RMS where the hinges
+    slide the hood) would be learned as the model's discrepancy."""
+    if field.errors.kind != "scan":
+        return field
+    if skin is None:
+        raise CalibrationError("a scanned field of a known setting needs the skin to take its slide out")
+    member = solve_members(reduced, np.asarray(setting, float)[None, :])
+    values = np.asarray(field.normal_displacement, float)
+    return replace(field, normal_displacement=values + slide(SurfaceGradient.fit(skin), member.normal_displacement[0],
+                                                             member.displacement[0]))
+
+
 def _node_std(field: DisplacementField, n: int) -> np.ndarray:
     """Per-node std (N,) mm of a field's error model; a field without one counts its noise_rms (or 0)."""
     if field.errors.kind != "none":
@@ -730,6 +754,7 @@ __all__ = [
     "CalibrationEntry",
     "PhysicalResponses",
     "apply_factors",
+    "as_node_displacement",
     "calibrate",
     "discrepancy_modes",
     "discrepancy_noise_modes",
