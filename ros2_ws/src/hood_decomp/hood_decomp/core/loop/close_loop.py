@@ -65,6 +65,7 @@ from hood_decomp.core.method.bases import (
     build_bases,
     estimate_field,
     fitted_unknowns,
+    node_field,
     rebuilt_like,
 )
 from hood_decomp.core.method.contact_estimation import ContactEstimator
@@ -532,9 +533,12 @@ def close_loop(
 
     start = time.perf_counter()
     reduced, lower, upper = bases.reduced_model, bases.pca.lower_, bases.pca.upper_
+    # the tracing fits the candidates to the fields as the model's nodes moved, as estimate_field does (a scan's slide
+    # taken out: core.method.surface_reading)
+    nodes = tuple(node_field(bases, fd, min_coverage) for fd in fields)
     current = before if method == "contact" else tuple(
-        _estimator(reduced, lower, upper, 0, min_coverage, bases.residual_test()).estimate(fd) for fd in fields)
-    trace = trace_effect(reduced, lower, upper, fields, candidates, current, noise, bases.residual_test(), alpha=alpha,
+        _estimator(reduced, lower, upper, 0, min_coverage, bases.residual_test()).estimate(fd) for fd in nodes)
+    trace = trace_effect(reduced, lower, upper, nodes, candidates, current, noise, bases.residual_test(), alpha=alpha,
                          min_coverage=min_coverage, pairs=max_effects == 2)
     traces = (trace,)
     timings["trace_s"] = time.perf_counter() - start
@@ -562,7 +566,7 @@ def close_loop(
     start = time.perf_counter()
     n_new = len(added_names)
     provisional = _estimator(reduced, lower, upper, n_new, min_coverage, bases.residual_test())
-    estimates = [provisional.estimate(fd) for fd in fields]
+    estimates = [provisional.estimate(fd) for fd in nodes]
     b = bases.reduced_model.n_bilateral
     halves = [effect_range(np.array([e.values[b + j] for e in estimates]), np.array([e.std[b + j] for e in estimates]))
               for j in range(n_new)]

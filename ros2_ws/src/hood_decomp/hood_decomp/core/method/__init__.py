@@ -5,7 +5,14 @@ correction for the adjustment robot, the interaction map of an ensemble, and the
 May import: ``hood_decomp.core.types`` and ``hood_decomp.errors`` only (never ``fe``, ``scan`` or ``loop``).
 """
 
-from hood_decomp.core.method.bases import Bases, analyse_estimate, build_bases, decompose_field, estimate_field
+from hood_decomp.core.method.bases import (
+    Bases,
+    analyse_estimate,
+    build_bases,
+    decompose_field,
+    estimate_field,
+    node_field,
+)
 from hood_decomp.core.method.contact_estimation import ContactEstimator
 from hood_decomp.core.method.correction import CorrectionPolicy, plan_correction
 from hood_decomp.core.method.decomposition import decompose
@@ -18,5 +25,5 @@ from hood_decomp.core.method.residual import analyse_residual
 __all__ = [
     "Bases", "ContactEstimator", "CorrectionPolicy", "HierarchicalBasis", "InteractionMap", "PCABasis",
     "analyse_estimate", "analyse_residual", "build_bases", "decompose", "decompose_field", "estimate_field",
-    "estimate_pca", "interaction_map", "plan_correction",
+    "estimate_pca", "interaction_map", "node_field", "plan_correction",
 ]

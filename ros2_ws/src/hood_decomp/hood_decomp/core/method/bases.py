@@ -213,15 +213,11 @@ def estimate_field(
     response; the PCA estimator removes the thermal field from the measured one, the contact-aware one also lets it
     move the pads).
 
-    A scanned field (error model kind "scan") reads the displaced surface at the nominal nodes, which has slid along
-    itself where the part moves in its plane (:mod:`~.surface_reading`): the slide of the basis field that fits it is
-    added back first, so the estimate, its residual and its within-model test are of the node displacements the
-    model makes. Other fields (simulated, or with a user's stated noise) are taken as node displacements."""
+    The field is estimated as its nodes' displacement (:func:`node_field`: a scan's slide taken out), so the estimate,
+    its residual and its within-model test are of the node displacements the model makes."""
     if method not in METHODS:
         raise BasisError(f"unknown estimation method {method!r}, expected one of {METHODS}")
-    if field.errors.kind == "scan":
-        values, _ = check_field(field, bases.model_id, bases.skin.n_nodes, min_coverage)  # named errors first
-        field = dataclasses.replace(field, normal_displacement=values + bases.slide()(values))
+    field = node_field(bases, field, min_coverage)
     if method == "pca":
         if temperature_k != 0.0 and np.shape(field.normal_displacement) == bases.pca.mean_field_.shape:
             thermal = bases.at_temperature(temperature_k).w0 - bases.reduced_model.w0
@@ -232,6 +228,19 @@ def estimate_field(
     if not bases.measured_effects:
         return estimate
     return dataclasses.replace(estimate, measured_effect=np.isin(estimate.names, bases.measured_effects))
+
+
+def node_field(bases: Bases, field: DisplacementField, min_coverage: float = DEFAULT_MIN_COVERAGE
+               ) -> DisplacementField:
+    """``field`` as the displacement of the model's nodes. A scanned field (error model kind "scan") reads the
+    displaced surface at the nominal nodes, which has slid along itself where the part moves in its plane
+    (:mod:`~.surface_reading`): the slide of the basis field that fits it is added back. Other fields (simulated, or
+    with a user's stated noise) are node displacements already and are returned as they are. Raises the estimators'
+    named errors (:func:`~.estimation.check_field`) for a field they would refuse."""
+    if field.errors.kind != "scan":
+        return field
+    values, _ = check_field(field, bases.model_id, bases.skin.n_nodes, min_coverage)
+    return dataclasses.replace(field, normal_displacement=values + bases.slide()(values))
 
 
 def fitted_unknowns(estimate: ParameterEstimate) -> int:
