@@ -270,7 +270,8 @@ class ContactEstimator:
             if cand.feasible and not tension.any() and not penetration.any():
                 best = candidates.setdefault(cand.active.tobytes(), cand)
                 fit = self._fit(best, values, valid, errors, min_force, weight, check, modes)
-        covariance = fit.covariance + self._between_states(candidates.values(), best, fit.values, noise2, min_force)
+        covariance = fit.covariance + self._between_states(candidates.values(), best, fit.values, noise2, min_force,
+                                                             n_valid)
         return ParameterEstimate(
             model_id=model.model_id,
             names=tuple(model.names),
@@ -340,12 +341,18 @@ class ContactEstimator:
         return factor_effects(self.model_, self.factors_, best.active, theta, to_theta, report)
 
     def _between_states(self, candidates: Iterable[_Candidate], best: _Candidate, values: np.ndarray, noise2: float,
-                        min_force_n: float) -> np.ndarray:
+                        min_force_n: float, n_valid: int) -> np.ndarray:
         """(B + U, B + U) mm^2: what the contact states the field supports add to the best state's covariance (Akaike
-        weights exp(-(rss / noise^2 + 2 p) / 2) relative to the best): each state's spread around the reported values
-        and, for the bilateral states, its own covariance beyond the best's (the model-averaged covariance), kept
-        positive semi-definite (never below the best state's). Zero without a noise level (a noise-free field decides
-        its contact state).
+        weights exp(-(rss / s^2 + 2 p) / 2), normalised over the states): each state's spread around the reported
+        values and, for the bilateral states, its own covariance beyond the best's (the model-averaged covariance),
+        kept positive semi-definite (never below the best state's). Zero without a noise level (a noise-free field
+        decides its contact state).
+
+        s^2 is the larger of the field's noise level and the residual's own (:meth:`_select`'s, which picked the
+        best by the same criterion): where the model fits worse than the noise (a part the model does not make), an
+        Akaike weight at the stated noise set the best state hundreds of units above another and overflowed (a
+        calibrated default-hood scan: exp(+700), the estimate refused with NaN); at the residual's level the best is
+        the states' minimum, and the others weigh what the residual supports.
 
         The own covariances matter where the best state has a pad lifted that may touch lightly: its fit leaves the
         pad's force out, so the bilateral states absorb that force's field, while the touching fit that covers it
@@ -358,11 +365,14 @@ class ContactEstimator:
         if noise2 <= 0:
             return np.zeros((n, n))
         n_b = self.model_.n_bilateral
-        low = best.rss / noise2 + 2.0 * best.theta.size
+        candidates = list(candidates)
+        scale = max(noise2, min(c.rss for c in candidates) / max(n_valid, 1))
+        criterion = {id(c): c.rss / scale + 2.0 * c.theta.size for c in candidates}
+        low = min(criterion.values())
         own = self._report(best, best.theta, noise2 * best.normal_inverse, min_force_n)[1][:n_b, :n_b]
-        added, total = np.zeros((n, n)), 1.0
+        added, total = np.zeros((n, n)), float(np.exp(-0.5 * (criterion[id(best)] - low)))
         for cand in candidates:
-            weight = np.exp(-0.5 * (cand.rss / noise2 + 2.0 * cand.theta.size - low))
+            weight = float(np.exp(-0.5 * (criterion[id(cand)] - low)))
             if cand is best or weight < 1e-6:
                 continue
             other, covariance, _, _ = self._report(cand, cand.theta, noise2 * cand.normal_inverse, min_force_n)
