@@ -326,7 +326,8 @@ class ParameterEstimate:
         boundary to move. None means every parameter is a boundary (bases without measured effects).
     model_factors: names of the model's physical factors considered (:mod:`hood_decomp.core.method.model_spread`).
     model_effects: (F, P) mm, each factor's one-sigma effect on ``values`` (the uncertainty the model's not being
-        calibrated to the part adds, apart from ``std``: a softer pad looks like a moved pad); None when not
+        calibrated to the part adds, apart from ``std``: a softer pad looks like a moved pad; on calibrated bases
+        a factor's read of a lifted pad's position through the pad springs is in ``std`` instead); None when not
         considered (the "pca" estimator, an estimate decoded from a message).
     weighting: how the field was fitted: "generalised" (least squares weighted by the field's error model, its node
         covariance with the registration's rigid-body modes: :mod:`hood_decomp.core.method.estimation`) or

@@ -323,15 +323,26 @@ class ContactEstimator:
         else:
             theta_cov = weight.covariance(design, best.normal_inverse, discrepancy)
         out_values, covariance, lifted, unseen = self._report(best, theta, theta_cov, min_force_n)
-        effects = (self._factor_effects(best, theta, valid, theta_cov, min_force_n, weight) if self.factors_
-                   else None)
+        effects = None
+        if self.factors_:
+            effects, read = self._factor_effects(best, theta, valid, theta_cov, min_force_n, weight)
+            # A calibration's uncertainty of its fitted factors belongs to the stated covariance (its skin part is the
+            # bases' calibration_noise); the part no field shows, a lifted pad's position read through the calibrated
+            # pad springs (z0 + Sa a + H f - preload, which the skin-only correction does not calibrate), is added
+            # here and leaves the factor's model effect, so the gate's sqrt(std^2 + model_std^2) counts it once.
+            # Without it the truly lifted buffers of the CalculiX stand-in were 82.4 % covered by their std, 97.1 %
+            # with it (918 pads, 20 families; benchmarks/RESULTS.md, session 13).
+            read = read * np.array([factor.calibrated for factor in self.factors_], float)[:, None]
+            covariance = covariance + read.T @ read
+            effects = effects - read
         return _Fit(out_values, covariance, lifted, unseen, reconstruction, residual, rms, worst, check, effects)
 
     def _factor_effects(self, best: _Candidate, theta: np.ndarray, valid: np.ndarray, theta_cov: np.ndarray,
-                        min_force_n: float, weight: NodeWeight | None) -> np.ndarray:
-        """(F, P) mm: the considered factors' effects (:func:`~.model_spread.factor_effects`) through this fit's
-        linear map, in the (B + S) space: a field change dw moves rhs by [R G]^T W dw over the seen nodes (the
-        weighted fit leans on non-rigid shape, which the factors move too)."""
+                        min_force_n: float, weight: NodeWeight | None) -> tuple[np.ndarray, np.ndarray]:
+        """(F, P) mm: the considered factors' effects and their part read through the pad springs
+        (:func:`~.model_spread.factor_effects`) through this fit's linear map, in the (B + S) space: a field change
+        dw moves rhs by [R G]^T W dw over the seen nodes (the weighted fit leans on non-rigid shape, which the factors
+        move too)."""
         def to_theta(dw: np.ndarray) -> np.ndarray:
             return best.normal_inverse @ (best.lift.T @ weighted_rhs(self.fields_, dw, valid, weight))
 

@@ -109,11 +109,15 @@ def apply_factors(reduced: ReducedModel, physics: PhysicalResponses, theta: np.n
 @dataclass(frozen=True)
 class Factor:
     """One considered factor: its name and the reduced model changed by plus and minus its one-sigma change
-    (:func:`apply_factors`; the normal arrays, the 3D ones kept)."""
+    (:func:`apply_factors`; the normal arrays, the 3D ones kept). calibrated: the change is a calibration's own
+    uncertainty of a fitted factor (not a plant's spread about an uncalibrated model): what it moves where no field
+    shows it, a lifted pad's position read through the pad springs, is part of the estimate's stated covariance
+    (:class:`~.contact_estimation.ContactEstimator`), not only of its model effects."""
 
     name: str
     plus: ReducedModel
     minus: ReducedModel
+    calibrated: bool = False
 
 
 def factor_spread(model: ReducedModel, calibration: str = "",
@@ -150,7 +154,7 @@ def factor_spread(model: ReducedModel, calibration: str = "",
         theta = np.array([change.get(name, 0.0) for name in names])
         if np.any(theta):
             factors.append(Factor(label, apply_factors(model, physics, theta, full=False),
-                                  apply_factors(model, physics, -theta, full=False)))
+                                  apply_factors(model, physics, -theta, full=False), calibrated=record is not None))
     return tuple(factors)
 
 
@@ -172,8 +176,10 @@ def _field(model: ReducedModel, active: np.ndarray, pads: np.ndarray, theta: np.
 
 def factor_effects(model: ReducedModel, factors: tuple[Factor, ...], active: np.ndarray, theta: np.ndarray,
                    to_theta: Callable[[np.ndarray], np.ndarray],
-                   report: Callable[[np.ndarray, ReducedModel | None], np.ndarray]) -> np.ndarray:
-    """(F, P) mm: each factor's one-sigma effect on the reported values.
+                   report: Callable[[np.ndarray, ReducedModel | None], np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(F, P) mm: each factor's one-sigma effect on the reported values, and (F, P) mm the part of it read through
+    the pad springs (report(theta, None) - report(theta, changed): a lifted pad's position z - preload; zero for the
+    bilateral states and a touching pad's commanded position), which no field shows.
 
     active: (S,) bool the estimate's contact state; theta: (n_theta,) its unknowns; to_theta(dw): the estimator's
     linear map (over the seen nodes) from a skin field change dw (N,) mm to theta; report(theta, springs): the (P,)
@@ -185,10 +191,14 @@ def factor_effects(model: ReducedModel, factors: tuple[Factor, ...], active: np.
     """
     pads = np.unique(model.pad_of[active])
     nominal = _field(model, active, pads, theta)
-    effects = np.zeros((len(factors), report(theta, None).size))
+    reported = report(theta, None)
+    effects, read = np.zeros((2, len(factors), reported.size))
     for i, factor in enumerate(factors):
-        up, down = (np.nan_to_num(report(theta + to_theta(_field(changed, active, pads, theta) - nominal), None)
-                                  - report(theta, changed))
-                    for changed in (factor.plus, factor.minus))
-        effects[i] = up if np.max(np.abs(up)) >= np.max(np.abs(down)) else -down
-    return effects
+        shifts = []
+        for changed in (factor.plus, factor.minus):
+            part = report(theta, changed)
+            shifts.append((np.nan_to_num(report(theta + to_theta(_field(changed, active, pads, theta) - nominal), None)
+                                         - part), np.nan_to_num(reported - part)))
+        (up, up_read), (down, down_read) = shifts
+        effects[i], read[i] = (up, up_read) if np.max(np.abs(up)) >= np.max(np.abs(down)) else (-down, -down_read)
+    return effects, read
