@@ -131,3 +131,16 @@ def test_a_correction_the_uncalibrated_model_cannot_tell_is_not_applicable():
     assert correction.reason == ("model not calibrated to the part: BUFFER_R correction depends on pad stiffness "
                                  "by +-0.020 mm"), correction.reason
     np.testing.assert_array_equal(correction.std, [0.001, 0.002, 0.003])  # the measurement std, unchanged
+
+
+def test_a_boundary_whose_factors_alone_exceed_the_limit_says_so_beside_its_measurement_std():
+    """Fails if a boundary whose measurement std is above max_std hides that the model's factors alone exceed the
+    limit too (a better scan would not open its gate: the model must be calibrated), or if a boundary whose factors
+    are within the limit gets the model reason beside its std."""
+    effects = np.array([[0.0, 0.001, 0.004], [0.0, 0.0, -0.020]])  # (factor, parameter) one-sigma, mm
+    correction = plan_correction(estimate(std=np.array([0.001, 0.009, 0.009]), model_effects=effects,
+                                          model_factors=("compliance", "pad stiffness")))
+    assert correction.reason == ("LOCK_L uncertainty 0.009 mm above 0.0045 mm; BUFFER_R uncertainty 0.009 mm above "
+                                 "0.0045 mm; model not calibrated to the part: BUFFER_R correction depends on pad "
+                                 "stiffness by +-0.020 mm"), correction.reason
+    np.testing.assert_array_equal(correction.applicable, [True, False, False])
