@@ -328,3 +328,28 @@ def test_discrepancy_counts_the_entries_noise_once_where_it_lands(moves):
     assert 0.94 <= coverage <= 0.98, f"coverage of the stated 95 % interval {coverage:.3f}"
     assert ratio <= 1.6, f"mean stated / actual variance {ratio:.2f}: the rows' noise counted twice?"
     assert 0.9 <= unbiased <= 1.1, f"unclipped stated / actual variance {unbiased:.2f}: the noise netted wrongly"
+
+
+def test_a_scan_on_calibrated_bases_keeps_its_own_noise_level(coarse_hood, case):
+    """Fails if the within-model test counts the calibrated discrepancy's rough part (its modes outside the test's
+    smooth modes: the 13 entries' 0.02 mm noise) as energy expected in a scan's residual: a scan's nodes are about
+    10 times less noisy, so its level was clipped to 0 (0.000-0.048 on default-hood scans, run 14 F), its node noise
+    and bias dropped out of the stated covariance and the test went blind (p = 1). Truth: the calibrated bases' own
+    model (harness (i): no discrepancy to see), scanned by the synthetic scanner through the scan step; the
+    residual carries at least the node noise the scan's error model states, so its level (noise scale 1 = as stated,
+    more = the scan step's bias; 7-14 here) must not fall below 0.5 (it was 2e-12 on three of these four scans)."""
+    from hood_decomp.core.scan.scan_field import field_from_scan, prepared_estimator
+    from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
+
+    bases, skin = case["bases"], coarse_hood.skin
+    states = validation_plan(coarse_hood.model.lower, coarse_hood.model.upper, 4, seed=17)
+    members = solve_members(bases.reduced_model, states)
+    estimator = prepared_estimator(skin)
+    levels = []
+    for i in range(len(states)):
+        config = ScannerConfig(n_points=120_000, noise_mm=0.02, marker_noise_mm=0.02, n_holes=3)
+        scan = synthesize_scan(skin, members.displacement[i], config, seed=40 + i)
+        field, _ = field_from_scan(skin, scan.points, markers_mm=scan.markers,
+                                   markers_nominal_mm=scan.markers_nominal, estimator=estimator)
+        levels.append(estimate_field(bases, field).check.noise_scale)
+    assert all(level >= 0.5 for level in levels), levels
