@@ -149,13 +149,13 @@ def test_a_scanned_field_of_a_known_setting_is_read_as_node_displacements(defaul
                            outlier_fraction=0.0, dropout_fraction=0.0)
     scan = synthesize_scan(skin, member.displacement[0], config, 3)
     field = field_from_scan(skin, scan.points, scanner_pose=scan.true_transform, estimator=estimator)[0]
-    nodes = as_node_displacement(field, reduced, setting, skin)
+    nodes = as_node_displacement(field, reduced, setting, bases.slide().gradient)
     truth = member.normal_displacement[0]
     before, after = (float(np.sqrt(np.nanmean((f.normal_displacement - truth) ** 2))) for f in (field, nodes))
     print(f"scan - u_n {before:.5f} mm RMS, as node displacements {after:.5f} mm")
     assert after < 0.5 * before
     stated = type(field)(field.model_id, field.normal_displacement, field.coverage, 0.02,
                          FieldErrorModel.stated(0.02, skin.n_nodes))
-    assert as_node_displacement(stated, reduced, setting, skin) is stated
+    assert as_node_displacement(stated, reduced, setting, bases.slide().gradient) is stated
     with pytest.raises(CalibrationError, match="needs the skin"):
         as_node_displacement(field, reduced, setting, None)

@@ -62,7 +62,7 @@ def scan_bias(estimator: ScanFieldEstimator, bases: Bases, count: int = BIAS_STA
     rng = np.random.default_rng(seed)
     states = rng.uniform(bases.pca.lower_, bases.pca.upper_, size=(count, len(bases.pca.lower_)))
     members = solve_members(bases.reduced_model, states)
-    gradient = SurfaceGradient.fit(bases.skin)
+    gradient = bases.slide().gradient  # the estimator's own, fitted once per bases
     biases = [state_bias(estimator, gradient, np.asarray(moved, float)) for moved in members.displacement]
     return np.column_stack([bias for bias, _ in biases]), biases[-1][1]
 

@@ -378,12 +378,15 @@ class ContactEstimator:
         n_b = self.model_.n_bilateral
         candidates = list(candidates)
         scale = max(noise2, min(c.rss for c in candidates) / max(n_valid, 1))
-        criterion = {id(c): c.rss / scale + 2.0 * c.theta.size for c in candidates}
-        low = min(criterion.values())
+
+        def criterion(cand: _Candidate) -> float:
+            return cand.rss / scale + 2.0 * cand.theta.size
+
+        low = min(map(criterion, candidates))
         own = self._report(best, best.theta, noise2 * best.normal_inverse, min_force_n)[1][:n_b, :n_b]
-        added, total = np.zeros((n, n)), float(np.exp(-0.5 * (criterion[id(best)] - low)))
+        added, total = np.zeros((n, n)), float(np.exp(-0.5 * (criterion(best) - low)))
         for cand in candidates:
-            weight = float(np.exp(-0.5 * (criterion[id(cand)] - low)))
+            weight = float(np.exp(-0.5 * (criterion(cand) - low)))
             if cand is best or weight < 1e-6:
                 continue
             other, covariance, _, _ = self._report(cand, cand.theta, noise2 * cand.normal_inverse, min_force_n)

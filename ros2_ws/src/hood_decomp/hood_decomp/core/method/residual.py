@@ -256,10 +256,11 @@ def _whiten(gram: np.ndarray) -> np.ndarray:
 
 
 def _smooth_split(r: np.ndarray, design: np.ndarray, modes: np.ndarray, weight: np.ndarray, moved: np.ndarray
-                  ) -> tuple[int, np.ndarray, np.ndarray, float, float, float, np.ndarray]:
+                  ) -> tuple[int, np.ndarray, np.ndarray, float, float, np.ndarray, np.ndarray]:
     """The residual r (n,) on the seen nodes split by the fitted directions Z (orthonormal span of ``design`` (n, p))
     and the smooth ones S (orthonormal span of ``modes`` (n, M) outside Z), from Gram matrices only (k x k products,
-    never an n x k factorisation). weight (n,): node variance x correlation; moved (n, 6) registration modes.
+    never an n x k factorisation). weight (n,): node variance x correlation; moved (n, k) low-rank field errors (the
+    registration's modes, then a calibrated model's).
 
     Returns (rank of Z, c = S^T r, S^T diag(weight) S, rough energy |r|^2 - |Z^T r|^2 - |c|^2, tr Z^T diag(weight) Z,
     each moved column's rough energy (k,), S^T moved).
