@@ -173,28 +173,34 @@ def split_table(summary: dict) -> str:
 
 #: a pad seated with at least this reaction (N) is observable at 0.02 mm noise (a lighter touch on a few springs is not)
 SEATED_N = 20.0
-#: the buffer categories: (key, description, mask of truth reaction (N) and the estimate's lifted flag)
+#: the buffer categories: (key, description, mask of the pad's truth reaction r (m,) N, its lifted flag f (m,) and
+#: whether every pad of the part is truly lifted (m,): the hood then hangs on its bilateral boundaries alone)
 CATEGORIES = (
-    ("seated_touching", "truth >= 20 N, estimated touching", lambda r, f: (r >= SEATED_N) & ~f),
-    ("seated_lifted", "truth >= 20 N, flagged lifted", lambda r, f: (r >= SEATED_N) & f),
-    ("light_touching", "truth 0-20 N (light touch), estimated touching", lambda r, f: (r > 0) & (r < SEATED_N) & ~f),
-    ("light_lifted", "truth 0-20 N (light touch), flagged lifted", lambda r, f: (r > 0) & (r < SEATED_N) & f),
-    ("lifted_lifted", "truly lifted, flagged lifted (the part's position)", lambda r, f: (r <= 0) & f),
-    ("lifted_touching", "truly lifted, estimated touching (wrong contact decision)", lambda r, f: (r <= 0) & ~f),
+    ("seated_touching", "truth >= 20 N, estimated touching", lambda r, f, a: (r >= SEATED_N) & ~f),
+    ("seated_lifted", "truth >= 20 N, flagged lifted", lambda r, f, a: (r >= SEATED_N) & f),
+    ("light_touching", "truth 0-20 N (light touch), estimated touching",
+     lambda r, f, a: (r > 0) & (r < SEATED_N) & ~f),
+    ("light_lifted", "truth 0-20 N (light touch), flagged lifted", lambda r, f, a: (r > 0) & (r < SEATED_N) & f),
+    ("lifted_lifted", "truly lifted, flagged lifted (the part's position)", lambda r, f, a: (r <= 0) & f),
+    ("lifted_lifted_other_touching", "  of which another pad touches", lambda r, f, a: (r <= 0) & f & ~a),
+    ("lifted_lifted_all_lifted", "  of which every pad is lifted", lambda r, f, a: (r <= 0) & f & a),
+    ("lifted_touching", "truly lifted, estimated touching (wrong contact decision)", lambda r, f, a: (r <= 0) & ~f),
 )
 
 
 def collection() -> dict[str, list]:
     """Per-part records of one variant's estimates (:func:`record`)."""
     return {k: [] for k in ("errors", "stds", "within", "detected", "lifted", "reactions", "reported", "family",
-                            "model_std", "pad_position")}
+                            "model_std", "pad_position", "gap")}
 
 
-def record(data: dict[str, list], e, effective: np.ndarray, reactions: np.ndarray, position: np.ndarray,
-           family: int, n_bilateral: int) -> None:
-    """Record estimate ``e`` of one part: effective (P,) mm the truth's states, reactions (U,) N its pad reactions,
-    position (U,) mm the part's position at each pad (:func:`~hood_decomp.synthetic.standin.pad_positions`)."""
+def record(data: dict[str, list], e, commanded: np.ndarray, effective: np.ndarray, reactions: np.ndarray,
+           position: np.ndarray, family: int, n_bilateral: int) -> None:
+    """Record estimate ``e`` of one part: commanded (P,) mm its settings, effective (P,) mm the truth's states,
+    reactions (U,) N its pad reactions, position (U,) mm the part's position at each pad
+    (:func:`~hood_decomp.synthetic.standin.pad_positions`)."""
     B = n_bilateral
+    data["gap"].append(commanded[B:] - position)
     data["errors"].append(e.values - effective)
     data["stds"].append(e.std)
     data["within"].append(e.within_model)
@@ -205,7 +211,7 @@ def record(data: dict[str, list], e, effective: np.ndarray, reactions: np.ndarra
     # a truly lifted pad flagged lifted: its value is the part's position there
     for u in np.flatnonzero((reactions <= 0) & e.lifted[B:]):
         data["pad_position"].append((float(e.values[B + u] - position[u]), float(e.std[B + u]),
-                                     float(0.0 if e.model_std is None else e.model_std[B + u])))
+                                     float(0.0 if e.model_std is None else e.model_std[B + u]), family, u))
     # what a lifted flag reports: the part's position at the pad (a light touch's commanded position lies above it
     # and is not observable)
     data["reported"].append(e.values - np.concatenate([effective[:B], np.where(e.lifted[B:], position,
@@ -213,13 +219,16 @@ def record(data: dict[str, list], e, effective: np.ndarray, reactions: np.ndarra
 
 
 def quantiles(errors: np.ndarray, stds: np.ndarray, model_stds: np.ndarray) -> dict:
-    """n, max, 99th and 95th percentile of |error| (mm), the count above 0.02 mm and the coverage of the stated 95 %
-    interval (and with the model std) of errors, stds, model_stds (n,)."""
+    """n, max, 99th and 95th percentile of |error| (mm), the count above 0.02 mm (and of those inside the stated 95 %
+    interval) and the coverage of the stated 95 % interval (and with the model std) of errors, stds, model_stds
+    (n,)."""
     errors = np.abs(errors)
     if not len(errors):
         return {"n": 0}
     return {"n": len(errors), "max_mm": float(errors.max()), "q99_mm": float(np.quantile(errors, 0.99)),
             "q95_mm": float(np.quantile(errors, 0.95)), "above_0.02mm": int((errors > 0.02).sum()),
+            # of those, how many the stated 95 % interval announces (a large error with a large std)
+            "above_0.02mm_inside_95": int(((errors > 0.02) & (errors <= 1.96 * stds)).sum()),
             "coverage_95": float(np.mean(errors <= 1.96 * stds)),
             "coverage_95_with_model_std": float(np.mean(errors <= 1.96 * np.hypot(stds, model_stds)))}
 
@@ -232,7 +241,7 @@ def summarise_collection(data: dict[str, list], names: tuple[str, ...], n_bilate
     summary = summarise(data["errors"], data["stds"], data["within"], names, data["lifted"], data["reactions"],
                         data["family"], data["model_std"])
     if data["pad_position"]:
-        error, std, model_std = np.array(data["pad_position"]).T
+        error, std, model_std, families, pads = np.array(data["pad_position"]).T
         total = np.hypot(std, model_std)
         summary["lifted_pad_position"] = {
             "pads": len(error), "max_error_mm": float(np.abs(error).max()),
@@ -241,7 +250,11 @@ def summarise_collection(data: dict[str, list], names: tuple[str, ...], n_bilate
             "max_abs_z_with_model_std": float(np.max(np.abs(error) / total)),
             "coverage_95_std": float(np.mean(np.abs(error) <= 1.96 * std)),
             "coverage_95_with_model_std": float(np.mean(np.abs(error) <= 1.96 * total)),
-            "median_std_mm": float(np.median(std)), "median_model_std_mm": float(np.median(model_std))}
+            "median_std_mm": float(np.median(std)), "median_model_std_mm": float(np.median(model_std)),
+            # per family and pad: a shared offset (the calibrated pad springs' error) against the scatter
+            "mean_error_mm_per_family_pad": [[float(error[(families == g) & (pads == u)].mean())
+                                              if ((families == g) & (pads == u)).any() else None
+                                              for u in range(len(names) - B)] for g in np.unique(data["family"])]}
     reported = summarise(data["reported"], data["stds"], data["within"], names)
     summary["against_what_is_reported"] = {key: reported[key] for key in
                                            ("max_error_mm", "coverage_95", "coverage_95_per_parameter")}
@@ -256,19 +269,25 @@ def summarise_collection(data: dict[str, list], names: tuple[str, ...], n_bilate
     for u, name in enumerate(names[B:]):
         summary["buffer_categories"][name] = {}
         for key, text, category in CATEGORIES:
-            mask, j = category(reactions[:, u], flags[:, u]), B + u
+            mask, j = category(reactions[:, u], flags[:, u], (reactions <= 0).all(axis=1)), B + u
             summary["buffer_categories"][name][key] = {
                 "description": text,
-                **quantiles((reported if key == "lifted_lifted" else errors)[mask, j], stds[mask, j],
+                **quantiles((reported if key.startswith("lifted_lifted") else errors)[mask, j], stds[mask, j],
                             model_stds[mask, j]),
                 "max_against_reported_mm": float(np.abs(reported[mask, j]).max()) if mask.any() else None}
-    worst = np.argsort(np.abs(errors[:, B:]).ravel())[::-1][:8]
-    summary["worst_buffer_cases"] = [
-        {"part": int(i), "family": int(data["family"][i]), "buffer": names[B + u],
-         "truth_reaction_n": float(reactions[i, u]), "flagged_lifted": bool(flags[i, u]),
-         "error_mm": float(errors[i, B + u]), "error_against_reported_mm": float(reported[i, B + u]),
-         "std_mm": float(stds[i, B + u]), "model_std_mm": float(model_stds[i, B + u])}
-        for i, u in (divmod(int(k), len(names) - B) for k in worst)]
+    gap = np.array(data["gap"])
+
+    def cases(order: np.ndarray) -> list[dict]:
+        return [{"part": int(i), "family": int(data["family"][i]), "buffer": names[B + u],
+                 "truth_reaction_n": float(reactions[i, u]), "gap_mm": float(gap[i, u]),
+                 "flagged_lifted": bool(flags[i, u]), "error_mm": float(errors[i, B + u]),
+                 "error_against_reported_mm": float(reported[i, B + u]), "std_mm": float(stds[i, B + u]),
+                 "model_std_mm": float(model_stds[i, B + u])}
+                for i, u in (divmod(int(k), len(names) - B) for k in order)]
+
+    summary["worst_buffer_cases"] = cases(np.argsort(np.abs(errors[:, B:]).ravel())[::-1][:8])
+    # by |what is reported - its truth| / std: the cases the stated interval misses most
+    summary["worst_buffer_z_cases"] = cases(np.argsort((np.abs(reported) / stds)[:, B:].ravel())[::-1][:6])
     summary["hinge_R_z_0.05mm_detected"] = float(np.mean(data["detected"])) if data["detected"] else None
     summary["hinge_R_z_parts"] = len(data["detected"])
     return summary
@@ -277,7 +296,8 @@ def summarise_collection(data: dict[str, list], names: tuple[str, ...], n_bilate
 def category_table(summary: dict) -> str:
     """The bilateral parameters' and each buffer's errors by category (truth reaction x the estimate's lifted
     flag), and the worst buffer cases."""
-    rows = ["| parameter | category | n | max (mm) | q99 (mm) | q95 (mm) | > 0.02 mm | coverage (with model std) | "
+    rows = ["| parameter | category | n | max (mm) | q99 (mm) | q95 (mm) | > 0.02 mm (inside the 95 % interval) | "
+            "coverage (with model std) | "
             "max against reported (mm) |", "|---|---|---|---|---|---|---|---|---|"]
     cells = [(name, "bilateral", q) for name, q in summary["bilateral"].items()]
     cells += [(name, q["description"], q) for name, categories in summary["buffer_categories"].items()
@@ -285,13 +305,17 @@ def category_table(summary: dict) -> str:
     for name, text, q in cells:
         if q["n"]:
             rows.append(f"| {name} | {text} | {q['n']} | {q['max_mm']:.4f} | {q['q99_mm']:.4f} | {q['q95_mm']:.4f} | "
-                        f"{q['above_0.02mm']} | {100 * q['coverage_95']:.1f} % "
+                        f"{q['above_0.02mm']} ({q['above_0.02mm_inside_95']}) | {100 * q['coverage_95']:.1f} % "
                         f"({100 * q['coverage_95_with_model_std']:.1f} %) | "
                         f"{q.get('max_against_reported_mm', q['max_mm']):.4f} |")
-    rows.append("worst buffer cases (error against the truth's state; against what is reported):")
-    rows += [f"  part {w['part']} family {w['family']} {w['buffer']}: truth reaction {w['truth_reaction_n']:.1f} N, "
-             f"flagged lifted {w['flagged_lifted']}, error {w['error_mm']:+.4f} ({w['error_against_reported_mm']:+.4f})"
-             f" mm, std {w['std_mm']:.4f}, model std {w['model_std_mm']:.4f}" for w in summary["worst_buffer_cases"]]
+    for key, title in (("worst_buffer_cases", "worst buffer cases by |error|"),
+                       ("worst_buffer_z_cases", "worst buffer cases by |error against what is reported| / std")):
+        rows.append(f"{title} (error against the truth's state; against what is reported; gap: commanded minus the "
+                    "part's position at the pad, < 0 a lifted pad's clearance, > 0 the largest spring compression):")
+        rows += [f"  part {w['part']} family {w['family']} {w['buffer']}: truth reaction {w['truth_reaction_n']:.1f} "
+                 f"N, gap {w['gap_mm']:+.4f} mm, flagged lifted {w['flagged_lifted']}, error {w['error_mm']:+.4f} "
+                 f"({w['error_against_reported_mm']:+.4f}) mm, std {w['std_mm']:.4f}, model std "
+                 f"{w['model_std_mm']:.4f}" for w in summary[key]]
     return "\n".join(rows)
 
 
@@ -301,6 +325,16 @@ def report(title: str, summary: dict) -> str:
         f"\nhinge_R.z 0.05 mm detected in {100 * summary['hinge_R_z_0.05mm_detected']:.1f} % of "
         f"{summary['hinge_R_z_parts']} parts")
     return "\n".join([table(title, summary) + detected, split_table(summary), category_table(summary)])
+
+
+def calibration_record(calibration, calibrated, truth, seconds: float) -> dict:
+    """A calibration's record for the JSON: seconds, rank, leave-one-out RMS, factors and their std, the pads'
+    z0 - preload calibrated minus the family's truth (its reduced model; mm, mean per pad) and the discrepancy."""
+    offset = (calibrated.z0 - calibrated.preload) - (truth.z0 - truth.preload)
+    return {"seconds": seconds, "rank": calibration.rank, "loo_rms_mm": calibration.loo_rms_mm.tolist(),
+            "factors": calibration.factors, "factor_std": calibration.factor_std,
+            "pad_offset_error_mm": [float(offset[truth.pad_of == u].mean()) for u in range(truth.pad_of.max() + 1)],
+            "discrepancy": calibration.record()["discrepancy"]}
 
 
 def hood_setup(model: PartModel) -> tuple:
@@ -354,6 +388,7 @@ def default_check(cache: Path, families: int, parts: int, detect: int, name: str
                                 [e.std for e in nominal], [e.within_model for e in nominal], names)
     print(table("uncalibrated, nominal stand-in parts, no noise, DEFAULT hood", nominal_summary))
     collected = {"uncalibrated": collection(), "calibrated_13": collection()}
+    family_records = []
     for f in range(families):
         rng = np.random.default_rng(1000 + f)
         family = Family.draw(rng)
@@ -362,17 +397,20 @@ def default_check(cache: Path, families: int, parts: int, detect: int, name: str
         values = solve_members(truth, settings).normal_displacement
         entries = [CalibrationEntry(f"entry {j}", field(mid, values[j], rng), settings[j])
                    for j in range(len(settings))]
+        tic = time.perf_counter()
         calibrated, calibration = calibrate(reduced, physics, entries, skin, (model.lower, model.upper))
         calibrated_bases = rebuild_bases(bases, calibrated, json.dumps(calibration.record()), physics,
                                          **calibration.error_terms())
+        family_records.append({"family": family.__dict__, "calibrated_13": calibration_record(
+            calibration, calibrated, truth, time.perf_counter() - tic)})
         states = validation_plan(model.lower, model.upper, parts, seed=2000 + f)
         block = solve_members(truth, states)
         position = pad_positions(states, block.compression, truth.pad_of)
         for i in range(len(states)):
             measured = field(mid, block.normal_displacement[i], rng)
             for label, b in (("calibrated_13", calibrated_bases), ("uncalibrated", bases)):
-                record(collected[label], estimate_field(b, measured), block.effective[i], block.reactions[i],
-                       position[i], f, B)
+                record(collected[label], estimate_field(b, measured), states[i], block.effective[i],
+                       block.reactions[i], position[i], f, B)
             if i < detect:
                 moved_part = field(mid, block.normal_displacement[i] + HINGE_R_Z_MM * hinge_r_z, rng)
                 collected["calibrated_13"]["detected"].append(
@@ -382,10 +420,18 @@ def default_check(cache: Path, families: int, parts: int, detect: int, name: str
     results: dict = {"date": time.strftime("%Y-%m-%d", time.gmtime()), "noise_mm": NOISE_MM,
                      "note": ("default hood, CalculiX load/gas/unit responses, the embedded solver's pad responses, "
                               "no thickness variation"),
-                     "uncalibrated_nominal_noise_free": nominal_summary}
+                     "uncalibrated_nominal_noise_free": nominal_summary, "families": family_records}
     for label, data in collected.items():
         results[label] = summarise_collection(data, names, B)
         print(report(f"{label}, 13 entries, DEFAULT hood ({families} families x {parts} parts)", results[label]))
+    lifted = results["calibrated_13"].get("lifted_pad_position", {}).get("mean_error_mm_per_family_pad")
+    def mm(values: list) -> str:
+        return " / ".join("-" if v is None else f"{v:+.4f}" for v in values)
+
+    for f, family_record in enumerate(family_records):
+        print(f"family {f}: pad offset z0 - preload, calibrated minus the truth's, "
+              f"{mm(family_record['calibrated_13']['pad_offset_error_mm'])} mm; truly lifted pads flagged lifted: "
+              f"mean position error {mm(lifted[f]) if lifted else '-'} mm")
     results["load"] = os.getloadavg()[0]
     results["seconds"] = time.perf_counter() - start
     OUT.mkdir(exist_ok=True)
@@ -452,15 +498,7 @@ def main() -> None:
             variants[label] = rebuild_bases(bases, calibrated, json.dumps(calibration.record()), physics,
                                             **calibration.error_terms())
             truth = standin.reduced(family)
-            offset = (calibrated.z0 - calibrated.preload) - (truth.z0 - truth.preload)
-            family_record[label] = {"seconds": time.perf_counter() - tic, "rank": calibration.rank,
-                                    "loo_rms_mm": calibration.loo_rms_mm.tolist(), "factors": calibration.factors,
-                                    "factor_std": calibration.factor_std,
-                                    # the pads' z0 - preload, calibrated minus the family's truth (nominal part
-                                    # thickness)
-                                    "pad_offset_error_mm": [float(offset[truth.pad_of == u].mean())
-                                                            for u in range(len(names) - B)],
-                                    "discrepancy": calibration.record()["discrepancy"]}
+            family_record[label] = calibration_record(calibration, calibrated, truth, time.perf_counter() - tic)
             logger.info("family %d %s: discrepancy %s", f, label, family_record[label]["discrepancy"])
             if label == "calibrated_13":
                 reference = entries[0]
@@ -473,7 +511,7 @@ def main() -> None:
             fields["reference"] = relative_field(reduced, measured, reference.field, reference.setting)
             for label, part_field in fields.items():
                 b = variants.get(label, bases)
-                record(collected[label], estimate_field(b, part_field), effective[i], reactions[i],
+                record(collected[label], estimate_field(b, part_field), states[i], effective[i], reactions[i],
                        parts.position[i], f, B)
                 if i < args.detect:
                     moved = field(mid, values[i] + HINGE_R_Z_MM * hinge_r_z, rng)
