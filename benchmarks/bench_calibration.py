@@ -423,7 +423,7 @@ def default_check(cache: Path, families: int, parts: int, detect: int, name: str
                      "uncalibrated_nominal_noise_free": nominal_summary, "families": family_records}
     for label, data in collected.items():
         results[label] = summarise_collection(data, names, B)
-        print(report(f"{label}, 13 entries, DEFAULT hood ({families} families x {parts} parts)", results[label]))
+        print(report(f"{label}, DEFAULT hood ({families} families x {parts} parts)", results[label]))
     lifted = results["calibrated_13"].get("lifted_pad_position", {}).get("mean_error_mm_per_family_pad")
     def mm(values: list) -> str:
         return " / ".join("-" if v is None else f"{v:+.4f}" for v in values)
