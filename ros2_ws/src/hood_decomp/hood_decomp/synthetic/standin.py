@@ -16,6 +16,9 @@ difference (a first-order mix: the part of the stand-in that is not pure Calculi
 force response by 1/E exactly (the unit motions not at all); pad stiffness and preload enter the pad contact, which
 is solved exactly per part with the repository's contact solver on the CalculiX responses (the buffers are the only
 nonlinearity): that is what ``ensemble --solver calculix`` does too.
+
+On a mesh whose jobs are too large to run two at a time (the default hood: ~7.7 GB a job), :func:`nominal_responses`
+makes the nominal-thickness load, gas-spring and unit responses only, one job at a time under a flock, resumable.
 """
 
 from __future__ import annotations
