@@ -9,7 +9,10 @@ detection rate. Also the issue's table: nominal physics, no noise, 40 parts, emb
 
     scripts/with-env python benchmarks/bench_calibration.py [--families 5] [--parts 40] [--families-25 2]
     scripts/with-env python benchmarks/bench_calibration.py --default-ccx CCX.npz [--families 5] [--parts 20]
-        (only the smaller default-resolution check: CalculiX load, gas and unit responses, embedded pads)
+        (only the smaller default-resolution check: CalculiX load, gas and unit responses, embedded pads; CCX.npz is
+        made when missing: 6 CalculiX jobs of ~7.7 GB and 140-1000 s, one at a time under the flock
+        ccx_default.lock beside it, each job kept in CCX.jobs/ so an interrupted run resumes; e.g.
+        /work/scratch/cache/standin_ccx_default_nopads.npz)
 
 Prints tables (per parameter: max and median error, median stated std, coverage of the stated 95 % interval, max
 |error|/std; per variant: the within-model rate, its complement the false-alarm rate, and the hinge_R.z detection
@@ -22,7 +25,10 @@ Per parameter the errors are also split by what the estimate says: over estimate
 pad's commanded position, observable) and over estimates flagged lifted (the part's position at the pad; a pad that
 touches with a light force the field cannot show is flagged lifted too, while its truth is its commanded position,
 up to the touch's compression above the part: not observable). The buffer errors above 0.05 mm are counted by the
-truth's pad reaction.
+truth's pad reaction. A last table gives, per bilateral parameter and per buffer and category (the truth's pad
+reaction >= 20 N, 0-20 N or lifted, times the estimate's lifted flag), n, max, 99th and 95th percentile of |error|,
+the count above 0.02 mm and the coverage; a truly lifted pad flagged lifted is measured against the part's position
+(what it reports), the other categories against the truth's state; then the worst buffer cases.
 """
 
 from __future__ import annotations
@@ -39,7 +45,7 @@ import numpy as np
 
 from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solve_members, validation_plan
 from hood_decomp.core.fe.hood_preset import build_hood
-from hood_decomp.core.fe.model import skin_surface
+from hood_decomp.core.fe.model import PartModel, skin_surface
 from hood_decomp.core.fe.solver import (
     build_solver,
     physical_responses,
@@ -58,7 +64,7 @@ from hood_decomp.core.loop.calibration import (
 )
 from hood_decomp.core.method.bases import build_bases, estimate_field
 from hood_decomp.core.types import DisplacementField, FieldErrorModel
-from hood_decomp.synthetic.standin import Family, StandIn, calculix_responses
+from hood_decomp.synthetic.standin import Family, StandIn, calculix_responses, nominal_responses, pad_positions
 
 OUT = Path(__file__).parent / "out"
 NOISE_MM = 0.02
@@ -165,10 +171,175 @@ def split_table(summary: dict) -> str:
     return "\n".join(rows)
 
 
-def hood_setup(resolution: str) -> tuple:
-    """The hood at ``resolution``: model, skin, solver, reduced model, embedded bases (full factorial) and the FE
-    responses behind the physical factors."""
-    model = build_hood(resolution)
+#: a pad seated with at least this reaction (N) is observable at 0.02 mm noise (a lighter touch on a few springs is not)
+SEATED_N = 20.0
+#: the buffer categories: (key, description, mask of the pad's truth reaction r (m,) N, its lifted flag f (m,) and
+#: whether every pad of the part is truly lifted (m,): the hood then hangs on its bilateral boundaries alone)
+CATEGORIES = (
+    ("seated_touching", "truth >= 20 N, estimated touching", lambda r, f, a: (r >= SEATED_N) & ~f),
+    ("seated_lifted", "truth >= 20 N, flagged lifted", lambda r, f, a: (r >= SEATED_N) & f),
+    ("light_touching", "truth 0-20 N (light touch), estimated touching",
+     lambda r, f, a: (r > 0) & (r < SEATED_N) & ~f),
+    ("light_lifted", "truth 0-20 N (light touch), flagged lifted", lambda r, f, a: (r > 0) & (r < SEATED_N) & f),
+    ("lifted_lifted", "truly lifted, flagged lifted (the part's position)", lambda r, f, a: (r <= 0) & f),
+    ("lifted_lifted_other_touching", "  of which another pad touches", lambda r, f, a: (r <= 0) & f & ~a),
+    ("lifted_lifted_all_lifted", "  of which every pad is lifted", lambda r, f, a: (r <= 0) & f & a),
+    ("lifted_touching", "truly lifted, estimated touching (wrong contact decision)", lambda r, f, a: (r <= 0) & ~f),
+)
+
+
+def collection() -> dict[str, list]:
+    """Per-part records of one variant's estimates (:func:`record`)."""
+    return {k: [] for k in ("errors", "stds", "within", "detected", "lifted", "reactions", "reported", "family",
+                            "model_std", "pad_position", "gap")}
+
+
+def record(data: dict[str, list], e, commanded: np.ndarray, effective: np.ndarray, reactions: np.ndarray,
+           position: np.ndarray, family: int, n_bilateral: int) -> None:
+    """Record estimate ``e`` of one part: commanded (P,) mm its settings, effective (P,) mm the truth's states,
+    reactions (U,) N its pad reactions, position (U,) mm the part's position at each pad
+    (:func:`~hood_decomp.synthetic.standin.pad_positions`)."""
+    B = n_bilateral
+    data["gap"].append(commanded[B:] - position)
+    data["errors"].append(e.values - effective)
+    data["stds"].append(e.std)
+    data["within"].append(e.within_model)
+    data["lifted"].append(e.lifted)
+    data["reactions"].append(reactions)
+    data["family"].append(family)
+    data["model_std"].append(np.zeros(len(e.values)) if e.model_std is None else e.model_std)
+    # a truly lifted pad flagged lifted: its value is the part's position there
+    for u in np.flatnonzero((reactions <= 0) & e.lifted[B:]):
+        data["pad_position"].append((float(e.values[B + u] - position[u]), float(e.std[B + u]),
+                                     float(0.0 if e.model_std is None else e.model_std[B + u]), family, u))
+    # what a lifted flag reports: the part's position at the pad (a light touch's commanded position lies above it
+    # and is not observable)
+    data["reported"].append(e.values - np.concatenate([effective[:B], np.where(e.lifted[B:], position,
+                                                                               effective[B:])]))
+
+
+def quantiles(errors: np.ndarray, stds: np.ndarray, model_stds: np.ndarray) -> dict:
+    """n, max, 99th and 95th percentile of |error| (mm), the count above 0.02 mm (and of those inside the stated 95 %
+    interval) and the coverage of the stated 95 % interval (and with the model std) of errors, stds, model_stds
+    (n,)."""
+    errors = np.abs(errors)
+    if not len(errors):
+        return {"n": 0}
+    return {"n": len(errors), "max_mm": float(errors.max()), "q99_mm": float(np.quantile(errors, 0.99)),
+            "q95_mm": float(np.quantile(errors, 0.95)), "above_0.02mm": int((errors > 0.02).sum()),
+            # of those, how many the stated 95 % interval announces (a large error with a large std)
+            "above_0.02mm_inside_95": int(((errors > 0.02) & (errors <= 1.96 * stds)).sum()),
+            "coverage_95": float(np.mean(errors <= 1.96 * stds)),
+            "coverage_95_with_model_std": float(np.mean(errors <= 1.96 * np.hypot(stds, model_stds)))}
+
+
+def summarise_collection(data: dict[str, list], names: tuple[str, ...], n_bilateral: int) -> dict:
+    """:func:`summarise` of a variant's records with the lifted split, the truly lifted pads' position error, the
+    errors against what is reported, the bilateral parameters' and the buffer categories' quantiles and the worst
+    buffer cases."""
+    B = n_bilateral
+    summary = summarise(data["errors"], data["stds"], data["within"], names, data["lifted"], data["reactions"],
+                        data["family"], data["model_std"])
+    if data["pad_position"]:
+        error, std, model_std, families, pads = np.array(data["pad_position"]).T
+        total = np.hypot(std, model_std)
+        summary["lifted_pad_position"] = {
+            "pads": len(error), "max_error_mm": float(np.abs(error).max()),
+            "rms_error_mm": float(np.sqrt(np.mean(error**2))),
+            "max_abs_z_std": float(np.max(np.abs(error) / std)),
+            "max_abs_z_with_model_std": float(np.max(np.abs(error) / total)),
+            "coverage_95_std": float(np.mean(np.abs(error) <= 1.96 * std)),
+            "coverage_95_with_model_std": float(np.mean(np.abs(error) <= 1.96 * total)),
+            "median_std_mm": float(np.median(std)), "median_model_std_mm": float(np.median(model_std)),
+            # per family and pad: a shared offset (the calibrated pad springs' error) against the scatter
+            "mean_error_mm_per_family_pad": [[float(error[(families == g) & (pads == u)].mean())
+                                              if ((families == g) & (pads == u)).any() else None
+                                              for u in range(len(names) - B)] for g in np.unique(data["family"])]}
+    reported = summarise(data["reported"], data["stds"], data["within"], names)
+    summary["against_what_is_reported"] = {key: reported[key] for key in
+                                           ("max_error_mm", "coverage_95", "coverage_95_per_parameter")}
+    errors, reported = np.array(data["errors"]), np.array(data["reported"])
+    stds, model_stds = np.array(data["stds"]), np.array(data["model_std"])
+    flags, reactions = np.array(data["lifted"], bool)[:, B:], np.array(data["reactions"])
+    summary["bilateral"] = {name: quantiles(errors[:, j], stds[:, j], model_stds[:, j])
+                            for j, name in enumerate(names[:B])}
+    # a truly lifted pad flagged lifted is measured against the part's position (what it reports; its truth's
+    # effective state is that position too), the other categories against the truth's state
+    summary["buffer_categories"] = {}
+    for u, name in enumerate(names[B:]):
+        summary["buffer_categories"][name] = {}
+        for key, text, category in CATEGORIES:
+            mask, j = category(reactions[:, u], flags[:, u], (reactions <= 0).all(axis=1)), B + u
+            summary["buffer_categories"][name][key] = {
+                "description": text,
+                **quantiles((reported if key.startswith("lifted_lifted") else errors)[mask, j], stds[mask, j],
+                            model_stds[mask, j]),
+                "max_against_reported_mm": float(np.abs(reported[mask, j]).max()) if mask.any() else None}
+    gap = np.array(data["gap"])
+
+    def cases(order: np.ndarray) -> list[dict]:
+        return [{"part": int(i), "family": int(data["family"][i]), "buffer": names[B + u],
+                 "truth_reaction_n": float(reactions[i, u]), "gap_mm": float(gap[i, u]),
+                 "flagged_lifted": bool(flags[i, u]), "error_mm": float(errors[i, B + u]),
+                 "error_against_reported_mm": float(reported[i, B + u]), "std_mm": float(stds[i, B + u]),
+                 "model_std_mm": float(model_stds[i, B + u])}
+                for i, u in (divmod(int(k), len(names) - B) for k in order)]
+
+    summary["worst_buffer_cases"] = cases(np.argsort(np.abs(errors[:, B:]).ravel())[::-1][:8])
+    # by |what is reported - its truth| / std: the cases the stated interval misses most
+    summary["worst_buffer_z_cases"] = cases(np.argsort((np.abs(reported) / stds)[:, B:].ravel())[::-1][:6])
+    summary["hinge_R_z_0.05mm_detected"] = float(np.mean(data["detected"])) if data["detected"] else None
+    summary["hinge_R_z_parts"] = len(data["detected"])
+    return summary
+
+
+def category_table(summary: dict) -> str:
+    """The bilateral parameters' and each buffer's errors by category (truth reaction x the estimate's lifted
+    flag), and the worst buffer cases."""
+    rows = ["| parameter | category | n | max (mm) | q99 (mm) | q95 (mm) | > 0.02 mm (inside the 95 % interval) | "
+            "coverage (with model std) | "
+            "max against reported (mm) |", "|---|---|---|---|---|---|---|---|---|"]
+    cells = [(name, "bilateral", q) for name, q in summary["bilateral"].items()]
+    cells += [(name, q["description"], q) for name, categories in summary["buffer_categories"].items()
+              for q in categories.values()]
+    for name, text, q in cells:
+        if q["n"]:
+            rows.append(f"| {name} | {text} | {q['n']} | {q['max_mm']:.4f} | {q['q99_mm']:.4f} | {q['q95_mm']:.4f} | "
+                        f"{q['above_0.02mm']} ({q['above_0.02mm_inside_95']}) | {100 * q['coverage_95']:.1f} % "
+                        f"({100 * q['coverage_95_with_model_std']:.1f} %) | "
+                        f"{q.get('max_against_reported_mm', q['max_mm']):.4f} |")
+    for key, title in (("worst_buffer_cases", "worst buffer cases by |error|"),
+                       ("worst_buffer_z_cases", "worst buffer cases by |error against what is reported| / std")):
+        rows.append(f"{title} (error against the truth's state; against what is reported; gap: commanded minus the "
+                    "part's position at the pad, < 0 a lifted pad's clearance, > 0 the largest spring compression):")
+        rows += [f"  part {w['part']} family {w['family']} {w['buffer']}: truth reaction {w['truth_reaction_n']:.1f} "
+                 f"N, gap {w['gap_mm']:+.4f} mm, flagged lifted {w['flagged_lifted']}, error {w['error_mm']:+.4f} "
+                 f"({w['error_against_reported_mm']:+.4f}) mm, std {w['std_mm']:.4f}, model std "
+                 f"{w['model_std_mm']:.4f}" for w in summary[key]]
+    return "\n".join(rows)
+
+
+def report(title: str, summary: dict) -> str:
+    """Every table of a variant: per parameter, the lifted split, the categories."""
+    detected = "" if summary["hinge_R_z_0.05mm_detected"] is None else (
+        f"\nhinge_R.z 0.05 mm detected in {100 * summary['hinge_R_z_0.05mm_detected']:.1f} % of "
+        f"{summary['hinge_R_z_parts']} parts")
+    return "\n".join([table(title, summary) + detected, split_table(summary), category_table(summary)])
+
+
+def calibration_record(calibration, calibrated, truth, seconds: float) -> dict:
+    """A calibration's record for the JSON: seconds, rank, leave-one-out RMS, factors and their std, the pads'
+    z0 - preload calibrated minus the family's truth (its reduced model; mm, mean per pad) and the discrepancy."""
+    offset = (calibrated.z0 - calibrated.preload) - (truth.z0 - truth.preload)
+    return {"seconds": seconds, "rank": calibration.rank, "loo_rms_mm": calibration.loo_rms_mm.tolist(),
+            "factors": calibration.factors, "factor_std": calibration.factor_std,
+            "pad_offset_error_mm": [float(offset[truth.pad_of == u].mean()) for u in range(truth.pad_of.max() + 1)],
+            "discrepancy": calibration.record()["discrepancy"]}
+
+
+def hood_setup(model: PartModel) -> tuple:
+    """The hood ``model``: model, skin, solver, reduced model, embedded bases (full factorial) and the FE responses
+    behind the physical factors."""
     skin = skin_surface(model)
     solver = build_solver(model)
     reduced = reduce_model(solver)
@@ -181,25 +352,26 @@ def hood_setup(resolution: str) -> tuple:
 
 def default_check(cache: Path, families: int, parts: int, detect: int, name: str) -> None:
     """The smaller default-resolution check (session 8): CalculiX (S8R) load, gas-spring and unit responses of the
-    default hood at nominal thickness (``cache``: an .npz of "load", "gas", "unit_<LABEL>" translations, made one
-    job at a time), the embedded solver's pad responses (86 CalculiX jobs of 7.7 GB would be needed for CalculiX
-    pads and thickness families), per family E, pad stiffness, preload and gas-spring force drawn as the coarse
-    stand-in's (no thickness change: no responses at other thicknesses), 13 calibration entries and ``parts`` parts
-    per family at 0.02 mm white field noise, each estimated with the calibrated and the uncalibrated (embedded) bases;
-    the first ``detect`` parts per family also with an undeclared 0.05 mm hinge_R.z move (embedded response)."""
+    default hood at nominal thickness (``cache``: an .npz of "load", "gas", "unit_<LABEL>" translations, made when
+    missing by :func:`~hood_decomp.synthetic.standin.nominal_responses`: 6 jobs of ~7.7 GB one at a time, each holding
+    the flock ``ccx_default.lock`` beside the cache), the embedded solver's pad responses (86 CalculiX jobs of 7.7 GB
+    would be needed for CalculiX pads and thickness families), per family E, pad stiffness, preload and gas-spring
+    force drawn as the coarse stand-in's (no thickness change: no responses at other thicknesses), 13 calibration
+    entries and ``parts`` parts per family at 0.02 mm white field noise, each estimated with the calibrated and the
+    uncalibrated (embedded) bases; the first ``detect`` parts per family also with an undeclared 0.05 mm hinge_R.z
+    move (embedded response)."""
     from hood_decomp.core.fe.solver import condense
 
     start = time.perf_counter()
-    model, skin, solver, reduced, bases, physics = hood_setup("default")
+    # the CalculiX jobs first: made without the bases' set-up in memory (a job takes ~7.7 GB)
+    model = build_hood("default")
+    columns = nominal_responses(model, cache, lock=cache.parent / "ccx_default.lock")
+    model, skin, solver, reduced, bases, physics = hood_setup(model)
     moved = solver.boundary_response("hinge_R", "z").reshape(-1, 6)[:, :3, None]
     hinge_r_z = project(model, solver.pads, moved)[0][:, 0]
     logger.info("default hood set up in %.0f s", time.perf_counter() - start)
-    with np.load(cache, allow_pickle=False) as data:
-        if str(data["model_id"]) != model.model_id:
-            raise SystemExit(f"{cache}: model_id {data['model_id']} is not the default hood's {model.model_id}")
-        columns = {key: data[key] for key in data.files if key != "model_id"}
     pads = solver.pad_responses()
-    names, mid = model.names, model.model_id
+    names, mid, B = model.names, model.model_id, len(model.bilateral)
     def truth_of(family: Family):
         """The family's stand-in reduced model: CalculiX load (gas spring scaled), unit responses, embedded pads."""
         load = (columns["load"] + (family.gas_spring - 1.0) * columns["gas"]) / family.E
@@ -215,8 +387,8 @@ def default_check(cache: Path, families: int, parts: int, detect: int, name: str
     nominal_summary = summarise([e.values - block.effective[i] for i, e in enumerate(nominal)],
                                 [e.std for e in nominal], [e.within_model for e in nominal], names)
     print(table("uncalibrated, nominal stand-in parts, no noise, DEFAULT hood", nominal_summary))
-    errors, stds, model_stds, within, detected = [], [], [], [], []
-    uncalibrated: dict[str, list] = {"errors": [], "stds": [], "within": []}
+    collected = {"uncalibrated": collection(), "calibrated_13": collection()}
+    family_records = []
     for f in range(families):
         rng = np.random.default_rng(1000 + f)
         family = Family.draw(rng)
@@ -225,41 +397,46 @@ def default_check(cache: Path, families: int, parts: int, detect: int, name: str
         values = solve_members(truth, settings).normal_displacement
         entries = [CalibrationEntry(f"entry {j}", field(mid, values[j], rng), settings[j])
                    for j in range(len(settings))]
+        tic = time.perf_counter()
         calibrated, calibration = calibrate(reduced, physics, entries, skin, (model.lower, model.upper))
         calibrated_bases = rebuild_bases(bases, calibrated, json.dumps(calibration.record()), physics,
                                          **calibration.error_terms())
+        family_records.append({"family": family.__dict__, "calibrated_13": calibration_record(
+            calibration, calibrated, truth, time.perf_counter() - tic)})
         states = validation_plan(model.lower, model.upper, parts, seed=2000 + f)
         block = solve_members(truth, states)
+        position = pad_positions(states, block.compression, truth.pad_of)
         for i in range(len(states)):
             measured = field(mid, block.normal_displacement[i], rng)
-            e = estimate_field(calibrated_bases, measured)
-            errors.append(e.values - block.effective[i]), stds.append(e.std), within.append(e.within_model)
-            model_stds.append(np.zeros(len(names)) if e.model_std is None else e.model_std)
-            u = estimate_field(bases, measured)
-            uncalibrated["errors"].append(u.values - block.effective[i]), uncalibrated["stds"].append(u.std)
-            uncalibrated["within"].append(u.within_model)
+            for label, b in (("calibrated_13", calibrated_bases), ("uncalibrated", bases)):
+                record(collected[label], estimate_field(b, measured), states[i], block.effective[i],
+                       block.reactions[i], position[i], f, B)
             if i < detect:
                 moved_part = field(mid, block.normal_displacement[i] + HINGE_R_Z_MM * hinge_r_z, rng)
-                detected.append(not estimate_field(calibrated_bases, moved_part).within_model)
+                collected["calibrated_13"]["detected"].append(
+                    not estimate_field(calibrated_bases, moved_part).within_model)
         logger.info("default family %d done at %.0f s (load %.1f)", f, time.perf_counter() - start,
                     os.getloadavg()[0])
-    summary = summarise(errors, stds, within, names, families=[i // parts for i in range(len(errors))],
-                        model_stds=model_stds)
-    summary["note"] = ("default hood, CalculiX load/gas/unit responses, the embedded solver's pad responses, no "
-                       "thickness variation")
-    summary["hinge_R_z_0.05mm_detected"] = float(np.mean(detected)) if detected else None
-    summary["hinge_R_z_parts"] = len(detected)
-    summary["uncalibrated_nominal_noise_free"] = nominal_summary
-    summary["uncalibrated"] = summarise(uncalibrated["errors"], uncalibrated["stds"], uncalibrated["within"], names)
-    summary["load"] = os.getloadavg()[0]
-    summary["seconds"] = time.perf_counter() - start
-    print(table(f"uncalibrated, DEFAULT hood ({families} families x {parts} parts)", summary["uncalibrated"]))
-    print(table(f"calibrated, 13 entries, DEFAULT hood ({families} families x {parts} parts)", summary)
-          + f"\nhinge_R.z 0.05 mm detected in {len(detected) and 100 * np.mean(detected):.1f} % of {len(detected)} "
-          "parts\ncoverage per family (%): " + "; ".join(
-              " ".join(f"{100 * v:.0f}" for v in row) for row in summary["coverage_95_per_family"]))
+    results: dict = {"date": time.strftime("%Y-%m-%d", time.gmtime()), "noise_mm": NOISE_MM,
+                     "note": ("default hood, CalculiX load/gas/unit responses, the embedded solver's pad responses, "
+                              "no thickness variation"),
+                     "uncalibrated_nominal_noise_free": nominal_summary, "families": family_records}
+    for label, data in collected.items():
+        results[label] = summarise_collection(data, names, B)
+        print(report(f"{label}, DEFAULT hood ({families} families x {parts} parts)", results[label]))
+    lifted = results["calibrated_13"].get("lifted_pad_position", {}).get("mean_error_mm_per_family_pad")
+    def mm(values: list) -> str:
+        return " / ".join("-" if v is None else f"{v:+.4f}" for v in values)
+
+    for f, family_record in enumerate(family_records):
+        print(f"family {f}: pad offset z0 - preload, calibrated minus the truth's, "
+              f"{mm(family_record['calibrated_13']['pad_offset_error_mm'])} mm; truly lifted pads flagged lifted: "
+              f"mean position error {mm(lifted[f]) if lifted else '-'} mm")
+    results["load"] = os.getloadavg()[0]
+    results["seconds"] = time.perf_counter() - start
     OUT.mkdir(exist_ok=True)
-    (OUT / name).write_text(json.dumps(summary, indent=1))
+    (OUT / name).write_text(json.dumps(results, indent=1))
+    print(f"wrote {OUT / name} in {results['seconds']:.0f} s")
 
 
 def main() -> None:
@@ -272,7 +449,8 @@ def main() -> None:
     parser.add_argument("--ccx-cache", type=Path, default=OUT / "standin_ccx_coarse.npz",
                         help="the stand-in's CalculiX responses (.npz), read when present, else made and written")
     parser.add_argument("--default-ccx", type=Path, default=None,
-                        help="run only the default-resolution check on these CalculiX responses (.npz)")
+                        help="run only the default-resolution check on these CalculiX responses (.npz; made when "
+                             "missing: 6 jobs of ~7.7 GB one at a time, resumable)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     for name in ("distributed", "hood_decomp.core.method", "hood_decomp.core.fe.solver"):
@@ -281,7 +459,7 @@ def main() -> None:
         default_check(args.default_ccx, args.families, args.parts, args.detect, args.json)
         return
     start = time.perf_counter()
-    model, skin, solver, reduced, bases, physics = hood_setup("coarse")
+    model, skin, solver, reduced, bases, physics = hood_setup(build_hood("coarse"))
     standin = StandIn(model, calculix_responses(model, cache=args.ccx_cache))
     moved = solver.boundary_response("hinge_R", "z").reshape(-1, 6)[:, :3, None]
     hinge_r_z = project(model, solver.pads, moved)[0][:, 0]
@@ -301,17 +479,14 @@ def main() -> None:
     results["uncalibrated_nominal_noise_free"] = summarise(errs, stds, within, names)
     print(table("uncalibrated, nominal CalculiX parts, no noise", results["uncalibrated_nominal_noise_free"]))
 
-    collected: dict[str, dict[str, list]] = {k: {"errors": [], "stds": [], "within": [], "detected": [],
-                                                 "lifted": [], "reactions": [], "reported": [], "family": [],
-                                                 "model_std": [], "pad_position": []}
-                                             for k in ("uncalibrated", "reference", "calibrated_13", "calibrated_25")}
+    collected = {k: collection() for k in ("uncalibrated", "reference", "calibrated_13", "calibrated_25")}
     families = []
     for f in range(args.families):
         rng = np.random.default_rng(1000 + f)
         family = Family.draw(rng)
         logger.info("family %d: %s", f, family)
         variants = {"uncalibrated": bases}
-        record = {"family": family.__dict__}
+        family_record = {"family": family.__dict__}
         for label, moves in (("calibrated_13", (0.8,)), ("calibrated_25", (0.8, 0.4))):
             if label == "calibrated_25" and f >= args.families_25:
                 continue
@@ -324,15 +499,8 @@ def main() -> None:
             variants[label] = rebuild_bases(bases, calibrated, json.dumps(calibration.record()), physics,
                                             **calibration.error_terms())
             truth = standin.reduced(family)
-            offset = (calibrated.z0 - calibrated.preload) - (truth.z0 - truth.preload)
-            record[label] = {"seconds": time.perf_counter() - tic, "rank": calibration.rank,
-                             "loo_rms_mm": calibration.loo_rms_mm.tolist(), "factors": calibration.factors,
-                             "factor_std": calibration.factor_std,
-                             # the pads' z0 - preload, calibrated minus the family's truth (nominal part thickness)
-                             "pad_offset_error_mm": [float(offset[truth.pad_of == u].mean())
-                                                     for u in range(len(names) - B)],
-                             "discrepancy": calibration.record()["discrepancy"]}
-            logger.info("family %d %s: discrepancy %s", f, label, record[label]["discrepancy"])
+            family_record[label] = calibration_record(calibration, calibrated, truth, time.perf_counter() - tic)
+            logger.info("family %d %s: discrepancy %s", f, label, family_record[label]["discrepancy"])
             if label == "calibrated_13":
                 reference = entries[0]
         states = validation_plan(model.lower, model.upper, args.parts, seed=2000 + f)
@@ -344,58 +512,21 @@ def main() -> None:
             fields["reference"] = relative_field(reduced, measured, reference.field, reference.setting)
             for label, part_field in fields.items():
                 b = variants.get(label, bases)
-                e = estimate_field(b, part_field)
-                collected[label]["errors"].append(e.values - effective[i])
-                collected[label]["stds"].append(e.std)
-                collected[label]["within"].append(e.within_model)
-                collected[label]["lifted"].append(e.lifted)
-                collected[label]["reactions"].append(reactions[i])
-                collected[label]["family"].append(f)
-                collected[label]["model_std"].append(np.zeros(len(names)) if e.model_std is None else e.model_std)
-                # a truly lifted pad flagged lifted: its value is the part's position there (StandInParts.position)
-                for u in np.flatnonzero((reactions[i] <= 0) & e.lifted[B:]):
-                    collected[label]["pad_position"].append(
-                        (float(e.values[B + u] - parts.position[i, u]), float(e.std[B + u]),
-                         float(0.0 if e.model_std is None else e.model_std[B + u])))
-                # what a lifted flag reports: the part's position at the pad (a light touch's commanded position
-                # lies above it and is not observable)
-                reported = np.concatenate([effective[i, :B], np.where(e.lifted[B:], parts.position[i],
-                                                                          effective[i, B:])])
-                collected[label]["reported"].append(e.values - reported)
+                record(collected[label], estimate_field(b, part_field), states[i], effective[i], reactions[i],
+                       parts.position[i], f, B)
                 if i < args.detect:
                     moved = field(mid, values[i] + HINGE_R_Z_MM * hinge_r_z, rng)
                     if label == "reference":
                         moved = relative_field(reduced, moved, reference.field, reference.setting)
                     collected[label]["detected"].append(not estimate_field(b, moved).within_model)
-        families.append(record)
+        families.append(family_record)
         logger.info("family %d done at %.0f s", f, time.perf_counter() - start)
     results["families"] = families
     for label, data in collected.items():
         if not data["errors"]:
             continue
-        summary = summarise(data["errors"], data["stds"], data["within"], names, data["lifted"], data["reactions"],
-                            data["family"], data["model_std"])
-        if data["pad_position"]:
-            error, std, model_std = np.array(data["pad_position"]).T
-            total = np.hypot(std, model_std)
-            summary["lifted_pad_position"] = {
-                "pads": len(error), "max_error_mm": float(np.abs(error).max()),
-                "rms_error_mm": float(np.sqrt(np.mean(error**2))),
-                "max_abs_z_std": float(np.max(np.abs(error) / std)),
-                "max_abs_z_with_model_std": float(np.max(np.abs(error) / total)),
-                "coverage_95_std": float(np.mean(np.abs(error) <= 1.96 * std)),
-                "coverage_95_with_model_std": float(np.mean(np.abs(error) <= 1.96 * total)),
-                "median_std_mm": float(np.median(std)), "median_model_std_mm": float(np.median(model_std))}
-        reported = summarise(data["reported"], data["stds"], data["within"], names)
-        summary["against_what_is_reported"] = {key: reported[key] for key in
-                                               ("max_error_mm", "coverage_95", "coverage_95_per_parameter")}
-        summary["hinge_R_z_0.05mm_detected"] = float(np.mean(data["detected"]))
-        summary["hinge_R_z_parts"] = len(data["detected"])
-        results[label] = summary
-        print(table(f"{label} (stand-in parts, 0.02 mm noise)", summary)
-              + f"\nhinge_R.z 0.05 mm detected in {100 * summary['hinge_R_z_0.05mm_detected']:.1f} % of "
-              f"{summary['hinge_R_z_parts']} parts\n"
-              + split_table(summary))
+        results[label] = summarise_collection(data, names, B)
+        print(report(f"{label} (stand-in parts, 0.02 mm noise)", results[label]))
     results["seconds"] = time.perf_counter() - start
     results["load_at_end"] = os.getloadavg()[0]
     OUT.mkdir(exist_ok=True)

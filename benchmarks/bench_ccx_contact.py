@@ -30,14 +30,11 @@ Prints a table and writes benchmarks/out/bench_ccx_contact.json (``--spot``: ben
 from __future__ import annotations
 
 import argparse
-import contextlib
-import fcntl
 import hashlib
 import json
 import logging
 import tempfile
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -52,28 +49,12 @@ LOCKED_SKIN_NODES = 20000
 log = logging.getLogger("bench_ccx_contact")
 
 
-@contextlib.contextmanager
-def holding(lock: Path | None) -> Iterator[None]:
-    """Hold an exclusive flock on ``lock`` (the same lock as ``flock FILE command``); None: no lock."""
-    if lock is None:
-        yield
-        return
-    with open(lock, "a") as handle:
-        start = time.perf_counter()
-        fcntl.flock(handle, fcntl.LOCK_EX)
-        log.info("holding %s (waited %.0f s)", lock, time.perf_counter() - start)
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
-
-
 def cached_check(model, state: np.ndarray, pad_forces: np.ndarray, normals: np.ndarray, cache: Path | None,
                  lock: Path | None, cache_only: bool = False):
     """:func:`check_contact_set` of a member, read from ``cache`` when a job of the same model, state and held springs
     is there, else run (under ``lock`` on large meshes) and stored. Returns (ContactCheck, ccx seconds, from cache);
     with ``cache_only`` a job not in the cache is (None, nan, False)."""
-    from hood_decomp.core.fe.calculix import ContactCheck, check_contact_set
+    from hood_decomp.core.fe.calculix import ContactCheck, check_contact_set, holding
 
     held = np.asarray(pad_forces) > 0
     key = hashlib.sha1(np.concatenate([np.round(state, 9), held]).tobytes()).hexdigest()[:12]

@@ -16,6 +16,9 @@ difference (a first-order mix: the part of the stand-in that is not pure Calculi
 force response by 1/E exactly (the unit motions not at all); pad stiffness and preload enter the pad contact, which
 is solved exactly per part with the repository's contact solver on the CalculiX responses (the buffers are the only
 nonlinearity): that is what ``ensemble --solver calculix`` does too.
+
+On a mesh whose jobs are too large to run two at a time (the default hood: ~7.7 GB a job), :func:`nominal_responses`
+makes the nominal-thickness load, gas-spring and unit responses only, one job at a time under a flock, resumable.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hood_decomp.core.fe.calculix import LoadCase, load_cases, run_cases
+from hood_decomp.core.fe.calculix import LoadCase, holding, load_cases, run_case, run_cases
 from hood_decomp.core.fe.ensemble import solve_members
 from hood_decomp.core.fe.model import PartModel
 from hood_decomp.core.fe.solver import PAD_LATTICE, build_solver, condense, force_boundary_loads, pad_springs
@@ -48,6 +51,52 @@ def scaled_thickness(model: PartModel, scale: float) -> PartModel:
     return replace(model, parts=tuple(replace(p, thickness=p.thickness * scale) for p in model.parts))
 
 
+def stand_in_cases(model: PartModel, scale: float = 1.0, pads: bool = True, pad_lattice: int = PAD_LATTICE
+                   ) -> tuple[PartModel, list[LoadCase], np.ndarray]:
+    """The stand-in's CalculiX jobs at thickness ``scale``: "load", "unit_<LABEL>" per bilateral parameter, "gas"
+    (the gas springs' force alone) and, with ``pads``, "pad_<s>" per pad spring. Returns the scaled model, the cases
+    and the constrained DOFs (C,)."""
+    scaled = scaled_thickness(model, scale)
+    cases, constrained = load_cases(scaled, pad_lattice)
+    cases = [c for c in cases if pads or not c.name.startswith("pad_")]
+    cases.append(LoadCase("gas", force_boundary_loads(scaled), np.zeros(len(constrained))))
+    return scaled, cases, constrained
+
+
+def nominal_responses(model: PartModel, cache: Path, lock: Path | None = None,
+                      timeout: float = 4 * 3600.0) -> dict[str, np.ndarray]:
+    """CalculiX translations (n, 3) mm of ``model`` at nominal thickness without the pad jobs ("load", "gas",
+    "unit_<LABEL>"; :func:`stand_in_cases`), for a mesh too large to run two jobs at a time (the default hood:
+    ~7.7 GB and 140-1000 s a job). ``cache``: an .npz (with "model_id") read when present and its model_id
+    matches, else made: one job at a time in this process, each holding ``lock`` (flock) and stored on completion in
+    ``<cache>.jobs/<name>.npy`` (a rerun resumes), the .npz written under another name and renamed when complete.
+    """
+    cache = Path(cache)
+    if cache.exists():
+        with np.load(cache, allow_pickle=False) as data:
+            if str(data["model_id"]) != model.model_id:
+                raise SolverError(f"{cache}: model_id {data['model_id']} is not {model.model_id}")
+            return {key: data[key] for key in data.files if key != "model_id"}
+    scaled, cases, constrained = stand_in_cases(model, pads=False)
+    jobs = cache.with_suffix(".jobs") / model.model_id
+    jobs.mkdir(parents=True, exist_ok=True)
+    out = {}
+    for done, case in enumerate(cases, start=1):
+        path = jobs / f"{case.name}.npy"
+        if not path.exists():
+            with holding(lock):
+                values = run_case(scaled, case, constrained, timeout=timeout)
+            partial = path.with_suffix(".partial.npy")
+            np.save(partial, values)
+            partial.replace(path)
+        out[case.name] = np.load(path)
+        logger.info("nominal CalculiX responses: %s done (%d/%d)", case.name, done, len(cases))
+    partial = cache.with_suffix(".partial.npz")
+    np.savez_compressed(partial, model_id=np.array(model.model_id), **out)
+    partial.replace(cache)
+    return out
+
+
 def calculix_responses(model: PartModel, scales: tuple[float, ...] = THICKNESS_SCALES,
                        cache: Path | None = None, pad_lattice: int = PAD_LATTICE) -> dict[float, dict[str, np.ndarray]]:
     """CalculiX translations (n, 3) mm per thickness scale: "load" (gravity + gas springs), "gas" (gas springs
@@ -67,10 +116,7 @@ def calculix_responses(model: PartModel, scales: tuple[float, ...] = THICKNESS_S
                 return out
     out = {}
     for scale in scales:
-        scaled = scaled_thickness(model, scale)
-        cases, constrained = load_cases(scaled, pad_lattice)
-        cases = [c for c in cases if scale == 1.0 or not c.name.startswith("pad_")]
-        cases.append(LoadCase("gas", force_boundary_loads(scaled), np.zeros(len(constrained))))
+        scaled, cases, constrained = stand_in_cases(model, scale, pads=scale == 1.0, pad_lattice=pad_lattice)
         logger.info("stand-in: %d CalculiX jobs at thickness scale %.3f", len(cases), scale)
         out[scale] = run_cases(scaled, cases, constrained)
     if cache is not None:
@@ -171,14 +217,22 @@ class StandIn:
         out = np.empty((len(settings), len(self.model.skin_nodes)))
         effective = np.empty_like(settings)
         reactions, position = np.empty((len(settings), n_pads)), np.empty((len(settings), n_pads))
-        pad_of = self.pads.pad_of
         for i, setting in enumerate(settings):
             thickness = 1.0 + rng.uniform(-part_spread, part_spread) if part_spread > 0 else 1.0
             block = solve_members(self.reduced(family, thickness), setting[None, :])
             out[i], effective[i], reactions[i] = block.normal_displacement[0], block.effective[0], block.reactions[0]
-            # b - compression = z - preload per spring; its minimum is the part's position at the pad
-            position[i] = [np.min(setting[-n_pads + u] - block.compression[0, pad_of == u]) for u in range(n_pads)]
+            position[i] = pad_positions(setting[None, :], block.compression, self.pads.pad_of)[0]
         return StandInParts(out, effective, reactions, position)
+
+
+def pad_positions(settings: np.ndarray, compression: np.ndarray, pad_of: np.ndarray) -> np.ndarray:
+    """The part's position (m, U) mm at each pad of members at commanded settings (m, P) mm (the pads last) with
+    spring compressions (m, S) mm (:class:`~hood_decomp.core.fe.ensemble.MemberBlock`) and pad_of (S,): where the pad
+    would just touch, below a touching pad's commanded position by its largest spring compression."""
+    n_pads = int(pad_of.max()) + 1
+    # b - compression = z - preload per spring; its minimum is the part's position at the pad
+    return np.stack([np.min(settings[:, -n_pads + u, None] - compression[:, pad_of == u], axis=1)
+                     for u in range(n_pads)], axis=1)
 
 
 def embedded_responses(model: PartModel, scales: tuple[float, ...] = THICKNESS_SCALES,

@@ -19,11 +19,15 @@ numpy data; nothing in the core imports it.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import logging
 import re
 import shutil
 import subprocess
 import tempfile
+import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -232,6 +236,29 @@ def _run_ccx(deck: str, name: str, directory: str, timeout: float, executable: s
 def _deck_text(model: PartModel, case: LoadCase, constrained: np.ndarray) -> str:
     with tempfile.TemporaryDirectory() as directory:
         return write_deck(model, case, constrained, Path(directory) / "deck.inp").read_text()
+
+
+def run_case(model: PartModel, case: LoadCase, constrained: np.ndarray, workdir: str | None = None,
+             timeout: float = 3600.0) -> np.ndarray:
+    """Run one case in this process (no Dask: for jobs too large to run two at a time); translations (n, 3) mm."""
+    return run_job(_deck_text(model, case, constrained), case.name, len(model.nodes), workdir, timeout)
+
+
+@contextlib.contextmanager
+def holding(lock: Path | None) -> Iterator[None]:
+    """Hold an exclusive flock on ``lock`` (the same lock as ``flock FILE command``: large jobs of several users run
+    one at a time); None: no lock."""
+    if lock is None:
+        yield
+        return
+    with open(lock, "a") as handle:
+        start = time.perf_counter()
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        logger.info("holding %s (waited %.0f s)", lock, time.perf_counter() - start)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 def run_cases(model: PartModel, cases: list[LoadCase], constrained: np.ndarray, scheduler: str | None = None,
