@@ -32,8 +32,9 @@ factors (``--without-physics``: compliance, pads and preload only, as bases file
 parts (truth from the bases' own reduced model) through the same path. ``--calibrate ccx|embedded``: the bases are
 first calibrated (core.loop.calibration, 13 one-at-a-time entries with 0.02 mm noise) to a family drawn from the seed,
 made by CalculiX (coarse cache) or by the embedded solver re-solved with the family's physics; ``calibrated_family``
-parts are of that family (harness (ii) on the calibrated bases). Besides the gate, a table per boundary of
-error / sqrt(std^2 + model_std^2) (is each error inside its total stated uncertainty).
+parts are of that family (harness (ii) on the calibrated bases); ``--scanned-entries``: the entries are scans of the
+family taken as the parts' are (a cell calibrates with its own scanner), not white-noise fields. Besides the gate,
+a table per boundary of error / sqrt(std^2 + model_std^2) (is each error inside its total stated uncertainty).
 
 Prints a table per kind and writes benchmarks/out/discrepancy.json (rewritten as it goes). From the repository root:
     scripts/with-env nice python benchmarks/bench_discrepancy.py [--parts N] [--mesh-parts N] [--ccx-parts N]
@@ -166,15 +167,22 @@ def z_table(rows: list[dict], names: tuple[str, ...]) -> dict:
     return out
 
 
-def calibrated_bases(bases, physics: PhysicalResponses, truth, rng: np.random.Generator):
+def calibrated_bases(bases, physics: PhysicalResponses, truth, rng: np.random.Generator, scan=None):
     """``bases`` calibrated (core.loop.calibration, as ``hood-decomp calibrate``) from the one-at-a-time plan's 13
-    entries of the part model ``truth`` (exact pad contact, 0.02 mm white noise stated as the error model)."""
+    entries of the part model ``truth`` (exact pad contact): fields with 0.02 mm white noise stated as the error
+    model, or, with ``scan`` (a member's 3D displacement (n, 3) -> scanned field), scans of the part as a cell would
+    take them (the scanner, the marker registration and the scan step of the parts)."""
     settings = one_at_a_time(len(bases.names))
-    fields = solve_members(truth, settings).normal_displacement
+    members = solve_members(truth, settings)
     n = bases.skin.n_nodes
-    entries = [CalibrationEntry(f"entry {j}", DisplacementField(
-        bases.model_id, fields[j] + rng.normal(0.0, NOISE_MM, n), 1.0, NOISE_MM, FieldErrorModel.stated(NOISE_MM, n)),
-        settings[j]) for j in range(len(settings))]
+
+    def entry_field(j: int) -> DisplacementField:
+        if scan is not None:
+            return scan(members.displacement[j])
+        return DisplacementField(bases.model_id, members.normal_displacement[j] + rng.normal(0.0, NOISE_MM, n), 1.0,
+                                 NOISE_MM, FieldErrorModel.stated(NOISE_MM, n))
+
+    entries = [CalibrationEntry(f"entry {j}", entry_field(j), settings[j]) for j in range(len(settings))]
     reduced, calibration = calibrate(bases.reduced_model, physics, entries, bases.skin,
                                      (bases.pca.lower_, bases.pca.upper_))
     return rebuild_bases(bases, reduced, json.dumps(calibration.record(), sort_keys=True), physics,
@@ -200,6 +208,9 @@ def main() -> int:
                         help="first calibrate the bases (13 entries, 0.02 mm noise) to a family drawn from the seed, "
                              "made by CalculiX (coarse, needs --ccx-cache) or by the embedded solver re-solved with "
                              "that family's physics (any resolution); calibrated_family: parts of that family")
+    parser.add_argument("--scanned-entries", action="store_true",
+                        help="with --calibrate: the 13 calibration entries are scans of the family (as the parts'), "
+                             "not fields with 0.02 mm white node noise")
     parser.add_argument("--seed", type=int, default=152)
     parser.add_argument("--out", type=Path, default=OUT, help="JSON written as the run goes")
     args = parser.parse_args()
@@ -215,17 +226,6 @@ def main() -> int:
     est = prepared_estimator(skin)
     ccx = StandIn(model, calculix_responses(model, cache=args.ccx_cache)) \
         if args.ccx_cache.exists() and args.resolution == "coarse" else None
-    if args.calibrate == "embedded":
-        log("the embedded solver's responses at three thickness scales (the calibration's stand-in)")
-        ccx = StandIn(model, embedded_responses(model))
-    elif args.calibrate and ccx is None:
-        raise SystemExit(f"--calibrate ccx needs the coarse CalculiX cache ({args.ccx_cache})")
-    if args.calibrate:
-        family = Family.draw(rng)
-        bases = calibrated_bases(bases, physics, ccx.reduced(family), rng)
-        results["calibrated_to"] = dataclasses.asdict(family) | {"by": args.calibrate,
-                                                                 "record": json.loads(bases.calibration)}
-        log(f"calibrated to the CalculiX family {family}")
 
     def scan_field(truth_skin, displacement) -> DisplacementField:
         config = ScannerConfig(n_points=args.points, noise_mm=NOISE_MM, marker_noise_mm=NOISE_MM, n_holes=3)
@@ -233,6 +233,19 @@ def main() -> int:
         field, _ = field_from_scan(skin, synthetic.points, markers_mm=synthetic.markers,
                                    markers_nominal_mm=synthetic.markers_nominal, estimator=est)
         return field
+
+    if args.calibrate == "embedded":
+        log("the embedded solver's responses at three thickness scales (the calibration's stand-in)")
+        ccx = StandIn(model, embedded_responses(model))
+    elif args.calibrate and ccx is None:
+        raise SystemExit(f"--calibrate ccx needs the coarse CalculiX cache ({args.ccx_cache})")
+    if args.calibrate:
+        family = Family.draw(rng)
+        bases = calibrated_bases(bases, physics, ccx.reduced(family), rng,
+                                 (lambda u: scan_field(skin, u)) if args.scanned_entries else None)
+        results["calibrated_to"] = dataclasses.asdict(family) | {"by": args.calibrate,
+                                                                 "record": json.loads(bases.calibration)}
+        log(f"calibrated to the CalculiX family {family}")
 
     def noisy_field(truth: np.ndarray) -> DisplacementField:
         values = truth + rng.normal(0.0, NOISE_MM, truth.size)
