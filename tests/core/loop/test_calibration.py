@@ -355,19 +355,14 @@ def test_a_scan_on_calibrated_bases_keeps_its_own_noise_level(coarse_hood, case)
     assert all(level >= 0.5 for level in levels), levels
 
 
-def test_scanned_entries_are_judged_with_their_registration_error(coarse_hood, case):
-    """Fails if the wrong-reading test weighs a scanned entry by its node noise alone: a scan's pose error (8 markers
-    at 0.05 mm) moves the apparent setting of a move like the rigid turn a hinge, lock or buffer move nearly is, and
-    correct scanned entries of CalculiX-made parts were refused (4 of 4 calibrations, HINGE_X 0.02-0.26 mm beyond the
-    tolerance). Also fails if the test is dead for scans, or names the wrong entry: HINGE_Y's +0.8 mm entry recorded
-    as -0.8 mm is refused naming that entry (the first entry above the tolerance was HINGE_X's, whose leave-one-out
-    factors the wrong entry had spoiled)."""
+def _scanned_entries(skin, truth, settings: np.ndarray) -> list[CalibrationEntry]:
+    """One-at-a-time calibration entries of the part model ``truth`` at ``settings`` (M, P) mm as scans: the synthetic
+    scanner (120,000 points, 0.02 mm point noise, 8 markers at 0.05 mm, 3 holes) and the scan step, whose error model
+    carries the registration's pose covariance."""
     from hood_decomp.core.scan.scan_field import field_from_scan, prepared_estimator
     from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
 
-    skin, model = coarse_hood.skin, coarse_hood.model
-    settings = np.array([entry.setting for entry in case["entries"]])
-    members = solve_members(case["truth"], settings)
+    members = solve_members(truth, settings)
     estimator = prepared_estimator(skin)
     config = ScannerConfig(n_points=120_000, noise_mm=0.02, marker_noise_mm=0.05, n_holes=3)
     entries = []
@@ -377,6 +372,18 @@ def test_scanned_entries_are_judged_with_their_registration_error(coarse_hood, c
                                    markers_nominal_mm=scan.markers_nominal, estimator=estimator)
         assert field.errors.kind == "scan" and field.errors.has_pose
         entries.append(CalibrationEntry(f"scan {j}", field, setting))
+    return entries
+
+
+def test_scanned_entries_are_judged_with_their_registration_error(coarse_hood, case):
+    """Fails if the wrong-reading test weighs a scanned entry by its node noise alone: a scan's pose error (8 markers
+    at 0.05 mm) moves the apparent setting of a move like the rigid turn a hinge, lock or buffer move nearly is, and
+    correct scanned entries of CalculiX-made parts were refused (4 of 4 calibrations, HINGE_X 0.02-0.26 mm beyond the
+    tolerance). Also fails if the test is dead for scans, or names the wrong entry: HINGE_Y's +0.8 mm entry recorded
+    as -0.8 mm is refused naming that entry (the first entry above the tolerance was HINGE_X's, whose leave-one-out
+    factors the wrong entry had spoiled)."""
+    skin, model = coarse_hood.skin, coarse_hood.model
+    entries = _scanned_entries(skin, case["truth"], np.array([entry.setting for entry in case["entries"]]))
     _, calibration = calibrate(coarse_hood.reduced, case["physics"], entries, skin, (model.lower, model.upper))
     assert calibration.setting_error_mm.max() <= 0.0, calibration.setting_error_mm
     wrong = entries[3]
@@ -392,24 +399,14 @@ def test_a_scanned_entry_pose_error_is_no_model_discrepancy(coarse_hood):
     the scan step. Before the pose was taken out of each entry's residual the calibration stated a discrepancy of
     0.047 mm RMS and moved the model by 0.020 mm RMS at its own entries; with it, 0.0013 and 0.0017 mm (the scan
     step's bias and noise)."""
-    from hood_decomp.core.scan.scan_field import field_from_scan, prepared_estimator
-    from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
-
     skin, model, reduced = coarse_hood.skin, coarse_hood.model, coarse_hood.reduced
     physics = PhysicalResponses.from_solver(physical_responses(coarse_hood.solver),
                                             thickness_sensitivities(model, reduced), thermal_moves(model))
     settings = one_at_a_time(len(model.names))
-    members = solve_members(reduced, settings)
-    estimator = prepared_estimator(skin)
-    config = ScannerConfig(n_points=120_000, noise_mm=0.02, marker_noise_mm=0.05, n_holes=3)
-    entries = []
-    for j, setting in enumerate(settings):
-        scan = synthesize_scan(skin, members.displacement[j], config, seed=60 + j)
-        field, _ = field_from_scan(skin, scan.points, markers_mm=scan.markers,
-                                   markers_nominal_mm=scan.markers_nominal, estimator=estimator)
-        entries.append(CalibrationEntry(f"scan {j}", field, setting))
+    entries = _scanned_entries(skin, reduced, settings)
     calibrated, calibration = calibrate(reduced, physics, entries, skin, (model.lower, model.upper))
     discrepancy_rms = np.sqrt(np.sum(calibration.discrepancy**2) / skin.n_nodes)
-    moved = solve_members(calibrated, settings).normal_displacement - members.normal_displacement
+    moved = (solve_members(calibrated, settings).normal_displacement
+             - solve_members(reduced, settings).normal_displacement)
     assert discrepancy_rms <= 0.005, discrepancy_rms
     assert np.sqrt(np.mean(moved**2)) <= 0.005, np.sqrt(np.mean(moved**2))
