@@ -117,6 +117,18 @@ def nonlinear_forces(facets: FacetTriangles, translations: np.ndarray) -> np.nda
     return (facets.scatter @ force.reshape(-1, 3 * m)).reshape(-1, 3, m)
 
 
+def nonlinear_force_vector(facets: FacetTriangles, u: np.ndarray, chunk_bytes: float = 200e6) -> np.ndarray:
+    """f_nl (6n, m) N of displacements (6n, m) mm (rotations: zero force, ignored), ``chunk_bytes`` of facet
+    temporaries at a time (the facet arrays hold 9 values per facet and column)."""
+    n = u.shape[0] // 6
+    out = np.zeros_like(u)
+    translation = (np.arange(6 * n) % 6) < 3
+    chunk = max(1, int(chunk_bytes / (8 * 9 * len(facets.nodes))))
+    for start in range(0, u.shape[1], chunk):
+        part = u[translation, start:start + chunk]
+        out[translation, start:start + chunk] = nonlinear_forces(facets, part.reshape(n, 3, -1)).reshape(3 * n, -1)
+    return out
+
 
 def tangent_increment(facets: FacetTriangles, translations: np.ndarray, n_nodes: int) -> sp.csr_matrix:
     """d f_nl / du at nodal translations (n, 3) mm: (6n, 6n) CSR on the translation DOFs, N/mm.
@@ -253,13 +265,15 @@ class NonlinearSolver:
         self.reference = u
         self._new_tangent(np.zeros(len(model.names)), u)
 
+    def reference_tangent(self) -> tuple[ShellSolver, np.ndarray, np.ndarray]:
+        """The tangent K_T factorised at the reference state (all parameters 0, no pad contact): its solver, its
+        linear responses (6n, 1 + B) mm (load, unit bilateral motions) and unit pad spring responses (6n, S) mm/N."""
+        tangent = self._solved[0][2]
+        return tangent.solver, tangent.linear, tangent.pad_fields
+
     def _f_nl(self, u: np.ndarray) -> np.ndarray:
         """f_nl (6n, m) N of displacements (6n, m) mm (zero on rotations)."""
-        n = len(self.solver.model.nodes)
-        out = np.zeros_like(u)
-        out[self._translation] = nonlinear_forces(self.facets, u[self._translation].reshape(n, 3, -1)).reshape(
-            3 * n, -1)
-        return out
+        return nonlinear_force_vector(self.facets, u)
 
     def _increment(self, u: np.ndarray) -> sp.csr_matrix:
         n = len(self.solver.model.nodes)
