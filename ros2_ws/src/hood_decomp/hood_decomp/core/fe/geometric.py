@@ -265,12 +265,6 @@ class NonlinearSolver:
         self.reference = u
         self._new_tangent(np.zeros(len(model.names)), u)
 
-    def reference_tangent(self) -> tuple[ShellSolver, np.ndarray, np.ndarray]:
-        """The tangent K_T factorised at the reference state (all parameters 0, no pad contact): its solver, its
-        linear responses (6n, 1 + B) mm (load, unit bilateral motions) and unit pad spring responses (6n, S) mm/N."""
-        tangent = self._solved[0][2]
-        return tangent.solver, tangent.linear, tangent.pad_fields
-
     def _f_nl(self, u: np.ndarray) -> np.ndarray:
         """f_nl (6n, m) N of displacements (6n, m) mm (zero on rotations)."""
         return nonlinear_force_vector(self.facets, u)
