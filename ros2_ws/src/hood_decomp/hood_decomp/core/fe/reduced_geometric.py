@@ -52,6 +52,7 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.linalg.blas import dsyrk
 
 from hood_decomp.core.fe.contact import solve_lcp
 from hood_decomp.core.fe.ensemble import MemberBlock, contact_summary, factorial_plan, validation_plan
@@ -218,7 +219,8 @@ def energy_tensors(facets: FacetTriangles, basis: np.ndarray) -> tuple[np.ndarra
     weight = np.where(first == second, 1.0, 2.0)  # y^T S y = sum over a <= b of weight S_ab y_a y_b
     pairs = len(first)
     T3 = np.zeros((d, pairs))
-    T4 = np.zeros((pairs, pairs))
+    T4 = np.zeros((pairs, pairs), order="F")  # its upper triangle, summed by dsyrk
+    root = np.linalg.cholesky(facets.D)  # D = root root^T: S^T (A t D) S = X^T X, X = sqrt(A t) root^T S
     size = len(facets.nodes)
     chunk = max(1, int(CHUNK_BYTES / (8 * 9 * max(d * d, pairs))))
     for start in range(0, size, chunk):
@@ -227,16 +229,16 @@ def energy_tensors(facets: FacetTriangles, basis: np.ndarray) -> tuple[np.ndarra
         local = np.einsum("tdc,tcam->tdam", facets.frame[sub, :2], J)
         L = np.stack([local[:, 0, 0], local[:, 1, 1], local[:, 0, 1] + local[:, 1, 0]], axis=1)  # (t, 3, d)
         Jx, Jy = J[:, :, 0], J[:, :, 1]
-        S = np.stack([0.5 * np.einsum("tca,tcb->tab", Jx, Jx), 0.5 * np.einsum("tca,tcb->tab", Jy, Jy),
-                      np.einsum("tca,tcb->tab", Jx, Jy)], axis=1)  # (t, 3, d, d), y^T S_k y = eps_Q,k
-        S = S + S.transpose(0, 1, 3, 2)
-        S = 0.5 * S[:, :, first, second] * weight  # (t, 3, pairs)
-        Dt = (facets.area[sub] * facets.thickness[sub])[:, None, None] * facets.D  # (t, 3, 3)
-        ell = np.einsum("tka,tkl->tla", L, Dt)
-        DS = np.einsum("tkl,tlp->tkp", Dt, S)
-        flat = S.reshape(-1, pairs)
-        T3 += ell.reshape(-1, d).T @ flat
-        T4 += 0.5 * flat.T @ DS.reshape(-1, pairs)
+        xt, yt = Jx.transpose(0, 2, 1), Jy.transpose(0, 2, 1)
+        xy = xt @ Jy  # batched matmul: several times faster than einsum here
+        S = np.stack([0.5 * (xt @ Jx)[:, first, second], 0.5 * (yt @ Jy)[:, first, second],
+                      0.5 * (xy[:, first, second] + xy[:, second, first])], axis=1) * weight  # (t, 3, pairs): eps_Q
+        scale = facets.area[sub] * facets.thickness[sub]
+        ell = np.einsum("tka,kl->tla", L, facets.D) * scale[:, None, None]
+        T3 += ell.reshape(-1, d).T @ S.reshape(-1, pairs)
+        X = np.einsum("lk,tlp->tkp", root, S) * np.sqrt(scale)[:, None, None]
+        T4 = dsyrk(0.5, X.reshape(-1, pairs).T, beta=1.0, c=T4, trans=0, lower=0, overwrite_c=1)  # half a GEMM
+    T4 = np.triu(T4) + np.triu(T4, 1).T
     full3 = np.zeros((d, d, d))
     full3[:, first, second] = T3  # a <= b only: the sum over all indices is then z-space's
     full4 = np.zeros((d, d, d, d))
