@@ -25,7 +25,7 @@ parameters) in one of two ways (:func:`build_reduced_geometric`, ``training``):
 
 - ``"states"`` (the default): the K-weighted POD of the exact corrections u - u_lin of all training states, each
   solved once by the full nonlinear model (coarse hood-paper, HINGE_Y +-0.5 mm: 0.0077 mm from the full members;
-  the 137 solves are 89 % of the build, 77 of 87 s at load ~2).
+  the 137 solves are 91 % of the build, 69 of 75 s at load ~3).
 - ``"derivatives"``: static derivatives instead of most full solves. f_nl = f2(u, u) + f3(u, u, u) exactly, so its
   even and odd parts give f2 and f3 with no step size, and back-substitutions with the factorised K give the
   second-order terms -K^-1 f2(v_i, v_j) of the linear fields (u0, W a, G Bf phi at their reach) and the second- and
@@ -34,7 +34,7 @@ parameters) in one of two ways (:func:`build_reduced_geometric`, ``training``):
   full model and their corrections add modes (24 full solves instead of 137 by default). Not as accurate: 0.012 mm
   on the same members, 0.019 mm at default resolution (a low-order expansion leaves about half of the correction
   at the lock-twist and lock-buffer corners, where the nonlinearity is strong; the greedy full solves carry the
-  accuracy there), and no faster on the coarse hood, 90 s against 87 s (the tensors are summed four times;
+  accuracy there), and no faster on the coarse hood, 76 s against 75 s (the tensors are summed four times;
   benchmarks/RESULTS.md, "Training the reduced nonlinear model by static derivatives").
 
 The reduced model is valid inside the parameter ranges it was built for; a range that passes a buckling load
