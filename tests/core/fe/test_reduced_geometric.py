@@ -15,6 +15,7 @@ from hood_decomp.core.fe.geometric import NonlinearSolver, facet_triangles, nonl
 from hood_decomp.core.fe.hood_preset import build_preset
 from hood_decomp.core.fe.reduced_geometric import _assemble, build_reduced_geometric, energy_tensors
 from hood_decomp.core.fe.solver import build_solver, reduce_model
+from hood_decomp.errors import SolverError
 
 
 @pytest.fixture(scope="module")
@@ -82,3 +83,13 @@ def test_derivative_trained_members_match_the_full_solve(coarse_paper) -> None:
     assert np.isfinite(rom.residual)
     assert np.abs(full.displacement - linear.displacement).max() > 0.08
     assert np.abs(rom.members(states).displacement - full.displacement).max() < 0.015
+
+
+@pytest.mark.parametrize("options", [{"training": "nope"}, {"training": "derivatives", "solves": 0},
+                                     {"training": "derivatives", "added": 12}])
+def test_bad_training_options_raise_naming_them(coarse_paper, options) -> None:
+    """Fails if an unknown training, no greedy full solve, or greedy modes that leave none to the derivatives do not
+    raise SolverError naming what was expected (before any full nonlinear solve)."""
+    model, solver = coarse_paper
+    with pytest.raises(SolverError, match="expected"):
+        build_reduced_geometric(solver, model.lower, model.upper, **options)

@@ -312,8 +312,6 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
     """
     if training not in TRAININGS:
         raise SolverError(f"training: expected one of {TRAININGS}, got {training!r}")
-    if training == "derivatives" and not 0 < passes * added < modes:
-        raise SolverError(f"expected 0 < passes x added < modes, got {passes} x {added} and {modes}")
     start = time.perf_counter()
     clock = {"start": start}
 
@@ -359,6 +357,9 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
     lap("pads")
 
     states = training_states(lower, upper)
+    if training == "derivatives" and not (0 < passes * added < modes and 0 < passes * solves <= len(states)):
+        raise SolverError(f"expected 0 < passes x added < modes and 0 < passes x solves <= {len(states)} (the "
+                          f"training states), got {passes} x {added}, {modes} and {passes} x {solves}")
     facets = facet_triangles(model)
     if training == "states":
         exact, snapshots = corrections(states)
