@@ -87,28 +87,32 @@ def _quadratic(J: np.ndarray) -> np.ndarray:
                      (J[:, :, 0] * J[:, :, 1]).sum(1)], axis=1)
 
 
+def _strains(facets: FacetTriangles, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The linear membrane strain sym(grad u_loc) and 1/2 J^T J, each (T, 3, m) on (xx, yy, 2xy), of gradients J."""
+    local = np.einsum("tdc,tcam->tdam", facets.frame[:, :2], J)  # in-plane components' gradients
+    return np.stack([local[:, 0, 0], local[:, 1, 1], local[:, 0, 1] + local[:, 1, 0]], axis=1), _quadratic(J)
+
+
 def membrane_forces(facets: FacetTriangles, translations: np.ndarray, nonlinear: bool = True) -> np.ndarray:
     """Membrane forces (T, 3, m) N/mm (Nxx, Nyy, Nxy in each facet frame) of nodal translations (n, 3, m) mm;
     ``nonlinear`` adds the Green-Lagrange term 1/2 J^T J to the strain."""
-    J = _gradients(facets, translations)
-    local = np.einsum("tdc,tcam->tdam", facets.frame[:, :2], J)  # in-plane components' gradients
-    eps = np.stack([local[:, 0, 0], local[:, 1, 1], local[:, 0, 1] + local[:, 1, 0]], axis=1)
-    if nonlinear:
-        eps = eps + _quadratic(J)
+    linear, quadratic = _strains(facets, _gradients(facets, translations))
+    eps = linear + quadratic if nonlinear else linear
     return facets.thickness[:, None, None] * np.einsum("ij,tjm->tim", facets.D, eps)
 
 
 def nonlinear_forces(facets: FacetTriangles, translations: np.ndarray) -> np.ndarray:
     """f_nl (n, 3, m) N: the internal force of nodal translations (n, 3, m) mm beyond the linear stiffness's."""
-    J = _gradients(facets, translations)
-    area = facets.area[:, None, None]
-    stress = area * membrane_forces(facets, translations)  # A N
-    stress_q = area * facets.thickness[:, None, None] * np.einsum("ij,tjm->tim", facets.D, _quadratic(J))  # A N_q
+    J = _gradients(facets, translations)  # once: the gathers and contractions are most of the time
+    linear, quadratic = _strains(facets, J)
+    tD = (facets.area * facets.thickness)[:, None, None] * facets.D  # (T, 3, 3)
+    stress_q = np.einsum("tij,tjm->tim", tD, quadratic)  # A N_q
+    stress = np.einsum("tij,tjm->tim", tD, linear) + stress_q  # A N
     b, c = facets.grad[:, 0][:, :, None], facets.grad[:, 1][:, :, None]
     # B_m^T N_q in the facet frame (node i, x and y), then to the global frame
     fx = b * stress_q[:, None, 0] + c * stress_q[:, None, 2]
     fy = c * stress_q[:, None, 1] + b * stress_q[:, None, 2]
-    force = np.einsum("tc,tim->ticm", facets.frame[:, 0], fx) + np.einsum("tc,tim->ticm", facets.frame[:, 1], fy)
+    force = facets.frame[:, None, 0, :, None] * fx[:, :, None] + facets.frame[:, None, 1, :, None] * fy[:, :, None]
     # G^T N G u: node i gets g_xi (Nxx J_x + Nxy J_y) + g_yi (Nxy J_x + Nyy J_y)
     NJx = stress[:, None, 0] * J[:, :, 0] + stress[:, None, 2] * J[:, :, 1]  # (T, 3, m)
     NJy = stress[:, None, 2] * J[:, :, 0] + stress[:, None, 1] * J[:, :, 1]
@@ -116,6 +120,18 @@ def nonlinear_forces(facets: FacetTriangles, translations: np.ndarray) -> np.nda
     m = translations.shape[2]
     return (facets.scatter @ force.reshape(-1, 3 * m)).reshape(-1, 3, m)
 
+
+def nonlinear_force_vector(facets: FacetTriangles, u: np.ndarray, chunk_bytes: float = 200e6) -> np.ndarray:
+    """f_nl (6n, m) N of displacements (6n, m) mm (rotations: zero force, ignored), ``chunk_bytes`` of facet
+    temporaries at a time (the facet arrays hold 9 values per facet and column)."""
+    n = u.shape[0] // 6
+    out = np.zeros_like(u)
+    translation = (np.arange(6 * n) % 6) < 3
+    chunk = max(1, int(chunk_bytes / (8 * 9 * len(facets.nodes))))
+    for start in range(0, u.shape[1], chunk):
+        part = u[translation, start:start + chunk]
+        out[translation, start:start + chunk] = nonlinear_forces(facets, part.reshape(n, 3, -1)).reshape(3 * n, -1)
+    return out
 
 
 def tangent_increment(facets: FacetTriangles, translations: np.ndarray, n_nodes: int) -> sp.csr_matrix:
@@ -255,11 +271,7 @@ class NonlinearSolver:
 
     def _f_nl(self, u: np.ndarray) -> np.ndarray:
         """f_nl (6n, m) N of displacements (6n, m) mm (zero on rotations)."""
-        n = len(self.solver.model.nodes)
-        out = np.zeros_like(u)
-        out[self._translation] = nonlinear_forces(self.facets, u[self._translation].reshape(n, 3, -1)).reshape(
-            3 * n, -1)
-        return out
+        return nonlinear_force_vector(self.facets, u)
 
     def _increment(self, u: np.ndarray) -> sp.csr_matrix:
         n = len(self.solver.model.nodes)

@@ -20,10 +20,26 @@ that the linear members use (H-weighted POD of their forces); the linear part ke
 a semi-smooth Newton method on q (r unknowns) with the LCP re-solved in every step and its active set's derivative in
 the Jacobian: milliseconds, whatever the mesh.
 
-Psi is the K-weighted POD of the exact corrections u - u_lin of a few training states (ranks 0-2 of the factorial
-and the 2^P corners of the ranges), each solved once by the full nonlinear model. The reduced model is valid inside
-the parameter ranges it was built for; a range that passes a buckling load (HINGE_Y +1 mm on the hood) stalls the
-full solves of the training states or shows as a reduced tangent that is not positive definite (SolverError).
+Psi is trained on the training states (ranks 0-2 of the factorial and the 2^P corners of the ranges, 137 for six
+parameters) in one of two ways (:func:`build_reduced_geometric`, ``training``):
+
+- ``"states"`` (the default): the K-weighted POD of the exact corrections u - u_lin of all training states, each
+  solved once by the full nonlinear model (coarse hood-paper, HINGE_Y +-0.5 mm: 0.0077 mm from the full members;
+  the 137 solves are 91 % of the build, 69 of 75 s at load ~3).
+- ``"derivatives"``: static derivatives instead of most full solves. f_nl = f2(u, u) + f3(u, u, u) exactly, so its
+  even and odd parts give f2 and f3 with no step size, and back-substitutions with the factorised K give the
+  second-order terms -K^-1 f2(v_i, v_j) of the linear fields (u0, W a, G Bf phi at their reach) and the second- and
+  third-order terms along each training state's linear member; their POD gives modes - passes x added modes. Then
+  greedy passes: the reduced training members' residuals through K^-1 rank them, the worst few are solved by the
+  full model and their corrections add modes (24 full solves instead of 137 by default). Not as accurate: 0.012 mm
+  on the same members, 0.019 mm at default resolution (a low-order expansion leaves about half of the correction
+  at the lock-twist and lock-buffer corners, where the nonlinearity is strong; the greedy full solves carry the
+  accuracy there), and no faster on the coarse hood, 76 s against 75 s (the tensors are summed four times;
+  benchmarks/RESULTS.md, "Training the reduced nonlinear model by static derivatives").
+
+The reduced model is valid inside the parameter ranges it was built for; a range that passes a buckling load
+(HINGE_Y +1 mm on the hood) stalls the full solves of the training states or shows as a reduced tangent that is not
+positive definite (SolverError).
 Checked member by member against the full nonlinear solver (tests/core/fe/test_reduced_geometric.py,
 benchmarks/bench_nlgeom_rom.py).
 """
@@ -33,13 +49,19 @@ from __future__ import annotations
 import itertools
 import logging
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.linalg.blas import dsyrk
 
 from hood_decomp.core.fe.contact import solve_lcp
 from hood_decomp.core.fe.ensemble import MemberBlock, contact_summary, factorial_plan, validation_plan
-from hood_decomp.core.fe.geometric import FacetTriangles, NonlinearSolver, facet_triangles
+from hood_decomp.core.fe.geometric import (
+    FacetTriangles,
+    NonlinearSolver,
+    facet_triangles,
+    nonlinear_force_vector,
+)
 from hood_decomp.core.fe.model import skin_surface
 from hood_decomp.core.fe.solver import ShellSolver
 from hood_decomp.errors import SolverError
@@ -49,6 +71,8 @@ logger = logging.getLogger(__name__)
 PAD_TOLERANCE = 3e-3
 #: bytes of facet temporaries per chunk when the energy tensors are summed
 CHUNK_BYTES = 200e6
+#: how the correction modes are trained (:func:`build_reduced_geometric`)
+TRAININGS = ("derivatives", "states")
 
 
 @dataclass(frozen=True)
@@ -61,7 +85,8 @@ class ReducedGeometricModel:
     z0: (S,), Sa: (S, B), H: (S, S), Zq: (S, r): pad spring displacements, mm. k, preload, pad_of: (S,).
     Bf: (S, p) pad force shapes, H-orthonormal. Kq: (r, r) N/mm, Psi^T K Psi.
     T3q: (r, d, d), T4q: (r, d, d, d): the rows of the symmetrised energy tensors for q, d = 1 + B + p + r.
-    residual: mm, the largest full-model residual correction of the training members at the end of the build.
+    residual: mm, the training members' difference from the full solve or their one-step correction (see
+    :func:`build_reduced_geometric`). build_s: seconds of the build's parts.
     """
 
     model_id: str
@@ -90,6 +115,7 @@ class ReducedGeometricModel:
     T3q: np.ndarray
     T4q: np.ndarray
     residual: float
+    build_s: dict[str, float] = field(default_factory=dict)
 
     @property
     def modes(self) -> int:
@@ -154,16 +180,22 @@ class ReducedGeometricModel:
                 return solve_lcp(M, offset + self.Zq @ q), q, iteration, tangent
         return None
 
-    def members(self, commanded: np.ndarray) -> MemberBlock:
-        """Members (m, P) mm as :func:`.ensemble.solve_members` reports them (skin fields, contact summary)."""
+    def solve_all(self, commanded: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pad forces (m, S) N and correction coordinates (m, r) of members (m, P) mm (:meth:`solve`)."""
         commanded = np.atleast_2d(np.asarray(commanded, dtype=float))
         if commanded.ndim != 2 or commanded.shape[1] != len(self.names) or not np.all(np.isfinite(commanded)):
             raise SolverError(f"expected finite parameter states (m, {len(self.names)}), got {commanded.shape}")
-        B, m = self.n_bilateral, len(commanded)
-        forces = np.zeros((m, len(self.k)))
-        q = np.zeros((m, self.modes))
+        forces = np.zeros((len(commanded), len(self.k)))
+        q = np.zeros((len(commanded), self.modes))
         for i, state in enumerate(commanded):
             forces[i], q[i], _ = self.solve(state)
+        return forces, q
+
+    def members(self, commanded: np.ndarray) -> MemberBlock:
+        """Members (m, P) mm as :func:`.ensemble.solve_members` reports them (skin fields, contact summary)."""
+        forces, q = self.solve_all(commanded)
+        commanded = np.atleast_2d(np.asarray(commanded, dtype=float))
+        B = self.n_bilateral
         a = commanded[:, :B]
         z = (self.z0[None] + a @ self.Sa.T + forces @ self.H.T + q @ self.Zq.T)
         effective, fraction, reactions = contact_summary(commanded, forces, z, self.pad_of, self.preload, B,
@@ -187,7 +219,8 @@ def energy_tensors(facets: FacetTriangles, basis: np.ndarray) -> tuple[np.ndarra
     weight = np.where(first == second, 1.0, 2.0)  # y^T S y = sum over a <= b of weight S_ab y_a y_b
     pairs = len(first)
     T3 = np.zeros((d, pairs))
-    T4 = np.zeros((pairs, pairs))
+    T4 = np.zeros((pairs, pairs), order="F")  # its upper triangle, summed by dsyrk
+    root = np.linalg.cholesky(facets.D)  # D = root root^T: S^T (A t D) S = X^T X, X = sqrt(A t) root^T S
     size = len(facets.nodes)
     chunk = max(1, int(CHUNK_BYTES / (8 * 9 * max(d * d, pairs))))
     for start in range(0, size, chunk):
@@ -196,16 +229,16 @@ def energy_tensors(facets: FacetTriangles, basis: np.ndarray) -> tuple[np.ndarra
         local = np.einsum("tdc,tcam->tdam", facets.frame[sub, :2], J)
         L = np.stack([local[:, 0, 0], local[:, 1, 1], local[:, 0, 1] + local[:, 1, 0]], axis=1)  # (t, 3, d)
         Jx, Jy = J[:, :, 0], J[:, :, 1]
-        S = np.stack([0.5 * np.einsum("tca,tcb->tab", Jx, Jx), 0.5 * np.einsum("tca,tcb->tab", Jy, Jy),
-                      np.einsum("tca,tcb->tab", Jx, Jy)], axis=1)  # (t, 3, d, d), y^T S_k y = eps_Q,k
-        S = S + S.transpose(0, 1, 3, 2)
-        S = 0.5 * S[:, :, first, second] * weight  # (t, 3, pairs)
-        Dt = (facets.area[sub] * facets.thickness[sub])[:, None, None] * facets.D  # (t, 3, 3)
-        ell = np.einsum("tka,tkl->tla", L, Dt)
-        DS = np.einsum("tkl,tlp->tkp", Dt, S)
-        flat = S.reshape(-1, pairs)
-        T3 += ell.reshape(-1, d).T @ flat
-        T4 += 0.5 * flat.T @ DS.reshape(-1, pairs)
+        xt, yt = Jx.transpose(0, 2, 1), Jy.transpose(0, 2, 1)
+        xy = xt @ Jy  # batched matmul: several times faster than einsum here
+        S = np.stack([0.5 * (xt @ Jx)[:, first, second], 0.5 * (yt @ Jy)[:, first, second],
+                      0.5 * (xy[:, first, second] + xy[:, second, first])], axis=1) * weight  # (t, 3, pairs): eps_Q
+        scale = facets.area[sub] * facets.thickness[sub]
+        ell = np.einsum("tka,kl->tla", L, facets.D) * scale[:, None, None]
+        T3 += ell.reshape(-1, d).T @ S.reshape(-1, pairs)
+        X = np.einsum("lk,tlp->tkp", root, S) * np.sqrt(scale)[:, None, None]
+        T4 = dsyrk(0.5, X.reshape(-1, pairs).T, beta=1.0, c=T4, trans=0, lower=0, overwrite_c=1)  # half a GEMM
+    T4 = np.triu(T4) + np.triu(T4, 1).T
     full3 = np.zeros((d, d, d))
     full3[:, first, second] = T3  # a <= b only: the sum over all indices is then z-space's
     full4 = np.zeros((d, d, d, d))
@@ -224,18 +257,69 @@ def training_states(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
     return np.concatenate([commanded[rank <= 2], corners])
 
 
+def derivative_snapshots(solver: ShellSolver, facets: FacetTriangles, fields: np.ndarray, lines: np.ndarray
+                         ) -> np.ndarray:
+    """Static derivatives of the correction c = -K^-1 f_nl(u_lin + c) about the unloaded state, (6n, k) mm, zero
+    on the constrained DOFs: the second-order terms of the linear fields v (6n, m) mm, s_ii = -K^-1 f2(v_i, v_i),
+    s_ij = -2 K^-1 f2(v_i, v_j) (i < j), so that c = sum_{i <= j} y_i y_j s_ij + O(|y|^3) for u_lin = sum y_i v_i;
+    and along each linear member e1 of ``lines`` (6n, l) mm its second- and third-order terms
+    e2 = -K^-1 f2(e1, e1), e3 = -K^-1 [2 f2(e1, e2) + f3(e1, e1, e1)]. k = m (m + 1) / 2 + 2 l.
+
+    f_nl is f2(u, u) + f3(u, u, u), nothing else (:func:`.geometric.nonlinear_forces`), so its even part is the
+    quadratic one, Q(w) = [f_nl(w) + f_nl(-w)] / 2 = f2(w, w), and 2 f2(a, b) = Q(a + b) - Q(a) - Q(b); its odd
+    part is the cubic one, [f_nl(w) - f_nl(-w)] / 2 = f3(w, w, w): exact, no step size."""
+    def even_odd(columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        forces = nonlinear_force_vector(facets, np.concatenate([columns, -columns], axis=1))
+        k = columns.shape[1]
+        return (forces[:, :k] + forces[:, k:]) / 2, (forces[:, :k] - forces[:, k:]) / 2
+
+    m = fields.shape[1]
+    first, second = np.triu_indices(m, 1)
+    single, _ = even_odd(fields)
+    pair, _ = even_odd(fields[:, first] + fields[:, second])
+    quadratic = np.concatenate([single, pair - single[:, first] - single[:, second]], axis=1)
+    even, odd = even_odd(lines)
+    e2 = -solver.solve(even)
+    mixed, _ = even_odd(lines + e2)
+    even2, _ = even_odd(e2)
+    e3 = -solver.solve(mixed - even - even2 + odd)
+    return np.concatenate([-solver.solve(quadratic), e2, e3], axis=1)
+
+
 def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.ndarray, modes: int = 36,
-                            pad_samples: int = 1400, seed: int = 1, full: NonlinearSolver | None = None
+                            pad_samples: int = 1400, seed: int = 1, full: NonlinearSolver | None = None,
+                            training: str = "states", passes: int = 3, solves: int = 8, added: int = 4
                             ) -> ReducedGeometricModel:
     """The reduced nonlinear model of a factorised linear solver over the ranges [lower, upper] (P,) mm.
 
-    The correction modes are the K-weighted POD (``modes`` of them at most) of the exact corrections u - u_lin of the
-    training states (:func:`training_states`), solved by the full nonlinear model (``full``, or a new
-    :class:`.geometric.NonlinearSolver` of ``solver``); ``residual`` is the largest difference of the reduced model's
-    training members from those (any skin translation). pad_samples: random states whose linear pad forces (with the
-    factorial's) give the pad force shapes.
+    The correction modes (``modes`` of them at most) are trained on the training states (:func:`training_states`)
+    in one of two ways (``training``):
+
+    - ``"states"``: the K-weighted POD of the exact corrections u - u_lin of all training states, each solved by the
+      full nonlinear model (``full``, or a new :class:`.geometric.NonlinearSolver` of ``solver``); ``residual`` is
+      the largest difference of the reduced model's training members from those (any skin translation).
+    - ``"derivatives"``: ``modes - passes x added`` modes from the K-weighted POD of static derivatives
+      (:func:`derivative_snapshots`: the second-order terms of the linear fields u0, W a, G Bf phi scaled to their
+      reach in the ranges, and the second- and third-order terms along the training states' linear members), then
+      ``passes`` greedy passes: the reduced training members' residuals r = K u + f_nl(u) - F - P f through K^-1 rank
+      them, the ``solves`` largest (not solved before) are solved by the full nonlinear model, and the K-weighted POD
+      of their corrections K-orthogonal to the modes so far adds ``added`` modes. ``residual`` is the largest
+      |K^-1 r| of the final model's training members on the skin (an error indicator, not a difference from the
+      full solve). ``passes x solves`` full solves instead of 137.
+
+    pad_samples: random states whose linear pad forces (with the factorial's) give the pad force shapes.
+    ``build_s``: seconds of the build's parts (pads, derivatives, full solves, tensors, indicator or check).
     """
+    if training not in TRAININGS:
+        raise SolverError(f"training: expected one of {TRAININGS}, got {training!r}")
     start = time.perf_counter()
+    clock = {"start": start}
+
+    def lap(name: str) -> None:
+        now = time.perf_counter()
+        clock[name] = clock.get(name, 0.0) + now - clock["start"]
+        clock["start"] = now
+
     model = solver.model
     lower, upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
     n, B = len(model.nodes), len(model.bilateral)
@@ -249,47 +333,100 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
     z0, Sa = P.T @ u0, np.asarray(P.T @ W)
     M = H + np.diag(1.0 / pads.k)
 
+    def linear_forces(commanded: np.ndarray) -> np.ndarray:
+        return np.array([solve_lcp(M, z0 + Sa @ s[:B] - s[B:][pads.pad_of] - pads.preload) for s in commanded])
+
+    def corrections(commanded: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Full nonlinear members (6n, m) and their corrections u - u_lin (6n, m), zero on the constrained DOFs."""
+        nonlocal full
+        full = NonlinearSolver(solver) if full is None else full
+        exact, f = np.zeros((6 * n, len(commanded))), np.zeros((len(commanded), len(pads.k)))
+        for i, state in enumerate(commanded):
+            exact[:, i], f[i], _ = full.solve_displacement(state)
+        return exact, exact - u0[:, None] - W @ commanded[:, :B].T - G @ f.T
+
     # pad force shapes: H-weighted POD of the linear members' forces
     factorial, _ = factorial_plan(lower, upper)
-    samples = np.concatenate([factorial, validation_plan(lower, upper, pad_samples, seed)])
-    forces = np.array([solve_lcp(M, z0 + Sa @ s[:B] - s[B:][pads.pad_of] - pads.preload) for s in samples])
+    forces = linear_forces(np.concatenate([factorial, validation_plan(lower, upper, pad_samples, seed)]))
     values, vectors = np.linalg.eigh(H)
     root = vectors * np.sqrt(np.maximum(values, 0))  # H = root root^T
     _, sigma, vt = np.linalg.svd(forces @ root, full_matrices=False)
     p = int((sigma > PAD_TOLERANCE * sigma[0]).sum())
     Bf = (vectors / np.sqrt(np.maximum(values, values.max() * 1e-14))) @ vt[:p].T  # root^-T V: H-orthonormal
     logger.info("%d pad force shapes of %d springs (%.1f s)", p, len(pads.k), time.perf_counter() - start)
+    lap("pads")
 
     states = training_states(lower, upper)
-    full = NonlinearSolver(solver) if full is None else full
-    exact, f = np.zeros((6 * n, len(states))), np.zeros((len(states), len(pads.k)))
-    for i, state in enumerate(states):
-        exact[:, i], f[i], _ = full.solve_displacement(state)
-    logger.info("%d training members solved by the full nonlinear model (%.1f s)", len(states),
-                time.perf_counter() - start)
-    snapshots = exact - u0[:, None] - W @ states[:, :B].T - G @ f.T  # zero on the constrained DOFs
-    gram = snapshots.T @ (solver.K @ snapshots)
+    if training == "derivatives" and not (0 < passes * added < modes and 0 < passes * solves <= len(states)):
+        raise SolverError(f"expected 0 < passes x added < modes and 0 < passes x solves <= {len(states)} (the "
+                          f"training states), got {passes} x {added}, {modes} and {passes} x {solves}")
+    facets = facet_triangles(model)
+    if training == "states":
+        exact, snapshots = corrections(states)
+        logger.info("%d training members solved by the full nonlinear model (%.1f s)", len(states),
+                    time.perf_counter() - start)
+        lap("full solves")
+        Psi = _pod(solver.K, snapshots, modes)
+    else:
+        reach = np.concatenate([[1.0], np.maximum(np.abs(lower[:B]), np.abs(upper[:B])),
+                                np.abs(forces @ H @ Bf).max(axis=0)])
+        snapshots = derivative_snapshots(solver, facets, np.concatenate([u0[:, None], W, G @ Bf], axis=1) * reach,
+                                         u0[:, None] + W @ states[:, :B].T + G @ linear_forces(states).T)
+        logger.info("%d static derivatives (%.1f s)", snapshots.shape[1], time.perf_counter() - start)
+        lap("derivatives")
+        Psi = _pod(solver.K, snapshots, modes - passes * added)
+    rom = _assemble(solver, Psi, u0, W, G, H, z0, Sa, Bf, lower, upper, facets)
+    lap("tensors")
+    solved = np.zeros(len(states), dtype=bool)
+    for sweep in range(passes + 1 if training == "derivatives" else 0):
+        f, q = rom.solve_all(states)
+        reduced = u0[:, None] + W @ states[:, :B].T + G @ f.T + Psi @ q.T
+        step = solver.solve(solver.K @ reduced + nonlinear_force_vector(facets, reduced) - solver.load[:, None]
+                            - P @ f.T).reshape(n, 6, -1)
+        lap("indicator")
+        if sweep == passes:
+            residual = float(np.abs(step[model.skin_nodes, :3]).max())
+            break
+        size = np.where(solved, -1.0, np.abs(step[:, :3]).max(axis=(0, 1)))
+        chosen = np.argsort(size)[::-1][:solves]
+        solved[chosen] = True
+        new = corrections(states[chosen])[1]
+        logger.info("pass %d: %d full solves, largest indicator %.4f mm (%.1f s)", sweep + 1, len(chosen),
+                    size.max(), time.perf_counter() - start)
+        lap("full solves")
+        new = new - Psi @ np.linalg.solve(Psi.T @ (solver.K @ Psi), Psi.T @ (solver.K @ new))
+        Psi = np.concatenate([Psi, _pod(solver.K, new, added)], axis=1)
+        rom = _assemble(solver, Psi, u0, W, G, H, z0, Sa, Bf, lower, upper, facets)
+        lap("tensors")
+    if training == "states":
+        f, q = rom.solve_all(states)
+        difference = (u0[:, None] + W @ states[:, :B].T + G @ f.T + Psi @ q.T - exact).reshape(n, 6, -1)
+        residual = float(np.abs(difference[model.skin_nodes, :3]).max())
+        lap("check")
+    clock.pop("start")
+    logger.info("reduced nonlinear model (%s): %d modes, %d pad force shapes; residual %.4f mm (%.1f s)",
+                training, rom.modes, p, residual, time.perf_counter() - start)
+    return replace(rom, residual=residual, build_s=clock)
+
+
+def _pod(K: np.ndarray, snapshots: np.ndarray, modes: int) -> np.ndarray:
+    """The K-weighted POD of snapshots (6n, k): at most ``modes`` modes (6n, r), each scaled to a unit peak."""
+    gram = snapshots.T @ (K @ snapshots)
     values, vectors = np.linalg.eigh(0.5 * (gram + gram.T))
     order = np.argsort(values)[::-1][:modes]
     order = order[values[order] > 1e-12 * values[order[0]]]
     Psi = snapshots @ vectors[:, order]
-    Psi /= np.abs(Psi).max(axis=0)
-    rom = _assemble(solver, Psi, u0, W, G, H, z0, Sa, Bf, lower, upper)
-    reference = exact.reshape(n, 6, -1)[model.skin_nodes, :3].transpose(2, 0, 1)
-    residual = float(np.abs(rom.members(states).displacement - reference).max())
-    logger.info("reduced nonlinear model: %d modes, %d pad force shapes; training members within %.4f mm (%.1f s)",
-                rom.modes, p, residual, time.perf_counter() - start)
-    return replace(rom, residual=residual)
+    return Psi / np.abs(Psi).max(axis=0)
 
 
 def _assemble(solver: ShellSolver, Psi: np.ndarray, u0: np.ndarray, W: np.ndarray, G: np.ndarray, H: np.ndarray,
-              z0: np.ndarray, Sa: np.ndarray, Bf: np.ndarray, lower: np.ndarray, upper: np.ndarray
-              ) -> ReducedGeometricModel:
+              z0: np.ndarray, Sa: np.ndarray, Bf: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+              facets: FacetTriangles | None = None) -> ReducedGeometricModel:
     """The reduced model of the correction modes Psi (6n, r) (residual not yet measured: NaN)."""
     model = solver.model
     n, r = len(model.nodes), Psi.shape[1]
     basis = np.concatenate([u0[:, None], W, G @ Bf, Psi], axis=1).reshape(n, 6, -1)[:, :3]
-    T3, T4 = energy_tensors(facet_triangles(model), basis)
+    T3, T4 = energy_tensors(facet_triangles(model) if facets is None else facets, basis)
     skin, normals = model.skin_nodes, skin_surface(model).normals
 
     def on_skin(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
