@@ -214,8 +214,9 @@ def _noise(field: DisplacementField) -> float:
     return DEFAULT_NOISE_MM
 
 
-def _setting_errors(field: DisplacementField, skin: SkinSurface, noise: float) -> tuple[np.ndarray, np.ndarray]:
-    """(variance (N,) mm^2, modes (N, k) mm): a field's errors as the setting test weighs them. Each node's variance
+def _entry_errors(field: DisplacementField, skin: SkinSurface, noise: float) -> tuple[np.ndarray, np.ndarray]:
+    """(variance (N,) mm^2, modes (N, k) mm): a calibration entry's errors as the setting test weighs them and
+    :meth:`_Problem.without_pose` takes its pose error out by. Each node's variance
     times its correlation sum (the smoothing's correlated noise, as an estimate's covariance counts it) and the
     registration's pose modes: a scanned entry's pose error looks like a rigid turn of the part, which a lock, buffer
     or hinge move nearly is; with white node noise alone correct scanned entries of the coarse hood were refused
@@ -232,7 +233,7 @@ def _setting_errors(field: DisplacementField, skin: SkinSurface, noise: float) -
 
 class _Problem:
     """The entries as arrays: Y (M, N) with 0 where unseen, mask (M, N), settings (M, P), noise (M,); errors: per
-    entry its (variance, modes) of :func:`_setting_errors`."""
+    entry its (variance, modes) of :func:`_entry_errors`."""
 
     def __init__(self, entries: list[CalibrationEntry], reduced: ReducedModel, physics: PhysicalResponses,
                  skin: SkinSurface):
@@ -244,7 +245,7 @@ class _Problem:
         self.settings = np.array([np.asarray(e.setting, float) for e in entries])
         self.noise = np.array([_noise(e.field) for e in entries])
         self.prior = np.array([PRIOR_STD[name.split(":")[0]] for name in factor_names(reduced, physics)])
-        self.errors = [_setting_errors(e.field, skin, level) for e, level in zip(entries, self.noise, strict=True)]
+        self.errors = [_entry_errors(e.field, skin, level) for e, level in zip(entries, self.noise, strict=True)]
         # per scanned entry (U (N, 6), (U^T V^-1 U + I)^-1 U^T V^-1 on its seen nodes): its pose error's best fit
         self._poses = [None if modes.shape[1] == 0 else
                        (modes, np.linalg.solve((modes.T * (seen / variance)) @ modes + np.eye(modes.shape[1]),
