@@ -213,8 +213,9 @@ def judge(
     the covariance nets along its gains; None when the bases state no noise (D is then among the error modes)."""
     if test is None:
         return check_residual(residual, design, errors, model_mm=model_mm), None, None
-    return (test.check(residual, design if span is None else span, errors, model_mm), test.error_modes(errors),
-            test.discrepancy_pair())
+    registration = test.registration(errors)
+    return (test.check(residual, design if span is None else span, errors, model_mm, registration),
+            test.error_modes(errors, registration), test.discrepancy_pair())
 
 
 def fit_weight(
