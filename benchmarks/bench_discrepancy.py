@@ -33,12 +33,15 @@ parts (truth from the bases' own reduced model) through the same path. ``--calib
 first calibrated (core.loop.calibration, 13 one-at-a-time entries with 0.02 mm noise) to a family drawn from the seed,
 made by CalculiX (coarse cache) or by the embedded solver re-solved with the family's physics; ``calibrated_family``
 parts are of that family (harness (ii) on the calibrated bases); ``--scanned-entries``: the entries are scans of the
-family taken as the parts' are (a cell calibrates with its own scanner), not white-noise fields. Besides the gate,
+family taken as the parts' are (a cell calibrates with its own scanner), not white-noise fields;
+``--entry-moves 0.8 0.4`` (25 entries) and ``--entry-repeats K`` (each setting K times) make larger calibrations.
+Besides the gate,
 a table per boundary of error / sqrt(std^2 + model_std^2) (is each error inside its total stated uncertainty).
 
 Prints a table per kind and writes benchmarks/out/discrepancy.json (rewritten as it goes). From the repository root:
     scripts/with-env nice python benchmarks/bench_discrepancy.py [--parts N] [--mesh-parts N] [--ccx-parts N]
-        [--own-parts N] [--calibrate ccx|embedded] [--without-physics] [--kinds ...]
+        [--own-parts N] [--calibrate ccx|embedded [--scanned-entries] [--entry-moves MM ...] [--entry-repeats K]]
+        [--without-physics] [--kinds ...]
 """
 
 from __future__ import annotations
@@ -167,12 +170,14 @@ def z_table(rows: list[dict], names: tuple[str, ...]) -> dict:
     return out
 
 
-def calibrated_bases(bases, physics: PhysicalResponses, truth, rng: np.random.Generator, scan=None):
-    """``bases`` calibrated (core.loop.calibration, as ``hood-decomp calibrate``) from the one-at-a-time plan's 13
-    entries of the part model ``truth`` (exact pad contact): fields with 0.02 mm white noise stated as the error
-    model, or, with ``scan`` (a member's 3D displacement (n, 3) -> scanned field), scans of the part as a cell would
-    take them (the scanner, the marker registration and the scan step of the parts)."""
-    settings = one_at_a_time(len(bases.names))
+def calibrated_bases(bases, physics: PhysicalResponses, truth, rng: np.random.Generator, scan=None,
+                     moves: tuple[float, ...] = (0.8,), repeats: int = 1):
+    """``bases`` calibrated (core.loop.calibration, as ``hood-decomp calibrate``) from the one-at-a-time plan's
+    entries of the part model ``truth`` (exact pad contact; 13 with one move, each setting taken ``repeats`` times):
+    fields with 0.02 mm white noise stated as the error model, or, with ``scan`` (a member's 3D displacement (n, 3)
+    -> scanned field), scans of the part as a cell would take them (the scanner, the marker registration and the scan
+    step of the parts)."""
+    settings = np.repeat(one_at_a_time(len(bases.names), moves), repeats, axis=0)
     members = solve_members(truth, settings)
     n = bases.skin.n_nodes
 
@@ -205,12 +210,17 @@ def main() -> int:
     parser.add_argument("--own-parts", type=int, default=0,
                         help="parts of own_model: harness (i), truth from the bases' own reduced model (0: skip)")
     parser.add_argument("--calibrate", choices=("ccx", "embedded"), default=None,
-                        help="first calibrate the bases (13 entries, 0.02 mm noise) to a family drawn from the seed, "
-                             "made by CalculiX (coarse, needs --ccx-cache) or by the embedded solver re-solved with "
-                             "that family's physics (any resolution); calibrated_family: parts of that family")
+                        help="first calibrate the bases (13 entries unless said, 0.02 mm noise) to a family drawn "
+                             "from the seed, made by CalculiX (coarse, needs --ccx-cache) or by the embedded solver "
+                             "re-solved with that family's physics (any resolution); calibrated_family: parts of that "
+                             "family")
     parser.add_argument("--scanned-entries", action="store_true",
-                        help="with --calibrate: the 13 calibration entries are scans of the family (as the parts'), "
+                        help="with --calibrate: the calibration entries are scans of the family (as the parts'), "
                              "not fields with 0.02 mm white node noise")
+    parser.add_argument("--entry-moves", type=float, nargs="+", default=(0.8,),
+                        help="with --calibrate: the one-at-a-time moves, mm (0.8: 13 entries; 0.8 0.4: 25)")
+    parser.add_argument("--entry-repeats", type=int, default=1,
+                        help="with --calibrate: each calibration setting taken this many times (3: 39 entries)")
     parser.add_argument("--seed", type=int, default=152)
     parser.add_argument("--out", type=Path, default=OUT, help="JSON written as the run goes")
     args = parser.parse_args()
@@ -242,7 +252,8 @@ def main() -> int:
     if args.calibrate:
         family = Family.draw(rng)
         bases = calibrated_bases(bases, physics, ccx.reduced(family), rng,
-                                 (lambda u: scan_field(skin, u)) if args.scanned_entries else None)
+                                 (lambda u: scan_field(skin, u)) if args.scanned_entries else None,
+                                 tuple(args.entry_moves), args.entry_repeats)
         results["calibrated_to"] = dataclasses.asdict(family) | {"by": args.calibrate,
                                                                  "record": json.loads(bases.calibration)}
         log(f"calibrated to the CalculiX family {family}")
