@@ -80,24 +80,34 @@ def start_nodes(bases: PathLike, *, params_file: PathLike | Sequence[PathLike] |
 def bring_up(nodes: Sequence[str] = NODE_EXECUTABLES, timeout_s: float = 60.0,
              processes: Sequence[subprocess.Popen[bytes]] | None = None) -> dict[str, str]:
     """Configure and activate each node (by executable name) through its lifecycle services; a node already active
-    is left as it is. ``processes`` (one per node, when started here): a process that ended is named at once.
-    Returns executable -> why it is not active, for those that are not (empty: all active)."""
+    is left as it is. ``timeout_s`` is the budget of all nodes together. ``processes`` (one per node, when started
+    here): a process that ended is named at once, and a node of the same name in another process on this ROS domain
+    (told apart by the process id in the heartbeats) is a failure naming it: lifecycle calls reach both nodes and are
+    answered by either. Returns executable -> why it is not active, for those that are not (empty: all active)."""
     from diagnostic_msgs.msg import DiagnosticArray
     from lifecycle_msgs.msg import Transition
     from lifecycle_msgs.srv import ChangeState, GetState
 
+    from hood_decomp.ros.node_common import HEARTBEAT_S
     from hood_decomp.ros.participant import Participant
 
     reasons: dict[str, str] = {}
+    pids: dict[str, set[str]] = {}  # status name -> the process ids its heartbeats came from
 
     def on_diagnostics(array: DiagnosticArray) -> None:
-        """A node's configure failure, from its transition report or any heartbeat after it."""
+        """A node's configure failure, from its transition report or any heartbeat after it; the heartbeats' pids."""
         for status in array.status:
             if "configure failed" in status.message:
                 reasons[status.name] = status.message
+            pids.setdefault(status.name, set()).update(kv.value for kv in status.values if kv.key == "pid")
+
+    def no_answer(what: str, started: float) -> str:
+        return (f"no answer to {what} within {time.monotonic() - started:.0f} s (bring-up budget {timeout_s:.0f} s "
+                f"for {len(nodes)} node(s), {time.monotonic() - begin:.0f} s used)")
 
     failures = {}
-    deadline = time.monotonic() + timeout_s
+    begin = time.monotonic()
+    deadline = begin + timeout_s
     with Participant("hood_decomp_bring_up") as peer:
         peer.subscribe("/diagnostics", DiagnosticArray, on_diagnostics)
         for index, executable in enumerate(nodes):
@@ -107,10 +117,11 @@ def bring_up(nodes: Sequence[str] = NODE_EXECUTABLES, timeout_s: float = 60.0,
             def ended(process: subprocess.Popen[bytes] | None = process) -> bool:
                 return process is not None and process.poll() is not None
 
+            started = time.monotonic()
             state = peer.call(f"/{name}/get_state", GetState, GetState.Request(), deadline - time.monotonic(), ended)
             if state is None:
                 failures[executable] = (f"exited with status {process.returncode}" if ended() else
-                                        f"no answer from /{name}/get_state within {timeout_s:.0f} s")
+                                        no_answer(f"/{name}/get_state", started))
                 continue
             steps = {"unconfigured": (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE),
                      "inactive": (Transition.TRANSITION_ACTIVATE,), "active": ()}.get(state.current_state.label)
@@ -118,16 +129,32 @@ def bring_up(nodes: Sequence[str] = NODE_EXECUTABLES, timeout_s: float = 60.0,
                 failures[executable] = f"in state {state.current_state.label!r}"
                 continue
             for transition in steps:
+                what = "configure" if transition == Transition.TRANSITION_CONFIGURE else "activate"
+                started = time.monotonic()
                 response = peer.call(f"/{name}/change_state", ChangeState,
                                      ChangeState.Request(transition=Transition(id=transition)),
                                      max(1.0, deadline - time.monotonic()), ended)
                 if response is None or not response.success:
-                    what = "configure" if transition == Transition.TRANSITION_CONFIGURE else "activate"
                     key = f"hood_decomp/{name}"
                     peer.wait(lambda k=key: k in reasons, 2.0)  # the reason comes on /diagnostics
-                    failures[executable] = reasons.get(key, f"{what} failed" if response else
-                                                       f"no answer to {what} within {timeout_s:.0f} s")
+                    failures[executable] = reasons.get(key, f"{what} failed" if response else no_answer(what, started))
                     break
+        if processes is not None:
+            # A namesake can answer before this node has started: wait for a heartbeat of each started node, and
+            # listen two heartbeat periods at least (discovery, then a namesake's next heartbeat).
+            started_nodes = [(executable, f"hood_decomp/{NODE_NAMES[executable]}", str(process.pid), process)
+                             for executable, process in zip(nodes, processes, strict=True)]
+            peer.wait(lambda: time.monotonic() - begin >= 2 * HEARTBEAT_S and all(
+                pid in pids.get(key, ()) or process.poll() is not None for _, key, pid, process in started_nodes),
+                max(2 * HEARTBEAT_S, deadline - time.monotonic()))
+            for executable, key, pid, _ in started_nodes:
+                others = sorted(pids.get(key, set()) - {pid})
+                if others:
+                    failures[executable] = (
+                        f"another process (pid {', '.join(others)}) on ROS_DOMAIN_ID "
+                        f"{os.environ.get('ROS_DOMAIN_ID', '0')} also runs a node named /{NODE_NAMES[executable]}, "
+                        "and lifecycle calls reach both (either answers): stop it or set ROS_DOMAIN_ID to a domain of "
+                        "this cell alone" + (f"; then: {failures[executable]}" if executable in failures else ""))
     return failures
 
 
