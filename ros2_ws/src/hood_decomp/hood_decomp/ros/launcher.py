@@ -21,6 +21,10 @@ from hood_decomp.errors import HoodDecompError
 NODE_EXECUTABLES: tuple[str, ...] = ("scan_node", "estimator_node", "decomposition_node")
 NODE_NAMES = {"scan_node": "hood_decomp_scan", "estimator_node": "hood_decomp_estimator",
               "decomposition_node": "hood_decomp_decomposition"}
+#: Budget of a bring-up, all nodes together: configure loads the bases in each node, one after the other. The three
+#: nodes of the default hood took 5 s on a quiet 2-core machine, 17 s at load 5, 37 s at load 10, and 56 s / more than
+#: 60 s with 16 / 24 busy processes on their one core (2026-11-25), where a 60 s budget failed the demo's bring-up.
+BRING_UP_TIMEOUT_S = 120.0
 
 
 def node_executable(name: str) -> str:
@@ -45,7 +49,7 @@ PathLike = str | os.PathLike[str]
 def start_nodes(bases: PathLike, *, params_file: PathLike | Sequence[PathLike] | None = None,
                 nodes: Sequence[str] = NODE_EXECUTABLES, extra_params: Sequence[str] = (),
                 log_dir: pathlib.Path | None = None, activate: bool = True,
-                timeout_s: float = 60.0) -> list[subprocess.Popen[bytes]]:
+                timeout_s: float = BRING_UP_TIMEOUT_S) -> list[subprocess.Popen[bytes]]:
     """Start each node in its own process and (``activate``) bring it to active; ``extra_params`` are
     ``name:=value`` strings for every node. ``params_file``: one parameter file or several (a later one wins). The
     params files come first on the command line and ``bases`` after them, so ``bases`` wins over a file (rcl applies
@@ -77,7 +81,7 @@ def start_nodes(bases: PathLike, *, params_file: PathLike | Sequence[PathLike] |
     return processes
 
 
-def bring_up(nodes: Sequence[str] = NODE_EXECUTABLES, timeout_s: float = 60.0,
+def bring_up(nodes: Sequence[str] = NODE_EXECUTABLES, timeout_s: float = BRING_UP_TIMEOUT_S,
              processes: Sequence[subprocess.Popen[bytes]] | None = None) -> dict[str, str]:
     """Configure and activate each node (by executable name) through its lifecycle services; a node already active
     is left as it is. ``timeout_s`` is the budget of all nodes together. ``processes`` (one per node, when started
