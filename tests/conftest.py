@@ -1,7 +1,8 @@
 """Test-session setup shared by all tests.
 
-ROS 2 discovery stays on loopback and each test run gets its own domain, so parallel runs never see each other and no
-discovery traffic leaves the machine. This must happen before any rclpy.init().
+ROS 2 discovery stays on loopback and each test session claims a domain no other session on this machine holds
+(tests/ros_domain.py; an explicit ROS_DOMAIN_ID is kept), so parallel runs never answer each other's nodes and no
+discovery traffic leaves the machine. This must happen before any rclpy.init(); node processes inherit the variable.
 """
 
 import dataclasses
@@ -11,8 +12,10 @@ from typing import Any
 
 import pytest
 
+from tests.ros_domain import claim_domain
+
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
+_ROS_DOMAIN = claim_domain()  # (domain, descriptor): the lock is held while the session's process lives
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 
@@ -47,6 +50,12 @@ def _hood_case(resolution: str, directory: pathlib.Path, preset: str = "hood") -
     path = directory / "bases.h5"
     save_bases(path, bases)
     return HoodCase(model, skin, solver, reduced, ensemble, bases, path)
+
+
+@pytest.fixture(scope="session")
+def ros_domain() -> tuple[int, int | None]:
+    """This session's ROS domain and the descriptor holding its lock (None: an explicit domain held elsewhere)."""
+    return _ROS_DOMAIN
 
 
 @pytest.fixture(scope="session")

@@ -9,7 +9,6 @@ import sys
 from hood_decomp.ros.launcher import NODE_EXECUTABLES, bring_up, run_until_interrupted, start_nodes
 
 HELP = "start the three nodes as separate processes and bring them to active (Ctrl-C stops them)"
-BRING_UP_TIMEOUT_S = 120.0  # configure loads the bases in each node
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -26,7 +25,7 @@ def run(args: argparse.Namespace) -> int:
     processes = start_nodes(args.bases.resolve(), params_file=args.params, nodes=args.nodes, activate=False)
     print(f"hood-decomp launch: started {', '.join(args.nodes)} (pids "
           f"{', '.join(str(p.pid) for p in processes)}); bringing them to active", file=sys.stderr)
-    failures = bring_up(args.nodes, BRING_UP_TIMEOUT_S, processes)
+    failures = bring_up(args.nodes, processes=processes)
     for name in args.nodes:
         state = f"NOT ACTIVE: {failures[name]}" if name in failures else "active"
         print(f"hood-decomp launch: {name} {state}", file=sys.stderr)

@@ -21,6 +21,14 @@ from hood_decomp.errors import HoodDecompError
 NODE_EXECUTABLES: tuple[str, ...] = ("scan_node", "estimator_node", "decomposition_node")
 NODE_NAMES = {"scan_node": "hood_decomp_scan", "estimator_node": "hood_decomp_estimator",
               "decomposition_node": "hood_decomp_decomposition"}
+#: Budget of a bring-up, all nodes together: configure loads the bases in each node, one after the other. The three
+#: nodes of the default hood took 5 s on a quiet 2-core machine, 17 s at load 5, 37 s at load 10, and 56 s / more than
+#: 60 s with 16 / 24 busy processes on their one core (2026-11-25), where a 60 s budget failed the demo's bring-up.
+BRING_UP_TIMEOUT_S = 120.0
+#: How long a bring-up listens on /diagnostics at least, for the heartbeat of a node of the same name in another
+#: process: discovery of a running participant can wait for its next announcement (Fast DDS: every 3 s), then the
+#: heartbeat comes within 1 s. Measured (quiet): an existing namesake first heard 0.3, 3.4 and 3.4 s after the start.
+NAMESAKE_LISTEN_S = 5.0
 
 
 def node_executable(name: str) -> str:
@@ -45,7 +53,7 @@ PathLike = str | os.PathLike[str]
 def start_nodes(bases: PathLike, *, params_file: PathLike | Sequence[PathLike] | None = None,
                 nodes: Sequence[str] = NODE_EXECUTABLES, extra_params: Sequence[str] = (),
                 log_dir: pathlib.Path | None = None, activate: bool = True,
-                timeout_s: float = 60.0) -> list[subprocess.Popen[bytes]]:
+                timeout_s: float = BRING_UP_TIMEOUT_S) -> list[subprocess.Popen[bytes]]:
     """Start each node in its own process and (``activate``) bring it to active; ``extra_params`` are
     ``name:=value`` strings for every node. ``params_file``: one parameter file or several (a later one wins). The
     params files come first on the command line and ``bases`` after them, so ``bases`` wins over a file (rcl applies
@@ -77,11 +85,13 @@ def start_nodes(bases: PathLike, *, params_file: PathLike | Sequence[PathLike] |
     return processes
 
 
-def bring_up(nodes: Sequence[str] = NODE_EXECUTABLES, timeout_s: float = 60.0,
+def bring_up(nodes: Sequence[str] = NODE_EXECUTABLES, timeout_s: float = BRING_UP_TIMEOUT_S,
              processes: Sequence[subprocess.Popen[bytes]] | None = None) -> dict[str, str]:
     """Configure and activate each node (by executable name) through its lifecycle services; a node already active
-    is left as it is. ``processes`` (one per node, when started here): a process that ended is named at once.
-    Returns executable -> why it is not active, for those that are not (empty: all active)."""
+    is left as it is. ``timeout_s`` is the budget of all nodes together. ``processes`` (one per node, when started
+    here): a process that ended is named at once, and a node of the same name in another process on this ROS domain
+    (told apart by the process id in the heartbeats) is a failure naming it: lifecycle calls reach both nodes and are
+    answered by either. Returns executable -> why it is not active, for those that are not (empty: all active)."""
     from diagnostic_msgs.msg import DiagnosticArray
     from lifecycle_msgs.msg import Transition
     from lifecycle_msgs.srv import ChangeState, GetState
@@ -89,15 +99,22 @@ def bring_up(nodes: Sequence[str] = NODE_EXECUTABLES, timeout_s: float = 60.0,
     from hood_decomp.ros.participant import Participant
 
     reasons: dict[str, str] = {}
+    pids: dict[str, set[str]] = {}  # status name -> the process ids its heartbeats came from
 
     def on_diagnostics(array: DiagnosticArray) -> None:
-        """A node's configure failure, from its transition report or any heartbeat after it."""
+        """A node's configure failure, from its transition report or any heartbeat after it; the heartbeats' pids."""
         for status in array.status:
             if "configure failed" in status.message:
                 reasons[status.name] = status.message
+            pids.setdefault(status.name, set()).update(kv.value for kv in status.values if kv.key == "pid")
+
+    def no_answer(what: str, started: float) -> str:
+        return (f"no answer to {what} within {time.monotonic() - started:.0f} s (bring-up budget {timeout_s:.0f} s "
+                f"for {len(nodes)} node(s), {time.monotonic() - begin:.0f} s used)")
 
     failures = {}
-    deadline = time.monotonic() + timeout_s
+    begin = time.monotonic()
+    deadline = begin + timeout_s
     with Participant("hood_decomp_bring_up") as peer:
         peer.subscribe("/diagnostics", DiagnosticArray, on_diagnostics)
         for index, executable in enumerate(nodes):
@@ -107,10 +124,11 @@ def bring_up(nodes: Sequence[str] = NODE_EXECUTABLES, timeout_s: float = 60.0,
             def ended(process: subprocess.Popen[bytes] | None = process) -> bool:
                 return process is not None and process.poll() is not None
 
+            started = time.monotonic()
             state = peer.call(f"/{name}/get_state", GetState, GetState.Request(), deadline - time.monotonic(), ended)
             if state is None:
                 failures[executable] = (f"exited with status {process.returncode}" if ended() else
-                                        f"no answer from /{name}/get_state within {timeout_s:.0f} s")
+                                        no_answer(f"/{name}/get_state", started))
                 continue
             steps = {"unconfigured": (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE),
                      "inactive": (Transition.TRANSITION_ACTIVATE,), "active": ()}.get(state.current_state.label)
@@ -118,16 +136,32 @@ def bring_up(nodes: Sequence[str] = NODE_EXECUTABLES, timeout_s: float = 60.0,
                 failures[executable] = f"in state {state.current_state.label!r}"
                 continue
             for transition in steps:
+                what = "configure" if transition == Transition.TRANSITION_CONFIGURE else "activate"
+                started = time.monotonic()
                 response = peer.call(f"/{name}/change_state", ChangeState,
                                      ChangeState.Request(transition=Transition(id=transition)),
                                      max(1.0, deadline - time.monotonic()), ended)
                 if response is None or not response.success:
-                    what = "configure" if transition == Transition.TRANSITION_CONFIGURE else "activate"
                     key = f"hood_decomp/{name}"
                     peer.wait(lambda k=key: k in reasons, 2.0)  # the reason comes on /diagnostics
-                    failures[executable] = reasons.get(key, f"{what} failed" if response else
-                                                       f"no answer to {what} within {timeout_s:.0f} s")
+                    failures[executable] = reasons.get(key, f"{what} failed" if response else no_answer(what, started))
                     break
+        if processes is not None:
+            # A namesake can answer before this node has started: wait for a heartbeat of each started node, and
+            # listen NAMESAKE_LISTEN_S at least for a namesake's.
+            started_nodes = [(executable, f"hood_decomp/{NODE_NAMES[executable]}", str(process.pid), process)
+                             for executable, process in zip(nodes, processes, strict=True)]
+            peer.wait(lambda: time.monotonic() - begin >= NAMESAKE_LISTEN_S and all(
+                pid in pids.get(key, ()) or process.poll() is not None for _, key, pid, process in started_nodes),
+                max(NAMESAKE_LISTEN_S - (time.monotonic() - begin), deadline - time.monotonic()))
+            for executable, key, pid, _ in started_nodes:
+                others = sorted(pids.get(key, set()) - {pid})
+                if others:
+                    failures[executable] = (
+                        f"another process (pid {', '.join(others)}) on ROS_DOMAIN_ID "
+                        f"{os.environ.get('ROS_DOMAIN_ID', '0')} also runs a node named /{NODE_NAMES[executable]}, "
+                        "and lifecycle calls reach both (either answers): stop it or set ROS_DOMAIN_ID to a domain of "
+                        "this cell alone" + (f"; then: {failures[executable]}" if executable in failures else ""))
     return failures
 
 

@@ -439,9 +439,10 @@ class HoodNode(LifecycleNode):
     def heartbeat_values(self) -> dict[str, object]:
         """Key-values of the heartbeat: the state, per output topic its matched subscriptions and per input topic its
         matched publishers (DDS matches each pair on both sides; a sender that counts our subscription may not be
-        counted by it yet, and a best-effort subscription loses what comes before), the BLAS threads in use and
-        whether freed memory is kept for the next message (:func:`keep_freed_memory`)."""
-        return {"state": self.state, "blas_threads": blas_threads(), "memory_kept": _memory_kept,
+        counted by it yet, and a best-effort subscription loses what comes before), the BLAS threads in use,
+        whether freed memory is kept for the next message (:func:`keep_freed_memory`) and the process id (two nodes of
+        one name on one ROS domain answer each other's lifecycle calls: the launcher tells them apart by it)."""
+        return {"state": self.state, "blas_threads": blas_threads(), "memory_kept": _memory_kept, "pid": os.getpid(),
                 **{f"subscribers {entity.topic_name}": entity.get_subscription_count()
                    for entity in self._outputs if isinstance(entity, LifecyclePublisher)},
                 **{f"publishers {entity.topic_name}": entity.get_publisher_count()
