@@ -4,6 +4,8 @@ for CalculiX and the embedded solver's reduced model at a scaled thickness."""
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import pytest
 
@@ -123,3 +125,24 @@ def test_stand_in_with_embedded_pads_is_the_embedded_solver_at_every_thickness()
     loads[:, :3] = force_boundary_loads(model)
     expected_gas = 0.1 * project(model, solver.pads, solver.solve(loads.ravel()).reshape(-1, 6)[:, :3, None])[0][:, 0]
     np.testing.assert_allclose(gas, expected_gas, atol=1e-9 * np.abs(expected_gas).max() + 1e-15)
+
+
+def test_serial_responses_skip_a_job_another_process_finished_while_waiting_for_the_lock(tmp_path, monkeypatch):
+    """Fails if a job stored by another process while this one waited for the lock is run again."""
+    model = hood20().model
+    runs: list[str] = []
+    jobs = tmp_path / "responses.jobs" / model.model_id
+
+    @contextlib.contextmanager
+    def other_process_first(lock):
+        # the other process held the lock and stored "load" at nominal thickness
+        if not (jobs / "load.npy").exists():
+            np.save(jobs / "load.npy", np.full((len(model.nodes), 3), 7.0))
+        yield
+
+    monkeypatch.setattr(standin, "holding", other_process_first)
+    monkeypatch.setattr(standin, "run_case", lambda scaled, case, constrained, timeout: (
+        runs.append(case.name) or np.zeros((len(scaled.nodes), 3))))
+    out = standin.serial_responses(model, tmp_path / "responses.npz", lock=tmp_path / "lock", scales=(1.0,))
+    assert "load" not in runs and len(runs) == len(out[1.0]) - 1
+    np.testing.assert_array_equal(out[1.0]["load"], 7.0)

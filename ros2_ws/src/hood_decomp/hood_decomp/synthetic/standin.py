@@ -96,10 +96,11 @@ def serial_responses(model: PartModel, cache: Path, lock: Path | None = None,
             path = jobs / f"{case.name}.npy"
             if not path.exists():
                 with holding(lock):
-                    values = run_case(scaled, case, constrained, timeout=timeout)
-                partial = path.with_suffix(".partial.npy")
-                np.save(partial, values)
-                partial.replace(path)
+                    # looked at again once the lock is held: another process may have run it meanwhile
+                    if not path.exists():
+                        partial = path.with_suffix(".partial.npy")
+                        np.save(partial, run_case(scaled, case, constrained, timeout=timeout))
+                        partial.replace(path)
             out[float(scale)][case.name] = np.load(path)
             logger.info("serial CalculiX responses at thickness %.3f: %s done (%d/%d)", scale, case.name, done,
                         len(cases))
