@@ -358,13 +358,13 @@ def hood_setup(model: PartModel) -> tuple:
 
 
 def check(setup: tuple, standin: StandIn, families: int, parts: int, detect: int, families_25: int, reference: bool,
-          part_spread: float, title: str) -> dict:
+          part_spread: float, title: str) -> tuple[dict, dict[str, dict[str, list]]]:
     """The check on ``standin``'s parts (both hoods): the issue's table (nominal physics, no noise, 40 parts, embedded
     bases); then per family (seeds 1000 + f) 13 calibration entries (and 25 for the first ``families_25``), ``parts``
     parts at 0.02 mm white field noise (states: seeds 2000 + f), each part with its own thickness factor (1 +-
     ``part_spread``), estimated with the uncalibrated, (``reference``) reference-relative and calibrated bases; the
     first ``detect`` parts per family also with an undeclared 0.05 mm hinge_R.z move (embedded response). Prints the
-    tables; returns the results for the JSON."""
+    tables; returns the results for the JSON and each variant's per-part records (:func:`record`)."""
     start = time.perf_counter()
     model, skin, solver, reduced, bases, physics = setup
     moved = solver.boundary_response("hinge_R", "z").reshape(-1, 6)[:, :3, None]
@@ -441,7 +441,7 @@ def check(setup: tuple, standin: StandIn, families: int, parts: int, detect: int
               f"mean position error {mm(lifted[f]) if lifted else '-'} mm")
     results["seconds"] = time.perf_counter() - start
     results["load_at_end"] = os.getloadavg()[0]
-    return results
+    return results, collected
 
 
 def main() -> None:
@@ -470,18 +470,23 @@ def main() -> None:
         setup = hood_setup(model)
         standin = StandIn(model, responses, embedded_pads=True)
         logger.info("default hood set up in %.0f s", time.perf_counter() - start)
-        results = check(setup, standin, args.families, args.parts, args.detect, 0, False, args.part_spread,
-                        "DEFAULT hood")
+        results, collected = check(setup, standin, args.families, args.parts, args.detect, 0, False,
+                                   args.part_spread, "DEFAULT hood")
         results["note"] = ("default hood, CalculiX load/gas/unit responses at thickness 0.95/1/1.05, the embedded "
                            "solver's pad responses at each")
     else:
         setup = hood_setup(build_hood("coarse"))
         standin = StandIn(setup[0], calculix_responses(setup[0], cache=args.ccx_cache))
-        results = check(setup, standin, args.families, args.parts, args.detect, args.families_25, True,
-                        args.part_spread, "coarse hood")
+        results, collected = check(setup, standin, args.families, args.parts, args.detect, args.families_25, True,
+                                   args.part_spread, "coarse hood")
     results["seconds_with_set_up"] = time.perf_counter() - start
     OUT.mkdir(exist_ok=True)
     (OUT / args.json).write_text(json.dumps(results, indent=1))
+    # the per-part records beside it ("<variant>|<key>"): subsets (some families, another run's same parts) are
+    # summarised afterwards with summarise_collection
+    np.savez_compressed(OUT / Path(args.json).with_suffix(".npz").name,
+                        **{f"{label}|{key}": np.array(values) for label, data in collected.items()
+                           for key, values in data.items() if values})
     print(f"wrote {OUT / args.json} in {results['seconds_with_set_up']:.0f} s")
 
 
