@@ -17,8 +17,10 @@ force response by 1/E exactly (the unit motions not at all); pad stiffness and p
 is solved exactly per part with the repository's contact solver on the CalculiX responses (the buffers are the only
 nonlinearity): that is what ``ensemble --solver calculix`` does too.
 
-On a mesh whose jobs are too large to run two at a time (the default hood: ~7.7 GB a job), :func:`nominal_responses`
-makes the nominal-thickness load, gas-spring and unit responses only, one job at a time under a flock, resumable.
+On a mesh whose jobs are too large to run two at a time (the default hood: ~7.7 GB a job), :func:`serial_responses`
+makes the load, gas-spring and unit responses at the three thickness scales, one job at a time under a flock,
+resumable, and :class:`StandIn` takes the embedded solver's pad responses at every scale (``embedded_pads``: the
+default hood's 68 pad springs would be 68 more such jobs at scale 1, out of reach).
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ import numpy as np
 from hood_decomp.core.fe.calculix import LoadCase, holding, load_cases, run_case, run_cases
 from hood_decomp.core.fe.ensemble import solve_members
 from hood_decomp.core.fe.model import PartModel
-from hood_decomp.core.fe.solver import PAD_LATTICE, build_solver, condense, force_boundary_loads, pad_springs
+from hood_decomp.core.fe.solver import PAD_LATTICE, assemble, build_solver, force_boundary_loads, pad_springs, project
 from hood_decomp.core.types import ReducedModel
 from hood_decomp.errors import SolverError
 
@@ -63,38 +65,68 @@ def stand_in_cases(model: PartModel, scale: float = 1.0, pads: bool = True, pad_
     return scaled, cases, constrained
 
 
-def nominal_responses(model: PartModel, cache: Path, lock: Path | None = None,
-                      timeout: float = 4 * 3600.0) -> dict[str, np.ndarray]:
-    """CalculiX translations (n, 3) mm of ``model`` at nominal thickness without the pad jobs ("load", "gas",
-    "unit_<LABEL>"; :func:`stand_in_cases`), for a mesh too large to run two jobs at a time (the default hood:
-    ~7.7 GB and 140-1000 s a job). ``cache``: an .npz (with "model_id") read when present and its model_id
-    matches, else made: one job at a time in this process, each holding ``lock`` (flock) and stored on completion in
-    ``<cache>.jobs/<name>.npy`` (a rerun resumes), the .npz written under another name and renamed when complete.
+def serial_responses(model: PartModel, cache: Path, lock: Path | None = None,
+                     scales: tuple[float, ...] = THICKNESS_SCALES, timeout: float = 4 * 3600.0
+                     ) -> dict[float, dict[str, np.ndarray]]:
+    """CalculiX translations (n, 3) mm of ``model`` without the pad jobs ("load", "gas", "unit_<LABEL>";
+    :func:`stand_in_cases`) per thickness scale, in :func:`calculix_responses`' layout, for a mesh too large to run
+    two jobs at a time (the default hood: ~7.7 GB and 140-1000 s a job). ``cache``: an .npz (with "model_id" and
+    "scales") read when present, its model_id matches and it holds every scale, else made: one job at a time in this
+    process, each holding ``lock`` (flock) and stored on completion in ``<cache>.jobs/<model_id>/<name>.npy`` at scale
+    1 (the layout of session 14's nominal cache, whose jobs are reused) and ``.../<scale>/<name>.npy`` at the others
+    (a rerun resumes), the .npz written under another name and renamed when complete.
     """
     cache = Path(cache)
     if cache.exists():
         with np.load(cache, allow_pickle=False) as data:
             if str(data["model_id"]) != model.model_id:
                 raise SolverError(f"{cache}: model_id {data['model_id']} is not {model.model_id}")
-            return {key: data[key] for key in data.files if key != "model_id"}
-    scaled, cases, constrained = stand_in_cases(model, pads=False)
-    jobs = cache.with_suffix(".jobs") / model.model_id
-    jobs.mkdir(parents=True, exist_ok=True)
-    out = {}
-    for done, case in enumerate(cases, start=1):
-        path = jobs / f"{case.name}.npy"
-        if not path.exists():
-            with holding(lock):
-                values = run_case(scaled, case, constrained, timeout=timeout)
-            partial = path.with_suffix(".partial.npy")
-            np.save(partial, values)
-            partial.replace(path)
-        out[case.name] = np.load(path)
-        logger.info("nominal CalculiX responses: %s done (%d/%d)", case.name, done, len(cases))
-    partial = cache.with_suffix(".partial.npz")
-    np.savez_compressed(partial, model_id=np.array(model.model_id), **out)
-    partial.replace(cache)
+            # a cache of fewer scales (session 14's: nominal only, no "scales") is completed from the jobs
+            if "scales" in data.files and set(scales) <= set(data["scales"].tolist()):
+                return _unpack(data, scales)
+    out: dict[float, dict[str, np.ndarray]] = {}
+    for scale in scales:
+        scaled, cases, constrained = stand_in_cases(model, scale, pads=False)
+        jobs = cache.with_suffix(".jobs") / model.model_id
+        if scale != 1.0:
+            jobs = jobs / f"{scale!r}"
+        jobs.mkdir(parents=True, exist_ok=True)
+        out[float(scale)] = {}
+        for done, case in enumerate(cases, start=1):
+            path = jobs / f"{case.name}.npy"
+            if not path.exists():
+                with holding(lock):
+                    # looked at again once the lock is held: another process may have run it meanwhile
+                    if not path.exists():
+                        partial = path.with_suffix(".partial.npy")
+                        np.save(partial, run_case(scaled, case, constrained, timeout=timeout))
+                        partial.replace(path)
+            out[float(scale)][case.name] = np.load(path)
+            logger.info("serial CalculiX responses at thickness %.3f: %s done (%d/%d)", scale, case.name, done,
+                        len(cases))
+    _store(cache, model, scales, out)
     return out
+
+
+def _unpack(data, scales: tuple[float, ...]) -> dict[float, dict[str, np.ndarray]]:
+    """The responses per scale of an .npz written by :func:`_store` (keys "<scale>|<name>"), at ``scales``."""
+    out: dict[float, dict[str, np.ndarray]] = {float(s): {} for s in scales}
+    for key in data.files:
+        if "|" in key:
+            scale, name = key.split("|", 1)
+            if float(scale) in out:
+                out[float(scale)][name] = data[key]
+    return out
+
+
+def _store(cache: Path, model: PartModel, scales: tuple[float, ...],
+           out: dict[float, dict[str, np.ndarray]]) -> None:
+    """Write the responses per scale to ``cache`` (.npz with "model_id", "scales" and "<scale>|<name>" keys); written
+    under another name and renamed when complete: another process may read the cache once it exists."""
+    arrays = {f"{s!r}|{name}": value for s, columns in out.items() for name, value in columns.items()}
+    partial = Path(cache).with_suffix(".partial.npz")
+    np.savez_compressed(partial, model_id=np.array(model.model_id), scales=np.array(scales), **arrays)
+    partial.replace(cache)
 
 
 def calculix_responses(model: PartModel, scales: tuple[float, ...] = THICKNESS_SCALES,
@@ -108,23 +140,14 @@ def calculix_responses(model: PartModel, scales: tuple[float, ...] = THICKNESS_S
     if cache is not None and Path(cache).exists():
         with np.load(cache, allow_pickle=False) as data:
             if str(data["model_id"]) == model.model_id and tuple(data["scales"]) == tuple(scales):
-                out: dict[float, dict[str, np.ndarray]] = {s: {} for s in scales}
-                for key in data.files:
-                    if "|" in key:
-                        scale, name = key.split("|", 1)
-                        out[float(scale)][name] = data[key]
-                return out
+                return _unpack(data, scales)
     out = {}
     for scale in scales:
         scaled, cases, constrained = stand_in_cases(model, scale, pads=scale == 1.0, pad_lattice=pad_lattice)
         logger.info("stand-in: %d CalculiX jobs at thickness scale %.3f", len(cases), scale)
         out[scale] = run_cases(scaled, cases, constrained)
     if cache is not None:
-        arrays = {f"{s!r}|{name}": value for s, columns in out.items() for name, value in columns.items()}
-        # written under another name and renamed when complete: another process may read the cache once it exists
-        partial = Path(cache).with_suffix(".partial.npz")
-        np.savez_compressed(partial, model_id=np.array(model.model_id), scales=np.array(scales), **arrays)
-        partial.replace(cache)
+        _store(cache, model, scales, out)
     return out
 
 
@@ -164,61 +187,76 @@ class StandInParts:
 
 
 class StandIn:
-    """Stand-in parts of one model from CalculiX responses (:func:`calculix_responses`).
+    """Stand-in parts of one model from CalculiX responses (:func:`calculix_responses`, or :func:`serial_responses`
+    with ``embedded_pads``).
 
     ``reduced(family, thickness)`` is the CalculiX reduced model of a part (thickness: the part's own factor on top of
     the family's); ``fields(family, settings, rng)`` makes the skin normal fields (m, N) of m parts of a family at
     commanded settings (m, P) mm, each with its own thickness variation (:class:`StandInParts`).
+
+    The pad spring responses: CalculiX's at scale 1 (``responses[1.0]["pad_<s>"]``) moved to the other scales by the
+    embedded solver's change with thickness; with ``embedded_pads`` (responses without pad jobs: the default hood's
+    68 pad jobs of ~7.7 GB each are out of reach) the embedded solver's at every scale.
     """
 
     def __init__(self, model: PartModel, responses: dict[float, dict[str, np.ndarray]],
-                 pad_lattice: int = PAD_LATTICE) -> None:
+                 pad_lattice: int = PAD_LATTICE, embedded_pads: bool = False) -> None:
         self.model = model
         self.scales = np.array(sorted(responses))
-        if len(self.scales) != 3:
-            raise SolverError(f"stand-in needs responses at 3 thickness scales, got {len(self.scales)}")
-        self.bilateral = [f"unit_{p.label}" for p in model.bilateral]
-        self.pad_names = sorted(name for name in responses[1.0] if name.startswith("pad_"))
-        self._stack = {float(s): responses[float(s)] for s in self.scales}
+        if len(self.scales) != 3 or 1.0 not in self.scales:
+            raise SolverError(f"stand-in needs responses at 3 thickness scales including 1.0, got {self.scales}")
         self.pads = pad_springs(model, pad_lattice)
-        # pad responses at the other scales: CalculiX at scale 1 plus the embedded solver's change with thickness
-        for scale in self.scales:
-            if scale != 1.0:
-                change = embedded_pad_responses(model, scale, pad_lattice) - embedded_pad_responses(model, 1.0,
-                                                                                                   pad_lattice)
-                for s_index, name in enumerate(self.pad_names):
-                    self._stack[float(scale)][name] = responses[1.0][name] + change[:, :, s_index]
+        bilateral = [f"unit_{p.label}" for p in model.bilateral]
+        calculix_pads = sorted(name for name in responses[1.0] if name.startswith("pad_"))
+        embedded = {float(s): embedded_pad_responses(model, s, pad_lattice) for s in self.scales}
+        pad_names = [f"pad_{s:03d}" for s in range(embedded[1.0].shape[2])]
+        if embedded_pads and calculix_pads:
+            raise SolverError(f"embedded_pads, but the responses hold {len(calculix_pads)} CalculiX pad responses")
+        if not embedded_pads and calculix_pads != pad_names:
+            raise SolverError(f"{len(calculix_pads)} CalculiX pad responses (pad_000, ...) for {len(pad_names)} "
+                              "pad springs; without them pass embedded_pads=True")
+        # the projections the reduced model keeps, per scale (linear in the translations: a part interpolates and
+        # combines them, not the (n, 3) translations, ~1 s a part on the default hood)
+        self._projected = {}
+        for scale in map(float, self.scales):
+            columns = np.stack([responses[scale][name] for name in ("load", "gas", *bilateral)], axis=2)
+            if embedded_pads:
+                pads = embedded[scale]
+            else:  # CalculiX at scale 1 plus the embedded solver's change with thickness
+                pads = np.stack([responses[1.0][name] for name in pad_names], axis=2) + embedded[scale] \
+                    - embedded[1.0]
+            self._projected[scale] = (project(model, self.pads, columns), project(model, self.pads, pads))
 
-    def _interpolate(self, name: str, scale: float) -> np.ndarray:
-        """Quadratic (Lagrange) interpolation of a response in the thickness scale."""
+    def _interpolate(self, scale: float) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+        """Quadratic (Lagrange) interpolation of the projections in the thickness scale."""
         x = self.scales
         weights = [np.prod([(scale - x[m]) / (x[i] - x[m]) for m in range(3) if m != i]) for i in range(3)]
-        return sum(w * self._stack[float(x[i])][name] for i, w in enumerate(weights))
+        return tuple(tuple(sum(w * self._projected[float(x[i])][side][k] for i, w in enumerate(weights))
+                           for k in range(3)) for side in range(2))
 
     def reduced(self, family: Family, thickness: float = 1.0) -> ReducedModel:
         """The CalculiX reduced model of a part of ``family`` with its own thickness factor ``thickness``."""
-        scale = family.thickness * thickness
-        load = self._interpolate("load", scale)
-        gas = self._interpolate("gas", scale)
-        load = (load + (family.gas_spring - 1.0) * gas) / family.E
-        units = [self._interpolate(name, scale) for name in self.bilateral]
-        pads = np.stack([self._interpolate(name, scale) / family.E for name in self.pad_names], axis=2) \
-            if self.pad_names else np.zeros((len(self.model.nodes), 3, 0))
-        columns = np.stack([load, *units], axis=2)
+        projected, pad_projected = self._interpolate(family.thickness * thickness)
+        # columns load, gas, units: the load with the family's gas-spring force, forces over E (not the unit motions)
+        projected = tuple(np.concatenate([((p[..., 0] + (family.gas_spring - 1.0) * p[..., 1]) / family.E)[..., None],
+                                          p[..., 2:]], axis=-1) for p in projected)
+        pad_projected = tuple(p / family.E for p in pad_projected)
         names = tuple(p.label for p in self.model.bilateral) + tuple(p.label for p in self.model.unilateral)
-        reduced = condense(self.model, self.pads, columns, pads, names, len(self.model.bilateral))
+        reduced = assemble(self.model, self.pads, projected, pad_projected, names, len(self.model.bilateral))
         return replace(reduced, k=reduced.k * family.pad_stiffness, preload=reduced.preload * family.preload)
 
     def fields(self, family: Family, settings: np.ndarray, rng: np.random.Generator,
                part_spread: float = PART_THICKNESS_SPREAD) -> StandInParts:
-        """m parts of ``family`` at commanded settings (m, P) mm, each part with its own thickness factor."""
+        """m parts of ``family`` at commanded settings (m, P) mm, each part with its own thickness factor, uniform in
+        1 +- ``part_spread``."""
         settings = np.atleast_2d(np.asarray(settings, dtype=float))
         n_pads = len(self.model.unilateral)
         out = np.empty((len(settings), len(self.model.skin_nodes)))
         effective = np.empty_like(settings)
         reactions, position = np.empty((len(settings), n_pads)), np.empty((len(settings), n_pads))
         for i, setting in enumerate(settings):
-            thickness = 1.0 + rng.uniform(-part_spread, part_spread) if part_spread > 0 else 1.0
+            # drawn at part_spread 0 too: the same parts and noise draws with and without the variation
+            thickness = 1.0 + part_spread * rng.uniform(-1.0, 1.0)
             block = solve_members(self.reduced(family, thickness), setting[None, :])
             out[i], effective[i], reactions[i] = block.normal_displacement[0], block.effective[0], block.reactions[0]
             position[i] = pad_positions(setting[None, :], block.compression, self.pads.pad_of)[0]

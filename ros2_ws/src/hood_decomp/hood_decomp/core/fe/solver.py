@@ -376,8 +376,17 @@ def condense(model: PartModel, pads: PadSprings, columns: np.ndarray, pad_column
     columns: (n, 3, 1 + B) mm, the load response then one unit response per bilateral input; pad_columns: (n, 3, S)
     mm, one unit pad spring force response per spring; names: (B + U,) labels; n_bilateral: B.
     """
-    w, z, w3 = project(model, pads, columns)
-    g, H, g3 = project(model, pads, pad_columns)
+    return assemble(model, pads, project(model, pads, columns), project(model, pads, pad_columns), names, n_bilateral)
+
+
+def assemble(model: PartModel, pads: PadSprings, projected: tuple[np.ndarray, np.ndarray, np.ndarray],
+             pad_projected: tuple[np.ndarray, np.ndarray, np.ndarray], names: tuple[str, ...],
+             n_bilateral: int) -> ReducedModel:
+    """The ReducedModel from :func:`project` of the load and unit responses (1 + B columns) and of the pad spring
+    responses (S columns): :func:`condense` once the projections are made (they are linear in the translations, so a
+    caller may combine projections instead of translations)."""
+    w, z, w3 = projected
+    g, H, g3 = pad_projected
     return ReducedModel(
         model_id=model.model_id,
         names=tuple(names),
