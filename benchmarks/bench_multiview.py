@@ -45,9 +45,6 @@ from scipy.stats import f
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from bench_uncertainty import register_measured_skin  # noqa: E402
 
 from hood_decomp.core.fe.ensemble import solve_members  # noqa: E402
 from hood_decomp.core.method.bases import estimate_field  # noqa: E402
@@ -184,7 +181,6 @@ def main() -> int:
     log(f"building the {args.resolution} hood, its ensemble and bases")
     with tempfile.TemporaryDirectory() as tmp:
         case = _hood_case(args.resolution, Path(tmp))
-        register_measured_skin(case.bases)
         with node_path(args.nodes, case.bases_path, case.skin, Path(tmp), np.random.default_rng(0)) as nodes:
             results = run_parts(args, rng, case, nodes)
     print_table(results["summary"], case.bases.names)

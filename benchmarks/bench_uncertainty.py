@@ -38,14 +38,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from hood_decomp.core.fe.ensemble import simulate_setting, solve_members  # noqa: E402
-from hood_decomp.core.loop.scan_skin import prepared_scan_skin  # noqa: E402
 from hood_decomp.core.method.bases import estimate_field  # noqa: E402
 from hood_decomp.core.method.correction import CorrectionPolicy, plan_correction  # noqa: E402
-from hood_decomp.core.scan.scan_field import (  # noqa: E402
-    field_from_scan,
-    prepared_estimator,
-    register_prepared_skin,
-)
+from hood_decomp.core.scan.scan_field import field_from_scan, prepared_estimator  # noqa: E402
 from hood_decomp.core.types import DisplacementField, FieldErrorModel  # noqa: E402
 from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan  # noqa: E402
 from tests.conftest import _hood_case  # noqa: E402
@@ -161,16 +156,6 @@ def summary(rows: list[dict], names: tuple[str, ...]) -> dict:
     return out
 
 
-def register_measured_skin(bases) -> None:
-    """Offer ``bases``' prepared scan skin with its smoothing-bias correlation measured on the part
-    (:func:`~hood_decomp.core.loop.scan_skin.prepared_scan_skin`), as loading a bases file does (io/bases.py), so that
-    ``prepared_estimator(bases.skin)`` states the scan's error model as the product does. Without it a benchmark's
-    in-memory bases got the area fallback (999.7 nodes on the default hood against the measured 44.7: the scans' std
-    of the locks 2 times the product's, session 15)."""
-    arrays = prepared_scan_skin(bases)
-    register_prepared_skin(bases.skin, lambda: arrays)
-
-
 def start_run(args: argparse.Namespace, log: Callable[[str], None], **results: object
               ) -> tuple[object, np.random.Generator, dict, Callable[[], None]]:
     """What a harness run starts with (this benchmark and bench_discrepancy): ``args.points`` defaulted by resolution,
@@ -182,7 +167,6 @@ def start_run(args: argparse.Namespace, log: Callable[[str], None], **results: o
     log(f"building the {args.resolution} hood, its ensemble and bases")
     with tempfile.TemporaryDirectory() as tmp:
         case = _hood_case(args.resolution, Path(tmp))
-    register_measured_skin(case.bases)
     record: dict = {"date": time.strftime("%Y-%m-%d"), "names": list(case.bases.names), "args": vars(args), **results}
 
     def save() -> None:
@@ -235,7 +219,8 @@ def main() -> int:
     results["noise"] = summary(rows, names)
     save()
 
-    # the prepared skin a bases file stores: the smoothing bias' correlation measured on the part (issue 15 run 10)
+    # the prepared skin a bases file stores, with the smoothing bias' correlation measured on the part (issue 15 run
+    # 10), which _hood_case registers as loading the bases file does
     est = prepared_estimator(skin)
     results["bias_correlation"] = est.bias_correlation_
     log(f"bias correlation {est.bias_correlation_:.1f} nodes (measured: {est.bias_measured_})")
