@@ -52,9 +52,12 @@ def _hood_case(resolution: str, directory: pathlib.Path, preset: str = "hood") -
     path = directory / "bases.h5"
     save_bases(path, bases)
     # scans of this skin state the smoothing-bias correlation measured on the part, as after loading the bases file
-    # (io/bases.py), not the area fallback of a bare estimator (22 times larger on the default hood)
-    arrays = prepared_scan_skin(bases)
-    register_prepared_skin(skin, lambda: arrays)
+    # (io/bases.py), not the area fallback of a bare estimator (22 times larger on the default hood); measured at the
+    # first scan. Registered for the default preset only: the stored preparation is keyed by model_id and node count,
+    # which hood-paper shares with it on the same mesh (its measured sum differs by 9 %), so whichever registered last
+    # would serve both
+    if preset == "hood":
+        register_prepared_skin(skin, lambda: prepared_scan_skin(bases))
     return HoodCase(model, skin, solver, reduced, ensemble, bases, path)
 
 

@@ -4,7 +4,9 @@ Two test runs (or a test run and a hood_decomp demo) on one ROS_DOMAIN_ID see ea
 names, so a lifecycle call of one run is answered by the other's node (get_state "active" before this run's node
 has even started; its configure request reaching the other's node). ``1 + pid % 100`` gave two concurrent runs the
 same domain once in 100 pairs. A session therefore claims a domain with an exclusive ``flock`` on a lock file per
-domain in the system temp directory, held until the process ends (the kernel releases it even on SIGKILL).
+domain in ``/tmp`` (fixed, not the session's temp directory: two sessions with other TMPDIRs took the same domain),
+held until the process ends (the kernel releases it even on SIGKILL). Only test sessions take these locks: a demo or
+``hood-decomp launch`` on the same explicit domain is not kept out (its bring-up names a namesake node instead).
 """
 
 from __future__ import annotations
@@ -12,17 +14,18 @@ from __future__ import annotations
 import fcntl
 import os
 import pathlib
-import tempfile
 from collections.abc import MutableMapping
 
 #: Domains a claim may take. 0 is ROS's default (what a user's shell uses); on Linux, ids up to 101 keep the DDS
 #: ports out of the kernel's ephemeral port range.
 DOMAINS = range(1, 102)
 VARIABLE = "ROS_DOMAIN_ID"
+#: Where the locks live: one directory for every process on the machine, whatever its TMPDIR.
+LOCK_DIRECTORY = pathlib.Path("/tmp")
 
 
 def lock_path(domain: int, directory: pathlib.Path | None = None) -> pathlib.Path:
-    return (directory or pathlib.Path(tempfile.gettempdir())) / f"hood_decomp_ros_domain_{domain}.lock"
+    return (directory or LOCK_DIRECTORY) / f"hood_decomp_ros_domain_{domain}.lock"
 
 
 def try_lock(domain: int, directory: pathlib.Path | None = None) -> int | None:

@@ -26,6 +26,7 @@ default hood's 68 pad springs would be 68 more such jobs at scale 1, out of reac
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -89,7 +90,7 @@ def serial_responses(model: PartModel, cache: Path, lock: Path | None = None,
         scaled, cases, constrained = stand_in_cases(model, scale, pads=False)
         jobs = cache.with_suffix(".jobs") / model.model_id
         if scale != 1.0:
-            jobs = jobs / f"{scale!r}"
+            jobs = jobs / f"{float(scale)!r}"
         jobs.mkdir(parents=True, exist_ok=True)
         out[float(scale)] = {}
         for done, case in enumerate(cases, start=1):
@@ -122,9 +123,10 @@ def _unpack(data, scales: tuple[float, ...]) -> dict[float, dict[str, np.ndarray
 def _store(cache: Path, model: PartModel, scales: tuple[float, ...],
            out: dict[float, dict[str, np.ndarray]]) -> None:
     """Write the responses per scale to ``cache`` (.npz with "model_id", "scales" and "<scale>|<name>" keys); written
-    under another name and renamed when complete: another process may read the cache once it exists."""
+    under another name (this process's: two processes that waited on each other's jobs store about together) and
+    renamed when complete: another process may read the cache once it exists."""
     arrays = {f"{s!r}|{name}": value for s, columns in out.items() for name, value in columns.items()}
-    partial = Path(cache).with_suffix(".partial.npz")
+    partial = Path(cache).with_suffix(f".{os.getpid()}.partial.npz")
     np.savez_compressed(partial, model_id=np.array(model.model_id), scales=np.array(scales), **arrays)
     partial.replace(cache)
 
