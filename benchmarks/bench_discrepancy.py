@@ -34,13 +34,15 @@ first calibrated (core.loop.calibration, 13 one-at-a-time entries with 0.02 mm n
 made by CalculiX (coarse cache) or by the embedded solver re-solved with the family's physics; ``calibrated_family``
 parts are of that family (harness (ii) on the calibrated bases); ``--scanned-entries``: the entries are scans of the
 family taken as the parts' are (a cell calibrates with its own scanner), not white-noise fields;
-``--entry-moves 0.8 0.4`` (25 entries) and ``--entry-repeats K`` (each setting K times) make larger calibrations.
+``--entry-moves 0.8 0.4`` (25 entries) and ``--entry-repeats K`` (each setting K times) make larger calibrations;
+``--harness-markers``: every scan with harness (i)'s marker noise (0.02-0.05 mm drawn per scan, stated) and 0-8 holes.
 Besides the gate,
 a table per boundary of error / sqrt(std^2 + model_std^2) (is each error inside its total stated uncertainty).
 
 Prints a table per kind and writes benchmarks/out/discrepancy.json (rewritten as it goes). From the repository root:
     scripts/with-env nice python benchmarks/bench_discrepancy.py [--parts N] [--mesh-parts N] [--ccx-parts N]
         [--own-parts N] [--calibrate ccx|embedded [--scanned-entries] [--entry-moves MM ...] [--entry-repeats K]]
+        [--harness-markers]
         [--without-physics] [--kinds ...]
 """
 
@@ -221,6 +223,9 @@ def main() -> int:
                         help="with --calibrate: the one-at-a-time moves, mm (0.8: 13 entries; 0.8 0.4: 25)")
     parser.add_argument("--entry-repeats", type=int, default=1,
                         help="with --calibrate: each calibration setting taken this many times (3: 39 entries)")
+    parser.add_argument("--harness-markers", action="store_true",
+                        help="scans with harness (i)'s marker noise, 0.02-0.05 mm drawn per scan and stated, and 0-8 "
+                             "holes (default: 0.02 mm markers estimated from their residual, 3 holes)")
     parser.add_argument("--seed", type=int, default=152)
     parser.add_argument("--out", type=Path, default=OUT, help="JSON written as the run goes")
     args = parser.parse_args()
@@ -238,10 +243,14 @@ def main() -> int:
         if args.ccx_cache.exists() and args.resolution == "coarse" else None
 
     def scan_field(truth_skin, displacement) -> DisplacementField:
-        config = ScannerConfig(n_points=args.points, noise_mm=NOISE_MM, marker_noise_mm=NOISE_MM, n_holes=3)
+        # --harness-markers: harness (i)'s marker noise (0.02-0.05 mm, stated by the scanner) and holes (0-8)
+        markers, holes = ((float(rng.uniform(0.02, 0.05)), int(rng.integers(0, 9))) if args.harness_markers
+                          else (NOISE_MM, 3))
+        config = ScannerConfig(n_points=args.points, noise_mm=NOISE_MM, marker_noise_mm=markers, n_holes=holes)
         synthetic = synthesize_scan(truth_skin, displacement, config, seed=int(rng.integers(1 << 30)))
         field, _ = field_from_scan(skin, synthetic.points, markers_mm=synthetic.markers,
-                                   markers_nominal_mm=synthetic.markers_nominal, estimator=est)
+                                   markers_nominal_mm=synthetic.markers_nominal, estimator=est,
+                                   marker_std_mm=markers if args.harness_markers else None)
         return field
 
     if args.calibrate == "embedded":
