@@ -59,6 +59,12 @@ class FacetTriangles:
     D: np.ndarray
     scatter: sp.csr_matrix
 
+    def rows(self, start: int, stop: int) -> FacetTriangles:
+        """The facets start:stop (a chunk of the sums over facets; scatter onto the nodes of those facets only)."""
+        return FacetTriangles(self.nodes[start:stop], self.frame[start:stop], self.grad[start:stop],
+                              self.thickness[start:stop], self.area[start:stop], self.D,
+                              self.scatter[:, 3 * start:3 * stop])
+
 
 def facet_triangles(model: PartModel) -> FacetTriangles:
     """The four half-weight triangles of every quad of ``model`` (as the linear stiffness splits them)."""
@@ -76,7 +82,7 @@ def facet_triangles(model: PartModel) -> FacetTriangles:
     return FacetTriangles(nodes, frame, np.stack([b, c], axis=1), thickness, 0.25 * area2, D, scatter)
 
 
-def _gradients(facets: FacetTriangles, translations: np.ndarray) -> np.ndarray:
+def gradients(facets: FacetTriangles, translations: np.ndarray) -> np.ndarray:
     """J (T, 3, 2, m): d(global translation component)/d(facet x, y) of nodal translations (n, 3, m)."""
     return np.einsum("tai,ticm->tcam", facets.grad, translations[facets.nodes], optimize=True)
 
@@ -87,24 +93,24 @@ def _quadratic(J: np.ndarray) -> np.ndarray:
                      (J[:, :, 0] * J[:, :, 1]).sum(1)], axis=1)
 
 
-def _strains(facets: FacetTriangles, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The linear membrane strain sym(grad u_loc) and 1/2 J^T J, each (T, 3, m) on (xx, yy, 2xy), of gradients J."""
+def linear_strain(facets: FacetTriangles, J: np.ndarray) -> np.ndarray:
+    """The linear membrane strain sym(grad u_loc) (T, 3, m) on (xx, yy, 2xy) of gradients J (T, 3, 2, m)."""
     local = np.einsum("tdc,tcam->tdam", facets.frame[:, :2], J)  # in-plane components' gradients
-    return np.stack([local[:, 0, 0], local[:, 1, 1], local[:, 0, 1] + local[:, 1, 0]], axis=1), _quadratic(J)
+    return np.stack([local[:, 0, 0], local[:, 1, 1], local[:, 0, 1] + local[:, 1, 0]], axis=1)
 
 
 def membrane_forces(facets: FacetTriangles, translations: np.ndarray, nonlinear: bool = True) -> np.ndarray:
     """Membrane forces (T, 3, m) N/mm (Nxx, Nyy, Nxy in each facet frame) of nodal translations (n, 3, m) mm;
     ``nonlinear`` adds the Green-Lagrange term 1/2 J^T J to the strain."""
-    linear, quadratic = _strains(facets, _gradients(facets, translations))
-    eps = linear + quadratic if nonlinear else linear
+    J = gradients(facets, translations)
+    eps = linear_strain(facets, J) + _quadratic(J) if nonlinear else linear_strain(facets, J)
     return facets.thickness[:, None, None] * np.einsum("ij,tjm->tim", facets.D, eps)
 
 
 def nonlinear_forces(facets: FacetTriangles, translations: np.ndarray) -> np.ndarray:
     """f_nl (n, 3, m) N: the internal force of nodal translations (n, 3, m) mm beyond the linear stiffness's."""
-    J = _gradients(facets, translations)  # once: the gathers and contractions are most of the time
-    linear, quadratic = _strains(facets, J)
+    J = gradients(facets, translations)  # once: the gathers and contractions are most of the time
+    linear, quadratic = linear_strain(facets, J), _quadratic(J)
     tD = (facets.area * facets.thickness)[:, None, None] * facets.D  # (T, 3, 3)
     stress_q = np.einsum("tij,tjm->tim", tD, quadratic)  # A N_q
     stress = np.einsum("tij,tjm->tim", tD, linear) + stress_q  # A N
@@ -140,7 +146,7 @@ def tangent_increment(facets: FacetTriangles, translations: np.ndarray, n_nodes:
     Per facet A [B(u)^T t D B(u) - B_0^T t D B_0] + K_G(N(u)): B(u) is the membrane strain's derivative with the
     facet axes e_x + J_x, e_y + J_y (B_0: e_x, e_y, the linear membrane already in K), K_G = int G^T N G dA x I_3.
     """
-    J = _gradients(facets, translations[:, :, None])[..., 0]  # (T, 3, 2)
+    J = gradients(facets, translations[:, :, None])[..., 0]  # (T, 3, 2)
     N = membrane_forces(facets, translations[:, :, None])[..., 0]  # (T, 3)
     g = facets.grad  # (T, 2, 3)
     tD = facets.thickness[:, None, None] * facets.D
