@@ -191,7 +191,7 @@ def calibrated_bases(bases, physics: PhysicalResponses, truth, rng: np.random.Ge
 
     entries = [CalibrationEntry(f"entry {j}", entry_field(j), settings[j]) for j in range(len(settings))]
     reduced, calibration = calibrate(bases.reduced_model, physics, entries, bases.skin,
-                                     (bases.pca.lower_, bases.pca.upper_))
+                                     (bases.pca.lower_, bases.pca.upper_), bases.reading())
     return rebuild_bases(bases, reduced, json.dumps(calibration.record(), sort_keys=True), physics,
                          **calibration.error_terms())
 

@@ -50,7 +50,7 @@ def _hood_case(resolution: str, directory: pathlib.Path, preset: str = "hood") -
     ensemble = simulate_ensemble(reduced, commanded, rank, model.lower, model.upper)
     bases = build_bases(ensemble, skin, reduced)
     path = directory / "bases.h5"
-    save_bases(path, bases)
+    bases = save_bases(path, bases)  # with the scan reading bias of the basis, as a loaded file has it
     # scans of this skin state the smoothing-bias correlation measured on the part, as after loading the bases file
     # (io/bases.py), not the area fallback of a bare estimator (22 times larger on the default hood); measured at the
     # first scan. Registered for the default preset only: the stored preparation is keyed by model_id and node count,

@@ -242,3 +242,45 @@ def test_a_forged_brick_is_refused(saved, points, fresh_cache, tmp_path):
         scan_field._STORED.clear()
         with pytest.raises(ScanError, match="out-of-range grid_brick"):
             field_from_scan(load_bases(forged).skin, points)
+
+
+def test_the_scan_reading_bias_is_stored_checked_and_refused_when_altered(saved, tmp_path):
+    """Fails if a bases file written with its scan skin does not carry the basis' scan reading bias (core.loop.
+    scan_skin.reading_bias) back to the loaded bases unchanged and in its own group (not part of the bases' value:
+    the bases_id stays the bases'), if an edited value or one taken from other bases passes its reading_id, or if a
+    forged one of the wrong shape or not finite is not refused by name."""
+    bases, path = saved
+    loaded = load_bases(path)
+    bias = loaded.scan_reading_bias
+    assert bias is not None and bases.scan_reading_bias is None
+    assert bias.components.shape == bases.pca.components_.shape and bias.mean.shape == (bases.skin.n_nodes,)
+    assert np.any(bias.components != 0.0) and bias.radius_mm > 0
+    assert bases_id(loaded) == bases_id(bases)
+
+    def altered(name, edit):
+        target = tmp_path / f"{name}.h5"
+        shutil.copy(path, target)
+        with h5py.File(target, "r+") as h5:
+            edit(h5)
+        return target
+
+    def nudge(h5):
+        h5["scan_reading_bias/mean"][0] += 1e-6
+
+    with pytest.raises(BasisError, match="reading_id"):
+        load_bases(altered("nudged", nudge))
+    with pytest.raises(BasisError, match="reading_id"):
+        load_bases(altered("radius", lambda h5: h5["scan_reading_bias"].attrs.modify("radius_mm", 9.0)))
+
+    def short(h5):
+        del h5["scan_reading_bias/components"]
+        h5["scan_reading_bias"].create_dataset("components", data=np.zeros((3, bases.skin.n_nodes)))
+
+    with pytest.raises(BasisError, match="components"):
+        load_bases(altered("short", short))
+
+    def nan(h5):
+        h5["scan_reading_bias/mean"][0] = np.nan
+
+    with pytest.raises(BasisError, match="mean"):
+        load_bases(altered("nan", nan))

@@ -116,9 +116,9 @@ def apply_reference(args: argparse.Namespace, bases: Bases, fields: list[Displac
         raise CalibrationError(f"--reference needs the bases' reduced model, which {args.bases} lacks")
     entry = read_entries(args.reference, bases.skin, args.min_coverage, single=True)[0]
     setting = entry.setting_vector(bases.names)
-    # a scanned reference's slide needs the skin's gradient: the bases' own, fitted once (none for a field)
-    gradient = bases.slide().gradient if entry.field.errors.kind == "scan" else None
-    return [relative_field(bases.reduced_model, field, entry.field, setting, gradient) for field in fields]
+    # a scanned reference's slide and bias need the bases' reading, prepared once (none for a field)
+    reading = bases.reading() if entry.field.errors.kind == "scan" else None
+    return [relative_field(bases.reduced_model, field, entry.field, setting, reading) for field in fields]
 
 
 def add_json(parser: argparse.ArgumentParser) -> None:

@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     physics = PhysicalResponses.from_solver(physical_responses(build_solver(model)),
                                             thickness_sensitivities(model, bases.reduced_model), thermal_moves(model))
     reduced, calibration = calibrate(bases.reduced_model, physics, entries, bases.skin,
-                                     (bases.pca.lower_, bases.pca.upper_))
+                                     (bases.pca.lower_, bases.pca.upper_), bases.reading())
     record = calibration.record()
     record["settings_mm"] = {e.name: e.setting for e in read}
     record["from_bases_id"] = bases_id(bases)

@@ -73,8 +73,7 @@ def build_bases_step(state: DemoState) -> None:
     start = time.perf_counter()
     bases: Bases = build_bases(data["training"], data["skin"], data["reduced"])
     data["bases_seconds"] = time.perf_counter() - start
-    save_bases(state.out / "bases.h5", bases)
-    data["bases"] = bases
+    data["bases"] = save_bases(state.out / "bases.h5", bases)
     state.figure("bases", plots.plot_explained_variance(bases.pca.explained_variance_ratio_,
                                                         state.out / "figures" / "explained_variance.png"),
                  "Explained variance of the first ten principal components (paper Fig. 8)")

@@ -19,6 +19,7 @@ import numpy as np
 from hood_decomp.core.method.bases import Bases
 from hood_decomp.core.method.hierarchical import HIERARCHICAL_FITTED_ARRAYS, HierarchicalBasis
 from hood_decomp.core.method.pca import PCA_FITTED_ARRAYS, PCABasis
+from hood_decomp.core.method.surface_reading import ScanReadingBias
 from hood_decomp.core.types import ReducedModel, SkinSurface, ToleranceZone, fingerprint
 from hood_decomp.errors import BasisError
 from hood_decomp.io.hdf5 import Reader, open_hdf5
@@ -127,6 +128,13 @@ def prepared_id(content_id: str, arrays: dict[str, np.ndarray]) -> str:
                                      for item in (name, np.asarray(arrays[name]))))
 
 
+def reading_bias_id(content_id: str, bias: ScanReadingBias) -> str:
+    """The fingerprint of the scan reading bias of the bases whose ``bases_id`` is ``content_id``: measured from them
+    (not part of their value, like the prepared scan skin), so an edited one or one moved from other bases is
+    refused."""
+    return fingerprint(content_id, repr(float(bias.radius_mm)), bias.mean, bias.components)
+
+
 def zones_id(content_id: str, zones: tuple[ToleranceZone, ...]) -> str:
     """The fingerprint of the tolerance zones of the bases whose ``bases_id`` is ``content_id``: names, regions,
     limits, coverages and node sets, so an edited zone or one moved from another bases file is refused."""
@@ -147,6 +155,22 @@ def _write_zones(h5: h5py.File, content_id: str, zones: tuple[ToleranceZone, ...
     group.create_dataset("node_indptr", data=np.cumsum([0, *(z.nodes.size for z in zones)]).astype(np.int64))
     group.create_dataset("node_indices", data=np.concatenate([z.nodes for z in zones]).astype(np.int64),
                          compression="gzip", compression_opts=1, shuffle=True)
+
+
+def _read_reading_bias(read: Reader, content_id: str, n_components: int) -> ScanReadingBias:
+    """The optional /scan_reading_bias group: a radius > 0, finite arrays of named shapes, the content matching
+    ``reading_id``."""
+    bias = ScanReadingBias(read.attr("scan_reading_bias", "radius_mm", "float"),
+                           read.array("scan_reading_bias/mean", ("N",)),
+                           read.array("scan_reading_bias/components", ("K", "N")))
+    try:
+        bias.validate(read.dims["N"][0], n_components)
+    except BasisError as error:
+        raise BasisError(f"{read.path}: {error}") from None
+    if reading_bias_id(content_id, bias) != read.attr("scan_reading_bias", "reading_id", "str"):
+        raise BasisError(f"{read.path}: scan_reading_bias does not match its reading_id (altered after it was "
+                         "written, or taken from other bases); rebuild the file with `hood-decomp bases`")
+    return bias
 
 
 def _read_zones(read: Reader, content_id: str) -> tuple[ToleranceZone, ...]:
@@ -174,10 +198,18 @@ def _read_zones(read: Reader, content_id: str) -> tuple[ToleranceZone, ...]:
     return zones
 
 
-def save_bases(path: str | Path, bases: Bases, *, scan_skin: bool = True) -> None:
+def save_bases(path: str | Path, bases: Bases, *, scan_skin: bool = True) -> Bases:
     """Write ``bases`` to an HDF5 file (overwrites); with ``scan_skin`` also the prepared scan skin (lookup grid,
-    quadrics, kernel of the default ScanFieldEstimator), so that scans need not rebuild it."""
+    quadrics, kernel of the default ScanFieldEstimator), so that scans need not rebuild it, and the scan step's
+    reading bias of the basis' fields measured through it (core.loop.scan_skin.reading_bias). Returns the bases as
+    written (with that reading bias), which a caller that goes on with them in memory should use."""
     content_id = bases_id(bases)
+    arrays = None
+    if scan_skin:
+        from hood_decomp.core.loop.scan_skin import scan_ready
+
+        # with the smoothing bias' correlation measured on the part's states, and the basis' reading bias
+        bases, arrays = scan_ready(bases)
     with h5py.File(path, "w") as h5:
         version = FEATURES_SCHEMA_VERSION if bases.tolerance_zones or bases.measured_effects else SCHEMA_VERSION
         h5.attrs.update(format=FORMAT, schema_version=version, model_id=bases.model_id, bases_id=content_id)
@@ -234,14 +266,18 @@ def save_bases(path: str | Path, bases: Bases, *, scan_skin: bool = True) -> Non
                 else:
                     model.attrs[item.name] = value
 
-        if scan_skin:
-            from hood_decomp.core.loop.scan_skin import prepared_scan_skin
-
-            arrays = prepared_scan_skin(bases)  # with the smoothing bias' correlation measured on the part's states
+        if arrays is not None:
             group = h5.create_group("scan_skin")
             group.attrs["prepared_id"] = prepared_id(content_id, arrays)
             for name, values in arrays.items():  # plain: every one-off scan reads them whole (the lookup grid and
                 _write_array(group, name, values, pack=False)  # the kernel's indices: 80 ms of CPU to inflate, 44 MB)
+        if bases.scan_reading_bias is not None:
+            bias = bases.scan_reading_bias
+            group = h5.create_group("scan_reading_bias")
+            group.attrs.update(radius_mm=bias.radius_mm, reading_id=reading_bias_id(content_id, bias))
+            group.create_dataset("mean", data=bias.mean)
+            group.create_dataset("components", data=bias.components)
+    return bases
 
 
 # --- reading -----------------------------------------------------------------------------------------------------
@@ -337,6 +373,8 @@ def load_bases(path: str | Path, mapped: bool = False) -> Bases:
         if any(value is not None for value in terms.values()) and discrepancy is None:
             raise BasisError(f"{path}: {' and '.join(n for n, v in terms.items() if v is not None)} need /discrepancy")
         has_scan_skin = version >= 3 and "scan_skin" in h5
+        # optional (issue 15, session 16): the scan step's reading bias of the basis' fields
+        reading = _read_reading_bias(read, stored_id, pca.n_components_) if "scan_reading_bias" in h5 else None
         # optional (issue 17): acceptance criteria, outside bases_id, bound to it by their own zones_id
         zones = _read_zones(read, stored_id) if "tolerance_zones" in h5 else ()
         measured: tuple[str, ...] = ()
@@ -352,7 +390,7 @@ def load_bases(path: str | Path, mapped: bool = False) -> Bases:
         if other is not None and other != model_id:
             raise BasisError(f"{path}: {what} model_id {other!r} differs from the file's {model_id!r}")
     bases = Bases(model_id, skin, pca, hier, reduced, calibration, thermal, zones, discrepancy, measured, local,
-                  **terms)
+                  **terms, scan_reading_bias=reading)
     if bases_id(bases) != stored_id:
         raise BasisError(f"{path}: content does not match its bases_id {stored_id!r} (the file was altered after "
                          "it was written: a rewritten model_id or array); rebuild it with `hood-decomp bases`")

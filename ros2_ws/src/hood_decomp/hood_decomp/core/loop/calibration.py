@@ -64,7 +64,7 @@ from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solv
 from hood_decomp.core.method.bases import Bases, build_bases
 from hood_decomp.core.method.model_spread import PhysicalResponses, apply_factors, factor_names
 from hood_decomp.core.method.residual import DEFAULT_NOISE_MM, node_variance, ring_incidence, skin_adjacency
-from hood_decomp.core.method.surface_reading import SurfaceGradient, slide
+from hood_decomp.core.method.surface_reading import ReadingOfBasis, SurfaceGradient, slide
 from hood_decomp.core.types import DisplacementField, ReducedModel, SkinSurface, fingerprint
 from hood_decomp.errors import CalibrationError
 
@@ -623,15 +623,17 @@ def _check_support(problem: _Problem, entries: list[CalibrationEntry]) -> None:
 
 
 def calibrate(reduced: ReducedModel, physics: PhysicalResponses, entries: list[CalibrationEntry],
-              skin: SkinSurface, state_range: tuple[np.ndarray, np.ndarray] | None = None
-              ) -> tuple[ReducedModel, Calibration]:
+              skin: SkinSurface, state_range: tuple[np.ndarray, np.ndarray] | None = None,
+              reading: ReadingOfBasis | None = None) -> tuple[ReducedModel, Calibration]:
     """Fit physical factors, then the low-rank correction (module docstring); leave-one-out over the entries, and
     from it the model discrepancy.
 
     reduced: the bases' reduced model; physics: :class:`PhysicalResponses` of the same model; entries: fields in the
     skin node order with settings (P,) mm in ``reduced.names`` order; skin: the bases' skin (normals, smooth modes);
     state_range: (lower, upper) (P,) mm, the range the parts' states lie in (the bases'), over which the discrepancy
-    is averaged (None: +- the largest move of each parameter in the entries).
+    is averaged (None: +- the largest move of each parameter in the entries); reading: what a scan reads less than
+    the bases' fields (``Bases.reading()``), so that scanned entries have the scan step's bias inside the basis
+    taken out as the estimator takes it out of the parts' scans (:func:`as_node_displacement`; None: the slide only).
     Returns the calibrated reduced model and the :class:`Calibration`. Raises CalibrationError naming an entry whose
     setting disagrees with the others, or what the entries do not support.
     """
@@ -647,8 +649,10 @@ def calibrate(reduced: ReducedModel, physics: PhysicalResponses, entries: list[C
                                    f"{np.shape(entry.field.normal_displacement)} values, expected "
                                    f"({reduced.w0.shape[0]},)")
     # the skin's gradient once for every scanned entry (0.28 s at paper resolution), none for fields
-    gradient = SurfaceGradient.fit(skin) if any(entry.field.errors.kind == "scan" for entry in entries) else None
-    entries = [replace(entry, field=as_node_displacement(entry.field, reduced, entry.setting, gradient))
+    gradient = None
+    if any(entry.field.errors.kind == "scan" for entry in entries):
+        gradient = reading.gradient if reading is not None else SurfaceGradient.fit(skin)
+    entries = [replace(entry, field=as_node_displacement(entry.field, reduced, entry.setting, gradient, reading))
                for entry in entries]
     problem = _Problem(entries, reduced, physics, skin)
     _check_support(problem, entries)
@@ -758,13 +762,14 @@ def rebuild_bases(bases: Bases, reduced: ReducedModel, calibration: str = "",
 
 
 def relative_field(reduced: ReducedModel, field: DisplacementField, reference: DisplacementField,
-                   setting: np.ndarray, gradient: SurfaceGradient | None = None) -> DisplacementField:
+                   setting: np.ndarray, reading: ReadingOfBasis | None = None) -> DisplacementField:
     """Reference-relative field: measured - reference + the model's own field at the reference's known setting
     (P,) mm, so a static model error cancels. Unseen where either is unseen; the error model's node variances add
     (the correlation and pose of the measured field are kept; the reference's registration error adds as noise).
-    A scanned reference reads its surface less its slide at that setting (core.method.surface_reading), which is
-    added back from the model (``gradient`` of the skin needed, e.g. ``Bases.slide().gradient``): the result is
-    then a scan of the measured part as the estimator takes it, which takes the measured part's own slide out."""
+    A scanned reference reads its surface less its slide at that setting, through the scan step's bias
+    (core.method.surface_reading): the slide is added back from the model and the bias inside the basis taken out
+    (``reading``: ``Bases.reading()``, needed then; :func:`as_node_displacement`): the result is then a scan of the
+    measured part as the estimator takes it, which takes the measured part's own slide and bias out."""
     for what, other in (("field", field.model_id), ("reference", reference.model_id)):
         if other != reduced.model_id:
             raise CalibrationError(f"{what} model_id {other!r} is not the bases' {reduced.model_id!r}")
@@ -772,7 +777,8 @@ def relative_field(reduced: ReducedModel, field: DisplacementField, reference: D
     if setting.shape != (len(reduced.names),):
         raise CalibrationError(f"reference setting has shape {setting.shape}, expected ({len(reduced.names)},)")
     own = solve_members(reduced, setting[None, :]).normal_displacement[0]
-    read = as_node_displacement(reference, reduced, setting, gradient).normal_displacement
+    gradient = None if reading is None else reading.gradient
+    read = as_node_displacement(reference, reduced, setting, gradient, reading).normal_displacement
     values = np.asarray(field.normal_displacement, float) - np.asarray(read, float) + own
     n = values.size
     errors = field.errors
@@ -789,21 +795,26 @@ def relative_field(reduced: ReducedModel, field: DisplacementField, reference: D
 
 
 def as_node_displacement(field: DisplacementField, reduced: ReducedModel, setting: np.ndarray,
-                         gradient: SurfaceGradient | None) -> DisplacementField:
+                         gradient: SurfaceGradient | None, reading: ReadingOfBasis | None = None
+                         ) -> DisplacementField:
     """A field of the part at a known setting (P,) mm as its nodes' displacement: a scanned one (error model kind
     "scan") reads the surface less its slide along itself (core.method.surface_reading), which is added back from the
-    model's own displacement at that setting (``gradient``: the skin's :class:`SurfaceGradient`, needed then); any
-    other field is taken as it is. Calibration
+    model's own displacement at that setting (``gradient``: the skin's :class:`SurfaceGradient`, needed then), and
+    with ``reading`` (``Bases.reading()``) the scan step's bias inside the basis is taken out as the estimator takes
+    it out of a part's scan (:meth:`ReadingOfBasis.bias_inside`); any other field is taken as it is. Calibration
     entries and references are such fields: without it the slide of their states (up to 0.003 mm RMS where the hinges
-    slide the hood) would be learned as the model's discrepancy."""
+    slide the hood) would be learned as the model's discrepancy, and the bias the estimator takes out would be
+    learned into the model and taken out twice."""
     if field.errors.kind != "scan":
         return field
     if gradient is None:
         raise CalibrationError("a scanned field of a known setting needs the skin's gradient to take its slide out")
     member = solve_members(reduced, np.asarray(setting, float)[None, :])
     values = np.asarray(field.normal_displacement, float)
-    return replace(field, normal_displacement=values + slide(gradient, member.normal_displacement[0],
-                                                             member.displacement[0]))
+    added = slide(gradient, member.normal_displacement[0], member.displacement[0])
+    if reading is not None:
+        added = added - reading.bias_inside(values, field.errors.correlation_length_mm)
+    return replace(field, normal_displacement=values + added)
 
 
 def _node_std(field: DisplacementField, n: int) -> np.ndarray:

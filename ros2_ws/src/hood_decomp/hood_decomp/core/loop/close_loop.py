@@ -53,12 +53,13 @@ import itertools
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solve_members
 from hood_decomp.core.loop.candidates import CandidateFields, augment_reduced
+from hood_decomp.core.loop.scan_skin import reading_bias
 from hood_decomp.core.method.bases import (
     Bases,
     analyse_estimate,
@@ -78,6 +79,7 @@ from hood_decomp.core.method.residual import (
     ResidualTest,
     noise_level,
 )
+from hood_decomp.core.scan.scan_field import prepared_estimator
 from hood_decomp.core.types import DisplacementField, Ensemble, ParameterEstimate, ReducedModel
 from hood_decomp.errors import BasisError, EnsembleError, FieldError, ModelError, ModelIdMismatchError
 
@@ -579,6 +581,8 @@ def close_loop(
     bases_after = rebuilt_like(build_bases(extended, bases.skin, reduced, n_components=bases.pca.n_components,
                                                   explained_variance=bases.pca.explained_variance,
                                                   epsilon=bases.hierarchical.epsilon_), bases)
+    if bases.scan_reading_bias is not None:  # the new basis' fields have their own reading bias, as a saved file
+        bases_after = replace(bases_after, scan_reading_bias=reading_bias(prepared_estimator(bases.skin), bases_after))
     timings["bases_s"] = time.perf_counter() - start
     start = time.perf_counter()
     after = tuple(estimate_field(bases_after, fd, method, min_coverage) for fd in fields)

@@ -23,7 +23,7 @@ import numpy as np
 from hood_decomp.core.fe.ensemble import solve_members
 from hood_decomp.core.method.bases import Bases
 from hood_decomp.core.method.residual import DEFAULT_SMOOTH_DEGREE, bias_correlation_of, smooth_modes
-from hood_decomp.core.method.surface_reading import SurfaceGradient, slide
+from hood_decomp.core.method.surface_reading import ScanReadingBias, SurfaceGradient, slide
 from hood_decomp.core.scan.scan_field import ScanFieldEstimator
 from hood_decomp.core.types import FieldErrorModel
 
@@ -62,7 +62,7 @@ def scan_bias(estimator: ScanFieldEstimator, bases: Bases, count: int = BIAS_STA
     rng = np.random.default_rng(seed)
     states = rng.uniform(bases.pca.lower_, bases.pca.upper_, size=(count, len(bases.pca.lower_)))
     members = solve_members(bases.reduced_model, states)
-    gradient = bases.slide().gradient  # the estimator's own, fitted once per bases
+    gradient = bases.reading().gradient  # the estimator's own, fitted once per bases
     biases = [state_bias(estimator, gradient, np.asarray(moved, float)) for moved in members.displacement]
     return np.column_stack([bias for bias, _ in biases]), biases[-1][1]
 
@@ -80,6 +80,27 @@ def measured_bias_correlation(estimator: ScanFieldEstimator, bases: Bases) -> fl
     logger.info("scan bias correlation measured on %d states: %.1f nodes (area fallback %.1f)",
                 bias.shape[1], value, estimator.bias_correlation_)
     return value
+
+
+def reading_bias(estimator: ScanFieldEstimator, bases: Bases) -> ScanReadingBias:
+    """The scan step's reading bias of ``bases``' PCA fields (:class:`ScanReadingBias`): :func:`state_bias` of the
+    basis' mean 3D field and of each basis field's 3D field (one noise-free scan each, through ``estimator``, fitted
+    to ``bases.skin``; 11 scans, 0.8 s on the default hood), unseen nodes 0 (no scan sees them)."""
+    gradient = bases.reading().gradient
+    fields = [bases.pca.mean_field_3d_, *bases.pca.components_3d_]
+    biases = np.stack([state_bias(estimator, gradient, np.asarray(moved, float))[0] for moved in fields])
+    biases = np.nan_to_num(biases)
+    logger.info("scan reading bias of %d basis fields: RMS %.2e mm (mean field)", len(fields) - 1,
+                float(np.sqrt(np.mean(biases[0] ** 2))))
+    return ScanReadingBias(float(estimator.radius_mm_), biases[0], biases[1:])
+
+
+def scan_ready(bases: Bases) -> tuple[Bases, dict[str, np.ndarray]]:
+    """``bases`` with their :func:`reading_bias` measured and their :func:`prepared_scan_skin`, through one estimator
+    of the default scan options: what a bases file written with its scan skin holds (io.bases.save_bases)."""
+    estimator = ScanFieldEstimator().fit(bases.skin)
+    ready = dataclasses.replace(bases, scan_reading_bias=reading_bias(estimator, bases))
+    return ready, prepared_scan_skin(ready, estimator)
 
 
 def prepared_scan_skin(bases: Bases, estimator: ScanFieldEstimator | None = None) -> dict[str, np.ndarray]:

@@ -20,7 +20,7 @@ from hood_decomp.core.method.hierarchical import HierarchicalBasis
 from hood_decomp.core.method.model_spread import PhysicalResponses, factor_spread
 from hood_decomp.core.method.pca import PCABasis
 from hood_decomp.core.method.residual import DEFAULT_ALPHA, ResidualAnalysis, ResidualTest, analyse_residual
-from hood_decomp.core.method.surface_reading import SlideOfBasis
+from hood_decomp.core.method.surface_reading import ReadingOfBasis, ScanReadingBias
 from hood_decomp.core.types import (
     Decomposition,
     DisplacementField,
@@ -80,13 +80,19 @@ class Bases:
     #: thickness and gas-spring force among the model's factors (model_spread). None: these two are not considered.
     #: Not part of the model's value (not in bases_id)
     physics: PhysicalResponses | None = dataclasses.field(default=None, compare=False)
+    #: the scan step's smoothing bias of the PCA basis' fields (core.loop.scan_skin.reading_bias, measured when a
+    #: bases file is written with its scan skin): what a scan reads in excess of them, which the estimator takes
+    #: out of a scanned field inside the basis (:meth:`reading`). None: not measured (only the slide is taken out)
+    scan_reading_bias: ScanReadingBias | None = None
     # (min_coverage, temperature K) -> fitted ContactEstimator; filled on first use, not part of the bases' value
     _contact_estimators: dict[tuple[float, float], ContactEstimator] = dataclasses.field(
         default_factory=dict, init=False, repr=False, compare=False)
     # the skin's within-model test (its smooth modes), prepared on first use
     _tests: dict[str, ResidualTest] = dataclasses.field(default_factory=dict, init=False, repr=False, compare=False)
-    # what a scan reads less than the basis' fields (their slide along the skin), prepared on first use
-    _slides: dict[str, SlideOfBasis] = dataclasses.field(default_factory=dict, init=False, repr=False, compare=False)
+    # what a scan reads less than the basis' fields (their slide along the skin, the smoothing bias inside the
+    # basis), prepared on first use
+    _readings: dict[str, ReadingOfBasis] = dataclasses.field(default_factory=dict, init=False, repr=False,
+                                                             compare=False)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -101,12 +107,12 @@ class Bases:
                                                               self.calibration_noise))
         return self._tests["test"]
 
-    def slide(self) -> SlideOfBasis:
-        """The slide of this model's fields, what a scan reads less than them (:mod:`~.surface_reading`), prepared
-        once."""
-        if "slide" not in self._slides:
-            self._slides.setdefault("slide", SlideOfBasis.of(self.pca, self.skin))
-        return self._slides["slide"]
+    def reading(self) -> ReadingOfBasis:
+        """What a scan reads less than this model's fields (:mod:`~.surface_reading`: their slide, and the smoothing
+        bias inside the basis where ``scan_reading_bias`` is measured), prepared once."""
+        if "reading" not in self._readings:
+            self._readings.setdefault("reading", ReadingOfBasis.of(self.pca, self.skin, self.scan_reading_bias))
+        return self._readings["reading"]
 
     @property
     def discrepancy_dof(self) -> float:
@@ -233,14 +239,17 @@ def estimate_field(
 def node_field(bases: Bases, field: DisplacementField, min_coverage: float = DEFAULT_MIN_COVERAGE
                ) -> DisplacementField:
     """``field`` as the displacement of the model's nodes. A scanned field (error model kind "scan") reads the
-    displaced surface at the nominal nodes, which has slid along itself where the part moves in its plane
-    (:mod:`~.surface_reading`): the slide of the basis field that fits it is added back. Other fields (simulated, or
+    displaced surface at the nominal nodes, which has slid along itself where the part moves in its plane, through
+    the scan step's smoothing (:mod:`~.surface_reading`): the slide of the basis field that fits it is added back,
+    and where the bases carry the smoothing bias of their fields (``scan_reading_bias``, for a field smoothed with
+    the radius it was measured with) the part of it inside the basis is taken out. Other fields (simulated, or
     with a user's stated noise) are node displacements already and are returned as they are. Raises the estimators'
     named errors (:func:`~.estimation.check_field`) for a field they would refuse."""
     if field.errors.kind != "scan":
         return field
     values, _ = check_field(field, bases.model_id, bases.skin.n_nodes, min_coverage)
-    return dataclasses.replace(field, normal_displacement=values + bases.slide()(values))
+    added = bases.reading()(values, field.errors.correlation_length_mm)
+    return dataclasses.replace(field, normal_displacement=values + added)
 
 
 def fitted_unknowns(estimate: ParameterEstimate) -> int:
