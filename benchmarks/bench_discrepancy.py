@@ -75,6 +75,7 @@ from hood_decomp.core.fe.solver import (  # noqa: E402
     thickness_sensitivities,
 )
 from hood_decomp.core.loop.calibration import CalibrationEntry, calibrate, one_at_a_time, rebuild_bases  # noqa: E402
+from hood_decomp.core.loop.scan_skin import with_reading_bias  # noqa: E402
 from hood_decomp.core.method.bases import estimate_field  # noqa: E402
 from hood_decomp.core.method.correction import plan_correction  # noqa: E402
 from hood_decomp.core.method.model_spread import PhysicalResponses  # noqa: E402
@@ -191,9 +192,10 @@ def calibrated_bases(bases, physics: PhysicalResponses, truth, rng: np.random.Ge
 
     entries = [CalibrationEntry(f"entry {j}", entry_field(j), settings[j]) for j in range(len(settings))]
     reduced, calibration = calibrate(bases.reduced_model, physics, entries, bases.skin,
-                                     (bases.pca.lower_, bases.pca.upper_), bases.reading())
-    return rebuild_bases(bases, reduced, json.dumps(calibration.record(), sort_keys=True), physics,
-                         **calibration.error_terms())
+                                     (bases.pca.lower_, bases.pca.upper_), with_reading_bias(bases).reading())
+    # as `hood-decomp calibrate` writes them: the rebuilt basis with its own scan reading bias
+    return with_reading_bias(rebuild_bases(bases, reduced, json.dumps(calibration.record(), sort_keys=True), physics,
+                                           **calibration.error_terms()))
 
 
 def main() -> int:

@@ -261,7 +261,9 @@ def test_paper_experiment_with_a_pad_dragging_the_part_sideways(coarse_hood, can
 def test_close_loop_keeps_the_calibration_of_calibrated_bases(coarse_hood, candidates):
     """Fails if close-loop's rebuilt bases drop the calibration they started from (record, thermal response, model
     discrepancy): the after-estimates would then state the uncalibrated std and the file would no longer say which
-    calibration it came from. Bases with a stand-in calibration (a record and a small smooth discrepancy, 2 um)."""
+    calibration it came from. Bases with a stand-in calibration (a record and a small smooth discrepancy, 2 um).
+    Also fails if the rebuilt bases do not read scans as the bases they came from: they must carry a scan reading
+    bias measured on their own basis (its fields, not the old basis' ones)."""
     from tests.skins import smooth_field
 
     exact = simulate_setting(coarse_hood.solver, {"BUFFER_L": 1.0, "buffer_L.y": 0.3}).normal_displacement
@@ -277,6 +279,10 @@ def test_close_loop_keeps_the_calibration_of_calibrated_bases(coarse_hood, candi
     assert after.calibration == record and after.thermal is thermal
     np.testing.assert_array_equal(after.discrepancy, discrepancy)
     assert after.residual_test().discrepancy_ is not None
+    assert bases.scan_reading_bias is not None and after.scan_reading_bias is not None
+    assert after.scan_reading_bias.components.shape == after.pca.components_.shape
+    assert after.scan_reading_bias.components.shape != bases.scan_reading_bias.components.shape or not np.allclose(
+        after.scan_reading_bias.components, bases.scan_reading_bias.components)
 
 
 # --- command line ------------------------------------------------------------------------------------------------

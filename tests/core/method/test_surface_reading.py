@@ -161,35 +161,118 @@ def test_a_scanned_field_of_a_known_setting_is_read_as_node_displacements(defaul
         as_node_displacement(field, reduced, setting, None)
 
 
-def test_the_reading_takes_out_only_the_bias_inside_the_basis_and_only_at_its_radius():
+@pytest.fixture(scope="module")
+def toy():
+    """Toy bases (24 x 16 skin, 6 PCA fields) with a stated scan reading bias of random per-field terms (largest
+    pre-factor gain inside the basis about 0.05) and a mean term; a scanned field of them (error model kind "scan",
+    smoothed at that bias' radius) with a fifth of its nodes unseen."""
+    import dataclasses
+
+    from hood_decomp.core.method.bases import build_bases
+    from hood_decomp.core.method.surface_reading import ScanReadingBias
+    from hood_decomp.core.types import DisplacementField, FieldErrorModel
+    from tests.toy_models import full_factorial, make_ensemble, make_reduced_model, make_skin
+
+    skin = make_skin(24, 16)
+    model = make_reduced_model(skin, seed=8)
+    states, rank = full_factorial(6)
+    plain = build_bases(make_ensemble(model, states, rank), skin, model, n_components=6, epsilon=0.01)
+    rng = np.random.default_rng(4)
+    pca = plain.pca
+    bias = ScanReadingBias(4.0, rng.normal(0.0, 1e-3, skin.n_nodes), 0.05 * rng.normal(size=(6, 6)) @ pca.components_
+                           / np.sqrt(6) + rng.normal(0.0, 1e-4, pca.components_.shape))
+    biased = dataclasses.replace(plain, scan_reading_bias=bias)
+    seen = rng.random(skin.n_nodes) > 0.2
+    values = np.where(seen, pca.mean_field_ + np.array([1.0, -0.5, 0.2, 0.0, 0.1, 0.3]) @ pca.components_
+                      + rng.normal(0.0, 0.01, skin.n_nodes), np.nan)
+    errors = FieldErrorModel("scan", np.where(seen, 0.01, np.nan), np.ones(skin.n_nodes), 4.0)
+    field = DisplacementField(plain.model_id, values, float(seen.mean()), 0.02, errors)
+    return plain, biased, field, model
+
+
+def _inside_by_lstsq(pca, bias, values):
+    """The bias inside the basis of the basis field fitting ``values``, by plain least squares on the seen nodes: an
+    independent path to what ReadingOfBasis.bias_inside computes."""
+    seen = np.isfinite(values)
+    basis = pca.components_[:, seen].T
+    coeff = np.linalg.lstsq(basis, values[seen] - pca.mean_field_[seen], rcond=None)[0]
+    whole = bias.mean + coeff @ bias.components
+    return np.linalg.lstsq(basis, whole[seen], rcond=None)[0] @ pca.components_
+
+
+def test_the_reading_takes_out_only_the_bias_inside_the_basis_and_only_at_its_radius(toy):
     """A stated reading bias whose mean field is a known combination of the basis' fields plus a field orthogonal to
     them (on the seen nodes), and whose per-field bias is zero: :meth:`ReadingOfBasis.bias_inside` must return the
     combination alone, to rounding, on a field with unseen nodes (the fit and the projection on the seen nodes
     only), the reading must be the slide less it, and a field smoothed with another radius must keep the slide
     alone. Fails if the part outside the basis is taken out too, if the projection ignores unseen nodes, or if the
     radius is not checked."""
-    from hood_decomp.core.method.bases import build_bases
     from hood_decomp.core.method.surface_reading import ReadingOfBasis, ScanReadingBias
-    from tests.toy_models import full_factorial, make_ensemble, make_reduced_model, make_skin
 
-    skin = make_skin(24, 16)
-    model = make_reduced_model(skin, seed=8)
-    states, rank = full_factorial(6)
-    pca = build_bases(make_ensemble(model, states, rank), skin, model, n_components=6, epsilon=0.01).pca
-    rng = np.random.default_rng(4)
-    seen = rng.random(skin.n_nodes) > 0.2
+    plain, _, field, _ = toy
+    pca, skin = plain.pca, plain.skin
+    values = field.normal_displacement
+    seen = np.isfinite(values)
+    rng = np.random.default_rng(5)
     inside = np.array([3e-4, -2e-4, 1e-4, 0.0, 5e-5, -1e-4]) @ pca.components_
     outside = rng.normal(0.0, 1e-3, skin.n_nodes)
     basis = pca.components_[:, seen].T
     outside[seen] -= basis @ np.linalg.lstsq(basis, outside[seen], rcond=None)[0]  # orthogonal on the seen nodes
     bias = ScanReadingBias(4.0, inside + outside, np.zeros_like(pca.components_))
-    values = np.where(seen, pca.mean_field_ + np.array([1.0, -0.5, 0.2, 0.0, 0.1, 0.3]) @ pca.components_, np.nan)
-    plain, reading = ReadingOfBasis.of(pca, skin), ReadingOfBasis.of(pca, skin, bias)
+    without, reading = ReadingOfBasis.of(pca, skin), ReadingOfBasis.of(pca, skin, bias)
     found = reading.bias_inside(values, 4.0)
     np.testing.assert_allclose(found, inside, atol=1e-12 + 1e-9 * np.abs(inside).max())
-    np.testing.assert_allclose(reading(values, 4.0), plain(values, 4.0) - found, atol=1e-15)
-    np.testing.assert_array_equal(reading(values, 3.0), plain(values, 3.0))
+    np.testing.assert_allclose(reading(values, 4.0), without(values, 4.0) - found, atol=1e-15)
+    np.testing.assert_array_equal(reading(values, 3.0), without(values, 3.0))
     np.testing.assert_array_equal(reading.bias_inside(values, 0.0), 0.0)
+
+
+def test_node_field_and_a_known_setting_take_the_fitted_fields_bias_inside_the_basis_out(toy):
+    """With per-field bias terms (the fitted field's pre-factors matter): node_field on a scanned field of bases that
+    carry a reading bias must differ from the same bases without one by minus the bias inside the basis of the basis
+    field fitting it, computed here by plain least squares; a calibration entry of a known setting
+    (calibration.as_node_displacement with the bases' reading) likewise; a field smoothed with another radius, or a
+    field stated by a user, is unchanged. Fails if the pre-factor term is dropped or its sign flipped, if node_field
+    or as_node_displacement ignore the radius or add instead of take out."""
+    import dataclasses
+
+    from hood_decomp.core.loop.calibration import as_node_displacement
+    from hood_decomp.core.method.bases import node_field
+    from hood_decomp.core.types import FieldErrorModel
+
+    plain, biased, field, model = toy
+    expected = -_inside_by_lstsq(plain.pca, biased.scan_reading_bias, field.normal_displacement)
+    assert np.nanmax(np.abs(expected)) > 1e-4  # a bias the checks below can see
+    seen = np.isfinite(field.normal_displacement)
+    changed = node_field(biased, field).normal_displacement - node_field(plain, field).normal_displacement
+    np.testing.assert_allclose(changed[seen], expected[seen], atol=1e-12)
+    setting = np.zeros(len(plain.names))
+    gradient = plain.reading().gradient
+    known = (as_node_displacement(field, model, setting, gradient, biased.reading()).normal_displacement
+             - as_node_displacement(field, model, setting, gradient).normal_displacement)
+    np.testing.assert_allclose(known[seen], expected[seen], atol=1e-12)
+    other = dataclasses.replace(field, error_model=dataclasses.replace(field.errors, correlation_length_mm=3.0))
+    np.testing.assert_array_equal(node_field(biased, other).normal_displacement,
+                                  node_field(plain, other).normal_displacement)
+    stated = dataclasses.replace(field, error_model=FieldErrorModel.stated(0.01, plain.skin.n_nodes))
+    assert node_field(biased, stated) is stated
+
+
+def test_a_reading_bias_as_large_as_the_fields_it_reads_is_refused(toy):
+    """Fails if a finite but absurd reading bias (a crafted file with a recomputed reading_id) is taken: a gain
+    inside the basis of 1 or more, or a mean bias larger than the mean field, must be a named BasisError."""
+    import dataclasses
+
+    from hood_decomp.errors import BasisError
+
+    plain, biased, _, _ = toy
+    bias = biased.scan_reading_bias
+    with pytest.raises(BasisError, match="pre-factors"):
+        dataclasses.replace(plain, scan_reading_bias=dataclasses.replace(
+            bias, components=bias.components + 1.5 * plain.pca.components_)).reading()
+    with pytest.raises(BasisError, match="mean field"):
+        dataclasses.replace(plain, scan_reading_bias=dataclasses.replace(
+            bias, mean=bias.mean + 10.0 * plain.pca.mean_field_ + 1.0)).reading()
 
 
 def test_taking_the_scan_bias_out_inside_the_basis_removes_the_hinge_gain(default_hood):

@@ -157,14 +157,14 @@ def _write_zones(h5: h5py.File, content_id: str, zones: tuple[ToleranceZone, ...
                          compression="gzip", compression_opts=1, shuffle=True)
 
 
-def _read_reading_bias(read: Reader, content_id: str, n_components: int) -> ScanReadingBias:
+def _read_reading_bias(read: Reader, content_id: str, pca: PCABasis) -> ScanReadingBias:
     """The optional /scan_reading_bias group: a radius > 0, finite arrays of named shapes, the content matching
     ``reading_id``."""
     bias = ScanReadingBias(read.attr("scan_reading_bias", "radius_mm", "float"),
                            read.array("scan_reading_bias/mean", ("N",)),
                            read.array("scan_reading_bias/components", ("K", "N")))
     try:
-        bias.validate(read.dims["N"][0], n_components)
+        bias.validate(pca)
     except BasisError as error:
         raise BasisError(f"{read.path}: {error}") from None
     if reading_bias_id(content_id, bias) != read.attr("scan_reading_bias", "reading_id", "str"):
@@ -374,7 +374,7 @@ def load_bases(path: str | Path, mapped: bool = False) -> Bases:
             raise BasisError(f"{path}: {' and '.join(n for n, v in terms.items() if v is not None)} need /discrepancy")
         has_scan_skin = version >= 3 and "scan_skin" in h5
         # optional (issue 15, session 16): the scan step's reading bias of the basis' fields
-        reading = _read_reading_bias(read, stored_id, pca.n_components_) if "scan_reading_bias" in h5 else None
+        reading = _read_reading_bias(read, stored_id, pca) if "scan_reading_bias" in h5 else None
         # optional (issue 17): acceptance criteria, outside bases_id, bound to it by their own zones_id
         zones = _read_zones(read, stored_id) if "tolerance_zones" in h5 else ()
         measured: tuple[str, ...] = ()

@@ -808,7 +808,8 @@ def as_node_displacement(field: DisplacementField, reduced: ReducedModel, settin
     if field.errors.kind != "scan":
         return field
     if gradient is None:
-        raise CalibrationError("a scanned field of a known setting needs the skin's gradient to take its slide out")
+        raise CalibrationError("a scanned field of a known setting needs the skin's gradient (the bases' reading) "
+                               "to take its slide out")
     member = solve_members(reduced, np.asarray(setting, float)[None, :])
     values = np.asarray(field.normal_displacement, float)
     added = slide(gradient, member.normal_displacement[0], member.displacement[0])

@@ -53,13 +53,13 @@ import itertools
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solve_members
 from hood_decomp.core.loop.candidates import CandidateFields, augment_reduced
-from hood_decomp.core.loop.scan_skin import reading_bias
+from hood_decomp.core.loop.scan_skin import with_reading_bias
 from hood_decomp.core.method.bases import (
     Bases,
     analyse_estimate,
@@ -79,7 +79,6 @@ from hood_decomp.core.method.residual import (
     ResidualTest,
     noise_level,
 )
-from hood_decomp.core.scan.scan_field import prepared_estimator
 from hood_decomp.core.types import DisplacementField, Ensemble, ParameterEstimate, ReducedModel
 from hood_decomp.errors import BasisError, EnsembleError, FieldError, ModelError, ModelIdMismatchError
 
@@ -582,7 +581,7 @@ def close_loop(
                                                   explained_variance=bases.pca.explained_variance,
                                                   epsilon=bases.hierarchical.epsilon_), bases)
     if bases.scan_reading_bias is not None:  # the new basis' fields have their own reading bias, as a saved file
-        bases_after = replace(bases_after, scan_reading_bias=reading_bias(prepared_estimator(bases.skin), bases_after))
+        bases_after = with_reading_bias(bases_after)
     timings["bases_s"] = time.perf_counter() - start
     start = time.perf_counter()
     after = tuple(estimate_field(bases_after, fd, method, min_coverage) for fd in fields)

@@ -24,8 +24,9 @@ from hood_decomp.core.fe.ensemble import solve_members
 from hood_decomp.core.method.bases import Bases
 from hood_decomp.core.method.residual import DEFAULT_SMOOTH_DEGREE, bias_correlation_of, smooth_modes
 from hood_decomp.core.method.surface_reading import ScanReadingBias, SurfaceGradient, slide
-from hood_decomp.core.scan.scan_field import ScanFieldEstimator
+from hood_decomp.core.scan.scan_field import ScanFieldEstimator, prepared_estimator
 from hood_decomp.core.types import FieldErrorModel
+from hood_decomp.errors import BasisError
 
 logger = logging.getLogger(__name__)
 
@@ -82,24 +83,44 @@ def measured_bias_correlation(estimator: ScanFieldEstimator, bases: Bases) -> fl
     return value
 
 
-def reading_bias(estimator: ScanFieldEstimator, bases: Bases) -> ScanReadingBias:
+def reading_bias(estimator: ScanFieldEstimator, bases: Bases) -> ScanReadingBias | None:
     """The scan step's reading bias of ``bases``' PCA fields (:class:`ScanReadingBias`): :func:`state_bias` of the
     basis' mean 3D field and of each basis field's 3D field (one noise-free scan each, through ``estimator``, fitted
-    to ``bases.skin``; 11 scans, 0.8 s on the default hood), unseen nodes 0 (no scan sees them)."""
+    to ``bases.skin``; 11 scans, 0.8 s on the default hood), unseen nodes 0 (no scan sees them). None, with a
+    warning, where it is too large to be taken out by one step (ScanReadingBias.validate: a skin too coarse for the
+    kernel, e.g. the tests' toy skins); the within-model test's allowance then stands for all of it."""
     gradient = bases.reading().gradient
     fields = [bases.pca.mean_field_3d_, *bases.pca.components_3d_]
     biases = np.stack([state_bias(estimator, gradient, np.asarray(moved, float))[0] for moved in fields])
     biases = np.nan_to_num(biases)
+    measured = ScanReadingBias(float(estimator.radius_mm_), biases[0], biases[1:])
+    try:
+        measured.validate(bases.pca)
+    except BasisError as error:
+        logger.warning("the scan reading bias of the basis is not taken out: %s", error)
+        return None
     logger.info("scan reading bias of %d basis fields: RMS %.2e mm (mean field)", len(fields) - 1,
                 float(np.sqrt(np.mean(biases[0] ** 2))))
-    return ScanReadingBias(float(estimator.radius_mm_), biases[0], biases[1:])
+    return measured
+
+
+def with_reading_bias(bases: Bases) -> Bases:
+    """``bases`` as a bases file written with its scan skin holds them: with their :func:`reading_bias` measured
+    through the default scan options' estimator of their skin (:func:`prepared_estimator`: a stored preparation where
+    one is registered) unless they carry one. For bases built or rebuilt in memory (a calibration, close-loop's
+    added effect) that read scans as a loaded file does, and for older files read before a calibration."""
+    if bases.scan_reading_bias is not None:
+        return bases
+    return dataclasses.replace(bases, scan_reading_bias=reading_bias(prepared_estimator(bases.skin), bases))
 
 
 def scan_ready(bases: Bases) -> tuple[Bases, dict[str, np.ndarray]]:
-    """``bases`` with their :func:`reading_bias` measured and their :func:`prepared_scan_skin`, through one estimator
-    of the default scan options: what a bases file written with its scan skin holds (io.bases.save_bases)."""
+    """``bases`` with their :func:`reading_bias` measured (unless they carry one) and their
+    :func:`prepared_scan_skin`, through one estimator of the default scan options: what a bases file written with its
+    scan skin holds (io.bases.save_bases)."""
     estimator = ScanFieldEstimator().fit(bases.skin)
-    ready = dataclasses.replace(bases, scan_reading_bias=reading_bias(estimator, bases))
+    ready = bases if bases.scan_reading_bias is not None else dataclasses.replace(
+        bases, scan_reading_bias=reading_bias(estimator, bases))
     return ready, prepared_scan_skin(ready, estimator)
 
 

@@ -82,8 +82,9 @@ class Bases:
     physics: PhysicalResponses | None = dataclasses.field(default=None, compare=False)
     #: the scan step's smoothing bias of the PCA basis' fields (core.loop.scan_skin.reading_bias, measured when a
     #: bases file is written with its scan skin): what a scan reads in excess of them, which the estimator takes
-    #: out of a scanned field inside the basis (:meth:`reading`). None: not measured (only the slide is taken out)
-    scan_reading_bias: ScanReadingBias | None = None
+    #: out of a scanned field inside the basis (:meth:`reading`). None: not measured (only the slide is taken out).
+    #: Measured from the bases, not part of their value (not in bases_id)
+    scan_reading_bias: ScanReadingBias | None = dataclasses.field(default=None, compare=False)
     # (min_coverage, temperature K) -> fitted ContactEstimator; filled on first use, not part of the bases' value
     _contact_estimators: dict[tuple[float, float], ContactEstimator] = dataclasses.field(
         default_factory=dict, init=False, repr=False, compare=False)
