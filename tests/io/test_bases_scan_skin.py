@@ -184,6 +184,39 @@ def test_bias_correlation_is_stored_and_files_without_it_measure_it(saved, point
     assert again.error_model.bias_correlation == pytest.approx(stored, rel=1e-9)
 
 
+def test_bias_variance_floor_is_stored_and_files_without_it_measure_it(saved, points, fresh_cache, tmp_path,
+                                                                        monkeypatch):
+    """Fails if the scan step's bias variance floor measured on the part (core.loop.scan_skin, beside the
+    correlation) is not stored with the prepared skin or not carried by a scanned field's error model, or if a file
+    written before it (no /scan_skin/bias_variance_floor) does not measure the same value at the first scan while
+    keeping the correlation it stores (here one altered to tell it from a re-measured one)."""
+    _, path = saved
+    with h5py.File(path, "r") as h5:
+        stored = float(h5["scan_skin/bias_variance_floor"][0])
+    assert np.isfinite(stored) and stored > 0
+    assert field_from_scan(load_bases(path).skin, points)[0].error_model.bias_variance_floor == stored
+
+    def older_file(h5):
+        del h5["scan_skin/bias_variance_floor"]
+        h5["scan_skin/bias_correlation"][0] = 33.0
+
+    older = _rewritten(path, tmp_path / "older.h5", older_file)
+    monkeypatch.setattr(scan_field, "_PREPARED", {})
+    loaded = load_bases(older)  # held: the measurement needs the bases alive
+    again = field_from_scan(loaded.skin, points)[0].error_model
+    assert again.bias_variance_floor == pytest.approx(stored, rel=1e-9) and again.bias_correlation == 33.0
+
+
+@pytest.mark.parametrize("value", [-1e-6, float("nan")])
+def test_a_prepared_skin_with_a_bad_bias_variance_floor_is_refused_by_name(saved, value):
+    """Fails if a prepared skin whose bias variance floor is negative (an indefinite bias term) or NaN is taken
+    instead of refused naming it."""
+    bases, _ = saved
+    arrays = ScanFieldEstimator().fit(bases.skin).prepared_skin() | {"bias_variance_floor": np.array([value])}
+    with pytest.raises(ScanError, match="bias_variance_floor"):
+        ScanFieldEstimator().fit(bases.skin, prepared=arrays)
+
+
 @pytest.mark.parametrize("value", [-3.0, 0.0, float("nan")])
 def test_a_prepared_skin_with_a_bad_bias_correlation_is_refused_by_name(saved, points, fresh_cache, tmp_path, value):
     """Fails if a prepared skin whose bias correlation is negative, zero or NaN reaches a field (a negative one

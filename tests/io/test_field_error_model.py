@@ -21,7 +21,7 @@ def _scan_like(n: int) -> FieldErrorModel:
     std = rng.uniform(0.001, 0.003, n)
     std[:5] = np.nan
     return FieldErrorModel("scan", std, rng.uniform(1.0, 20.0, n), 12.5, root @ root.T, np.array([1.0, 2.0, 3.0]),
-                           300.0)
+                           300.0, bias_variance_floor=2.5e-6)
 
 
 def test_error_model_round_trip_and_none_is_stated(tmp_path):
@@ -33,6 +33,7 @@ def test_error_model_round_trip_and_none_is_stated(tmp_path):
     write_field(tmp_path / "f.vtu", SKIN, DisplacementField(SKIN.model_id, values, 0.9, 0.02, errors))
     back = read_field(tmp_path / "f.vtu")[0].error_model
     assert back.kind == "scan" and back.correlation_length_mm == 12.5 and back.bias_correlation == 300.0
+    assert back.bias_variance_floor == 2.5e-6
     np.testing.assert_array_equal(back.node_std, errors.node_std)
     np.testing.assert_array_equal(back.correlation, errors.correlation)
     np.testing.assert_array_equal(back.pose_covariance, errors.pose_covariance)
@@ -53,6 +54,8 @@ def test_error_model_round_trip_and_none_is_stated(tmp_path):
     (dict(pose_covariance=np.eye(5)), "finite \\(6, 6\\)"),
     (dict(kind="guess"), "kind"),
     (dict(bias_correlation=-1.0), "bias_correlation"),
+    (dict(bias_variance_floor=-1e-6), "bias_variance_floor must be a finite number >= 0"),
+    (dict(bias_variance_floor=np.nan), "bias_variance_floor must be a finite number >= 0"),
 ])
 def test_bad_error_models_are_named(tmp_path, change, message):
     """Fails if an error model of the wrong shape, with negative, infinite or NaN variances (on seen nodes), or a pose
@@ -78,3 +81,16 @@ def test_bad_error_models_are_named(tmp_path, change, message):
         (tmp_path / "ok.vtu").write_text(text[:start] + numbers + text[end:])
         with pytest.raises(FieldError, match=f"ok.vtu: .*{message}"):
             read_field(tmp_path / "ok.vtu")
+
+
+def test_a_field_file_written_before_the_bias_floor_reads_as_none(tmp_path):
+    """Fails if a field file without ``error_bias_variance_floor_mm2`` (written before issue 15 run 17) is refused
+    or reads as anything but no floor, or if the key is not where the file states the floor."""
+    field = DisplacementField(SKIN.model_id, np.zeros(SKIN.n_nodes), 1.0, 0.02, _scan_like(SKIN.n_nodes))
+    write_field(tmp_path / "f.vtu", SKIN, field)
+    text = (tmp_path / "f.vtu").read_text()
+    start = text.rindex("<DataArray", 0, text.index('Name="error_bias_variance_floor_mm2"'))
+    end = text.index("</DataArray>", start) + len("</DataArray>")
+    (tmp_path / "f.vtu").write_text(text[:start] + text[end:])
+    back = read_field(tmp_path / "f.vtu")[0].error_model
+    assert back.bias_variance_floor == 0.0 and back.bias_correlation == 300.0

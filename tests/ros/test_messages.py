@@ -110,7 +110,7 @@ def test_field_error_model_travels_in_metres(typestore):
     cov = np.diag([1e-8, 2e-8, 3e-8, 0.01, 0.02, 0.03])  # rad^2 and mm^2
     cov[0, 3] = cov[3, 0] = 1e-5  # rad mm
     errors = FieldErrorModel("scan", np.array([0.002, np.nan, 0.003, 0.001]), np.array([11.0, 1.0, 12.0, 10.0]),
-                             12.5, cov, np.array([100.0, 200.0, 300.0]), 300.0)
+                             12.5, cov, np.array([100.0, 200.0, 300.0]), 300.0, bias_variance_floor=4e-5)
     field = DisplacementField("abc", np.array([1.5, np.nan, 0.0, 0.2]), 0.75, 0.02, errors)
     msg = messages.field_to_msg(field, Header(), "P-1")
     decoded = rosbags_decode(typestore, msg)
@@ -119,7 +119,9 @@ def test_field_error_model_travels_in_metres(typestore):
     np.testing.assert_allclose(np.reshape(decoded.pose_covariance, (6, 6))[3, 3], 0.01e-6)
     np.testing.assert_allclose(np.reshape(decoded.pose_covariance, (6, 6))[0, 3], 1e-8)
     np.testing.assert_allclose(decoded.pose_center, [0.1, 0.2, 0.3])
+    assert decoded.bias_variance_floor == pytest.approx(4e-11, rel=1e-12)  # mm^2 -> m^2
     back = messages.msg_to_field(msg).error_model
+    assert back.bias_variance_floor == pytest.approx(4e-5, rel=1e-12)
     np.testing.assert_allclose(back.pose_covariance, cov, rtol=1e-12)
     np.testing.assert_allclose(back.node_std, errors.node_std, rtol=1e-6)
     np.testing.assert_allclose(back.correlation, errors.correlation, rtol=1e-6)

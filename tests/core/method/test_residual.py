@@ -1,6 +1,8 @@
 """Residual analysis (core/residual.py): chi-square within-model test and regions beyond the noise, against known
 synthetic residuals (pure Gaussian noise of a known sigma, Gaussian bumps at known places)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.stats import chi2
@@ -115,3 +117,27 @@ def test_the_smallest_ring_tail_is_the_smallest_of_all_rings():
             dof[:] = 1e12
         expected = float(np.min(t.sf(z, np.minimum(dof, 1e12))))
         assert smallest_t_sf(z, dof) == pytest.approx(expected, rel=1e-12, abs=1e-300), case
+
+
+@pytest.mark.parametrize(("noise_factor", "floor_mm2"), [(0.5, 4e-5), (2.0, 1e-5), (2.0, 1e-3)])
+def test_the_bias_level_is_at_least_the_stated_floor(noise_factor, floor_mm2):
+    """The bias variance of a field with a bias term is max(the rough residual's excess over the stated node noise,
+    ``bias_variance_floor``) per node, times ``bias_correlation``: white noise at half the stated 0.01 mm (no excess)
+    still gets floor x correlation (the scan step's smoothing bias does not vanish at high noise, issue 15 run 17);
+    at twice the stated noise the excess (3 x 1e-4 mm^2, from the residual's own variance here) wins over a small
+    floor and a large floor wins over it. Fails if the floor is ignored or replaces the measured excess."""
+    from hood_decomp.core.method.residual import check_residual, smooth_modes
+    from hood_decomp.core.types import FieldErrorModel
+
+    sigma, correlation = 0.01, 50.0
+    residual = np.random.default_rng(5).normal(0.0, noise_factor * sigma, SKIN.n_nodes)
+    errors = FieldErrorModel("scan", np.full(SKIN.n_nodes, sigma), np.ones(SKIN.n_nodes), 0.0,
+                             bias_correlation=correlation, bias_variance_floor=floor_mm2)
+    check = check_residual(residual, None, errors, smooth_modes(SKIN.points, 2))
+    excess = max(float(np.mean(residual**2)) - sigma**2, 0.0)  # the rough part is nearly all of white noise
+    expected = max(excess, floor_mm2) * correlation
+    assert check.bias_mm2 == pytest.approx(expected, rel=0.02)
+    # the same field stating no floor: the measured excess alone (0 below the stated noise)
+    plain = check_residual(residual, None, dataclasses.replace(errors, bias_variance_floor=0.0),
+                           smooth_modes(SKIN.points, 2))
+    assert plain.bias_mm2 == pytest.approx(excess * correlation, rel=0.02, abs=1e-12)

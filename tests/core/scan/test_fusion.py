@@ -128,6 +128,20 @@ def test_fused_error_model_predicts_the_scatter_of_independent_view_errors():
                   >= np.sum(modes**2, axis=1) * (1 - 1e-9))
 
 
+def test_the_fused_bias_statement_is_the_views_largest():
+    """Fails if fusing views loses either part of the smoothing-bias statement or takes the smaller one: the fused
+    field states the largest bias correlation and the largest bias variance floor of its views (the views' skins
+    may have been prepared apart; the larger is the conservative statement)."""
+    n = 10
+    points = np.column_stack([np.linspace(0.0, 900.0, n), np.zeros(n), np.zeros(n)])
+    skin = SkinSurface(points, np.tile([0.0, 0.0, 1.0], (n, 1)), np.zeros((0, 3), np.int64), "m")
+    views = [DisplacementField("m", np.zeros(n), 1.0, 0.02, FieldErrorModel(
+        "scan", np.full(n, 0.002), np.ones(n), 0.0, bias_correlation=correlation, bias_variance_floor=floor))
+        for correlation, floor in ((40.0, 3e-6), (25.0, 7e-6))]
+    fused = fuse_fields(views, skin).errors
+    assert fused.bias_correlation == 40.0 and fused.bias_variance_floor == 7e-6
+
+
 def test_a_multi_view_part_refuses_a_view_without_a_pose_by_name(part):
     """Fails if a multi-view part accepts a view without a scanner pose (even one with markers), or does not name it;
     or if a lone view without a pose is refused (it is in the part frame, registered by its markers)."""

@@ -95,8 +95,13 @@ class FieldErrorModel:
     bias_correlation: the correlation sum (nodes, as ``correlation``) of the making's own bias, 0 for none. The scan
         step's smoothing biases node values where the displacement is curved below the smoothing radius (at pads,
         hinges, free edges); that bias is not noise: it shows as rough residual in excess of ``node_std`` and it is
-        correlated over a wider area. Its level is not stated (it depends on the part's state) but measured on each
-        residual as that excess; this number says how far it is correlated.
+        correlated over a wider area. Its level is measured on each residual as that excess; this number says how
+        far it is correlated.
+    bias_variance_floor: mm^2 per node, the least level of that bias (0 for none): the scan step's smoothing-bias
+        variance per node measured on the part's own FE states (core.loop.scan_skin), as the test measures a level
+        (core.method.residual.split_level). A residual's rough excess over ``node_std`` is lost in the noise at
+        realistic point noise (issue 15 run 16 B) while the bias is the same whatever the noise, so the test uses the
+        larger of the two. Used only with ``bias_correlation`` > 0.
     view_poses: a field fused from several views (:mod:`hood_decomp.core.scan.fusion`) has one independent
         registration error per view, each reaching only the nodes that view saw, with that view's fusion weight:
         :class:`ViewPoseError` per view. When present, :meth:`registration_modes` is built from them (N, 6 V) and
@@ -114,6 +119,7 @@ class FieldErrorModel:
     pose_center: np.ndarray = field(default_factory=lambda: np.zeros(3))
     bias_correlation: float = 0.0
     view_poses: tuple[ViewPoseError, ...] = ()
+    bias_variance_floor: float = 0.0
 
     @staticmethod
     def none() -> FieldErrorModel:
@@ -150,7 +156,7 @@ class FieldErrorModel:
         if np.any(~(corr[known] >= 1.0 - 1e-9)) or np.any(np.isinf(corr)):
             raise FieldError("error model correlation (sum of correlation coefficients per node) must be a finite "
                              "number >= 1 on every node with a std")
-        for name in ("correlation_length_mm", "bias_correlation"):
+        for name in ("correlation_length_mm", "bias_correlation", "bias_variance_floor"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise FieldError(f"error model {name} must be a finite number >= 0, got {value}")

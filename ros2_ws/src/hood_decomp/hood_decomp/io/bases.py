@@ -406,20 +406,21 @@ def load_bases(path: str | Path, mapped: bool = False) -> Bases:
 
 
 def _with_bias(arrays: dict[str, np.ndarray], bases: Bases | None) -> dict[str, np.ndarray]:
-    """A prepared skin of a file written before the smoothing bias' correlation was stored with it (issue 15 run
-    10): measured now from ``bases`` (core.loop.scan_skin; about 2 s of CPU at default resolution, once a process);
-    as read when it is stored, or the bases are gone (the scan step then states its area fallback)."""
-    if "bias_correlation" in arrays or bases is None:
+    """A prepared skin of a file written before the smoothing bias' correlation (issue 15 run 10) or its variance
+    floor (run 17) was stored with it: measured now from ``bases`` (core.loop.scan_skin; about 2 s of CPU at default
+    resolution, once a process), the stored values kept; as read when both are stored, or the bases are gone (the
+    scan step then states its area fallback and no floor)."""
+    if {"bias_correlation", "bias_variance_floor"} <= arrays.keys() or bases is None:
         return arrays
-    from hood_decomp.core.loop.scan_skin import measured_bias_correlation
+    from hood_decomp.core.loop.scan_skin import measured_bias
     from hood_decomp.core.scan.scan_field import ScanFieldEstimator
 
     started = time.perf_counter()
-    value = measured_bias_correlation(ScanFieldEstimator().fit(bases.skin, prepared=arrays), bases)
-    if value is not None:  # every process reading this file pays it again
-        logger.warning("the bases file predates the stored scan-bias correlation: measured now in %.1f s; rebuild "
-                       "the bases (hood-decomp bases) to store it", time.perf_counter() - started)
-    return arrays if value is None else arrays | {"bias_correlation": np.array([value])}
+    measured = measured_bias(ScanFieldEstimator().fit(bases.skin, prepared=arrays), bases)
+    if measured:  # every process reading this file pays it again
+        logger.warning("the bases file predates the stored scan bias: measured now in %.1f s; rebuild the bases "
+                       "(hood-decomp bases) to store it", time.perf_counter() - started)
+    return measured | arrays
 
 
 def load_scan_skin(path: str | Path, content_id: str, n_nodes: int, mapped: bool = False) -> dict[str, np.ndarray]:

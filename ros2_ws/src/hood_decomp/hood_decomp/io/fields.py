@@ -5,7 +5,8 @@ Layout: points = skin node positions (N, 3) mm, triangle cells = skin triangles,
 ASCII codes), ``coverage`` and ``noise_rms`` (mm, NaN when unknown), and the field's error model (FieldData
 ``error_model`` (kind, ASCII codes; "none" for a simulated field), ``error_correlation_length_mm``,
 ``error_pose_covariance`` (36, row-major 6 x 6, [rad, mm]^2 about ``error_pose_center_mm`` (3)),
-``error_bias_correlation``; point data ``error_std`` (N,) mm and ``error_correlation`` (N,)). meshio reads FieldData
+``error_bias_correlation`` and ``error_bias_variance_floor_mm2`` (mm^2 per node; absent in files written before
+it: 0); point data ``error_std`` (N,) mm and ``error_correlation`` (N,)). meshio reads FieldData
 but does not write it, so the writer adds the FieldData element to the XML meshio wrote; ParaView shows it as field
 data.
 """
@@ -49,6 +50,7 @@ def _error_model_items(errors: FieldErrorModel) -> tuple[dict[str, np.ndarray], 
         error_pose_covariance=np.asarray(errors.pose_covariance, float).ravel(),
         error_pose_center_mm=np.asarray(errors.pose_center, float),
         error_bias_correlation=np.array([errors.bias_correlation]),
+        error_bias_variance_floor_mm2=np.array([errors.bias_variance_floor]),
     )
     return {"error_std": np.asarray(errors.node_std, float),
             "error_correlation": np.asarray(errors.correlation, float)}, field_data
@@ -77,6 +79,8 @@ def _read_error_model(mesh: meshio.Mesh, path: Path, n_nodes: int) -> FieldError
         pose_covariance=item("error_pose_covariance", data, 36).reshape(6, 6),
         pose_center=item("error_pose_center_mm", data, 3),
         bias_correlation=float(item("error_bias_correlation", data, 1)[0]),
+        bias_variance_floor=float(item("error_bias_variance_floor_mm2", data, 1)[0])
+        if "error_bias_variance_floor_mm2" in data else 0.0,  # a file written before the floor states none
     )
     try:
         errors.validate(n_nodes)

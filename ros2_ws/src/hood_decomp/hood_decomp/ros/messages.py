@@ -94,6 +94,7 @@ def field_to_msg(field: DisplacementField, header: Any, part_id: str) -> Any:
         pose_covariance=(np.asarray(errors.pose_covariance, float) * np.outer(unit, unit)).ravel().tolist(),
         pose_center=(np.asarray(errors.pose_center, float) * M_PER_MM).tolist(),
         bias_correlation=float(errors.bias_correlation),
+        bias_variance_floor=float(errors.bias_variance_floor) * M_PER_MM**2,
         view_weight=_float32_array(np.concatenate([np.asarray(v.weight, float) for v in views]) if views
                                    else np.zeros(0)),
         view_poses=[float(c) for v in views for c in np.concatenate([
@@ -116,6 +117,7 @@ def msg_to_field(msg: Any) -> DisplacementField:
         pose_covariance=_numpy(msg.pose_covariance).reshape(6, 6) * np.outer(unit, unit),
         pose_center=_numpy(msg.pose_center, MM_PER_M),
         bias_correlation=float(msg.bias_correlation),
+        bias_variance_floor=float(msg.bias_variance_floor) * MM_PER_M**2,
         view_poses=_view_poses(msg, len(msg.normal_displacement), unit),
     )
     return DisplacementField(

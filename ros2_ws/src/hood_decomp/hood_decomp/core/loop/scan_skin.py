@@ -1,15 +1,18 @@
 """The prepared scan skin of a set of bases, with the scan step's own bias measured on the part's own fields.
 
 The scan step smooths; on a curved displacement that biases the node values (the kernel's second moment times the
-displacement's curvature, one-sided fits at free edges), and the within-model test allows for it from each
-residual's rough excess times a correlation sum (``FieldErrorModel.bias_correlation``,
-core.method.residual.split_level). How large that sum is depends on the skin, the kernel and what the part's
-displacements look like, so it is measured once per prepared skin: the FE model's states spread over the declared
-ranges, scanned noise-free through the scan step's own field path (:meth:`ScanFieldEstimator.surface_samples`), minus
-what a scan reads of each state (its normal displacement less its slide along the surface, which the estimator takes
-out: core.method.surface_reading), split by the test's own arithmetic
-(:func:`~hood_decomp.core.method.residual.bias_correlation_of`). Issue 15 run 13 (benchmarks/RESULTS.md) checks it
-against noise-free synthetic scans of other FE states.
+displacement's curvature, one-sided fits at free edges), and the within-model test allows for it from each residual's
+rough excess (at least ``FieldErrorModel.bias_variance_floor``) times a correlation sum
+(``FieldErrorModel.bias_correlation``, core.method.residual.split_level). How large both are depends on the skin, the
+kernel and what the part's displacements look like, so they are measured once per prepared skin: the FE model's states
+spread over the declared ranges, scanned noise-free through the scan step's own field path
+(:meth:`ScanFieldEstimator.surface_samples`), minus what a scan reads of each state (its normal displacement less its
+slide along the surface, which the estimator takes out: core.method.surface_reading), split by the test's own
+arithmetic (:func:`~hood_decomp.core.method.residual.bias_split`). Issue 15 runs 13 and 17 (benchmarks/RESULTS.md)
+check them against noise-free synthetic scans of other FE states.
+
+The bias' part inside the PCA basis is not allowed for but taken out by the estimator (core.method.surface_reading
+ReadingOfBasis): :func:`reading_bias` measures what each basis field reads in excess, by the same noise-free path.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import numpy as np
 
 from hood_decomp.core.fe.ensemble import solve_members
 from hood_decomp.core.method.bases import Bases
-from hood_decomp.core.method.residual import DEFAULT_SMOOTH_DEGREE, bias_correlation_of, smooth_modes
+from hood_decomp.core.method.residual import DEFAULT_SMOOTH_DEGREE, bias_split, smooth_modes
 from hood_decomp.core.method.surface_reading import ScanReadingBias, SurfaceGradient, slide
 from hood_decomp.core.scan.scan_field import ScanFieldEstimator, prepared_estimator
 from hood_decomp.core.types import FieldErrorModel
@@ -68,19 +71,20 @@ def scan_bias(estimator: ScanFieldEstimator, bases: Bases, count: int = BIAS_STA
     return np.column_stack([bias for bias, _ in biases]), biases[-1][1]
 
 
-def measured_bias_correlation(estimator: ScanFieldEstimator, bases: Bases) -> float | None:
-    """The bias correlation sum (nodes) of ``estimator`` (fitted to ``bases.skin``) on the part of ``bases``:
-    :func:`bias_correlation_of` of :func:`scan_bias` outside the PCA basis. None for bases without a reduced model
-    (the scan step then states its area fallback, ``SMOOTHING_BIAS_AREA_MM2``)."""
+def measured_bias(estimator: ScanFieldEstimator, bases: Bases) -> dict[str, np.ndarray]:
+    """The scan bias of ``estimator`` (fitted to ``bases.skin``) on the part of ``bases``, as prepared skin arrays:
+    :func:`bias_split` of :func:`scan_bias` outside the PCA basis, ``bias_correlation`` (1,) nodes and
+    ``bias_variance_floor`` (1,) mm^2 per node. Empty for bases without a reduced model (the scan step then states
+    its area fallback, ``SMOOTHING_BIAS_AREA_MM2``, and no floor)."""
     measured = scan_bias(estimator, bases)
     if measured is None:
-        return None
+        return {}
     bias, errors = measured
     modes = smooth_modes(np.asarray(bases.skin.points, float), DEFAULT_SMOOTH_DEGREE)
-    value = bias_correlation_of(bias, bases.pca.components_.T, errors, modes)
-    logger.info("scan bias correlation measured on %d states: %.1f nodes (area fallback %.1f)",
-                bias.shape[1], value, estimator.bias_correlation_)
-    return value
+    correlation, floor = bias_split(bias, bases.pca.components_.T, errors, modes)
+    logger.info("scan bias measured on %d states: correlation %.1f nodes (area fallback %.1f), level %.3g mm^2 "
+                "per node", bias.shape[1], correlation, estimator.bias_correlation_, floor)
+    return {"bias_correlation": np.array([correlation]), "bias_variance_floor": np.array([floor])}
 
 
 def reading_bias(estimator: ScanFieldEstimator, bases: Bases) -> ScanReadingBias | None:
@@ -126,12 +130,9 @@ def scan_ready(bases: Bases) -> tuple[Bases, dict[str, np.ndarray]]:
 
 def prepared_scan_skin(bases: Bases, estimator: ScanFieldEstimator | None = None) -> dict[str, np.ndarray]:
     """The prepared skin (:meth:`ScanFieldEstimator.prepared_skin` arrays) of ``bases.skin`` for the default scan
-    options, with ``bias_correlation`` measured (:func:`measured_bias_correlation`) where the bases can; what a bases
-    file stores (io.bases) and what ``ScanFieldEstimator().fit(skin, prepared=...)`` takes. estimator: one already
-    fitted to the skin (its grid and kernel are reused)."""
+    options, with ``bias_correlation`` and ``bias_variance_floor`` measured (:func:`measured_bias`) where the bases
+    can; what a bases file stores (io.bases) and what ``ScanFieldEstimator().fit(skin, prepared=...)`` takes.
+    estimator: one already fitted to the skin (its grid and kernel are reused)."""
     estimator = ScanFieldEstimator().fit(bases.skin) if estimator is None else estimator
     arrays = estimator.prepared_skin()
-    value = measured_bias_correlation(estimator, bases)
-    if value is not None:
-        arrays["bias_correlation"] = np.array([value])
-    return arrays
+    return arrays | measured_bias(estimator, bases)

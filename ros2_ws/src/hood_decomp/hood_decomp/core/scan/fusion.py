@@ -239,7 +239,8 @@ def fuse_fields(fields: Sequence[DisplacementField], skin: SkinSurface | None = 
         errors = FieldErrorModel(
             "scan", node_std, np.where(any_seen, np.maximum(fused_correlation, 1.0), 1.0),
             max(m.correlation_length_mm for m in models), pose_covariance=summary, pose_center=center,
-            bias_correlation=max(m.bias_correlation for m in models), view_poses=views)
+            bias_correlation=max(m.bias_correlation for m in models), view_poses=views,
+            bias_variance_floor=max(m.bias_variance_floor for m in models))
         errors.validate(n)
     return DisplacementField(model_id, fused, float(any_seen.mean()), noise_rms, errors)
 

@@ -92,12 +92,14 @@ PREPARED_SKIN: dict[str, tuple[tuple[str, ...], str]] = {
     "grid_brick": (("3",), "integer"),
     "kernel_indptr": (("N1",), "integer"), "kernel_indices": (("Z",), "integer"), "kernel_data": (("Z",), "float"),
     "twicing_variance": (("N",), "float"), "bias_correlation": (("1",), "float"),
+    "bias_variance_floor": (("1",), "float"),
 }  # fmt: skip
 #: arrays of PREPARED_SKIN a prepared skin may lack: made at the first scan that needs them (files written before);
-#: ``bias_correlation`` is measured from the part's own fields (core.loop.scan_skin), without it the area fallback;
+#: ``bias_correlation`` and ``bias_variance_floor`` are measured from the part's own fields (core.loop.scan_skin),
+#: without them the area fallback and no floor;
 #: without ``grid_brick`` (written before issue 19, session 12) ``grid_table`` is in plain C order, laid out
 #: in bricks when the skin is fitted
-PREPARED_OPTIONAL = frozenset({"twicing_variance", "bias_correlation", "grid_brick"})
+PREPARED_OPTIONAL = frozenset({"twicing_variance", "bias_correlation", "bias_variance_floor", "grid_brick"})
 
 
 @dataclass(frozen=True)
@@ -166,7 +168,7 @@ def _check_prepared(prepared: Mapping[str, np.ndarray], n: int) -> dict[str, np.
     brick = arrays.get("grid_brick")  # powers of two, whole bricks
     if brick is not None and (np.any(brick & (brick - 1)) or np.any(arrays["grid_shape"] % np.maximum(brick, 1))):
         bad.append("grid_brick")
-    bad += ["gate2"] if np.any(arrays["gate2"] < 0) else []
+    bad += [name for name in ("gate2", "bias_variance_floor") if name in arrays and np.any(arrays[name] < 0)]
     if np.any(arrays["kernel_data"] < 0) or np.any(arrays["kernel_data"] > 1):  # biweight values
         bad.append("kernel_data")
     indptr, indices, table = arrays["kernel_indptr"], arrays["kernel_indices"], arrays["grid_table"]
@@ -265,6 +267,8 @@ class ScanFieldEstimator:
         self.bias_measured_ = measured
         self.bias_correlation_ = (float(prepared["bias_correlation"][0]) if measured
                                   else smoothing_bias_correlation(skin))
+        floored = measured and "bias_variance_floor" in prepared
+        self.bias_variance_floor_ = float(prepared["bias_variance_floor"][0]) if floored else 0.0
         self.points_ = points
         tangent1, tangent2 = _tangent_frames(normals)
         self.frames_ = np.stack([tangent1, tangent2, normals], axis=1)  # (N, 3, 3) rows t1, t2, n
@@ -418,12 +422,15 @@ class ScanFieldEstimator:
     def prepared_skin(self) -> dict[str, np.ndarray]:
         """What :meth:`fit` builds slowly, as arrays (names and shapes: ``PREPARED_SKIN``) to store with the bases
         and give back to ``fit(skin, prepared=...)``: grid, quadrics, gates, kernel (CSR), node radii and, for a twiced
-        fit, :meth:`_twicing_variance` (0.1 s a process on the default hood otherwise); ``bias_correlation`` when the
-        estimator was fitted with a measured one (:meth:`surface_samples`, core.loop.scan_skin)."""
+        fit, :meth:`_twicing_variance` (0.1 s a process on the default hood otherwise); ``bias_correlation`` (and
+        ``bias_variance_floor`` when it has one) when the estimator was fitted with a measured one
+        (:meth:`surface_samples`, core.loop.scan_skin)."""
         self._check_fitted()
         twicing = {"twicing_variance": self._twicing_ratio()} if self.twicing_ else {}
         if self.bias_measured_:
             twicing["bias_correlation"] = np.array([self.bias_correlation_])
+        if self.bias_variance_floor_ > 0:
+            twicing["bias_variance_floor"] = np.array([self.bias_variance_floor_])
         return twicing | {
             "spacing": np.array([self.spacing_mm_]), "radius": np.array([self.radius_mm_]),
             "gate2": self.gate2_, "quadric": self.quadric_, "node_radius": self.node_radius_mm_,
@@ -734,7 +741,8 @@ class ScanFieldEstimator:
                                               fast)
         return FieldErrorModel("scan", np.where(supported, noise_mm * spread, np.nan),
                                np.where(supported, np.maximum(correlation, 1.0), 1.0), float(self.radius_mm_),
-                               bias_correlation=self.bias_correlation_)
+                               bias_correlation=self.bias_correlation_,
+                               bias_variance_floor=self.bias_variance_floor_)
 
 
 _PREPARED: dict[tuple, ScanFieldEstimator] = {}
