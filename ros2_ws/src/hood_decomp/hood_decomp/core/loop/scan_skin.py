@@ -20,6 +20,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import logging
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -65,9 +66,15 @@ def scan_bias(estimator: ScanFieldEstimator, bases: Bases, count: int = BIAS_STA
         return None
     rng = np.random.default_rng(seed)
     states = rng.uniform(bases.pca.lower_, bases.pca.upper_, size=(count, len(bases.pca.lower_)))
-    members = solve_members(bases.reduced_model, states)
+    return _biases(estimator, bases, solve_members(bases.reduced_model, states).displacement)
+
+
+def _biases(estimator: ScanFieldEstimator, bases: Bases, displacements: Iterable[np.ndarray]
+            ) -> tuple[np.ndarray, FieldErrorModel]:
+    """:func:`state_bias` of each displacement (N, 3) mm of ``bases``' part: (N, k) mm, and the error model of the
+    last."""
     gradient = bases.reading().gradient  # the estimator's own, fitted once per bases
-    biases = [state_bias(estimator, gradient, np.asarray(moved, float)) for moved in members.displacement]
+    biases = [state_bias(estimator, gradient, np.asarray(moved, float)) for moved in displacements]
     return np.column_stack([bias for bias, _ in biases]), biases[-1][1]
 
 
@@ -93,29 +100,28 @@ def reading_bias(estimator: ScanFieldEstimator, bases: Bases) -> ScanReadingBias
     to ``bases.skin``; 11 scans, 0.8 s on the default hood), unseen nodes 0 (no scan sees them). None, with a
     warning, where it is too large to be taken out by one step (ScanReadingBias.validate: a skin too coarse for the
     kernel, e.g. the tests' toy skins); the within-model test's allowance then stands for all of it."""
-    gradient = bases.reading().gradient
-    fields = [bases.pca.mean_field_3d_, *bases.pca.components_3d_]
-    biases = np.stack([state_bias(estimator, gradient, np.asarray(moved, float))[0] for moved in fields])
-    biases = np.nan_to_num(biases)
+    biases = np.nan_to_num(_biases(estimator, bases, [bases.pca.mean_field_3d_, *bases.pca.components_3d_])[0].T)
     measured = ScanReadingBias(float(estimator.radius_mm_), biases[0], biases[1:])
     try:
         measured.validate(bases.pca)
     except BasisError as error:
         logger.warning("the scan reading bias of the basis is not taken out: %s", error)
         return None
-    logger.info("scan reading bias of %d basis fields: RMS %.2e mm (mean field)", len(fields) - 1,
+    logger.info("scan reading bias of %d basis fields: RMS %.2e mm (mean field)", len(biases) - 1,
                 float(np.sqrt(np.mean(biases[0] ** 2))))
     return measured
 
 
-def with_reading_bias(bases: Bases) -> Bases:
+def with_reading_bias(bases: Bases, estimator: ScanFieldEstimator | None = None) -> Bases:
     """``bases`` as a bases file written with its scan skin holds them: with their :func:`reading_bias` measured
-    through the default scan options' estimator of their skin (:func:`prepared_estimator`: a stored preparation where
-    one is registered) unless they carry one. For bases built or rebuilt in memory (a calibration, close-loop's
-    added effect) that read scans as a loaded file does, and for older files read before a calibration."""
+    through ``estimator`` (default: the default scan options' estimator of their skin, :func:`prepared_estimator`, a
+    stored preparation where one is registered) unless they carry one. For bases built or rebuilt in memory (a
+    calibration, close-loop's added effect) that read scans as a loaded file does, and for older files read before a
+    calibration."""
     if bases.scan_reading_bias is not None:
         return bases
-    return dataclasses.replace(bases, scan_reading_bias=reading_bias(prepared_estimator(bases.skin), bases))
+    estimator = prepared_estimator(bases.skin) if estimator is None else estimator
+    return dataclasses.replace(bases, scan_reading_bias=reading_bias(estimator, bases))
 
 
 def scan_ready(bases: Bases) -> tuple[Bases, dict[str, np.ndarray]]:
@@ -123,8 +129,7 @@ def scan_ready(bases: Bases) -> tuple[Bases, dict[str, np.ndarray]]:
     :func:`prepared_scan_skin`, through one estimator of the default scan options: what a bases file written with its
     scan skin holds (io.bases.save_bases)."""
     estimator = ScanFieldEstimator().fit(bases.skin)
-    ready = bases if bases.scan_reading_bias is not None else dataclasses.replace(
-        bases, scan_reading_bias=reading_bias(estimator, bases))
+    ready = with_reading_bias(bases, estimator)
     return ready, prepared_scan_skin(ready, estimator)
 
 
