@@ -62,8 +62,37 @@ def test_woodbury_weight_is_the_inverse_of_the_dense_node_covariance():
     np.testing.assert_allclose(applied[valid], dense @ x[valid], rtol=1e-9, atol=1e-9 * np.abs(applied).max())
     assert np.all(applied[~valid] == 0.0)
     np.testing.assert_allclose(weight.project(fields, x), fields[:, valid] @ dense @ x[valid], rtol=1e-9)
-    np.testing.assert_allclose(weight.normal(fields), fields[:, valid] @ dense @ fields[:, valid].T, rtol=1e-9)
+    np.testing.assert_allclose(weight.span(fields).normal(), fields[:, valid] @ dense @ fields[:, valid].T, rtol=1e-9)
     assert weight.energy(x) == pytest.approx(float(x[valid] @ dense @ x[valid]), rel=1e-9)
+
+
+def test_the_weighted_span_covariance_is_the_dense_sandwich_with_stated_modes_and_a_discrepancy():
+    """Fails if WeightedSpan's covariance (formed from one weighted Gram, no N x q gain) differs from the sandwich
+    written out densely: G Sigma G^T with G = (X^T W X)^-1 X^T W, Sigma = diag(d) + U U^T with every low-rank mode,
+    W weighing only the first k_w of them, X = F^T L a lift of the fields, plus the discrepancy (D, E) netted along
+    G's rows; or if its normal matrix is not X^T W X's F-part, or an unseen node's mode values count."""
+    from hood_decomp.core.method.estimation import discrepancy_along_gains
+
+    rng = np.random.default_rng(5)
+    n, m, q, k, kw = 400, 7, 4, 5, 3
+    valid = rng.random(n) > 0.25
+    std, correlation = rng.uniform(0.01, 0.03, n), rng.uniform(1.0, 3.0, n)
+    modes = rng.normal(size=(n, k)) * 0.02  # unseen rows too: their weight is 0
+    weight = node_weight(FieldErrorModel("scan", std, correlation), valid, 0.9, 0.003, modes, unit=4e-4, weighed=kw)
+    fields, lift = rng.normal(size=(m, n)), rng.normal(size=(m, q))
+    pair = (rng.normal(size=(n, 3)) * 0.01, rng.normal(size=(n, 6)) * 0.004)
+    span = weight.span(fields, pair)
+    d = 0.9 * std[valid] ** 2 * correlation[valid] + 0.003**2
+    u = modes[valid]
+    dense_weight = 4e-4 * np.linalg.inv(np.diag(d) + u[:, :kw] @ u[:, :kw].T)
+    sigma = np.diag(d) + u @ u.T
+    x = fields[:, valid].T @ lift
+    inverse = np.linalg.inv(x.T @ dense_weight @ x)
+    gain = inverse @ x.T @ dense_weight
+    expected = gain @ sigma @ gain.T + discrepancy_along_gains(gain @ pair[0][valid], gain @ pair[1][valid])
+    np.testing.assert_allclose(span.covariance(lift, inverse), expected, rtol=1e-8, atol=1e-12 * np.abs(expected).max())
+    f = fields[:, valid]
+    np.testing.assert_allclose(span.normal(), f @ dense_weight @ f.T, rtol=1e-9)
 
 
 def test_pca_estimate_is_the_dense_generalised_least_squares_on_a_partial_field(coarse_hood):

@@ -141,3 +141,75 @@ def test_the_bias_level_is_at_least_the_stated_floor(noise_factor, floor_mm2):
     plain = check_residual(residual, None, dataclasses.replace(errors, bias_variance_floor=0.0),
                            smooth_modes(SKIN.points, 2))
     assert plain.bias_mm2 == pytest.approx(excess * correlation, rel=0.02, abs=1e-12)
+
+
+@pytest.mark.parametrize("uniform_weight", [False, True])
+def test_the_smooth_split_from_grams_is_the_split_by_explicit_projections(uniform_weight):
+    """Fails if the test's split of a residual (fitted directions Z, smooth modes S outside them, the rough rest; from
+    two Gram matrices over the seen nodes) differs from the split written out with QR factors of the seen rows: the
+    basis-free quantities |c|^2, c^T (S^T W S)^-1 c, tr S^T W S, tr Z^T W Z, the rough energy per residual column,
+    the moved columns' rough energy and |S^T moved|^2; or if an unseen node counts."""
+    from hood_decomp.core.method.residual import _smooth_split
+
+    rng = np.random.default_rng(8)
+    n, p, m, k = 500, 4, 6, 3
+    seen = rng.random(n) > 0.3
+    design, modes, moved = rng.normal(size=(n, p)), rng.normal(size=(n, m)), rng.normal(size=(n, k))
+    modes[:, 0] = design[:, 1]  # a mode the design already spans: S has one direction less
+    r = np.where(seen[:, None], rng.normal(size=(n, 2)), 1e6)  # unseen entries large: they must not count
+    weight = np.full(n, 0.7) if uniform_weight else rng.uniform(0.5, 2.0, n)
+    rank, c, smooth_cov, rough, fitted_weight, rough_moved, projected = _smooth_split(
+        np.where(seen[:, None], r, 0.0), design, modes, np.where(seen, weight, 0.0), moved, seen)
+    z = np.linalg.qr(design[seen])[0]
+    outside = modes[seen] - z @ (z.T @ modes[seen])
+    u, s, _ = np.linalg.svd(outside, full_matrices=False)
+    smooth = u[:, s > 1e-6 * s[0]]
+    w = weight[seen]
+    assert rank == p and c.shape == (m - 1, 2)
+    expected_c = smooth.T @ r[seen]
+    expected_cov = smooth.T @ (w[:, None] * smooth)
+    np.testing.assert_allclose(np.sum(c**2, axis=0), np.sum(expected_c**2, axis=0), rtol=1e-9)
+    np.testing.assert_allclose(np.einsum("ij,ij->j", c, np.linalg.solve(smooth_cov, c)),
+                               np.einsum("ij,ij->j", expected_c, np.linalg.solve(expected_cov, expected_c)), rtol=1e-9)
+    assert np.trace(smooth_cov) == pytest.approx(np.trace(expected_cov), rel=1e-9)
+    assert fitted_weight == pytest.approx(float(np.sum(w[:, None] * z**2)), rel=1e-9)
+    seen_r = r[seen]
+    np.testing.assert_allclose(rough, np.sum(seen_r**2, axis=0) - np.sum((z.T @ seen_r) ** 2, axis=0)
+                               - np.sum(expected_c**2, axis=0), rtol=1e-9)
+    seen_moved = moved[seen]
+    np.testing.assert_allclose(rough_moved, np.sum(seen_moved**2, axis=0) - np.sum((z.T @ seen_moved) ** 2, axis=0)
+                               - np.sum((smooth.T @ seen_moved) ** 2, axis=0), rtol=1e-9)
+    np.testing.assert_allclose(projected.T @ projected, seen_moved.T @ smooth @ smooth.T @ seen_moved, rtol=1e-9,
+                               atol=1e-9)
+
+
+def test_the_tests_kept_whole_skin_gram_gives_the_check_made_in_one_pass():
+    """Fails if ResidualTest.check, which takes the seen nodes' Gram from the whole skin's (kept per design view,
+    less the unseen rows, the registration carried by its 6 x 6 mixing), judges a residual differently from
+    check_residual forming it in one pass: one pose, a calibrated discrepancy, two views of one array (a stale kept
+    Gram would be the first's), a fused field's registration and a mostly unseen field (both formed in one pass)."""
+    from hood_decomp.core.method.residual import ResidualTest, check_residual
+    from hood_decomp.core.types import FieldErrorModel, ViewPoseError
+
+    rng = np.random.default_rng(12)
+    n = SKIN.n_nodes
+    fields = rng.normal(size=(6, n))  # an estimator's fitted fields: the test gets their transposed views
+    root = np.diag([2e-5, 2e-5, 2e-5, 0.015, 0.015, 0.015]) @ rng.normal(size=(6, 6))
+    one_pose = FieldErrorModel("scan", rng.uniform(0.01, 0.03, n), rng.uniform(1.0, 3.0, n), 3.0, root @ root.T,
+                               SKIN.points.mean(axis=0) + 40.0)
+    half = SKIN.points[:, 0] < np.median(SKIN.points[:, 0])
+    views = (ViewPoseError(root @ root.T, SKIN.points.mean(axis=0), half.astype(float)),
+             ViewPoseError(root @ root.T, SKIN.points.mean(axis=0) - 50.0, (~half).astype(float)))
+    fused = dataclasses.replace(one_pose, view_poses=views)
+    discrepancy = 0.01 * rng.normal(size=(n, 2))
+    for test in (ResidualTest().fit(SKIN), ResidualTest().fit(SKIN, discrepancy, 12.0)):
+        biased = dataclasses.replace(one_pose, bias_correlation=300.0)  # a scan's: no one-ring part
+        for design, errors, unseen in ((fields.T, one_pose, 0.2), (fields[:4].T, biased, 0.3),
+                                       (fields.T, fused, 0.2), (fields.T, one_pose, 0.7), (fields.T, biased, 0.1)):
+            residual = np.where(rng.random(n) < unseen, np.nan, 0.02 * rng.normal(size=n))
+            kept = test.check(residual, design, errors)
+            rings = test.rings() if test.looks_at_fit(errors) else None
+            made = check_residual(residual, design, errors, test.modes_, test.registration(errors), 0.0, test.alpha,
+                                  rings, test.tested_discrepancy(), test.discrepancy_dof_, test.discrepancy_local_)
+            for name in ("statistic", "p_value", "noise_scale", "bias_mm2"):
+                assert getattr(kept, name) == pytest.approx(getattr(made, name), rel=1e-8, abs=1e-14), name

@@ -179,17 +179,25 @@ class FieldErrorModel:
             FieldErrorModel("none", np.zeros(0), np.zeros(0), pose_covariance=view.covariance,
                             pose_center=view.center).validate(n_nodes)
 
-    def registration_modes(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    def registration_modes(self, points: np.ndarray, normals: np.ndarray, rigid: np.ndarray | None = None
+                           ) -> np.ndarray:
         """U (N, 6) mm: the normal field error of the pose error, e_reg = U z with z ~ N(0, I_6).
 
         points, normals: (N, 3) skin nodes (mm) and unit normals. A twist (omega, t) about c moves x by
         omega x (x - c) + t, whose normal part is omega . ((x - c) x n) + t . n: the rigid-body modes J (N, 6);
-        U = J L with L L^T the pose covariance.
+        U = J L with L L^T the pose covariance. rigid: :func:`rigid_modes` of these nodes when the caller keeps
+        them (None: made here).
         """
+        rigid = rigid_modes(points, normals) if rigid is None else rigid
         if self.view_poses:
-            return np.hstack([view.weight[:, None] * _pose_modes(view.covariance, view.center, points, normals)
+            return np.hstack([view.weight[:, None] * (rigid @ _pose_mixing(view.covariance, view.center))
                               for view in self.view_poses])
-        return _pose_modes(self.pose_covariance, self.pose_center, points, normals)
+        return rigid @ _pose_mixing(self.pose_covariance, self.pose_center)
+
+    def pose_mixing(self) -> np.ndarray | None:
+        """(6, 6) M with :meth:`registration_modes` = :func:`rigid_modes` @ M for a field of one pose; None for a
+        fused field, whose views' modes are weighted node by node."""
+        return None if self.view_poses else _pose_mixing(self.pose_covariance, self.pose_center)
 
 
 @dataclass(frozen=True)
@@ -210,11 +218,22 @@ class ViewPoseError:
         return bool(np.any(self.covariance != 0.0))
 
 
-def _pose_modes(covariance: np.ndarray, center: np.ndarray, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """(N, 6) normal field error per unit of a pose error with ``covariance`` about ``center`` (registration_modes)."""
-    modes = np.hstack([np.cross(points - center, normals), normals])
+def rigid_modes(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(N, 6) the normal displacement of the nodes per unit twist (omega, t) about the origin: [x x n, n] (points,
+    normals (N, 3) mm and unit)."""
+    return np.hstack([np.cross(points, normals), normals])
+
+
+def _pose_mixing(covariance: np.ndarray, center: np.ndarray) -> np.ndarray:
+    """(6, 6) M with rigid_modes @ M the normal field error per unit of a pose error with ``covariance`` about
+    ``center`` (registration_modes): omega x (x - c) + t = omega x x + (t + [c]x omega), so the rigid modes about c
+    are the origin's times [[I, 0], [[c]x, I]] (a 6 x 6 product instead of a pass over the nodes), then L with
+    L L^T the covariance."""
+    cx, cy, cz = np.asarray(center, float)
+    about = np.eye(6)
+    about[3:, :3] = [[0.0, -cz, cy], [cz, 0.0, -cx], [-cy, cx, 0.0]]
     values, vectors = np.linalg.eigh(np.asarray(covariance, float))
-    return modes @ (vectors * np.sqrt(np.clip(values, 0.0, None)))
+    return about @ (vectors * np.sqrt(np.clip(values, 0.0, None)))
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,7 @@ import numpy as np
 from hood_decomp.core.method.estimation import (
     DEFAULT_MIN_COVERAGE,
     NodeWeight,
+    WeightedSpan,
     check_field,
     fit_weight,
     judge,
@@ -241,7 +242,9 @@ class ContactEstimator:
             noise2 = float(variance[valid].mean()) if errors.kind != "none" else 0.0
         weight, check, modes = (None, None, None) if noise2 <= 0 else fit_weight(
             y, valid, self.fields_.T, errors, self.test_, 0.0, unit=noise2)
-        normal = weighted_normal(self.fields_, self.gram_, valid, weight)
+        span = None if weight is None else weight.span(
+            self.fields_, None if self.test_ is None else self.test_.discrepancy_pair())
+        normal = weighted_normal(self.fields_, self.gram_, valid, span)
         total = float(y @ y) if weight is None else weight.energy(y)
         rhs = weighted_rhs(self.fields_, y, valid, weight)
         problem, cache = (normal, rhs, total, noise2), {}
@@ -257,7 +260,7 @@ class ContactEstimator:
         best = self._select(list(candidates.values()), n_valid)
         measured = noise2 > 0  # a noisy field: its noise level stated by noise_rms or by its error model
         min_force = self.measured_min_pad_force_n if measured else 0.0
-        fit = self._fit(best, values, valid, errors, min_force, weight, check, modes)
+        fit = self._fit(best, values, valid, errors, min_force, span, check, modes)
         if fit.unseen.any() and not measured:
             # Without a noise level nothing weighs the contact states (no spread term): a touch the field cannot show
             # (compression within LIFTED_SIGMAS of its std, the model's discrepancy included) is decided lifted, and
@@ -269,7 +272,7 @@ class ContactEstimator:
             cand, tension, penetration = self._evaluate(best.active & ~free, problem, cache)
             if cand.feasible and not tension.any() and not penetration.any():
                 best = candidates.setdefault(cand.active.tobytes(), cand)
-                fit = self._fit(best, values, valid, errors, min_force, weight, check, modes)
+                fit = self._fit(best, values, valid, errors, min_force, span, check, modes)
         covariance = fit.covariance + self._between_states(candidates.values(), best, fit.values, noise2, min_force,
                                                              n_valid)
         return ParameterEstimate(
@@ -295,13 +298,14 @@ class ContactEstimator:
         )
 
     def _fit(self, best: _Candidate, values: np.ndarray, valid: np.ndarray, errors: FieldErrorModel,
-             min_force_n: float, weight: NodeWeight | None, check: ModelCheck | None,
+             min_force_n: float, span: WeightedSpan | None, check: ModelCheck | None,
              registration: np.ndarray | None) -> _Fit:
-        """The reported fit of a contact state: refined theta, residual, within-model test and values; weight: the
-        generalised least-squares weight of the field (None: the ordinary fit); check: the field's within-model test
-        made before the fit (:func:`~.estimation.fit_weight`) and its low-rank field errors, None: judged here on the
-        fit's residual."""
+        """The reported fit of a contact state: refined theta, residual, within-model test and values; span: the
+        field's generalised least-squares weight over the fields (None: the ordinary fit); check: the field's
+        within-model test made before the fit (:func:`~.estimation.fit_weight`) and its low-rank field errors, None:
+        judged here on the fit's residual."""
         model = self.model_
+        weight = None if span is None else span.weight
         # One step of iterative refinement on the real residual: the normal equations square the condition number.
         u = best.lift @ best.theta + best.offset
         reconstruction = model.w0 + u @ self.fields_
@@ -313,15 +317,15 @@ class ContactEstimator:
         # theta is linear least squares on the design F^T lift (N, n_theta) for the chosen contact state; the test
         # watches smooth fields outside everything the model can make (any pad force pattern, [R G]): the scan
         # step's bias is largest at the pads' kinks
-        design = self.fields_.T @ best.lift
         discrepancy = None if self.test_ is None else self.test_.discrepancy_pair()
+        design = self.fields_.T @ best.lift if check is None or span is None else None
         if check is None:
             check, registration, discrepancy = judge(residual, design, errors, self.test_, 0.0, span=self.fields_.T)
-        if weight is None:
+        if span is None:
             theta_cov = parameter_covariance(design, best.normal_inverse, valid, errors, check.noise_scale, 0.0,
                                              registration, discrepancy)
         else:
-            theta_cov = weight.covariance(design, best.normal_inverse, discrepancy)
+            theta_cov = span.covariance(best.lift, best.normal_inverse)
         out_values, covariance, lifted, unseen = self._report(best, theta, theta_cov, min_force_n)
         effects = None
         if self.factors_:

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hood_decomp.core.method.pca import PCABasis
-from hood_decomp.core.method.residual import ResidualTest, check_residual, node_variance, split_level
+from hood_decomp.core.method.residual import ResidualTest, check_residual, node_variance, split_level, weighted_gram
 from hood_decomp.core.types import DisplacementField, FieldErrorModel, ModelCheck, ParameterEstimate
 from hood_decomp.errors import FieldError, ModelIdMismatchError
 
@@ -83,15 +83,15 @@ class NodeWeight:
     N x N matrix: W = unit x (diag(d_w) + U U^T)^-1, i.e. W x = w x - V core V^T x with w = unit / d_w (N,) (0 on
     unseen nodes), V = diag(w) U (N, k) and core = (unit I + U^T diag(w) U)^-1 (k, k). ``unit`` (mm^2) keeps the
     weighted normal matrix in the ordinary one's units (y^T W y / unit is a Mahalanobis energy).
-    The node covariance the estimate states is Sigma = diag(d) + U U^T (``diagonal`` d (N,), ``modes`` U (N, k), 0 on
-    unseen nodes); with d_w = d the covariance of the fit (:meth:`covariance`) is unit x (X^T W X)^-1 =
-    (X^T Sigma^-1 X)^-1. Made by :func:`node_weight`."""
+    The node covariance the estimate states is Sigma = diag(d) + U U^T over the seen nodes (d = unit / w, ``modes``
+    U (N, k), any value on unseen nodes: their weight is 0; the first k_w = ``scaled_modes``' columns weighed); the
+    covariance of the fit is :meth:`WeightedSpan.covariance`, unit x (X^T W X)^-1 = (X^T Sigma^-1 X)^-1 when every
+    mode is weighed. Made by :func:`node_weight`."""
 
     weight: np.ndarray
     scaled_modes: np.ndarray
     core: np.ndarray
     unit: float
-    diagonal: np.ndarray
     modes: np.ndarray
 
     def apply(self, x: np.ndarray) -> np.ndarray:
@@ -100,31 +100,61 @@ class NodeWeight:
         return wx - self.scaled_modes @ (self.core @ (self.scaled_modes.T @ x))
 
     def project(self, fields: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """fields (m, N) @ W x (m,) for x (N,) finite: the weighted right-hand side."""
-        return (fields * self.weight) @ x - (fields @ self.scaled_modes) @ (self.core @ (self.scaled_modes.T @ x))
-
-    def normal(self, fields: np.ndarray) -> np.ndarray:
-        """fields W fields^T (m, m) for fields (m, N): the weighted normal matrix (one syrk over the seen nodes)."""
-        root = fields * np.sqrt(self.weight)
-        moved = fields @ self.scaled_modes
-        return root @ root.T - moved @ self.core @ moved.T
+        """fields (m, N) @ W x (m,) for x (N,) finite: the weighted right-hand side (W x first: one pass over the
+        fields instead of forming fields W)."""
+        return fields @ self.apply(x)
 
     def energy(self, x: np.ndarray) -> float:
         """x^T W x for x (N,) finite."""
         moved = self.scaled_modes.T @ x
         return float(x @ (self.weight * x) - moved @ self.core @ moved)
 
-    def covariance(self, design: np.ndarray, inverse: np.ndarray,
-                   discrepancy: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-        """(q, q) covariance of theta = inverse X^T W y, X = design (N, q) finite, inverse = (X^T W X)^-1: the
-        sandwich G Sigma G^T with G = inverse X^T W (the GLS covariance when the weight is Sigma's own inverse), plus
-        the calibrated model's discrepancy (D, W) netted along G (:func:`discrepancy_along_gains`; None: none)."""
-        gain = self.apply(np.where(self.weight[:, None] > 0, design, 0.0))
-        moved = self.modes.T @ gain
-        spread = gain.T @ (self.diagonal[:, None] * gain) + moved.T @ moved
-        covariance = inverse @ spread @ inverse
-        if discrepancy is not None:
-            covariance = covariance + discrepancy_along_gains(*(inverse @ (gain.T @ m) for m in discrepancy))
+    def span(self, fields: np.ndarray, discrepancy: tuple[np.ndarray, np.ndarray] | None = None) -> WeightedSpan:
+        """The fields (m, N) of a fit (finite on every node) under this weight, with the field's low-rank errors and a
+        calibrated model's discrepancy pair (D, E) (None: none): their one weighted Gram (:class:`WeightedSpan`)."""
+        parts = (fields.T, self.modes, *(discrepancy or ()))
+        return WeightedSpan(self, weighted_gram(np.sqrt(self.weight), *parts), fields.shape[0],
+                            0 if discrepancy is None else discrepancy[0].shape[1])
+
+
+@dataclass(frozen=True)
+class WeightedSpan:
+    """A fit's fields F (m, N) under a field's weight W (:class:`NodeWeight`): the Gram C^T diag(w) C of C = [F^T, U,
+    D, E] over the seen nodes (U the field's low-rank errors, the first k_w of them weighed; (D, E) a calibrated
+    model's discrepancy as measured and its rows' noise, absent: ``n_discrepancy`` 0), formed once by one syrk. The
+    weighted normal matrix and the covariance of any fit on X = F^T L follow from it without another pass over the
+    nodes. Made by :meth:`NodeWeight.span`."""
+
+    weight: NodeWeight
+    gram: np.ndarray
+    n_fields: int
+    n_discrepancy: int
+
+    def normal(self) -> np.ndarray:
+        """F W F^T (m, m): the weighted normal matrix, W = w - V core V^T (:class:`NodeWeight`)."""
+        m, kw = self.n_fields, self.weight.scaled_modes.shape[1]
+        moved = self.gram[:m, m:m + kw]
+        return self.gram[:m, :m] - moved @ self.weight.core @ moved.T
+
+    def covariance(self, lift: np.ndarray, inverse: np.ndarray) -> np.ndarray:
+        """(q, q) covariance of theta = inverse X^T W y for the design X = F^T lift (lift (m, q)), inverse = (X^T W
+        X)^-1: the sandwich G Sigma G^T with G = inverse X^T W (the GLS covariance when the weight is Sigma's own
+        inverse), plus the discrepancy (D, E) netted along G (:func:`discrepancy_along_gains`) when the span has it.
+
+        With M = core (X^T w U_w)^T the gain is G^T = W X = diag(w) Y, Y = X - U_w M, and w d = unit on the seen
+        nodes, so X^T W diag(d) W X = unit Y^T diag(w) Y, and W X's product with a mode u is Y^T diag(w) u."""
+        m, kw, k = self.n_fields, self.weight.scaled_modes.shape[1], self.weight.modes.shape[1]
+        rows = lift.T @ self.gram[:m]  # X^T diag(w) C (q, m + k + ...)
+        xx, xw = rows[:, :m] @ lift, rows[:, m:m + kw]
+        shift = self.weight.core @ xw.T
+        along = rows[:, m:] - shift.T @ self.gram[m:m + kw, m:]  # Y^T diag(w) [U, D, E]
+        ww = self.gram[m:m + kw, m:m + kw]
+        spread = xx - xw @ shift - shift.T @ xw.T + shift.T @ ww @ shift  # Y^T diag(w) Y
+        moved = along[:, :k]
+        covariance = inverse @ (self.weight.unit * spread + moved @ moved.T) @ inverse
+        if self.n_discrepancy:
+            d = self.n_discrepancy
+            covariance = covariance + discrepancy_along_gains(inverse @ along[:, k:k + d], inverse @ along[:, k + d:])
         return 0.5 * (covariance + covariance.T)
 
 
@@ -138,8 +168,9 @@ def node_weight(
 
     valid: (N,) seen nodes. level: the residual-supported level of the within-model test (ModelCheck.noise_scale),
     split into node noise and smoothing bias by :func:`~.residual.split_level`; model_mm: the basis' own white error.
-    modes: (N, k) mm the low-rank field errors (registration, model discrepancy: :meth:`ResidualTest.error_modes`),
-    None for none; the first ``weighed`` of them (None: all) enter the weight, all of them the stated covariance.
+    modes: (N, k) mm the low-rank field errors (registration, model discrepancy: :meth:`ResidualTest.error_modes`;
+    finite, any value on unseen nodes), None for none; the first ``weighed`` of them (None: all) enter the weight,
+    all of them the stated covariance.
     Sigma = noise diag(v g) + (model^2 + bias) I + U U^T is the node covariance :func:`parameter_covariance` states
     for an ordinary fit, so the weighted fit's covariance is that same model's.
     """
@@ -147,23 +178,23 @@ def node_weight(
         return None
     variance, correlation = node_variance(errors, valid.size)
     noise, bias = split_level(level, errors, float(variance[valid].mean()))
-    diagonal = np.zeros(valid.size)
-    diagonal[valid] = noise * (variance * correlation)[valid] + float(model_mm) ** 2 + bias
-    modes = np.zeros((valid.size, 0)) if modes is None else np.where(valid[:, None], modes, 0.0)
+    diagonal = noise * (variance * correlation)[valid] + float(model_mm) ** 2 + bias
+    modes = np.zeros((valid.size, 0)) if modes is None else modes
     used = modes[:, :weighed]
-    if used.shape[1] == 0 and uniform(diagonal[valid]):
+    if used.shape[1] == 0 and uniform(diagonal):
         return None
     weight = np.zeros(valid.size)
-    weight[valid] = unit / diagonal[valid]
+    weight[valid] = unit / diagonal
     scaled = weight[:, None] * used
     inner = unit * np.eye(used.shape[1]) + used.T @ scaled
-    return NodeWeight(weight, scaled, np.linalg.inv(0.5 * (inner + inner.T)), float(unit), diagonal, modes)
+    return NodeWeight(weight, scaled, np.linalg.inv(0.5 * (inner + inner.T)), float(unit), modes)
 
 
-def weighted_normal(fields: np.ndarray, gram: np.ndarray, valid: np.ndarray, weight: NodeWeight | None) -> np.ndarray:
+def weighted_normal(fields: np.ndarray, gram: np.ndarray, valid: np.ndarray, span: WeightedSpan | None) -> np.ndarray:
     """fields W fields^T (m, m) over the seen nodes: fields (m, N), gram (m, m) = fields @ fields.T; W the field's
-    weight, the identity for an ordinary fit (None: :func:`valid_normal_matrix`)."""
-    return valid_normal_matrix(fields, gram, valid) if weight is None else weight.normal(fields)
+    weight (``span``: the fields under it, :meth:`NodeWeight.span`), the identity for an ordinary fit (None:
+    :func:`valid_normal_matrix`)."""
+    return valid_normal_matrix(fields, gram, valid) if span is None else span.normal()
 
 
 def weighted_rhs(fields: np.ndarray, x: np.ndarray, valid: np.ndarray, weight: NodeWeight | None) -> np.ndarray:
@@ -317,21 +348,22 @@ def estimate_pca(
     design = basis.components_.T
     model_mm = basis.training_residual_rms_
     weight, check, registration = fit_weight(centred, valid, design, errors, test, model_mm)
-    normal = weighted_normal(basis.components_, basis.gram_, valid, weight)
+    discrepancy = None if test is None else test.discrepancy_pair()
+    span = None if weight is None else weight.span(basis.components_, discrepancy)
+    normal = weighted_normal(basis.components_, basis.gram_, valid, span)
     coeff, inverse = solve_normal(normal, weighted_rhs(basis.components_, centred, valid, weight), "PCA pre-factors")
     reconstruction = basis.mean_field_ + coeff @ basis.components_
     residual, rms, worst = residual_stats(values, reconstruction, valid)
 
     n_valid = int(valid.sum())
-    discrepancy = None if test is None else test.discrepancy_pair()
     if check is None:
         check, registration, discrepancy = judge(residual, design, errors, test, model_mm)
     states = basis.component_states_
-    if weight is None:
+    if span is None:
         coeff_cov = parameter_covariance(design, inverse, valid, errors, check.noise_scale, model_mm, registration,
                                          discrepancy)
     else:
-        coeff_cov = weight.covariance(design, inverse, discrepancy)
+        coeff_cov = span.covariance(np.eye(design.shape[1]), inverse)
     covariance = states.T @ coeff_cov @ states
 
     n_bilateral = basis.n_bilateral_

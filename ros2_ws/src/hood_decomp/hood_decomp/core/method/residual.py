@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from hood_decomp.core.method.distributions import chi2_sf, f_sf, norm_isf, t_sf
-from hood_decomp.core.types import FieldErrorModel, ModelCheck, SkinSurface
+from hood_decomp.core.types import FieldErrorModel, ModelCheck, SkinSurface, rigid_modes
 from hood_decomp.errors import FieldError
 
 if TYPE_CHECKING:  # imported where used (scipy >= 1.17 costs 0.16 s to import)
@@ -255,35 +255,62 @@ def _whiten(gram: np.ndarray) -> np.ndarray:
     return vectors[:, keep] / np.sqrt(values[keep])
 
 
-def _smooth_split(r: np.ndarray, design: np.ndarray, modes: np.ndarray, weight: np.ndarray, moved: np.ndarray
-                  ) -> tuple[int, np.ndarray, np.ndarray, float, float, np.ndarray, np.ndarray]:
-    """The residual r (n,) on the seen nodes split by the fitted directions Z (orthonormal span of ``design`` (n, p))
-    and the smooth ones S (orthonormal span of ``modes`` (n, M) outside Z), from Gram matrices only (k x k products,
-    never an n x k factorisation). weight (n,): node variance x correlation; moved (n, k) low-rank field errors (the
-    registration's modes, then a calibrated model's).
+def weighted_gram(root: np.ndarray, *parts: np.ndarray) -> np.ndarray:
+    """C^T diag(root^2) C (m, m) for C = [parts] (N, m), each part (N, m_i) finite everywhere (a node outside the sum
+    has root 0: NaN there would spread): one syrk. Written row-wise into one (m, N) array and taken over all N nodes:
+    gathering the seen rows of each part cost more than the unseen nodes' share of the product (paper scale)."""
+    sizes = np.cumsum([0, *(part.shape[1] for part in parts)])
+    stacked = np.empty((int(sizes[-1]), root.size))
+    for part, start, stop in zip(parts, sizes[:-1], sizes[1:], strict=True):
+        np.multiply(part.T, root, out=stacked[start:stop])
+    return stacked @ stacked.T
 
-    Returns (rank of Z, c = S^T r, S^T diag(weight) S, rough energy |r|^2 - |Z^T r|^2 - |c|^2, tr Z^T diag(weight) Z,
-    each moved column's rough energy (k,), S^T moved).
+
+def _smooth_split(r: np.ndarray, design: np.ndarray, modes: np.ndarray, weight: np.ndarray, moved: np.ndarray,
+                  seen: np.ndarray, seen_gram: np.ndarray | None = None
+                  ) -> tuple[int, np.ndarray, np.ndarray, float, float, np.ndarray, np.ndarray]:
+    """The residual r (N,) or (N, j) on the ``seen`` nodes (N,) bool split by the fitted directions Z (orthonormal span
+    of ``design`` (N, p) over the seen nodes) and the smooth ones S (orthonormal span of ``modes`` (N, M) outside Z),
+    from two Gram matrices only (one pass each over the nodes, never an n x k factorisation). weight (N,): node
+    variance x correlation on the seen nodes; moved (N, k) low-rank field errors (the registration's modes, then a
+    calibrated model's). Every array finite everywhere (unseen entries do not count). seen_gram: the Gram of
+    [design, modes, moved] over the seen nodes when the caller has it (:meth:`ResidualTest.check`), None: formed here;
+    then only r's products are a pass over the nodes.
+
+    Returns (rank of Z, c = S^T r, S^T diag(weight) S, rough energy |r|^2 - |Z^T r|^2 - |c|^2 (per column of a 2-D
+    r), tr Z^T diag(weight) Z, each moved column's rough energy (k,), S^T moved).
     """
-    to_z = _whiten(design.T @ design)  # Z = design @ to_z
-    zq = to_z.T @ (design.T @ modes)
-    zr = to_z.T @ (design.T @ r)
-    to_s = _whiten(modes.T @ modes - zq.T @ zq)  # S = (modes - Z zq) @ to_s
-    c = to_s.T @ (modes.T @ r - zq.T @ zr)
-    if np.ptp(weight) <= 1e-12 * weight.max():  # Z and S are orthonormal: their weighted Grams are weight x I
-        fitted_weight, smooth_cov = float(weight[0]) * to_z.shape[1], float(weight[0]) * np.eye(to_s.shape[1])
+    column = r.ndim == 1
+    r = r[:, None] if column else r
+    p, m, k = design.shape[1], modes.shape[1], moved.shape[1]
+    if seen_gram is None:
+        gram = weighted_gram(seen.astype(float), design, modes, moved, r)  # [design, modes, moved, r] over the seen
+    else:  # r is 0 where unseen
+        cross = np.vstack([design.T @ r, modes.T @ r, moved.T @ r])
+        gram = np.block([[seen_gram, cross], [cross.T, r.T @ r]])
+    d, q, u, e = slice(0, p), slice(p, p + m), slice(p + m, p + m + k), slice(p + m + k, None)
+    to_z = _whiten(gram[d, d])  # Z = design @ to_z
+    zq = to_z.T @ gram[d, q]
+    zr = to_z.T @ gram[d, e]
+    to_s = _whiten(gram[q, q] - zq.T @ zq)  # S = (modes - Z zq) @ to_s
+    c = to_s.T @ (gram[q, e] - zq.T @ zr)
+    seen_weight = weight[seen]
+    if np.ptp(seen_weight) <= 1e-12 * seen_weight.max():  # Z, S orthonormal: their weighted Grams are weight x I
+        level = float(seen_weight[0])
+        fitted_weight, smooth_cov = level * to_z.shape[1], level * np.eye(to_s.shape[1])
     else:
-        weighted = weight[:, None]
-        zwz = to_z.T @ (design.T @ (weighted * design)) @ to_z
-        zwq = to_z.T @ (design.T @ (weighted * modes))
-        inner_q = modes.T @ (weighted * modes) - zq.T @ zwq - zwq.T @ zq + zq.T @ zwz @ zq
+        weighted = weighted_gram(np.sqrt(np.where(seen, weight, 0.0)), design, modes)
+        zwz = to_z.T @ weighted[:p, :p] @ to_z
+        zwq = to_z.T @ weighted[:p, p:]
+        inner_q = weighted[p:, p:] - zq.T @ zwq - zwq.T @ zq + zq.T @ zwz @ zq
         fitted_weight, smooth_cov = float(np.trace(zwz)), to_s.T @ inner_q @ to_s
-    zm = to_z.T @ (design.T @ moved)
-    projected = to_s.T @ (modes.T @ moved - zq.T @ zm)
-    rough_registration = np.sum(moved**2, axis=0) - np.sum(zm**2, axis=0) - np.sum(projected**2, axis=0)
-    rough = np.sum(r * r, axis=0) - np.sum(zr * zr, axis=0) - np.sum(c * c, axis=0)  # per column for r (n, k)
-    return to_z.shape[1], c, smooth_cov, float(rough) if r.ndim == 1 else rough, fitted_weight, rough_registration, \
-        projected
+    zm = to_z.T @ gram[d, u]
+    projected = to_s.T @ (gram[q, u] - zq.T @ zm)
+    rough_registration = np.diag(gram[u, u]) - np.sum(zm**2, axis=0) - np.sum(projected**2, axis=0)
+    rough = np.diag(gram[e, e]) - np.sum(zr * zr, axis=0) - np.sum(c * c, axis=0)
+    if column:
+        return to_z.shape[1], c[:, 0], smooth_cov, float(rough[0]), fitted_weight, rough_registration, projected
+    return to_z.shape[1], c, smooth_cov, rough, fitted_weight, rough_registration, projected
 
 
 def node_variance(errors: FieldErrorModel, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
@@ -308,6 +335,7 @@ def check_residual(
     discrepancy: np.ndarray | None = None,
     discrepancy_dof: float = np.inf,
     discrepancy_local: np.ndarray | None = None,
+    seen_gram: np.ndarray | None = None,
 ) -> ModelCheck:
     """The one within-model test: is the residual what the field's error model explains?
 
@@ -321,6 +349,8 @@ def check_residual(
     estimate (the calibration entries it was estimated from; inf: known exactly); discrepancy_local: (N,) mm^2 the
     discrepancy's part outside the smooth modes it is stated on, per node (a calibration's ``local_mm2``), which only
     the one-ring part of the test can see: added to each ring mean's variance as an error smooth on the ring scale.
+    seen_gram: the Gram of [design, modes, registration, discrepancy] over the residual's seen nodes when the caller
+    has it (:meth:`ResidualTest.check`, from the whole skin's), None: formed here (one pass over the nodes).
 
     A missing effect is smooth, noise is not (module docstring). The residual is split into its smooth part c (its
     coordinates in the modes after the fitted directions are taken out, M' of them) and the rough rest. The rough rest
@@ -351,13 +381,14 @@ def check_residual(
     v, g, r = variance[seen], correlation[seen], residual[seen]
     weight = v * g
     model2 = float(model_mm) ** 2
-    moved = registration[seen] if registration is not None else np.zeros((n_seen, 0))
+    moved = registration if registration is not None else np.zeros((residual.size, 0))
     n_registration = moved.shape[1]
     if discrepancy is not None:
-        moved = np.hstack([moved, discrepancy[seen]])
+        moved = np.hstack([moved, discrepancy])
     if modes is not None:
-        parts = _smooth_split(r, np.asarray(design, float)[seen] if design is not None else np.zeros((n_seen, 0)),
-                              modes[seen], weight, moved)
+        parts = _smooth_split(np.where(seen, residual, 0.0),
+                              np.asarray(design, float) if design is not None else np.zeros((residual.size, 0)),
+                              modes, np.where(seen, variance * correlation, 0.0), moved, seen, seen_gram)
         n_fitted, c, smooth_cov, rough_energy, fitted_weight, rough_moved, projected = parts
         # only the registration's rough energy is expected in the residual: a calibrated discrepancy is a smooth
         # model error, and its modes' rough part is the calibration entries' noise (0.02 mm white on 13 entries),
@@ -497,9 +528,10 @@ def bias_split(bias: np.ndarray, design: np.ndarray | None, errors: FieldErrorMo
     seen = np.all(np.isfinite(bias), axis=1)
     variance, correlation = node_variance(errors, bias.shape[0])
     v = variance[seen]
-    design = np.zeros((int(seen.sum()), 0)) if design is None else np.asarray(design, float)[seen]
+    design = np.zeros((bias.shape[0], 0)) if design is None else np.asarray(design, float)
     _, c, smooth_cov, rough, fitted_weight, _, _ = _smooth_split(
-        bias[seen], design, modes[seen], v * correlation[seen], np.zeros((int(seen.sum()), 0)))
+        np.where(seen[:, None], bias, 0.0), design, modes, np.where(seen, variance * correlation, 0.0),
+        np.zeros((bias.shape[0], 0)), seen)
     expected = float(v.sum()) - fitted_weight - float(np.trace(smooth_cov))
     level = float(np.sum(rough)) / max(expected, 1e-300) * float(v.mean()) / bias.shape[1]
     return float(np.sum(c * c)) / max(c.size, 1) / max(level, 1e-300), level
@@ -525,7 +557,8 @@ class ResidualTest:
     """The within-model test of :func:`check_residual` on one skin, prepared once (its smooth modes).
 
     alpha: false-alarm rate; degree: total degree of the smooth modes. ``fit(skin, discrepancy, discrepancy_dof)``
-    -> self; fitted: modes_ (N, M), points_, normals_ (N, 3), skin_, discrepancy_ (N, k) mm the calibrated model's
+    -> self; fitted: modes_ (N, M), points_, normals_ (N, 3), rigid_ (N, 6) the skin's rigid-body modes
+    (:func:`~hood_decomp.core.types.rigid_modes`), skin_, discrepancy_ (N, k) mm the calibrated model's
     discrepancy modes (what the model still gets wrong: delta = D z, z ~ N(0, I_k); bases ``discrepancy``) or None
     for an uncalibrated model, discrepancy_dof_ the degrees of freedom of its estimate (the calibration's entries),
     discrepancy_local_ (N,) mm^2 its part outside the smooth modes (:func:`check_residual`) or None; :meth:`rings`
@@ -558,8 +591,10 @@ class ResidualTest:
         self.points_ = np.asarray(skin.points, float)
         self.normals_ = np.asarray(skin.normals, float)
         self.modes_ = smooth_modes(self.points_, self.degree)
+        self.rigid_ = rigid_modes(self.points_, self.normals_)
         self.skin_ = skin
         self._rings: sp.csr_matrix | None = None
+        self._whole_grams: list[tuple[np.ndarray, tuple, np.ndarray]] = []
         return self
 
     def rings(self) -> sp.csr_matrix:
@@ -579,7 +614,7 @@ class ResidualTest:
 
     def registration(self, errors: FieldErrorModel) -> np.ndarray | None:
         """(N, 6) field error per unit pose error of ``errors`` on this skin, None without a registration."""
-        return errors.registration_modes(self.points_, self.normals_) if errors.has_pose else None
+        return errors.registration_modes(self.points_, self.normals_, self.rigid_) if errors.has_pose else None
 
     def error_modes(self, errors: FieldErrorModel, registration: np.ndarray | None = None) -> np.ndarray | None:
         """(N, k) every low-rank field error in absolute terms: the registration's (:meth:`registration`, or
@@ -624,5 +659,47 @@ class ResidualTest:
         rings = self.rings() if self.looks_at_fit(errors) else None  # check_residual's local test needs it then
         if registration is None:
             registration = self.registration(errors)
+        seen_gram = self._seen_gram(design, np.isfinite(residual), errors)
         return check_residual(residual, design, errors, self.modes_, registration, model_mm, self.alpha,
-                              rings, self.tested_discrepancy(), self.discrepancy_dof_, self.discrepancy_local_)
+                              rings, self.tested_discrepancy(), self.discrepancy_dof_, self.discrepancy_local_,
+                              seen_gram)
+
+    #: whole-skin Grams kept (one per estimator's fields; the PCA and contact-aware estimators of a bases: two)
+    KEPT_GRAMS = 4
+
+    def _seen_gram(self, design: np.ndarray | None, seen: np.ndarray, errors: FieldErrorModel) -> np.ndarray | None:
+        """The Gram of [design, modes_, registration, tested discrepancy] over the ``seen`` nodes for
+        :func:`check_residual`: the whole skin's Gram of [design, modes_, rigid_, discrepancy] less the unseen nodes'
+        rows, the registration's block carried by its mixing (registration = rigid_ @ M,
+        :meth:`FieldErrorModel.pose_mixing`). The whole skin's Gram is formed once per design that is a view of a
+        kept array (an estimator's fitted fields, transposed: the same array at every check) and kept for the last
+        :data:`KEPT_GRAMS`. None (formed by the check in one pass) where that does not pay or hold: no design or one
+        made for this check, a fused field's registration (its views' modes weighted node by node), more nodes unseen
+        than seen. At paper scale the check's unweighted Gram was 12 of a 46 ms estimate."""
+        mixing = errors.pose_mixing() if errors.has_pose else np.zeros((6, 0))
+        unseen = np.flatnonzero(~seen)
+        if design is None or design.base is None or mixing is None or 2 * unseen.size > seen.size:
+            return None
+        discrepancy = self.tested_discrepancy()
+        parts = [design, self.modes_, self.rigid_] + ([] if discrepancy is None else [discrepancy])
+        gram = self._whole_gram(design, parts)
+        if unseen.size:
+            rows = np.hstack([part[unseen] for part in parts])
+            gram = gram - rows.T @ rows
+        fixed, k = design.shape[1] + self.modes_.shape[1], mixing.shape[1]
+        carry = np.zeros((gram.shape[0], gram.shape[0] - 6 + k))  # [design, modes, rigid, D] -> [.., rigid M, D]
+        carry[:fixed, :fixed] = np.eye(fixed)
+        carry[fixed:fixed + 6, fixed:fixed + k] = mixing
+        carry[fixed + 6:, fixed + k:] = np.eye(gram.shape[0] - fixed - 6)
+        return carry.T @ gram @ carry
+
+    def _whole_gram(self, design: np.ndarray, parts: list[np.ndarray]) -> np.ndarray:
+        """The Gram of ``parts`` over every node, kept per ``design`` (a view of a kept array: the view's array, its
+        shape, strides and first element identify it)."""
+        key = (design.shape, design.strides, design.__array_interface__["data"][0])
+        for array, kept_key, gram in self._whole_grams:
+            if array is design.base and kept_key == key:
+                return gram
+        gram = weighted_gram(np.ones(design.shape[0]), *parts)
+        self._whole_grams = [(design.base, key, gram), *self._whole_grams[:self.KEPT_GRAMS - 1]]
+        return gram
