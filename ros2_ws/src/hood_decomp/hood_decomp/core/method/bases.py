@@ -281,5 +281,9 @@ def analyse_estimate(bases: Bases, estimate: ParameterEstimate, noise_mm: float 
 def decompose_field(
     bases: Bases, field: DisplacementField, estimate: ParameterEstimate | None = None, **options: float
 ) -> Decomposition:
-    """Steps 3-6 on the hierarchical basis; ``options`` go to :func:`~.decomposition.decompose`."""
-    return decompose(bases.hierarchical, field, estimate, **options)
+    """Steps 3-6 on the hierarchical basis; ``options`` go to :func:`~.decomposition.decompose`. The field is
+    decomposed as its nodes' displacement (:func:`node_field`), as :func:`estimate_field` estimates it: a scan's slide
+    along its own surface is no boundary's effect (decomposed raw, a scan whose hinges slide the hood a millimetre
+    in its plane had the slide spread over the effects' partial displacements)."""
+    nodes = node_field(bases, field, float(options.get("min_coverage", DEFAULT_MIN_COVERAGE)))
+    return decompose(bases.hierarchical, nodes, estimate, **options)
