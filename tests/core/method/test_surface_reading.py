@@ -94,26 +94,34 @@ def test_a_skin_with_a_degenerate_triangle_is_refused_by_name():
         SurfaceGradient.fit(bad)
 
 
-@pytest.mark.filterwarnings("ignore::RuntimeWarning")
-def test_a_scan_of_a_part_that_slid_is_estimated_within_the_model(default_hood):
-    """A structured-light scan (the synthetic scanner: Phong surface, ray-cast, 1M points, 0.02 mm noise, true pose)
-    of the default hood at a state whose hinges slide it about a millimetre in its plane (HINGE_Y -0.8 mm), solved by
-    the FE model with exact contact: with the slide taken out (estimate_field) the complete model must pass the
-    within-model test (p >= 0.01) with every bilateral error below 0.002 mm; the same field estimated as node
-    displacements (the estimator alone) must alarm (p < 1e-6): so the slide is what the estimate removes, and the
-    test sees it. Measured: p 0.39 with errors <= 0.0008 mm against p 6e-84 with HINGE_X 0.0036 mm off."""
+@pytest.fixture(scope="module")
+def slid_scan(default_hood):
+    """(member, field): a structured-light scan (the synthetic scanner: Phong surface, ray-cast, 1M points, 0.02 mm
+    noise, true pose) of the default hood at a state whose hinges slide it about a millimetre in its plane (HINGE_Y
+    -0.8 mm), solved by the FE model with exact contact; the member is the solver's truth."""
     from hood_decomp.core.fe.ensemble import solve_members
     from hood_decomp.core.loop.scan_skin import prepared_scan_skin
-    from hood_decomp.core.method.bases import estimate_field
     from hood_decomp.core.scan.scan_field import ScanFieldEstimator, field_from_scan
     from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
 
-    bases, skin = default_hood.bases, default_hood.skin
-    estimator = ScanFieldEstimator().fit(skin, prepared=prepared_scan_skin(bases))
-    state = np.array([0.2, -0.8, 0.3, -0.4, 0.5, 0.6])
-    member = solve_members(default_hood.reduced, state[None])
+    skin = default_hood.skin
+    estimator = ScanFieldEstimator().fit(skin, prepared=prepared_scan_skin(default_hood.bases))
+    member = solve_members(default_hood.reduced, np.array([[0.2, -0.8, 0.3, -0.4, 0.5, 0.6]]))
     scan = synthesize_scan(skin, member.displacement[0], ScannerConfig(n_points=1_000_000, noise_mm=0.02), 1)
     field = field_from_scan(skin, scan.points, scanner_pose=scan.true_transform, estimator=estimator)[0]
+    return member, field
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")
+def test_a_scan_of_a_part_that_slid_is_estimated_within_the_model(default_hood, slid_scan):
+    """The slid scan (:func:`slid_scan`): with the slide taken out (estimate_field) the complete model must pass the
+    within-model test (p >= 0.01) with every bilateral error below 0.002 mm; the same field estimated as node
+    displacements (the estimator alone) must alarm (p < 1e-6): so the slide is what the estimate removes, and the
+    test sees it. Measured: p 0.39 with errors <= 0.0008 mm against p 6e-84 with HINGE_X 0.0036 mm off."""
+    from hood_decomp.core.method.bases import estimate_field
+
+    bases = default_hood.bases
+    member, field = slid_scan
     assert field.errors.kind == "scan"
     taken_out = estimate_field(bases, field)
     left_in = bases.contact_estimator().estimate(field)
@@ -126,24 +134,17 @@ def test_a_scan_of_a_part_that_slid_is_estimated_within_the_model(default_hood):
     assert left_in.check.p_value < 1e-6
 
 
-def test_a_scan_of_a_part_that_slid_is_decomposed_as_its_node_displacements(default_hood):
-    """The scan of the test above (HINGE_Y -0.8 mm slides the hood about a millimetre in its plane), decomposed by
-    decompose_field: the decomposition's reconstruction must be the FE model's node displacement of that state (an
-    independent truth: the solver's member, not the scan path) to 0.0004 mm RMS over the seen nodes (measured
-    0.0001); decomposed raw (the slide left in) it reconstructs the slid surface instead (measured 0.0012 mm off)."""
-    from hood_decomp.core.fe.ensemble import solve_members
-    from hood_decomp.core.loop.scan_skin import prepared_scan_skin
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")
+def test_a_scan_of_a_part_that_slid_is_decomposed_as_its_node_displacements(default_hood, slid_scan):
+    """The slid scan (:func:`slid_scan`) decomposed by decompose_field: the decomposition's reconstruction must be the
+    FE model's node displacement of that state (an independent truth: the solver's member, not the scan path) to
+    0.0004 mm RMS over the seen nodes (measured 0.0001); decomposed raw (the slide left in) it reconstructs the slid
+    surface instead (measured 0.0012 mm off)."""
     from hood_decomp.core.method.bases import decompose_field, estimate_field
     from hood_decomp.core.method.decomposition import decompose
-    from hood_decomp.core.scan.scan_field import ScanFieldEstimator, field_from_scan
-    from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan
 
-    bases, skin = default_hood.bases, default_hood.skin
-    estimator = ScanFieldEstimator().fit(skin, prepared=prepared_scan_skin(bases))
-    state = np.array([0.2, -0.8, 0.3, -0.4, 0.5, 0.6])
-    member = solve_members(default_hood.reduced, state[None])
-    scan = synthesize_scan(skin, member.displacement[0], ScannerConfig(n_points=1_000_000, noise_mm=0.02), 1)
-    field = field_from_scan(skin, scan.points, scanner_pose=scan.true_transform, estimator=estimator)[0]
+    bases = default_hood.bases
+    member, field = slid_scan
     estimate = estimate_field(bases, field)
     seen = np.isfinite(field.normal_displacement)
 
