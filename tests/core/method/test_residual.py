@@ -148,7 +148,7 @@ def test_the_smooth_split_from_grams_is_the_split_by_explicit_projections(unifor
     """Fails if the test's split of a residual (fitted directions Z, smooth modes S outside them, the rough rest; from
     two Gram matrices over the seen nodes) differs from the split written out with QR factors of the seen rows: the
     basis-free quantities |c|^2, c^T (S^T W S)^-1 c, tr S^T W S, tr Z^T W Z, the rough energy per residual column,
-    the moved columns' rough energy and |S^T moved|^2; or if an unseen node counts."""
+    the moved columns' rough energy and |S^T moved|^2; or if an unseen node's design, mode or moved row counts."""
     from hood_decomp.core.method.residual import _smooth_split
 
     rng = np.random.default_rng(8)
@@ -156,10 +156,10 @@ def test_the_smooth_split_from_grams_is_the_split_by_explicit_projections(unifor
     seen = rng.random(n) > 0.3
     design, modes, moved = rng.normal(size=(n, p)), rng.normal(size=(n, m)), rng.normal(size=(n, k))
     modes[:, 0] = design[:, 1]  # a mode the design already spans: S has one direction less
-    r = np.where(seen[:, None], rng.normal(size=(n, 2)), 1e6)  # unseen entries large: they must not count
+    r = np.where(seen[:, None], rng.normal(size=(n, 2)), 0.0)  # 0 where unseen; design, modes, moved random there
     weight = np.full(n, 0.7) if uniform_weight else rng.uniform(0.5, 2.0, n)
     rank, c, smooth_cov, rough, fitted_weight, rough_moved, projected = _smooth_split(
-        np.where(seen[:, None], r, 0.0), design, modes, np.where(seen, weight, 0.0), moved, seen)
+        r, design, modes, np.where(seen, weight, 0.0), moved, seen)
     z = np.linalg.qr(design[seen])[0]
     outside = modes[seen] - z @ (z.T @ modes[seen])
     u, s, _ = np.linalg.svd(outside, full_matrices=False)
@@ -186,8 +186,9 @@ def test_the_smooth_split_from_grams_is_the_split_by_explicit_projections(unifor
 def test_the_tests_kept_whole_skin_gram_gives_the_check_made_in_one_pass():
     """Fails if ResidualTest.check, which takes the seen nodes' Gram from the whole skin's (kept per design view,
     less the unseen rows, the registration carried by its 6 x 6 mixing), judges a residual differently from
-    check_residual forming it in one pass: one pose, a calibrated discrepancy, two views of one array (a stale kept
-    Gram would be the first's), a fused field's registration and a mostly unseen field (both formed in one pass)."""
+    check_residual forming it in one pass: one pose, a calibrated discrepancy (alone and netted by its rows' noise),
+    two views of one array (a stale kept Gram would be the first's), a fused field's registration and a mostly unseen
+    field (both formed in one pass); or if it keeps a dropped design's array alive."""
     from hood_decomp.core.method.residual import ResidualTest, check_residual
     from hood_decomp.core.types import FieldErrorModel, ViewPoseError
 
@@ -201,8 +202,9 @@ def test_the_tests_kept_whole_skin_gram_gives_the_check_made_in_one_pass():
     views = (ViewPoseError(root @ root.T, SKIN.points.mean(axis=0), half.astype(float)),
              ViewPoseError(root @ root.T, SKIN.points.mean(axis=0) - 50.0, (~half).astype(float)))
     fused = dataclasses.replace(one_pose, view_poses=views)
-    discrepancy = 0.01 * rng.normal(size=(n, 2))
-    for test in (ResidualTest().fit(SKIN), ResidualTest().fit(SKIN, discrepancy, 12.0)):
+    discrepancy, noise = 0.01 * rng.normal(size=(n, 2)), 0.004 * rng.normal(size=(n, 5))
+    for test in (ResidualTest().fit(SKIN), ResidualTest().fit(SKIN, discrepancy, 12.0),
+                 ResidualTest().fit(SKIN, discrepancy, 12.0, discrepancy_noise=noise)):
         biased = dataclasses.replace(one_pose, bias_correlation=300.0)  # a scan's: no one-ring part
         for design, errors, unseen in ((fields.T, one_pose, 0.2), (fields[:4].T, biased, 0.3),
                                        (fields.T, fused, 0.2), (fields.T, one_pose, 0.7), (fields.T, biased, 0.1)):
@@ -213,3 +215,12 @@ def test_the_tests_kept_whole_skin_gram_gives_the_check_made_in_one_pass():
                                   rings, test.tested_discrepancy(), test.discrepancy_dof_, test.discrepancy_local_)
             for name in ("statistic", "p_value", "noise_scale", "bias_mm2"):
                 assert getattr(kept, name) == pytest.approx(getattr(made, name), rel=1e-8, abs=1e-14), name
+    import gc
+    import weakref
+
+    dropped = rng.normal(size=(6, n))
+    test.check(np.where(rng.random(n) < 0.2, np.nan, 0.02 * rng.normal(size=n)), dropped.T, one_pose)
+    alive = weakref.ref(dropped)
+    del dropped
+    gc.collect()
+    assert alive() is None

@@ -318,7 +318,7 @@ class ContactEstimator:
         # watches smooth fields outside everything the model can make (any pad force pattern, [R G]): the scan
         # step's bias is largest at the pads' kinks
         discrepancy = None if self.test_ is None else self.test_.discrepancy_pair()
-        design = self.fields_.T @ best.lift if check is None or span is None else None
+        design = self.fields_.T @ best.lift if span is None else None  # the weighted fit needs only its lift
         if check is None:
             check, registration, discrepancy = judge(residual, design, errors, self.test_, 0.0, span=self.fields_.T)
         if span is None:

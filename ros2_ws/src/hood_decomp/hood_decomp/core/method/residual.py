@@ -21,6 +21,7 @@ The residual r = measured - reconstruction (N,) mm of an estimate is judged agai
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -269,13 +270,13 @@ def weighted_gram(root: np.ndarray, *parts: np.ndarray) -> np.ndarray:
 def _smooth_split(r: np.ndarray, design: np.ndarray, modes: np.ndarray, weight: np.ndarray, moved: np.ndarray,
                   seen: np.ndarray, seen_gram: np.ndarray | None = None
                   ) -> tuple[int, np.ndarray, np.ndarray, float, float, np.ndarray, np.ndarray]:
-    """The residual r (N,) or (N, j) on the ``seen`` nodes (N,) bool split by the fitted directions Z (orthonormal span
-    of ``design`` (N, p) over the seen nodes) and the smooth ones S (orthonormal span of ``modes`` (N, M) outside Z),
-    from two Gram matrices only (one pass each over the nodes, never an n x k factorisation). weight (N,): node
-    variance x correlation on the seen nodes; moved (N, k) low-rank field errors (the registration's modes, then a
-    calibrated model's). Every array finite everywhere (unseen entries do not count). seen_gram: the Gram of
-    [design, modes, moved] over the seen nodes when the caller has it (:meth:`ResidualTest.check`), None: formed here;
-    then only r's products are a pass over the nodes.
+    """The residual r (N,) or (N, j), 0 where unseen, on the ``seen`` nodes (N,) bool split by the fitted directions Z
+    (orthonormal span of ``design`` (N, p) over the seen nodes) and the smooth ones S (orthonormal span of ``modes``
+    (N, M) outside Z), from two Gram matrices only (one pass each over the nodes, never an n x k factorisation).
+    weight (N,): node variance x correlation on the seen nodes; moved (N, k) low-rank field errors (the registration's
+    modes, then a calibrated model's). Every array finite everywhere (the unseen rows of design, modes and moved do
+    not count). seen_gram: the Gram of [design, modes, moved] over the seen nodes when the caller has it
+    (:meth:`ResidualTest.check`), None: formed here; then only r's products are a pass over the nodes.
 
     Returns (rank of Z, c = S^T r, S^T diag(weight) S, rough energy |r|^2 - |Z^T r|^2 - |c|^2 (per column of a 2-D
     r), tr Z^T diag(weight) Z, each moved column's rough energy (k,), S^T moved).
@@ -594,7 +595,7 @@ class ResidualTest:
         self.rigid_ = rigid_modes(self.points_, self.normals_)
         self.skin_ = skin
         self._rings: sp.csr_matrix | None = None
-        self._whole_grams: list[tuple[np.ndarray, tuple, np.ndarray]] = []
+        self._whole_grams: list[tuple[weakref.ref, tuple, np.ndarray]] = []
         return self
 
     def rings(self) -> sp.csr_matrix:
@@ -655,7 +656,8 @@ class ResidualTest:
               model_mm: float = 0.0, registration: np.ndarray | None = None) -> ModelCheck:
         """:func:`check_residual` with this skin's modes, registration and discrepancy modes and this test's
         alpha. registration: :meth:`registration` of ``errors`` when the caller made it already (at paper resolution
-        the modes cost 6 ms of a 70 ms estimate of a scan)."""
+        the modes cost 6 ms of a 70 ms estimate of a scan); no other modes (the kept Gram, :meth:`_seen_gram`, is
+        carried by the error model's own pose mixing)."""
         rings = self.rings() if self.looks_at_fit(errors) else None  # check_residual's local test needs it then
         if registration is None:
             registration = self.registration(errors)
@@ -675,10 +677,14 @@ class ResidualTest:
         kept array (an estimator's fitted fields, transposed: the same array at every check) and kept for the last
         :data:`KEPT_GRAMS`. None (formed by the check in one pass) where that does not pay or hold: no design or one
         made for this check, a fused field's registration (its views' modes weighted node by node), more nodes unseen
-        than seen. At paper scale the check's unweighted Gram was 12 of a 46 ms estimate."""
+        than seen. At paper scale the check's unweighted Gram was 12 of a 46 ms estimate. It holds while the kept
+        arrays are not written in place (fitted attributes are not) and the test's discrepancy is the one it was
+        fitted with, and it takes the registration to be :meth:`registration`'s (what :meth:`check` is given)."""
         mixing = errors.pose_mixing() if errors.has_pose else np.zeros((6, 0))
         unseen = np.flatnonzero(~seen)
-        if design is None or design.base is None or mixing is None or 2 * unseen.size > seen.size:
+        n_nodes = seen.size
+        if (not isinstance(design, np.ndarray) or design.base is None or mixing is None
+                or 2 * unseen.size > n_nodes):
             return None
         discrepancy = self.tested_discrepancy()
         parts = [design, self.modes_, self.rigid_] + ([] if discrepancy is None else [discrepancy])
@@ -694,12 +700,15 @@ class ResidualTest:
         return carry.T @ gram @ carry
 
     def _whole_gram(self, design: np.ndarray, parts: list[np.ndarray]) -> np.ndarray:
-        """The Gram of ``parts`` over every node, kept per ``design`` (a view of a kept array: the view's array, its
-        shape, strides and first element identify it)."""
+        """The Gram of ``parts`` over every node, kept per ``design`` (a view of a kept array: the view's array, held
+        weakly so that a dropped estimator's fields are freed, its shape, strides and first element identify it;
+        the last used first)."""
         key = (design.shape, design.strides, design.__array_interface__["data"][0])
-        for array, kept_key, gram in self._whole_grams:
-            if array is design.base and kept_key == key:
+        alive = [entry for entry in self._whole_grams if entry[0]() is not None]
+        for i, (array, kept_key, gram) in enumerate(alive):
+            if array() is design.base and kept_key == key:
+                self._whole_grams = [alive[i], *alive[:i], *alive[i + 1:]]
                 return gram
         gram = weighted_gram(np.ones(design.shape[0]), *parts)
-        self._whole_grams = [(design.base, key, gram), *self._whole_grams[:self.KEPT_GRAMS - 1]]
+        self._whole_grams = [(weakref.ref(design.base), key, gram), *alive[:self.KEPT_GRAMS - 1]]
         return gram
