@@ -13,7 +13,7 @@ import pytest
 from hood_decomp.core.fe.ensemble import simulate_ensemble, validation_plan
 from hood_decomp.core.fe.geometric import NonlinearSolver, facet_triangles, nonlinear_forces
 from hood_decomp.core.fe.hood_preset import build_preset
-from hood_decomp.core.fe.reduced_geometric import _assemble, build_reduced_geometric, energy_tensors
+from hood_decomp.core.fe.reduced_geometric import _assemble, build_reduced_geometric, energy_sums
 from hood_decomp.core.fe.solver import build_solver, reduce_model
 from hood_decomp.errors import SolverError
 
@@ -32,11 +32,27 @@ def test_energy_tensors_give_the_full_order_nonlinear_force(coarse_paper) -> Non
     facets = facet_triangles(model)
     rng = np.random.default_rng(3)
     basis = rng.normal(size=(len(model.nodes), 3, 5)) * 0.01
-    T3, T4 = energy_tensors(facets, basis)
+    T3, T4 = energy_sums(facets, basis).tensors()
     for y in (rng.normal(size=5), 10 * rng.normal(size=5)):  # the cubic and the quartic term dominate in turn
         reduced = 3 * np.einsum("abc,b,c->a", T3, y, y) + 4 * np.einsum("abcd,b,c,d->a", T4, y, y, y)
         full = np.einsum("nak,na->k", basis, nonlinear_forces(facets, (basis @ y)[:, :, None])[..., 0])
         assert np.abs(reduced - full).max() < 1e-10 * np.abs(full).max()
+
+
+def test_energy_sums_of_a_grown_basis_are_a_fresh_sum(coarse_paper) -> None:
+    """Fails if the energy sums of a basis grown by two columns, updated from its first columns' sums (only the terms
+    with a new coordinate summed), differ from the same basis summed afresh (a term left out, counted twice, or an
+    old pair put at the wrong place of the new pair order); or if sums of another basis are taken as its first
+    columns'."""
+    model, _ = coarse_paper
+    facets = facet_triangles(model)
+    basis = np.random.default_rng(4).normal(size=(len(model.nodes), 3, 6)) * 0.01
+    fresh = energy_sums(facets, basis)
+    grown = energy_sums(facets, basis, energy_sums(facets, basis[:, :, :4]))
+    assert np.abs(grown.T3 - fresh.T3).max() < 1e-12 * np.abs(fresh.T3).max()
+    assert np.abs(grown.T4 - fresh.T4).max() < 1e-12 * np.abs(fresh.T4).max()
+    with pytest.raises(SolverError, match="expected"):
+        energy_sums(facets, basis, energy_sums(facets, basis[:, :, 1:5]))
 
 
 def test_reduced_member_is_the_full_member_when_its_correction_is_in_the_space(coarse_paper) -> None:
@@ -56,7 +72,7 @@ def test_reduced_member_is_the_full_member_when_its_correction_is_in_the_space(c
     H = 0.5 * (H + H.T)
     values, vectors = np.linalg.eigh(H)
     correction = u - u0 - W @ state[:B] - G @ f
-    rom = _assemble(solver, correction[:, None], u0, W, G, H, pads.loads.T @ u0, np.asarray(pads.loads.T @ W),
+    rom, _ = _assemble(solver, correction[:, None], u0, W, G, H, pads.loads.T @ u0, np.asarray(pads.loads.T @ W),
                     vectors / np.sqrt(values), model.lower, model.upper)
     member = rom.members(state[None])
     n = len(model.nodes)
