@@ -73,6 +73,9 @@ logger = logging.getLogger(__name__)
 PAD_TOLERANCE = 3e-3
 #: bytes of facet temporaries per chunk when the energy tensors are summed
 CHUNK_BYTES = 200e6
+#: rows (modes x snapshots) the hyper-reduction's facet weights fit: its NNLS costs grow with their cube (384 rows:
+#: 2 CPU s, 768: 14 s on coarse hood-paper), so the snapshots are HYPER_ROWS // modes evenly spaced training states
+HYPER_ROWS = 400
 #: how the correction modes are trained (:func:`build_reduced_geometric`)
 TRAININGS = ("derivatives", "states")
 
@@ -216,12 +219,13 @@ class EnergySums:
 
     basis: (n, 3, d) mm, the nodal translations they were summed for. T3: (d, pairs), T4: (pairs, pairs) symmetric,
     pairs = d (d + 1) / 2 products y_a y_b (a <= b, np.triu_indices(d) order): E(y) = sum_c y_c (T3 z)_c + z^T T4 z
-    with z the pair products.
+    with z the pair products. index: the facets summed when a weighted subset (hyper-reduction), else None.
     """
 
     basis: np.ndarray
     T3: np.ndarray
     T4: np.ndarray
+    index: np.ndarray | None = None
 
     def tensors(self) -> tuple[np.ndarray, np.ndarray]:
         """The symmetric tensors T3 (d, d, d), T4 (d, d, d, d): E(y) = T3 . y^3 + T4 . y^4."""
@@ -291,6 +295,73 @@ def energy_sums(facets: FacetTriangles, basis: np.ndarray, previous: EnergySums 
     return EnergySums(basis, T3, T4)
 
 
+def facet_reduced_forces(facets: FacetTriangles, basis: np.ndarray, Y: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Each facet's share of the reduced nonlinear force dE/dy_c (the rows c of eq. 2) at coordinates Y (d, m):
+    (T, len(rows), m) N, for u = basis @ y, basis (n, 3, d) mm. Summed over the facets it is the projection of
+    :func:`.geometric.nonlinear_forces` on the basis columns ``rows``.
+
+    dE/dy_c = A [L_c^T tD eps_Q + N^T d eps_Q/dy_c], N = tD (eps_L + eps_Q); d eps_Q/dy_c = (Jx_c . Jx, Jy_c . Jy,
+    Jx_c . Jy + Jy_c . Jx) with Jx, Jy the gradients of u."""
+    J = gradients(facets, basis)  # (T, 3, 2, d)
+    L = linear_strain(facets, J)  # (T, 3, d)
+    Ju = J @ Y  # (T, 3, 2, m)
+    Jx, Jy = Ju[:, :, 0], Ju[:, :, 1]
+    quadratic = np.stack([0.5 * (Jx * Jx).sum(1), 0.5 * (Jy * Jy).sum(1), (Jx * Jy).sum(1)], axis=1)
+    tD = (facets.area * facets.thickness)[:, None, None] * facets.D
+    stress_q = tD @ quadratic  # (T, 3, m)
+    stress = tD @ (L @ Y) + stress_q
+    Vx = stress[:, None, 0] * Jx + stress[:, None, 2] * Jy  # (T, 3, m)
+    Vy = stress[:, None, 2] * Jx + stress[:, None, 1] * Jy
+    Jc = J[:, :, :, rows]  # (T, 3, 2, c)
+    return (L[:, :, rows].transpose(0, 2, 1) @ stress_q + Jc[:, :, 0].transpose(0, 2, 1) @ Vx
+            + Jc[:, :, 1].transpose(0, 2, 1) @ Vy)
+
+
+def hyper_facets(facets: FacetTriangles, basis: np.ndarray, Y: np.ndarray, rows: np.ndarray, tolerance: float,
+                 initial: np.ndarray | None = None, max_rounds: int = 60) -> tuple[np.ndarray, np.ndarray]:
+    """A weighted subset of the facets whose reduced nonlinear forces (:func:`facet_reduced_forces`, rows ``rows``)
+    at the snapshot coordinates Y (d, m) are all facets' within ``tolerance`` (relative, each snapshot scaled to a
+    unit force): energy-conserving sampling and weighting (ECSW, Farhat et al. 2014), w >= 0 by a greedy
+    non-negative least squares (the facets whose columns correlate most with the residual join a pool in growing
+    batches, scipy's NNLS over the pool; its zero weights are left out at the end; ``initial``: facets the pool starts
+    with, e.g. those of a smaller basis). Returns the facets (k,) and their weights (k,) (:meth:`.geometric.
+    FacetTriangles.select`). SolverError when ``max_rounds`` do not reach the tolerance."""
+    from scipy.optimize import nnls
+
+    size, width = len(facets.nodes), len(rows) * Y.shape[1]
+    C = np.zeros((width, size), dtype=np.float32)  # float32: the fit is to 1e-3, half the memory
+    chunk = max(1, int(CHUNK_BYTES / (8 * 9 * max(basis.shape[2], width))))
+    for start in range(0, size, chunk):
+        part = facet_reduced_forces(facets.rows(start, start + chunk), basis, Y, rows)
+        C[:, start:start + chunk] = part.reshape(len(part), -1).T
+    total = C.sum(axis=1, dtype=np.float64).reshape(len(rows), -1)
+    scale = 1.0 / np.maximum(np.linalg.norm(total, axis=0), 1e-300)  # each snapshot counts alike
+    C *= np.tile(scale, len(rows)).astype(np.float32)[:, None]
+    b = (total * scale).ravel()
+    pool = np.zeros(0, dtype=np.int64) if initial is None else np.asarray(initial, dtype=np.int64)
+    weight = np.zeros(len(pool))
+    if len(pool):
+        A = C[:, pool].astype(np.float64)
+        weight, _ = nnls(A, b, maxiter=20 * len(pool))
+    residual = b - C[:, pool].astype(np.float64) @ weight
+    for _ in range(max_rounds):
+        if np.linalg.norm(residual) <= tolerance * np.linalg.norm(b):
+            chosen = weight > 0
+            logger.info("hyper-reduction: %d of %d facets, relative force error %.1e", chosen.sum(), size,
+                        np.linalg.norm(residual) / np.linalg.norm(b))
+            return pool[chosen], weight[chosen]
+        score = C.T @ residual.astype(np.float32)
+        score[pool] = -np.inf  # the pool only grows: the NNLS over it can only improve
+        batch = max(32, len(pool) // 2) if len(pool) else len(b)  # about as many facets as rows are needed
+        add = np.argpartition(-score, batch)[:batch]
+        pool = np.concatenate([pool, add[score[add] > 0]])
+        A = C[:, pool].astype(np.float64)
+        weight, _ = nnls(A, b, maxiter=20 * len(pool))
+        residual = b - A @ weight
+    raise SolverError(f"hyper-reduction: expected a relative force error <= {tolerance} in {max_rounds} rounds, got "
+                      f"{np.linalg.norm(residual) / np.linalg.norm(b):.2e} with {int((weight > 0).sum())} facets")
+
+
 def training_states(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
     """States (m, P) mm the correction modes are built from: ranks 0-2 of the factorial and the 2^P corners (137 for
     six parameters; without rank 2, 77, the coarse hood's random members were 0.014 mm from the full solve, with it
@@ -331,8 +402,8 @@ def derivative_snapshots(solver: ShellSolver, facets: FacetTriangles, fields: np
 
 def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.ndarray, modes: int = 36,
                             pad_samples: int = 1400, seed: int = 1, full: NonlinearSolver | None = None,
-                            training: str = "states", passes: int = 3, solves: int = 8, added: int = 4
-                            ) -> ReducedGeometricModel:
+                            training: str = "states", passes: int = 3, solves: int = 8, added: int = 4,
+                            hyper: float | None = None) -> ReducedGeometricModel:
     """The reduced nonlinear model of a factorised linear solver over the ranges [lower, upper] (P,) mm.
 
     The correction modes (``modes`` of them at most) are trained on the training states (:func:`training_states`)
@@ -351,10 +422,17 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
       full solve). ``passes x solves`` full solves instead of 137.
 
     pad_samples: random states whose linear pad forces (with the factorial's) give the pad force shapes.
+    hyper: None (the energy tensors summed over all facets) or the relative tolerance of a hyper-reduction: the
+    tensors summed over a weighted subset of the facets (:func:`hyper_facets`) fitted to the reduced forces at
+    HYPER_ROWS // modes training states, their coordinates q the K-projection of their correction estimates (the
+    static derivatives' e2 + e3 along their rays, or the full solve where there is one) on the modes; re-fitted
+    whenever the modes grow (opt-in: not exact).
     ``build_s``: seconds of the build's parts (pads, derivatives, full solves, tensors, indicator or check).
     """
     if training not in TRAININGS:
         raise SolverError(f"training: expected one of {TRAININGS}, got {training!r}")
+    if hyper is not None and not 0 < hyper < 1:
+        raise SolverError(f"hyper: expected None or a relative tolerance in (0, 1), got {hyper!r}")
     start = time.perf_counter()
     clock = {"start": start}
 
@@ -404,8 +482,10 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
         raise SolverError(f"expected 0 < passes x added < modes and 0 < passes x solves <= {len(states)} (the "
                           f"training states), got {passes} x {added}, {modes} and {passes} x {solves}")
     facets = facet_triangles(model)
+    linear = linear_forces(states)
     if training == "states":
         exact, snapshots = corrections(states)
+        estimate = snapshots
         logger.info("%d training members solved by the full nonlinear model (%.1f s)", len(states),
                     time.perf_counter() - start)
         lap("full solves")
@@ -414,11 +494,20 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
         reach = np.concatenate([[1.0], np.maximum(np.abs(lower[:B]), np.abs(upper[:B])),
                                 np.abs(forces @ H @ Bf).max(axis=0)])
         snapshots = derivative_snapshots(solver, facets, np.concatenate([u0[:, None], W, G @ Bf], axis=1) * reach,
-                                         u0[:, None] + W @ states[:, :B].T + G @ linear_forces(states).T)
+                                         u0[:, None] + W @ states[:, :B].T + G @ linear.T)
         logger.info("%d static derivatives (%.1f s)", snapshots.shape[1], time.perf_counter() - start)
         lap("derivatives")
         Psi = _pod(solver.K, snapshots, modes - passes * added)
-    rom, sums = _assemble(solver, Psi, u0, W, G, H, z0, Sa, Bf, lower, upper, facets)
+        estimate = snapshots[:, -2 * len(states):-len(states)] + snapshots[:, -len(states):]  # e2 + e3
+    fixed = np.concatenate([np.ones((1, len(states))), states[:, :B].T, Bf.T @ H @ linear.T])  # y without q
+
+    def assemble(Psi: np.ndarray, sums: EnergySums | None) -> tuple[ReducedGeometricModel, EnergySums]:
+        if hyper is None:
+            return _assemble(solver, Psi, u0, W, G, H, z0, Sa, Bf, lower, upper, facets, sums)
+        return _assemble(solver, Psi, u0, W, G, H, z0, Sa, Bf, lower, upper, facets,
+                         hyper=(fixed, estimate, hyper, None if sums is None else sums.index))
+
+    rom, sums = assemble(Psi, None)
     lap("tensors")
     solved = np.zeros(len(states), dtype=bool)
     for sweep in range(passes + 1 if training == "derivatives" else 0):
@@ -434,12 +523,13 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
         chosen = np.argsort(size)[::-1][:solves]
         solved[chosen] = True
         new = corrections(states[chosen])[1]
+        estimate[:, chosen] = new
         logger.info("pass %d: %d full solves, largest indicator %.4f mm (%.1f s)", sweep + 1, len(chosen),
                     size.max(), time.perf_counter() - start)
         lap("full solves")
         new = new - Psi @ np.linalg.solve(Psi.T @ (solver.K @ Psi), Psi.T @ (solver.K @ new))
         Psi = np.concatenate([Psi, _pod(solver.K, new, added)], axis=1)
-        rom, sums = _assemble(solver, Psi, u0, W, G, H, z0, Sa, Bf, lower, upper, facets, sums)
+        rom, sums = assemble(Psi, sums)
         lap("tensors")
     if training == "states":
         f, q = rom.solve_all(states)
@@ -464,14 +554,30 @@ def _pod(K: np.ndarray, snapshots: np.ndarray, modes: int) -> np.ndarray:
 
 def _assemble(solver: ShellSolver, Psi: np.ndarray, u0: np.ndarray, W: np.ndarray, G: np.ndarray, H: np.ndarray,
               z0: np.ndarray, Sa: np.ndarray, Bf: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-              facets: FacetTriangles | None = None, previous: EnergySums | None = None
+              facets: FacetTriangles | None = None, previous: EnergySums | None = None,
+              hyper: tuple[np.ndarray, np.ndarray, float, np.ndarray | None] | None = None
               ) -> tuple[ReducedGeometricModel, EnergySums]:
     """The reduced model of the correction modes Psi (6n, r) (residual not yet measured: NaN) and its energy sums;
-    ``previous``: those of Psi's first columns (:func:`energy_sums`)."""
+    ``previous``: those of Psi's first columns (:func:`energy_sums`). ``hyper``: (y without q (1 + B + p, m),
+    correction estimates (6n, m) mm, tolerance, facets to start from or None): the sums over a weighted subset of the
+    facets fitted to the reduced forces at HYPER_ROWS // r of those m snapshots, evenly spaced (:func:`hyper_facets`;
+    ``previous`` must then be None; the subset's facet indices are the sums' ``index``)."""
     model = solver.model
     n, r = len(model.nodes), Psi.shape[1]
     basis = np.concatenate([u0[:, None], W, G @ Bf, Psi], axis=1).reshape(n, 6, -1)[:, :3]
-    sums = energy_sums(facet_triangles(model) if facets is None else facets, basis, previous)
+    Kq = Psi.T @ (solver.K @ Psi)
+    facets = facet_triangles(model) if facets is None else facets
+    if hyper is not None:
+        assert previous is None, "the sums of another facet subset"
+        fixed, estimate, tolerance, begin = hyper
+        sample = np.unique(np.linspace(0, fixed.shape[1] - 1, max(2, HYPER_ROWS // r)).round().astype(int))
+        q = np.linalg.solve(Kq, Psi.T @ (solver.K @ estimate[:, sample]))  # (r, m): the estimates' K-projection
+        d = basis.shape[2]
+        index, weight = hyper_facets(facets, basis, np.concatenate([fixed[:, sample], q]), np.arange(d - r, d),
+                                     tolerance, begin)
+        sums = replace(energy_sums(facets.select(index, weight), basis), index=index)
+    else:
+        sums = energy_sums(facets, basis, previous)
     T3, T4 = sums.tensors()
     skin, normals = model.skin_nodes, skin_surface(model).normals
 
@@ -488,4 +594,4 @@ def _assemble(solver: ShellSolver, Psi: np.ndarray, u0: np.ndarray, W: np.ndarra
         parameter_states=model.parameter_states, lower=lower.copy(), upper=upper.copy(), w0=w[:, 0], R=w[:, 1:],
         G=g, Psi=psi, w0_3d=w3[:, :, 0], R_3d=w3[:, :, 1:], G_3d=g3, Psi_3d=psi3, z0=z0, Sa=Sa, H=H,
         Zq=np.asarray(pads.loads.T @ Psi), k=pads.k.copy(), preload=pads.preload.copy(), pad_of=pads.pad_of.copy(),
-        Bf=Bf, Kq=Psi.T @ (solver.K @ Psi), T3q=T3[-r:].copy(), T4q=T4[-r:].copy(), residual=float("nan")), sums
+        Bf=Bf, Kq=Kq, T3q=T3[-r:].copy(), T4q=T4[-r:].copy(), residual=float("nan")), sums
