@@ -127,15 +127,16 @@ def test_reduced_member_is_the_full_member_when_its_correction_is_in_the_space(c
     assert np.allclose(member.pad_forces[0], f, atol=1e-6 * f.max())
 
 
-@pytest.mark.parametrize("hyper", [None, 1e-3])
+@pytest.mark.parametrize("hyper", [None, 1e-4])
 def test_derivative_trained_members_match_the_full_solve(coarse_paper, hyper) -> None:
     """Fails if the reduced model trained by static derivatives and two greedy passes of 4 full solves
     (training="derivatives", 8 full solves instead of 137), with its energy tensors summed over all facets or
-    hyper-reduced (a weighted subset fitted to 1e-3), is more than 0.015 mm (any skin translation) from full
+    hyper-reduced (a weighted subset fitted to 1e-4), is more than 0.015 mm (any skin translation) from full
     nonlinear members (NonlinearSolver, an independent iteration on the full mesh) at 3 random states it was not
     trained on, over ranges +-0.5 mm where nonlinear minus linear reaches 0.086 mm there; or if its residual
     indicator is not finite. Measured 0.007-0.009 mm (the 137-state training: 0.0007-0.0015 mm; with one pass of 4
-    solves 0.021-0.024 mm; without the pair derivatives, see RESULTS.md)."""
+    solves 0.021-0.024 mm; without the pair derivatives, see RESULTS.md); hyper-reduced 0.0073 mm (fitted to 1e-3:
+    0.027 mm)."""
     model, solver = coarse_paper
     lower, upper = -0.5 * np.ones(len(model.names)), 0.5 * np.ones(len(model.names))
     rom = build_reduced_geometric(solver, lower, upper, modes=24, training="derivatives", passes=2, solves=4,

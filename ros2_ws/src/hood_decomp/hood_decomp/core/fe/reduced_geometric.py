@@ -35,7 +35,17 @@ parameters) in one of two ways (:func:`build_reduced_geometric`, ``training``):
   on the same members, 0.019 mm at default resolution (a low-order expansion leaves about half of the correction
   at the lock-twist and lock-buffer corners, where the nonlinearity is strong; the greedy full solves carry the
   accuracy there), and no faster on the coarse hood, 76 s against 75 s (the tensors are summed four times;
-  benchmarks/RESULTS.md, "Training the reduced nonlinear model by static derivatives").
+  benchmarks/RESULTS.md, "Training the reduced nonlinear model by static derivatives"). Each greedy pass sums
+  only the tensor terms with a new coordinate (:func:`energy_sums` with the previous sums; exact, 40 % of a
+  fresh sum at d = 53).
+
+The tensors are sums over all facets (O(facets x d^4 / 4): one sum at d = 49 is ~35 s at default resolution).
+``hyper`` (opt-in) sums them over a weighted subset instead (ECSW, :func:`hyper_facets`: non-negative facet
+weights fitted so that the subset reproduces the reduced forces at HYPER_ROWS // r training states; 384 of 189,744
+facets at default). It is not accurate enough to be the default: on the coarse hood's 39 bench members the reduced
+members move 1.9-2.3x (derivatives, 0.023-0.027 mm) and 3.5x (states, 0.028 mm) farther from the full solve, at
+tolerance 1e-3 or 1e-4 alike: 11-16 snapshots are too few, and more rows make the NNLS cost grow with their cube
+(benchmarks/RESULTS.md, "Energy tensors of a grown basis, and hyper-reduced").
 
 The reduced model is valid inside the parameter ranges it was built for; a range that passes a buckling load
 (HINGE_Y +1 mm on the hood) stalls the full solves of the training states or shows as a reduced tangent that is not
@@ -75,6 +85,8 @@ PAD_TOLERANCE = 3e-3
 CHUNK_BYTES = 200e6
 #: rows (modes x snapshots) the hyper-reduction's facet weights fit: its NNLS costs grow with their cube (384 rows:
 #: 2 CPU s, 768: 14 s on coarse hood-paper), so the snapshots are HYPER_ROWS // modes evenly spaced training states
+#: (the test's members at tolerance 1e-3: 400 rows 0.027 mm from the full solve, 800 rows 0.013 mm; at 1e-4 and 400
+#: rows 0.0073 mm, all facets 0.007-0.009 mm: the tolerance matters more than the rows)
 HYPER_ROWS = 400
 #: how the correction modes are trained (:func:`build_reduced_geometric`)
 TRAININGS = ("derivatives", "states")
