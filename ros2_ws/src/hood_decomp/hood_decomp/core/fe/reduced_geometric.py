@@ -45,9 +45,9 @@ weights fitted so that the subset reproduces the reduced forces at HYPER_ROWS //
 facets at default). It is not accurate enough to be the default: on the coarse hood's 39 bench members the reduced
 members move 1.9-2.3x (derivatives, 0.023-0.027 mm) and 3.5x (states, 0.028 mm) farther from the full solve, at
 tolerance 1e-3 or 1e-4 alike, and at default 0.030 against 0.019 mm: 11-16 snapshots are too few, and more rows
-make the NNLS cost grow with their cube. Nor does it save time that shows (coarse: a fit costs more CPU than the
-sum it replaces; default: the same CPU for the whole benchmark; benchmarks/RESULTS.md, "Energy tensors of a grown
-basis, and hyper-reduced").
+make the NNLS cost grow with their cube. Nor does it save time (coarse: a fit costs more CPU than the sum it
+replaces; default: a 496 CPU s build against the exact update's 461; benchmarks/RESULTS.md, "Energy tensors of a
+grown basis, and hyper-reduced").
 
 The reduced model is valid inside the parameter ranges it was built for; a range that passes a buckling load
 (HINGE_Y +1 mm on the hood) stalls the full solves of the training states or shows as a reduced tangent that is not
