@@ -65,6 +65,13 @@ class FacetTriangles:
                               self.thickness[start:stop], self.area[start:stop], self.D,
                               self.scatter[:, 3 * start:3 * stop])
 
+    def select(self, index: np.ndarray, weight: np.ndarray) -> FacetTriangles:
+        """The facets ``index`` (k,) with their areas scaled by ``weight`` (k,) >= 0: a weighted subset whose sums
+        stand for all facets' (hyper-reduction; scatter onto those facets' nodes only)."""
+        columns = (3 * index[:, None] + np.arange(3)).ravel()
+        return FacetTriangles(self.nodes[index], self.frame[index], self.grad[index], self.thickness[index],
+                              self.area[index] * weight, self.D, self.scatter[:, columns])
+
 
 def facet_triangles(model: PartModel) -> FacetTriangles:
     """The four half-weight triangles of every quad of ``model`` (as the linear stiffness splits them)."""

@@ -35,7 +35,19 @@ parameters) in one of two ways (:func:`build_reduced_geometric`, ``training``):
   on the same members, 0.019 mm at default resolution (a low-order expansion leaves about half of the correction
   at the lock-twist and lock-buffer corners, where the nonlinearity is strong; the greedy full solves carry the
   accuracy there), and no faster on the coarse hood, 76 s against 75 s (the tensors are summed four times;
-  benchmarks/RESULTS.md, "Training the reduced nonlinear model by static derivatives").
+  benchmarks/RESULTS.md, "Training the reduced nonlinear model by static derivatives"). Each greedy pass sums
+  only the tensor terms with a new coordinate (:func:`energy_sums` with the previous sums; exact, 40 % of a
+  fresh sum at d = 53).
+
+The tensors are sums over all facets (O(facets x d^4 / 4): one sum at d = 49 is ~35 s at default resolution).
+``hyper`` (opt-in) sums them over a weighted subset instead (ECSW, :func:`hyper_facets`: non-negative facet
+weights fitted so that the subset reproduces the reduced forces at HYPER_ROWS // r training states; 384 of 189,744
+facets at default). It is not accurate enough to be the default: on the coarse hood's 39 bench members the reduced
+members move 1.9-2.3x (derivatives, 0.023-0.027 mm) and 3.5x (states, 0.028 mm) farther from the full solve, at
+tolerance 1e-3 or 1e-4 alike, and at default 0.030 against 0.019 mm: 11-16 snapshots are too few, and more rows
+make the NNLS cost grow with their cube. Nor does it save time (coarse: a fit costs more CPU than the sum it
+replaces; default: a 496 CPU s build against the exact update's 461; benchmarks/RESULTS.md, "Energy tensors of a
+grown basis, and hyper-reduced").
 
 The reduced model is valid inside the parameter ranges it was built for; a range that passes a buckling load
 (HINGE_Y +1 mm on the hood) stalls the full solves of the training states or shows as a reduced tangent that is not
@@ -73,6 +85,11 @@ logger = logging.getLogger(__name__)
 PAD_TOLERANCE = 3e-3
 #: bytes of facet temporaries per chunk when the energy tensors are summed
 CHUNK_BYTES = 200e6
+#: rows (modes x snapshots) the hyper-reduction's facet weights fit: its NNLS costs grow with their cube (384 rows:
+#: 2 CPU s, 768: 14 s on coarse hood-paper), so the snapshots are HYPER_ROWS // modes evenly spaced training states
+#: (the test's members at tolerance 1e-3: 400 rows 0.027 mm from the full solve, 800 rows 0.013 mm; at 1e-4 and 400
+#: rows 0.0073 mm, all facets 0.007-0.009 mm: the tolerance matters more than the rows)
+HYPER_ROWS = 400
 #: how the correction modes are trained (:func:`build_reduced_geometric`)
 TRAININGS = ("derivatives", "states")
 
@@ -209,19 +226,54 @@ class ReducedGeometricModel:
         return MemberBlock(effective, fraction, reactions, normal, vectors, forces, compression)
 
 
-def energy_tensors(facets: FacetTriangles, basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The Green-Lagrange membrane energy beyond the linear one of u = basis @ y, as symmetric tensors:
-    E(y) = T3 . y^3 + T4 . y^4 (T3 (d, d, d), T4 (d, d, d, d)); basis: nodal translations (n, 3, d) mm.
+@dataclass(frozen=True)
+class EnergySums:
+    """The facet sums of the membrane energy beyond the linear one (:func:`energy_sums`), kept in pair form so that a
+    grown basis sums only the terms with a new coordinate.
+
+    basis: (n, 3, d) mm, the nodal translations they were summed for. T3: (d, pairs), T4: (pairs, pairs) symmetric,
+    pairs = d (d + 1) / 2 products y_a y_b (a <= b, np.triu_indices(d) order): E(y) = sum_c y_c (T3 z)_c + z^T T4 z
+    with z the pair products. index: the facets summed when a weighted subset (hyper-reduction), else None.
+    """
+
+    basis: np.ndarray
+    T3: np.ndarray
+    T4: np.ndarray
+    index: np.ndarray | None = None
+
+    def tensors(self) -> tuple[np.ndarray, np.ndarray]:
+        """The symmetric tensors T3 (d, d, d), T4 (d, d, d, d): E(y) = T3 . y^3 + T4 . y^4."""
+        d = self.basis.shape[2]
+        first, second = np.triu_indices(d)
+        full3 = np.zeros((d, d, d))
+        full3[:, first, second] = self.T3  # a <= b only: the sum over all indices is then z-space's
+        full4 = np.zeros((d, d, d, d))
+        full4[first[:, None], second[:, None], first[None], second[None]] = self.T4
+        full3 = sum(full3.transpose(p) for p in itertools.permutations(range(3))) / 6
+        full4 = sum(full4.transpose(p) for p in itertools.permutations(range(4))) / 24
+        return full3, full4
+
+
+def energy_sums(facets: FacetTriangles, basis: np.ndarray, previous: EnergySums | None = None) -> EnergySums:
+    """The Green-Lagrange membrane energy beyond the linear one of u = basis @ y summed over the facets
+    (:class:`EnergySums`); basis: nodal translations (n, 3, d) mm. With ``previous``, the sums of a basis that is
+    ``basis``'s first d0 columns, only the terms with a coordinate >= d0 are summed (the rest are taken from it: the
+    same sums; a greedy pass adding 4 coordinates to 49 costs 40 % of a fresh sum).
 
     Per facet, eps_L = L y and eps_Q = (y^T S_k y)_k (k = xx, yy, 2xy); E = sum A [eps_L^T tD eps_Q + 1/2 eps_Q^T
-    tD eps_Q] (the energy whose gradient is :func:`.geometric.nonlinear_forces`). Summed over the facets in the
-    d (d + 1) / 2 products y_a y_b (a <= b), then spread to the full tensors."""
+    tD eps_Q] (the energy whose gradient is :func:`.geometric.nonlinear_forces`), summed in the products y_a y_b."""
     d = basis.shape[2]
+    d0 = 0 if previous is None else previous.basis.shape[2]
+    if previous is not None and (d0 > d or not np.array_equal(previous.basis, basis[:, :, :d0])):
+        raise SolverError(f"previous energy sums: expected those of the first columns of the basis {basis.shape}, "
+                          f"got a basis {previous.basis.shape} that is not")
     first, second = np.triu_indices(d)
     weight = np.where(first == second, 1.0, 2.0)  # y^T S y = sum over a <= b of weight S_ab y_a y_b
     pairs = len(first)
+    new, old = np.flatnonzero(second >= d0), np.flatnonzero(second < d0)
     T3 = np.zeros((d, pairs))
-    T4 = np.zeros((pairs, pairs), order="F")  # its upper triangle, summed by dsyrk
+    T4new = np.zeros((len(new), len(new)), order="F")  # its upper triangle, summed by dsyrk
+    T4old = np.zeros((len(old), len(new)))
     root = np.linalg.cholesky(facets.D)  # D = root root^T: S^T (A t D) S = X^T X, X = sqrt(A t) root^T S
     size = len(facets.nodes)
     chunk = max(1, int(CHUNK_BYTES / (8 * 9 * max(d * d, pairs))))
@@ -235,18 +287,93 @@ def energy_tensors(facets: FacetTriangles, basis: np.ndarray) -> tuple[np.ndarra
         S = np.stack([0.5 * (xt @ Jx)[:, first, second], 0.5 * (yt @ Jy)[:, first, second],
                       0.5 * (xy[:, first, second] + xy[:, second, first])], axis=1) * weight  # (t, 3, pairs): eps_Q
         scale = part.area * part.thickness
-        ell = np.einsum("tka,kl->tla", L, facets.D) * scale[:, None, None]
-        T3 += ell.reshape(-1, d).T @ S.reshape(-1, pairs)
-        X = np.einsum("lk,tlp->tkp", root, S) * np.sqrt(scale)[:, None, None]
-        T4 = dsyrk(0.5, X.reshape(-1, pairs).T, beta=1.0, c=T4, trans=0, lower=0, overwrite_c=1)  # half a GEMM
-    T4 = np.triu(T4) + np.triu(T4, 1).T
-    full3 = np.zeros((d, d, d))
-    full3[:, first, second] = T3  # a <= b only: the sum over all indices is then z-space's
-    full4 = np.zeros((d, d, d, d))
-    full4[first[:, None], second[:, None], first[None], second[None]] = T4
-    full3 = sum(full3.transpose(p) for p in itertools.permutations(range(3))) / 6
-    full4 = sum(full4.transpose(p) for p in itertools.permutations(range(4))) / 24
-    return full3, full4
+        ell = (np.einsum("tka,kl->tla", L, facets.D) * scale[:, None, None]).reshape(-1, d)
+        S = S.reshape(-1, pairs)
+        T3[:, new] += ell.T @ S[:, new]
+        X = (np.einsum("lk,tlp->tkp", root, S.reshape(-1, 3, pairs)) * np.sqrt(scale)[:, None, None]
+             ).reshape(-1, pairs)
+        Xnew = X[:, new] if d0 else X  # (no copy for a fresh sum)
+        T4new = dsyrk(0.5, Xnew.T, beta=1.0, c=T4new, trans=0, lower=0, overwrite_c=1)  # half a GEMM
+        if d0:
+            T3[d0:, old] += ell[:, d0:].T @ S[:, old]
+            T4old += 0.5 * X[:, old].T @ Xnew
+    T4 = np.zeros((pairs, pairs))
+    T4[np.ix_(new, new)] = np.triu(T4new) + np.triu(T4new, 1).T
+    T4[np.ix_(old, new)] = T4old
+    T4[np.ix_(new, old)] = T4old.T
+    if previous is not None:
+        # the old pairs' positions in the previous (d0) triu order: a d0 - a (a - 1) / 2 + b - a
+        index = first[old] * (2 * d0 - first[old] + 1) // 2 + second[old] - first[old]
+        T3[:d0, old] = previous.T3[:, index]
+        T4[np.ix_(old, old)] = previous.T4[np.ix_(index, index)]
+    return EnergySums(basis, T3, T4)
+
+
+def facet_reduced_forces(facets: FacetTriangles, basis: np.ndarray, Y: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Each facet's share of the reduced nonlinear force dE/dy_c (the rows c of eq. 2) at coordinates Y (d, m):
+    (T, len(rows), m) N, for u = basis @ y, basis (n, 3, d) mm. Summed over the facets it is the projection of
+    :func:`.geometric.nonlinear_forces` on the basis columns ``rows``.
+
+    dE/dy_c = A [L_c^T tD eps_Q + N^T d eps_Q/dy_c], N = tD (eps_L + eps_Q); d eps_Q/dy_c = (Jx_c . Jx, Jy_c . Jy,
+    Jx_c . Jy + Jy_c . Jx) with Jx, Jy the gradients of u."""
+    J = gradients(facets, basis)  # (T, 3, 2, d)
+    L = linear_strain(facets, J)  # (T, 3, d)
+    Ju = J @ Y  # (T, 3, 2, m)
+    Jx, Jy = Ju[:, :, 0], Ju[:, :, 1]
+    quadratic = np.stack([0.5 * (Jx * Jx).sum(1), 0.5 * (Jy * Jy).sum(1), (Jx * Jy).sum(1)], axis=1)
+    tD = (facets.area * facets.thickness)[:, None, None] * facets.D
+    stress_q = tD @ quadratic  # (T, 3, m)
+    stress = tD @ (L @ Y) + stress_q
+    Vx = stress[:, None, 0] * Jx + stress[:, None, 2] * Jy  # (T, 3, m)
+    Vy = stress[:, None, 2] * Jx + stress[:, None, 1] * Jy
+    Jc = J[:, :, :, rows]  # (T, 3, 2, c)
+    return (L[:, :, rows].transpose(0, 2, 1) @ stress_q + Jc[:, :, 0].transpose(0, 2, 1) @ Vx
+            + Jc[:, :, 1].transpose(0, 2, 1) @ Vy)
+
+
+def hyper_facets(facets: FacetTriangles, basis: np.ndarray, Y: np.ndarray, rows: np.ndarray, tolerance: float,
+                 initial: np.ndarray | None = None, max_rounds: int = 60) -> tuple[np.ndarray, np.ndarray]:
+    """A weighted subset of the facets whose reduced nonlinear forces (:func:`facet_reduced_forces`, rows ``rows``)
+    at the snapshot coordinates Y (d, m) are all facets' within ``tolerance`` (relative, each snapshot scaled to a
+    unit force): energy-conserving sampling and weighting (ECSW, Farhat et al. 2014), w >= 0 by a greedy
+    non-negative least squares (the facets whose columns correlate most with the residual join a pool in growing
+    batches, scipy's NNLS over the pool; its zero weights are left out at the end; ``initial``: facets the pool starts
+    with, e.g. those of a smaller basis). Returns the facets (k,) and their weights (k,) (:meth:`.geometric.
+    FacetTriangles.select`). SolverError when ``max_rounds`` do not reach the tolerance."""
+    from scipy.optimize import nnls
+
+    size, width = len(facets.nodes), len(rows) * Y.shape[1]
+    C = np.zeros((width, size), dtype=np.float32)  # float32: enough for fits to 1e-4, half the memory
+    chunk = max(1, int(CHUNK_BYTES / (8 * 9 * max(basis.shape[2], width))))
+    for start in range(0, size, chunk):
+        part = facet_reduced_forces(facets.rows(start, start + chunk), basis, Y, rows)
+        C[:, start:start + chunk] = part.reshape(len(part), -1).T
+    total = C.sum(axis=1, dtype=np.float64).reshape(len(rows), -1)
+    scale = 1.0 / np.maximum(np.linalg.norm(total, axis=0), 1e-300)  # each snapshot counts alike
+    C *= np.tile(scale, len(rows)).astype(np.float32)[:, None]
+    b = (total * scale).ravel()
+    pool = np.zeros(0, dtype=np.int64) if initial is None else np.asarray(initial, dtype=np.int64)
+    weight = np.zeros(len(pool))
+    if len(pool):
+        A = C[:, pool].astype(np.float64)
+        weight, _ = nnls(A, b, maxiter=20 * len(pool))
+    residual = b - C[:, pool].astype(np.float64) @ weight
+    for _ in range(max_rounds):
+        if np.linalg.norm(residual) <= tolerance * np.linalg.norm(b):
+            chosen = weight > 0
+            logger.info("hyper-reduction: %d of %d facets, relative force error %.1e", chosen.sum(), size,
+                        np.linalg.norm(residual) / np.linalg.norm(b))
+            return pool[chosen], weight[chosen]
+        score = C.T @ residual.astype(np.float32)
+        score[pool] = -np.inf  # the pool only grows: the NNLS over it can only improve
+        batch = max(32, len(pool) // 2) if len(pool) else len(b)  # about as many facets as rows are needed
+        add = np.argpartition(-score, batch)[:batch]
+        pool = np.concatenate([pool, add[score[add] > 0]])
+        A = C[:, pool].astype(np.float64)
+        weight, _ = nnls(A, b, maxiter=20 * len(pool))
+        residual = b - A @ weight
+    raise SolverError(f"hyper-reduction: expected a relative force error <= {tolerance} in {max_rounds} rounds, got "
+                      f"{np.linalg.norm(residual) / np.linalg.norm(b):.2e} with {int((weight > 0).sum())} facets")
 
 
 def training_states(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
@@ -289,8 +416,8 @@ def derivative_snapshots(solver: ShellSolver, facets: FacetTriangles, fields: np
 
 def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.ndarray, modes: int = 36,
                             pad_samples: int = 1400, seed: int = 1, full: NonlinearSolver | None = None,
-                            training: str = "states", passes: int = 3, solves: int = 8, added: int = 4
-                            ) -> ReducedGeometricModel:
+                            training: str = "states", passes: int = 3, solves: int = 8, added: int = 4,
+                            hyper: float | None = None) -> ReducedGeometricModel:
     """The reduced nonlinear model of a factorised linear solver over the ranges [lower, upper] (P,) mm.
 
     The correction modes (``modes`` of them at most) are trained on the training states (:func:`training_states`)
@@ -309,10 +436,17 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
       full solve). ``passes x solves`` full solves instead of 137.
 
     pad_samples: random states whose linear pad forces (with the factorial's) give the pad force shapes.
+    hyper: None (the energy tensors summed over all facets) or the relative tolerance of a hyper-reduction: the
+    tensors summed over a weighted subset of the facets (:func:`hyper_facets`) fitted to the reduced forces at
+    HYPER_ROWS // modes training states, their coordinates q the K-projection of their correction estimates (the
+    static derivatives' e2 + e3 along their rays, or the full solve where there is one) on the modes; re-fitted
+    whenever the modes grow (opt-in: not exact).
     ``build_s``: seconds of the build's parts (pads, derivatives, full solves, tensors, indicator or check).
     """
     if training not in TRAININGS:
         raise SolverError(f"training: expected one of {TRAININGS}, got {training!r}")
+    if hyper is not None and not 0 < hyper < 1:
+        raise SolverError(f"hyper: expected None or a relative tolerance in (0, 1), got {hyper!r}")
     start = time.perf_counter()
     clock = {"start": start}
 
@@ -362,8 +496,10 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
         raise SolverError(f"expected 0 < passes x added < modes and 0 < passes x solves <= {len(states)} (the "
                           f"training states), got {passes} x {added}, {modes} and {passes} x {solves}")
     facets = facet_triangles(model)
+    linear = linear_forces(states)
     if training == "states":
         exact, snapshots = corrections(states)
+        estimate = snapshots
         logger.info("%d training members solved by the full nonlinear model (%.1f s)", len(states),
                     time.perf_counter() - start)
         lap("full solves")
@@ -372,11 +508,20 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
         reach = np.concatenate([[1.0], np.maximum(np.abs(lower[:B]), np.abs(upper[:B])),
                                 np.abs(forces @ H @ Bf).max(axis=0)])
         snapshots = derivative_snapshots(solver, facets, np.concatenate([u0[:, None], W, G @ Bf], axis=1) * reach,
-                                         u0[:, None] + W @ states[:, :B].T + G @ linear_forces(states).T)
+                                         u0[:, None] + W @ states[:, :B].T + G @ linear.T)
         logger.info("%d static derivatives (%.1f s)", snapshots.shape[1], time.perf_counter() - start)
         lap("derivatives")
         Psi = _pod(solver.K, snapshots, modes - passes * added)
-    rom = _assemble(solver, Psi, u0, W, G, H, z0, Sa, Bf, lower, upper, facets)
+        estimate = snapshots[:, -2 * len(states):-len(states)] + snapshots[:, -len(states):]  # e2 + e3
+    fixed = np.concatenate([np.ones((1, len(states))), states[:, :B].T, Bf.T @ H @ linear.T])  # y without q
+
+    def assemble(Psi: np.ndarray, sums: EnergySums | None) -> tuple[ReducedGeometricModel, EnergySums]:
+        if hyper is None:
+            return _assemble(solver, Psi, u0, W, G, H, z0, Sa, Bf, lower, upper, facets, sums)
+        return _assemble(solver, Psi, u0, W, G, H, z0, Sa, Bf, lower, upper, facets,
+                         hyper=(fixed, estimate, hyper, None if sums is None else sums.index))
+
+    rom, sums = assemble(Psi, None)
     lap("tensors")
     solved = np.zeros(len(states), dtype=bool)
     for sweep in range(passes + 1 if training == "derivatives" else 0):
@@ -392,12 +537,13 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
         chosen = np.argsort(size)[::-1][:solves]
         solved[chosen] = True
         new = corrections(states[chosen])[1]
+        estimate[:, chosen] = new
         logger.info("pass %d: %d full solves, largest indicator %.4f mm (%.1f s)", sweep + 1, len(chosen),
                     size.max(), time.perf_counter() - start)
         lap("full solves")
         new = new - Psi @ np.linalg.solve(Psi.T @ (solver.K @ Psi), Psi.T @ (solver.K @ new))
         Psi = np.concatenate([Psi, _pod(solver.K, new, added)], axis=1)
-        rom = _assemble(solver, Psi, u0, W, G, H, z0, Sa, Bf, lower, upper, facets)
+        rom, sums = assemble(Psi, sums)
         lap("tensors")
     if training == "states":
         f, q = rom.solve_all(states)
@@ -422,12 +568,31 @@ def _pod(K: np.ndarray, snapshots: np.ndarray, modes: int) -> np.ndarray:
 
 def _assemble(solver: ShellSolver, Psi: np.ndarray, u0: np.ndarray, W: np.ndarray, G: np.ndarray, H: np.ndarray,
               z0: np.ndarray, Sa: np.ndarray, Bf: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-              facets: FacetTriangles | None = None) -> ReducedGeometricModel:
-    """The reduced model of the correction modes Psi (6n, r) (residual not yet measured: NaN)."""
+              facets: FacetTriangles | None = None, previous: EnergySums | None = None,
+              hyper: tuple[np.ndarray, np.ndarray, float, np.ndarray | None] | None = None
+              ) -> tuple[ReducedGeometricModel, EnergySums]:
+    """The reduced model of the correction modes Psi (6n, r) (residual not yet measured: NaN) and its energy sums;
+    ``previous``: those of Psi's first columns (:func:`energy_sums`). ``hyper``: (y without q (1 + B + p, m),
+    correction estimates (6n, m) mm, tolerance, facets to start from or None): the sums over a weighted subset of the
+    facets fitted to the reduced forces at HYPER_ROWS // r of those m snapshots, evenly spaced (:func:`hyper_facets`;
+    ``previous`` must then be None; the subset's facet indices are the sums' ``index``)."""
     model = solver.model
     n, r = len(model.nodes), Psi.shape[1]
     basis = np.concatenate([u0[:, None], W, G @ Bf, Psi], axis=1).reshape(n, 6, -1)[:, :3]
-    T3, T4 = energy_tensors(facet_triangles(model) if facets is None else facets, basis)
+    Kq = Psi.T @ (solver.K @ Psi)
+    facets = facet_triangles(model) if facets is None else facets
+    if hyper is not None:
+        assert previous is None, "the sums of another facet subset"
+        fixed, estimate, tolerance, begin = hyper
+        sample = np.unique(np.linspace(0, fixed.shape[1] - 1, max(2, HYPER_ROWS // r)).round().astype(int))
+        q = np.linalg.solve(Kq, Psi.T @ (solver.K @ estimate[:, sample]))  # (r, m): the estimates' K-projection
+        d = basis.shape[2]
+        index, weight = hyper_facets(facets, basis, np.concatenate([fixed[:, sample], q]), np.arange(d - r, d),
+                                     tolerance, begin)
+        sums = replace(energy_sums(facets.select(index, weight), basis), index=index)
+    else:
+        sums = energy_sums(facets, basis, previous)
+    T3, T4 = sums.tensors()
     skin, normals = model.skin_nodes, skin_surface(model).normals
 
     def on_skin(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -443,4 +608,4 @@ def _assemble(solver: ShellSolver, Psi: np.ndarray, u0: np.ndarray, W: np.ndarra
         parameter_states=model.parameter_states, lower=lower.copy(), upper=upper.copy(), w0=w[:, 0], R=w[:, 1:],
         G=g, Psi=psi, w0_3d=w3[:, :, 0], R_3d=w3[:, :, 1:], G_3d=g3, Psi_3d=psi3, z0=z0, Sa=Sa, H=H,
         Zq=np.asarray(pads.loads.T @ Psi), k=pads.k.copy(), preload=pads.preload.copy(), pad_of=pads.pad_of.copy(),
-        Bf=Bf, Kq=Psi.T @ (solver.K @ Psi), T3q=T3[-r:].copy(), T4q=T4[-r:].copy(), residual=float("nan"))
+        Bf=Bf, Kq=Kq, T3q=T3[-r:].copy(), T4q=T4[-r:].copy(), residual=float("nan")), sums
