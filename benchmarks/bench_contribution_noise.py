@@ -9,7 +9,7 @@ squares pins down. An effect the noisy decomposition drops or adds counts as a p
 
 Run from the repository root (about 2 min coarse, 5 min default):
     scripts/with-env python benchmarks/bench_contribution_noise.py [--resolution coarse|default] [--states 6]
-        [--draws 10] [--noise-um 1 2]
+        [--draws 10] [--noise-um 1 2] [--paper]
 Prints a table per noise level and writes benchmarks/out/contribution_noise_<resolution>.json.
 """
 
@@ -30,16 +30,20 @@ sys.path.insert(0, str(ROOT))
 
 from hood_decomp.core.fe.ensemble import solve_members, validation_plan  # noqa: E402
 from hood_decomp.core.method.bases import decompose_field, estimate_field  # noqa: E402
-from hood_decomp.core.types import DisplacementField  # noqa: E402
+from hood_decomp.core.types import DisplacementField, FieldErrorModel  # noqa: E402
 from tests.conftest import _hood_case  # noqa: E402
 
 log = logging.getLogger("bench_contribution_noise")
 
 
-def partials(bases, values: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """({effect name: partial displacement (N,) mm}, reconstruction (N,) mm) of one field decomposed as a verb does."""
-    field = DisplacementField(bases.model_id, values, 1.0, float("nan"))
-    decomposition = decompose_field(bases, field, estimate_field(bases, field))
+def partials(bases, values: np.ndarray, noise_mm: float, paper: bool) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """({effect name: partial displacement (N,) mm}, reconstruction (N,) mm) of one field decomposed as a verb does,
+    the field stating its white node noise ``noise_mm`` (the decomposition's prior follows it; ``paper``: the
+    paper's least squares instead)."""
+    errors = FieldErrorModel.stated(noise_mm, values.size)
+    field = DisplacementField(bases.model_id, values, 1.0, float("nan"), errors)
+    options = {"tau_mm": 0.0} if paper else {}
+    decomposition = decompose_field(bases, field, estimate_field(bases, field), **options)
     return {e.name: e.partial_displacement for e in decomposition.effects}, decomposition.reconstruction
 
 
@@ -50,6 +54,7 @@ def main() -> int:
     parser.add_argument("--draws", type=int, default=10)
     parser.add_argument("--noise-um", type=float, nargs="+", default=[1.0, 2.0])
     parser.add_argument("--seed", type=int, default=4)
+    parser.add_argument("--paper", action="store_true", help="the paper's least squares in step 4 (no prior)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="[%(name)s] %(message)s")
     rng = np.random.default_rng(args.seed)
@@ -65,10 +70,11 @@ def main() -> int:
         for i in range(len(states)):
             log.info("state %d of %d", i + 1, len(states))
             clean = members.normal_displacement[i]
-            base, base_reconstruction = partials(bases, clean)
             for noise_um in args.noise_um:
+                base, base_reconstruction = partials(bases, clean, 1e-3 * noise_um, args.paper)
                 for _ in range(args.draws):
-                    noisy, reconstruction = partials(bases, clean + 1e-3 * noise_um * rng.normal(size=clean.size))
+                    noisy, reconstruction = partials(bases, clean + 1e-3 * noise_um * rng.normal(size=clean.size),
+                                                     1e-3 * noise_um, args.paper)
                     reconstruction_change.setdefault(noise_um, []).append(
                         float(np.sqrt(np.mean((reconstruction - base_reconstruction) ** 2))))
                     for name in set(base) | set(noisy):
@@ -77,7 +83,7 @@ def main() -> int:
                         peak = float(np.max(np.abs(before))) if np.ndim(before) else 0.0
                         rows.setdefault((noise_um, name), []).append(
                             (float(np.sqrt(np.mean(change**2))), float(np.max(np.abs(change))), peak))
-    out = {"date": time.strftime("%Y-%m-%d"), "resolution": args.resolution, "states": args.states,
+    out = {"date": time.strftime("%Y-%m-%d"), "resolution": args.resolution, "states": args.states, "paper": args.paper,
            "draws": args.draws, "seconds": time.perf_counter() - start, "effects": {}, "reconstruction": {}}
     for noise_um in args.noise_um:
         print(f"\nwhite node noise {noise_um:g} um ({args.resolution}, {args.states} states x {args.draws} draws)")
@@ -95,7 +101,7 @@ def main() -> int:
         out["reconstruction"][f"{noise_um:g}"] = {"rms_median_mm": float(np.median(change)),
                                                   "rms_max_mm": float(np.max(change))}
         print(f"{'(reconstruction)':<24} {np.median(change):>18.4f} {np.max(change):>8.4f}")
-    path = ROOT / "benchmarks" / "out" / f"contribution_noise_{args.resolution}.json"
+    path = ROOT / "benchmarks" / "out" / f"contribution_noise_{args.resolution}{'_paper' if args.paper else ''}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(out, indent=1))
     print(f"\nwrote {path}")
