@@ -189,10 +189,11 @@ class FieldErrorModel:
         them (None: made here).
         """
         rigid = rigid_modes(points, normals) if rigid is None else rigid
-        if self.view_poses:
-            return np.hstack([view.weight[:, None] * (rigid @ _pose_mixing(view.covariance, view.center))
-                              for view in self.view_poses])
-        return rigid @ _pose_mixing(self.pose_covariance, self.pose_center)
+        mixing = self.pose_mixing()
+        if mixing is not None:
+            return rigid @ mixing
+        return np.hstack([view.weight[:, None] * (rigid @ _pose_mixing(view.covariance, view.center))
+                          for view in self.view_poses])
 
     def pose_mixing(self) -> np.ndarray | None:
         """(6, 6) M with :meth:`registration_modes` = :func:`rigid_modes` @ M for a field of one pose; None for a

@@ -240,10 +240,9 @@ class ContactEstimator:
             noise2 = float(field.noise_rms) ** 2
         else:
             noise2 = float(variance[valid].mean()) if errors.kind != "none" else 0.0
-        weight, check, modes = (None, None, None) if noise2 <= 0 else fit_weight(
+        span, check, modes = (None, None, None) if noise2 <= 0 else fit_weight(
             y, valid, self.fields_.T, errors, self.test_, 0.0, unit=noise2)
-        span = None if weight is None else weight.span(
-            self.fields_, None if self.test_ is None else self.test_.discrepancy_pair())
+        weight = None if span is None else span.weight
         normal = weighted_normal(self.fields_, self.gram_, valid, span)
         total = float(y @ y) if weight is None else weight.energy(y)
         rhs = weighted_rhs(self.fields_, y, valid, weight)

@@ -252,10 +252,12 @@ def judge(
 def fit_weight(
     centred: np.ndarray, valid: np.ndarray, span: np.ndarray, errors: FieldErrorModel, test: ResidualTest | None,
     model_mm: float, unit: float = 1.0,
-) -> tuple[NodeWeight | None, ModelCheck | None, np.ndarray | None]:
-    """The weight of an estimator's fit (:func:`node_weight`) from the field before the fit, with the within-model
-    test and the low-rank field errors it used: centred (N,) mm the field minus the model's offset (any value where
-    unseen), valid (N,) the seen nodes; span (N, q) every field the model can make. The test projects the span out,
+) -> tuple[WeightedSpan | None, ModelCheck | None, np.ndarray | None]:
+    """The weight of an estimator's fit (:func:`node_weight`) over the fields it fits (``span``.T, with the test's
+    discrepancy pair: :meth:`NodeWeight.span`) from the field before the fit, with the within-model test and the
+    low-rank field errors it used: centred (N,) mm the field minus the model's offset (any value where unseen),
+    valid (N,) the seen nodes; span (N, q) every field the model can make (the estimator's fields, transposed: what
+    it fits). The test projects the span out,
     so its level (and, unless it looks at the fit's own residual, :meth:`ResidualTest.looks_at_fit`, its whole
     verdict) is the same for the field as for any fit's residual: it is made here, once, and returned (None: the
     estimator judges its residual itself). (None, None, None) without a test or an error model: with no skin no
@@ -267,7 +269,7 @@ def fit_weight(
     weight = (variance * correlation)[valid]
     if not errors.has_pose and uniform(weight):
         return None, None, None  # the weight a multiple of I whatever the level: the ordinary fit
-    check, modes, _ = judge(np.where(valid, centred, np.nan), span, errors, test, model_mm)
+    check, modes, pair = judge(np.where(valid, centred, np.nan), span, errors, test, model_mm)
     # the registration is weighed (the first of the error modes), a calibrated model's discrepancy and its
     # calibration's own error only stated: they are estimated from a handful of calibration entries, and a fit that
     # leans away from their span leans on what the estimate missed (on 40 CalculiX parts of the coarse hood 68 % of
@@ -275,7 +277,8 @@ def fit_weight(
     stated = sum(m.shape[1] for m in test.stated_modes())
     weight = node_weight(errors, valid, check.noise_scale, model_mm, modes, unit,
                          0 if modes is None else modes.shape[1] - stated)
-    return weight, None if test.looks_at_fit(errors) else check, modes
+    weighted = None if weight is None else weight.span(span.T, pair)
+    return weighted, None if test.looks_at_fit(errors) else check, modes
 
 
 def parameter_covariance(
@@ -347,9 +350,9 @@ def estimate_pca(
     errors = field.errors
     design = basis.components_.T
     model_mm = basis.training_residual_rms_
-    weight, check, registration = fit_weight(centred, valid, design, errors, test, model_mm)
+    span, check, registration = fit_weight(centred, valid, design, errors, test, model_mm)
+    weight = None if span is None else span.weight
     discrepancy = None if test is None else test.discrepancy_pair()
-    span = None if weight is None else weight.span(basis.components_, discrepancy)
     normal = weighted_normal(basis.components_, basis.gram_, valid, span)
     coeff, inverse = solve_normal(normal, weighted_rhs(basis.components_, centred, valid, weight), "PCA pre-factors")
     reconstruction = basis.mean_field_ + coeff @ basis.components_
