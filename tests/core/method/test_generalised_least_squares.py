@@ -66,6 +66,34 @@ def test_woodbury_weight_is_the_inverse_of_the_dense_node_covariance():
     assert weight.energy(x) == pytest.approx(float(x[valid] @ dense @ x[valid]), rel=1e-9)
 
 
+def test_a_span_holding_the_field_gives_its_right_hand_side_and_energy_and_seeds_the_weights_core():
+    """Fails if WeightedSpan.rhs / energy (read from the span's one Gram with the field appended) differ from the
+    dense F W y and y^T W y, if the appended field leaks into the normal matrix or the covariance, or if the Woodbury
+    core the span takes from its Gram (a weight used first through a span) is not the dense inverse's."""
+    rng = np.random.default_rng(4)
+    n, k, kw = 350, 6, 4
+    valid = rng.random(n) > 0.3
+    std, correlation = rng.uniform(0.01, 0.03, n), rng.uniform(1.0, 3.0, n)
+    modes = rng.normal(size=(n, k)) * 0.02
+    errors = FieldErrorModel("scan", std, correlation)
+    sigma = np.diag(0.8 * std[valid] ** 2 * correlation[valid] + 0.002**2) + modes[valid, :kw] @ modes[valid, :kw].T
+    dense = 5e-4 * np.linalg.inv(sigma)
+    fields = rng.normal(size=(5, n))
+    y = np.where(valid, rng.normal(size=n), 0.0)
+    pair = (rng.normal(size=(n, 2)) * 0.01, rng.normal(size=(n, 3)) * 0.004)
+    weight = node_weight(errors, valid, 0.8, 0.002, modes, unit=5e-4, weighed=kw)
+    span = weight.span(fields, pair, y)  # first use of this weight: its core comes from the span's Gram
+    f = fields[:, valid]
+    np.testing.assert_allclose(span.rhs(), f @ dense @ y[valid], rtol=1e-9)
+    assert span.energy() == pytest.approx(float(y[valid] @ dense @ y[valid]), rel=1e-9)
+    np.testing.assert_allclose(span.normal(), f @ dense @ f.T, rtol=1e-9)
+    lift, inverse = rng.normal(size=(5, 3)), np.linalg.inv(rng.normal(size=(3, 3)) + 4 * np.eye(3))
+    np.testing.assert_allclose(span.covariance(lift, inverse), weight.span(fields, pair).covariance(lift, inverse),
+                               rtol=1e-12)
+    applied = weight.apply(y)
+    np.testing.assert_allclose(applied[valid], dense @ y[valid], rtol=1e-9, atol=1e-9 * np.abs(applied).max())
+
+
 def test_the_weighted_span_covariance_is_the_dense_sandwich_with_stated_modes_and_a_discrepancy():
     """Fails if WeightedSpan's covariance (formed from one weighted Gram, no N x q gain) differs from the sandwich
     written out densely: G Sigma G^T with G = (X^T W X)^-1 X^T W, Sigma = diag(d) + U U^T with every low-rank mode,

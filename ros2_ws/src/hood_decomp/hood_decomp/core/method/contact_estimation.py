@@ -244,8 +244,8 @@ class ContactEstimator:
             y, valid, self.fields_.T, errors, self.test_, 0.0, unit=noise2)
         weight = None if span is None else span.weight
         normal = weighted_normal(self.fields_, self.gram_, valid, span)
-        total = float(y @ y) if weight is None else weight.energy(y)
-        rhs = weighted_rhs(self.fields_, y, valid, weight)
+        total = float(y @ y) if span is None else span.energy()
+        rhs = weighted_rhs(self.fields_, y, valid, None) if span is None else span.rhs()
         problem, cache = (normal, rhs, total, noise2), {}
         candidates: dict[bytes, _Candidate] = {}
         for touching in self.touching_pads_:

@@ -19,6 +19,7 @@ noise, no registration), for which both are the same.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -80,24 +81,35 @@ def uniform(values: np.ndarray) -> bool:
 @dataclass(frozen=True)
 class NodeWeight:
     """The weight W of a generalised least-squares fit over a field's seen nodes, applied by Woodbury, never as an
-    N x N matrix: W = unit x (diag(d_w) + U U^T)^-1, i.e. W x = w x - V core V^T x with w = unit / d_w (N,) (0 on
-    unseen nodes), V = diag(w) U (N, k) and core = (unit I + U^T diag(w) U)^-1 (k, k). ``unit`` (mm^2) keeps the
+    N x N matrix: W = unit x (diag(d_w) + U_w U_w^T)^-1, i.e. W x = w x - diag(w) U_w core U_w^T diag(w) x with
+    w = unit / d_w (N,) (0 on unseen nodes), U_w the first ``weighed`` of the ``modes`` U (N, k) (any value on unseen
+    nodes: their weight is 0) and core = (unit I + U_w^T diag(w) U_w)^-1 (k_w, k_w). ``unit`` (mm^2) keeps the
     weighted normal matrix in the ordinary one's units (y^T W y / unit is a Mahalanobis energy).
-    The node covariance the estimate states is Sigma = diag(d) + U U^T over the seen nodes (d = unit / w, ``modes``
-    U (N, k), any value on unseen nodes: their weight is 0; the first k_w = ``scaled_modes``' columns weighed); the
+    The node covariance the estimate states is Sigma = diag(d) + U U^T over the seen nodes (d = unit / w); the
     covariance of the fit is :meth:`WeightedSpan.covariance`, unit x (X^T W X)^-1 = (X^T Sigma^-1 X)^-1 when every
     mode is weighed. Made by :func:`node_weight`."""
 
     weight: np.ndarray
-    scaled_modes: np.ndarray
-    core: np.ndarray
-    unit: float
     modes: np.ndarray
+    weighed: int
+    unit: float
+
+    @cached_property
+    def core(self) -> np.ndarray:
+        """(k_w, k_w) core of the Woodbury form; :meth:`span` takes it from its Gram (no pass of its own)."""
+        return self._core(weighted_gram(np.sqrt(self.weight), self.modes[:, :self.weighed]))
+
+    def _core(self, gram: np.ndarray) -> np.ndarray:
+        """core from U_w^T diag(w) U_w (k_w, k_w)."""
+        inner = self.unit * np.eye(self.weighed) + gram
+        return np.linalg.inv(0.5 * (inner + inner.T))
 
     def apply(self, x: np.ndarray) -> np.ndarray:
         """W x for x (N,) or (N, m), finite (its unseen entries do not matter: their weight is 0)."""
         wx = self.weight * x if x.ndim == 1 else self.weight[:, None] * x
-        return wx - self.scaled_modes @ (self.core @ (self.scaled_modes.T @ x))
+        used = self.modes[:, :self.weighed]
+        back = used @ (self.core @ (used.T @ wx))
+        return wx - (self.weight * back if x.ndim == 1 else self.weight[:, None] * back)
 
     def project(self, fields: np.ndarray, x: np.ndarray) -> np.ndarray:
         """fields (m, N) @ W x (m,) for x (N,) finite: the weighted right-hand side (W x first: one pass over the
@@ -106,35 +118,54 @@ class NodeWeight:
 
     def energy(self, x: np.ndarray) -> float:
         """x^T W x for x (N,) finite."""
-        moved = self.scaled_modes.T @ x
-        return float(x @ (self.weight * x) - moved @ self.core @ moved)
+        wx = self.weight * x
+        moved = self.modes[:, :self.weighed].T @ wx
+        return float(x @ wx - moved @ self.core @ moved)
 
-    def span(self, fields: np.ndarray, discrepancy: tuple[np.ndarray, np.ndarray] | None = None) -> WeightedSpan:
-        """The fields (m, N) of a fit (finite on every node) under this weight, with the field's low-rank errors and a
-        calibrated model's discrepancy pair (D, E) (None: none): their one weighted Gram (:class:`WeightedSpan`)."""
-        parts = (fields.T, self.modes, *(discrepancy or ()))
-        return WeightedSpan(self, weighted_gram(np.sqrt(self.weight), *parts), fields.shape[0],
-                            0 if discrepancy is None else discrepancy[0].shape[1])
+    def span(self, fields: np.ndarray, discrepancy: tuple[np.ndarray, np.ndarray] | None = None,
+             field: np.ndarray | None = None) -> WeightedSpan:
+        """The fields (m, N) of a fit (finite on every node) under this weight, with the field's low-rank errors, a
+        calibrated model's discrepancy pair (D, E) (None: none) and the field y (N,) mm fitted (finite; None: none):
+        their one weighted Gram (:class:`WeightedSpan`)."""
+        parts = (fields.T, self.modes, *(discrepancy or ()), *(() if field is None else (field[:, None],)))
+        gram = weighted_gram(np.sqrt(self.weight), *parts)
+        m, kw = fields.shape[0], self.weighed
+        if "core" not in self.__dict__:  # the cached core, from this Gram's U_w block
+            self.__dict__["core"] = self._core(gram[m:m + kw, m:m + kw])
+        return WeightedSpan(self, gram, m, 0 if discrepancy is None else discrepancy[0].shape[1], field is not None)
 
 
 @dataclass(frozen=True)
 class WeightedSpan:
     """A fit's fields F (m, N) under a field's weight W (:class:`NodeWeight`): the Gram C^T diag(w) C of C = [F^T, U,
     D, E] over the seen nodes (U the field's low-rank errors, the first k_w of them weighed; (D, E) a calibrated
-    model's discrepancy as measured and its rows' noise, absent: ``n_discrepancy`` 0), formed once by one syrk. The
-    weighted normal matrix and the covariance of any fit on X = F^T L follow from it without another pass over the
-    nodes. Made by :meth:`NodeWeight.span`."""
+    model's discrepancy as measured and its rows' noise, absent: ``n_discrepancy`` 0; then the fitted field y when
+    ``has_field``), formed once by one syrk. The weighted normal matrix, the right-hand side, the field's energy and
+    the covariance of any fit on X = F^T L follow from it without another pass over the nodes. Made by
+    :meth:`NodeWeight.span`."""
 
     weight: NodeWeight
     gram: np.ndarray
     n_fields: int
     n_discrepancy: int
+    has_field: bool = False
 
     def normal(self) -> np.ndarray:
         """F W F^T (m, m): the weighted normal matrix, W = w - V core V^T (:class:`NodeWeight`)."""
-        m, kw = self.n_fields, self.weight.scaled_modes.shape[1]
+        m, kw = self.n_fields, self.weight.weighed
         moved = self.gram[:m, m:m + kw]
         return self.gram[:m, :m] - moved @ self.weight.core @ moved.T
+
+    def rhs(self) -> np.ndarray:
+        """F W y (m,): the weighted right-hand side of the field the span holds (:meth:`NodeWeight.project`)."""
+        m, kw = self.n_fields, self.weight.weighed
+        return self.gram[:m, -1] - self.gram[:m, m:m + kw] @ (self.weight.core @ self.gram[m:m + kw, -1])
+
+    def energy(self) -> float:
+        """y^T W y of the field the span holds (:meth:`NodeWeight.energy`)."""
+        m, kw = self.n_fields, self.weight.weighed
+        moved = self.gram[m:m + kw, -1]
+        return float(self.gram[-1, -1] - moved @ self.weight.core @ moved)
 
     def covariance(self, lift: np.ndarray, inverse: np.ndarray) -> np.ndarray:
         """(q, q) covariance of theta = inverse X^T W y for the design X = F^T lift (lift (m, q)), inverse = (X^T W
@@ -143,11 +174,12 @@ class WeightedSpan:
 
         With M = core (X^T w U_w)^T the gain is G^T = W X = diag(w) Y, Y = X - U_w M, and w d = unit on the seen
         nodes, so X^T W diag(d) W X = unit Y^T diag(w) Y, and W X's product with a mode u is Y^T diag(w) u."""
-        m, kw, k = self.n_fields, self.weight.scaled_modes.shape[1], self.weight.modes.shape[1]
-        rows = lift.T @ self.gram[:m]  # X^T diag(w) C (q, m + k + ...)
+        m, kw, k = self.n_fields, self.weight.weighed, self.weight.modes.shape[1]
+        end = self.gram.shape[0] - self.has_field
+        rows = lift.T @ self.gram[:m, :end]  # X^T diag(w) C (q, m + k + ...)
         xx, xw = rows[:, :m] @ lift, rows[:, m:m + kw]
         shift = self.weight.core @ xw.T
-        along = rows[:, m:] - shift.T @ self.gram[m:m + kw, m:]  # Y^T diag(w) [U, D, E]
+        along = rows[:, m:] - shift.T @ self.gram[m:m + kw, m:end]  # Y^T diag(w) [U, D, E]
         ww = self.gram[m:m + kw, m:m + kw]
         spread = xx - xw @ shift - shift.T @ xw.T + shift.T @ ww @ shift  # Y^T diag(w) Y
         moved = along[:, :k]
@@ -185,9 +217,7 @@ def node_weight(
         return None
     weight = np.zeros(valid.size)
     weight[valid] = unit / diagonal
-    scaled = weight[:, None] * used
-    inner = unit * np.eye(used.shape[1]) + used.T @ scaled
-    return NodeWeight(weight, scaled, np.linalg.inv(0.5 * (inner + inner.T)), float(unit), modes)
+    return NodeWeight(weight, modes, used.shape[1], float(unit))
 
 
 def weighted_normal(fields: np.ndarray, gram: np.ndarray, valid: np.ndarray, span: WeightedSpan | None) -> np.ndarray:
@@ -254,15 +284,14 @@ def fit_weight(
     model_mm: float, unit: float = 1.0,
 ) -> tuple[WeightedSpan | None, ModelCheck | None, np.ndarray | None]:
     """The weight of an estimator's fit (:func:`node_weight`) over the fields it fits (``span``.T, with the test's
-    discrepancy pair: :meth:`NodeWeight.span`) from the field before the fit, with the within-model test and the
-    low-rank field errors it used: centred (N,) mm the field minus the model's offset (any value where unseen),
-    valid (N,) the seen nodes; span (N, q) every field the model can make (the estimator's fields, transposed: what
-    it fits). The test projects the span out,
-    so its level (and, unless it looks at the fit's own residual, :meth:`ResidualTest.looks_at_fit`, its whole
-    verdict) is the same for the field as for any fit's residual: it is made here, once, and returned (None: the
-    estimator judges its residual itself). (None, None, None) without a test or an error model: with no skin no
-    registration reaches the nodes (:func:`judge`), and the level test without smooth modes needs the ordinary fit's
-    residual."""
+    discrepancy pair and the field ``centred``: :meth:`NodeWeight.span`) from the field before the fit, with the
+    within-model test and the low-rank field errors it used: centred (N,) mm the field minus the model's offset
+    (finite; any value where unseen), valid (N,) the seen nodes; span (N, q) every field the model can make (the
+    estimator's fields, transposed: what it fits). The test projects the span out, so its level (and, unless it
+    looks at the fit's own residual, :meth:`ResidualTest.looks_at_fit`, its whole verdict) is the same for the field as
+    for any fit's residual: it is made here, once, and returned (None: the estimator judges its residual itself). (None,
+    None, None) without a test or an error model: with no skin no registration reaches the nodes (:func:`judge`), and
+    the level test without smooth modes needs the ordinary fit's residual."""
     if test is None or errors.kind == "none":
         return None, None, None
     variance, correlation = node_variance(errors, valid.size)
@@ -277,7 +306,7 @@ def fit_weight(
     stated = sum(m.shape[1] for m in test.stated_modes())
     weight = node_weight(errors, valid, check.noise_scale, model_mm, modes, unit,
                          0 if modes is None else modes.shape[1] - stated)
-    weighted = None if weight is None else weight.span(span.T, pair)
+    weighted = None if weight is None else weight.span(span.T, pair, centred)
     return weighted, None if test.looks_at_fit(errors) else check, modes
 
 
@@ -354,7 +383,8 @@ def estimate_pca(
     weight = None if span is None else span.weight
     discrepancy = None if test is None else test.discrepancy_pair()
     normal = weighted_normal(basis.components_, basis.gram_, valid, span)
-    coeff, inverse = solve_normal(normal, weighted_rhs(basis.components_, centred, valid, weight), "PCA pre-factors")
+    rhs = weighted_rhs(basis.components_, centred, valid, None) if span is None else span.rhs()
+    coeff, inverse = solve_normal(normal, rhs, "PCA pre-factors")
     reconstruction = basis.mean_field_ + coeff @ basis.components_
     residual, rms, worst = residual_stats(values, reconstruction, valid)
 

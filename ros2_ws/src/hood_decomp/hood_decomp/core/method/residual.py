@@ -28,7 +28,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from hood_decomp.core.method.distributions import chi2_sf, f_sf, norm_isf, t_sf
-from hood_decomp.core.types import FieldErrorModel, ModelCheck, SkinSurface, rigid_modes
+from hood_decomp.core.types import (
+    VARIANCE_FLOOR_MM2,
+    FieldErrorModel,
+    ModelCheck,
+    SkinSurface,
+    rigid_modes,
+    side_by_side,
+)
 from hood_decomp.errors import FieldError
 
 if TYPE_CHECKING:  # imported where used (scipy >= 1.17 costs 0.16 s to import)
@@ -41,8 +48,6 @@ DEFAULT_NOISE_MM = 0.02
 DEFAULT_ALPHA = 0.01
 #: total degree of the smooth modes (Legendre polynomials over the skin's two principal directions) the test watches
 DEFAULT_SMOOTH_DEGREE = 2
-#: node variance floor, mm^2: round-off of a noise-free field must not count as a model defect
-VARIANCE_FLOOR_MM2 = 1e-16
 #: node variance floor of the test's one-ring part, mm^2 (1 nm): a noise-free field sent as float32 metres is
 #: quantised by up to ~1e-7 mm, more where it is larger, and such round-off is no local effect
 LOCAL_FLOOR_MM2 = 1e-12
@@ -235,7 +240,7 @@ def analyse_residual(
 def smooth_modes(points: np.ndarray, degree: int = DEFAULT_SMOOTH_DEGREE) -> np.ndarray:
     """(N, M) orthonormal smooth fields over the skin nodes (N, 3) mm: products of Legendre polynomials of total
     degree <= ``degree`` in the two principal in-plane coordinates (scaled to [-1, 1]), orthonormalised over the
-    nodes; M = (degree + 1)(degree + 2) / 2."""
+    nodes; M = (degree + 1)(degree + 2) / 2; column-major (:func:`~hood_decomp.core.types.side_by_side`)."""
     centred = np.asarray(points, float) - np.mean(points, axis=0)
     axes = np.linalg.svd(centred, full_matrices=False)[2][:2]
     coords = centred @ axes.T
@@ -244,7 +249,7 @@ def smooth_modes(points: np.ndarray, degree: int = DEFAULT_SMOOTH_DEGREE) -> np.
     vu = np.polynomial.legendre.legvander(scaled[:, 0], degree)
     vv = np.polynomial.legendre.legvander(scaled[:, 1], degree)
     columns = [vu[:, a] * vv[:, b] for a in range(degree + 1) for b in range(degree + 1 - a)]
-    return np.linalg.qr(np.column_stack(columns))[0]
+    return side_by_side(np.linalg.qr(np.column_stack(columns))[0])
 
 
 def _whiten(gram: np.ndarray) -> np.ndarray:
@@ -328,9 +333,7 @@ def node_variance(errors: FieldErrorModel, n_nodes: int) -> tuple[np.ndarray, np
     noise (level unknown, taken from the residual) for a field that states none."""
     if errors.kind == "none":
         return np.ones(n_nodes), np.ones(n_nodes)
-    errors.validate(n_nodes)
-    std = np.asarray(errors.node_std, float)
-    return np.maximum(np.nan_to_num(std) ** 2, VARIANCE_FLOOR_MM2), np.asarray(errors.correlation, float)
+    return errors.node_variance(n_nodes)
 
 
 def check_residual(
@@ -394,7 +397,7 @@ def check_residual(
     moved = registration if registration is not None else np.zeros((residual.size, 0))
     n_registration = moved.shape[1]
     if discrepancy is not None:
-        moved = np.hstack([moved, discrepancy])
+        moved = side_by_side(moved, discrepancy)
     if modes is not None:
         parts = _smooth_split(np.where(seen, residual, 0.0),
                               np.asarray(design, float) if design is not None else np.zeros((residual.size, 0)),
@@ -588,12 +591,12 @@ class ResidualTest:
                 raise FieldError(f"{what} modes have shape {np.shape(modes)}, expected ({skin.n_nodes}, k)")
         if discrepancy is None and (discrepancy_noise is not None or calibration_noise is not None):
             raise FieldError("discrepancy noise and calibration noise modes need the discrepancy modes")
-        self.discrepancy_noise_ = None if discrepancy_noise is None else np.asarray(discrepancy_noise, float)
-        self.calibration_noise_ = None if calibration_noise is None else np.asarray(calibration_noise, float)
+        self.discrepancy_noise_ = None if discrepancy_noise is None else side_by_side(discrepancy_noise)
+        self.calibration_noise_ = None if calibration_noise is None else side_by_side(calibration_noise)
         self._tested: np.ndarray | None = None
         if not discrepancy_dof > 0:
             raise FieldError(f"discrepancy degrees of freedom must be positive, got {discrepancy_dof}")
-        self.discrepancy_ = None if discrepancy is None else np.asarray(discrepancy, float)
+        self.discrepancy_ = None if discrepancy is None else side_by_side(discrepancy)
         self.discrepancy_dof_ = float(discrepancy_dof)
         if discrepancy_local is not None and np.shape(discrepancy_local) != (skin.n_nodes,):
             raise FieldError(f"local discrepancy has shape {np.shape(discrepancy_local)}, expected ({skin.n_nodes},)")
@@ -634,7 +637,7 @@ class ResidualTest:
         if registration is None:
             registration = self.registration(errors)
         parts = [m for m in (registration, *self.stated_modes()) if m is not None]
-        return np.hstack(parts) if parts else None
+        return side_by_side(*parts) if parts else None
 
     def stated_modes(self) -> list[np.ndarray]:
         """The calibrated model's low-rank errors (N, k_i) mm that :meth:`error_modes` adds after the registration's:
@@ -658,7 +661,7 @@ class ResidualTest:
             return self.discrepancy_
         if self._tested is None:
             parts = [net_discrepancy(self.discrepancy_, self.discrepancy_noise_), self.calibration_noise_]
-            self._tested = np.hstack([p for p in parts if p is not None])
+            self._tested = side_by_side(*(p for p in parts if p is not None))
         return self._tested
 
     def check(self, residual: np.ndarray, design: np.ndarray | None, errors: FieldErrorModel,
