@@ -159,7 +159,7 @@ def test_the_smooth_split_from_grams_is_the_split_by_explicit_projections(unifor
     r = np.where(seen[:, None], rng.normal(size=(n, 2)), 0.0)  # 0 where unseen; design, modes, moved random there
     weight = np.full(n, 0.7) if uniform_weight else rng.uniform(0.5, 2.0, n)
     rank, c, smooth_cov, rough, fitted_weight, rough_moved, projected = _smooth_split(
-        r, design, modes, np.where(seen, weight, 0.0), moved, seen)
+        r, design, modes, np.where(seen, weight, 0.0), [moved[:, :1], moved[:, 1:]], seen)
     z = np.linalg.qr(design[seen])[0]
     outside = modes[seen] - z @ (z.T @ modes[seen])
     u, s, _ = np.linalg.svd(outside, full_matrices=False)
@@ -188,7 +188,8 @@ def test_the_tests_kept_whole_skin_gram_gives_the_check_made_in_one_pass():
     less the unseen rows, the registration carried by its 6 x 6 mixing), judges a residual differently from
     check_residual forming it in one pass: one pose, a calibrated discrepancy (alone and netted by its rows' noise),
     two views of one array (a stale kept Gram would be the first's), a fused field's registration and a mostly unseen
-    field (both formed in one pass); or if it keeps a dropped design's array alive."""
+    field (both formed in one pass), holes that fill whole kept blocks of nodes (the skin's last, shorter block among
+    them) beside scattered dropouts; or if it keeps a dropped design's array alive."""
     from hood_decomp.core.method.residual import ResidualTest, check_residual
     from hood_decomp.core.types import FieldErrorModel, ViewPoseError
 
@@ -206,9 +207,14 @@ def test_the_tests_kept_whole_skin_gram_gives_the_check_made_in_one_pass():
     for test in (ResidualTest().fit(SKIN), ResidualTest().fit(SKIN, discrepancy, 12.0),
                  ResidualTest().fit(SKIN, discrepancy, 12.0, discrepancy_noise=noise)):
         biased = dataclasses.replace(one_pose, bias_correlation=300.0)  # a scan's: no one-ring part
+        index = np.arange(n)
+        holes = (index >= 150) & (index < 560) | (index >= 1100)  # blocks 2-3 and the last (1152-1199) whole
         for design, errors, unseen in ((fields.T, one_pose, 0.2), (fields[:4].T, biased, 0.3),
-                                       (fields.T, fused, 0.2), (fields.T, one_pose, 0.7), (fields.T, biased, 0.1)):
-            residual = np.where(rng.random(n) < unseen, np.nan, 0.02 * rng.normal(size=n))
+                                       (fields.T, fused, 0.2), (fields.T, one_pose, 0.7), (fields.T, biased, 0.1),
+                                       (fields.T, biased, holes), (fields[:4].T, one_pose, holes)):
+            lost = rng.random(n) < (0.01 if isinstance(unseen, np.ndarray) else unseen)
+            residual = np.where(lost | unseen if isinstance(unseen, np.ndarray) else lost, np.nan,
+                                0.02 * rng.normal(size=n))
             kept = test.check(residual, design, errors)
             rings = test.rings() if test.looks_at_fit(errors) else None
             made = check_residual(residual, design, errors, test.modes_, test.registration(errors), 0.0, test.alpha,
