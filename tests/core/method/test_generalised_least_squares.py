@@ -270,3 +270,42 @@ def test_a_calibrated_pca_estimate_states_the_dense_sandwich_with_its_discrepanc
     np.testing.assert_allclose(estimate.covariance, expected, rtol=1e-7, atol=1e-12 * np.abs(expected).max())
     without = pca.component_states_.T @ (gain @ sigma @ gain.T) @ pca.component_states_
     assert np.max(np.abs(expected - without)) > 0.1 * np.max(np.abs(np.diag(expected)))  # the pair matters here
+
+
+def test_a_calibrated_contact_aware_estimate_states_the_dense_sandwich_with_its_discrepancy_pair():
+    """Fails if the contact-aware estimator leaves the calibrated model's discrepancy pair (D, E) out of its weighted
+    span, weighs by it, or states a covariance other than the dense one (the review of issue 15 run 18 found this
+    estimator's use of the pair checked only by calibration runs): on a model of bilateral boundaries only (theta =
+    a, lift I), G Sigma G^T + the pair netted along G with G = (X^T Sigma^-1 X)^-1 X^T Sigma^-1, X the unit
+    responses R over the seen nodes and Sigma = noise diag(s^2 g) + bias + U U^T written out with the estimate's own
+    level (no basis error: the reduced model is exact)."""
+    from hood_decomp.core.method.contact_estimation import ContactEstimator
+    from hood_decomp.core.method.estimation import discrepancy_along_gains
+    from hood_decomp.core.method.residual import ResidualTest, split_level
+    from tests.toy_models import make_reduced_model, make_skin, smooth_fields
+
+    rng = np.random.default_rng(23)
+    skin = make_skin(30, 20)
+    n = skin.n_nodes
+    model = make_reduced_model(skin, seed=3, n_bilateral=4, n_pads=0)
+    pair = (0.01 * smooth_fields(skin.points, 2, rng).T, 0.004 * rng.normal(size=(n, 6)))
+    test = ResidualTest().fit(skin, pair[0], 12.0, discrepancy_noise=pair[1])
+    contact = ContactEstimator().fit(model, -np.ones(4), np.ones(4), test)
+    errors = _error_model(skin, rng)
+    valid = skin.points[:, 0] < np.quantile(skin.points[:, 0], 0.7)
+    truth = rng.uniform(-0.5, 0.5, 4)
+    values = np.where(valid, model.w0 + model.R @ truth + errors.node_std * rng.normal(size=n), np.nan)
+    estimate = contact.estimate(DisplacementField(skin.model_id, values, float(valid.mean()), float("nan"), errors))
+    assert estimate.weighting == "generalised"
+    variance = errors.node_std[valid] ** 2 * errors.correlation[valid]
+    noise, bias = split_level(estimate.check.noise_scale, errors, float((errors.node_std[valid] ** 2).mean()))
+    sigma = np.diag(noise * variance + bias) + (u := test.registration(errors)[valid]) @ u.T
+    weight = np.linalg.inv(sigma)
+    x = model.R[valid]
+    inverse = np.linalg.inv(x.T @ weight @ x)
+    gain = inverse @ x.T @ weight
+    expected = gain @ sigma @ gain.T + discrepancy_along_gains(gain @ pair[0][valid], gain @ pair[1][valid])
+    np.testing.assert_allclose(estimate.covariance, expected, rtol=1e-7, atol=1e-12 * np.abs(expected).max())
+    np.testing.assert_allclose(estimate.values, gain @ (values[valid] - model.w0[valid]), rtol=1e-7, atol=1e-9)
+    without = gain @ sigma @ gain.T
+    assert np.max(np.abs(expected - without)) > 0.1 * np.max(np.abs(np.diag(expected)))  # the pair matters here
