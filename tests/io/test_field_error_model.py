@@ -94,3 +94,19 @@ def test_a_field_file_written_before_the_bias_floor_reads_as_none(tmp_path):
     (tmp_path / "f.vtu").write_text(text[:start] + text[end:])
     back = read_field(tmp_path / "f.vtu")[0].error_model
     assert back.bias_variance_floor == 0.0 and back.bias_correlation == 300.0
+
+
+def test_an_error_model_checked_for_one_node_count_is_checked_again_for_another_and_lands_unchecked():
+    """Fails if the memo of FieldErrorModel.validate (an estimate asks four times) lets a model checked for N nodes
+    pass for another count, or if a pickled model (a dask task, a process pool) carries the memo and its cached
+    variances with it instead of making them again where it lands."""
+    import pickle
+
+    errors = _scan_like(SKIN.n_nodes)
+    errors.validate(SKIN.n_nodes)
+    variance, _ = errors.node_variance(SKIN.n_nodes)
+    with pytest.raises(FieldError, match="node_std has shape"):
+        errors.validate(SKIN.n_nodes + 1)
+    landed = pickle.loads(pickle.dumps(errors))
+    assert not any(name.startswith("_") for name in vars(landed))
+    np.testing.assert_array_equal(landed.node_variance(SKIN.n_nodes)[0], variance)

@@ -45,8 +45,8 @@ def _gls(design: np.ndarray, sigma: np.ndarray, y: np.ndarray) -> tuple[np.ndarr
 
 
 def test_woodbury_weight_is_the_inverse_of_the_dense_node_covariance():
-    """Fails if NodeWeight's Woodbury application (apply, project, normal, energy) differs from unit x the dense
-    inverse of diag(d) + U U^T, or if an unseen node gets weight."""
+    """Fails if NodeWeight's Woodbury application (apply, project, normal, a span's energy) differs from unit x the
+    dense inverse of diag(d) + U U^T, or if an unseen node gets weight."""
     rng = np.random.default_rng(3)
     n, k = 300, 6
     valid = rng.random(n) > 0.2
@@ -63,7 +63,7 @@ def test_woodbury_weight_is_the_inverse_of_the_dense_node_covariance():
     assert np.all(applied[~valid] == 0.0)
     np.testing.assert_allclose(weight.project(fields, x), fields[:, valid] @ dense @ x[valid], rtol=1e-9)
     np.testing.assert_allclose(weight.span(fields).normal(), fields[:, valid] @ dense @ fields[:, valid].T, rtol=1e-9)
-    assert weight.energy(x) == pytest.approx(float(x[valid] @ dense @ x[valid]), rel=1e-9)
+    assert weight.span(fields, None, x).energy() == pytest.approx(float(x[valid] @ dense @ x[valid]), rel=1e-9)
 
 
 def test_a_span_holding_the_field_gives_its_right_hand_side_and_energy_and_seeds_the_weights_core():

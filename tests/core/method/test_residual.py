@@ -189,7 +189,7 @@ def test_the_tests_kept_whole_skin_gram_gives_the_check_made_in_one_pass():
     check_residual forming it in one pass: one pose, a calibrated discrepancy (alone and netted by its rows' noise),
     two views of one array (a stale kept Gram would be the first's), a fused field's registration and a mostly unseen
     field (both formed in one pass), holes that fill whole kept blocks of nodes (the skin's last, shorter block among
-    them) beside scattered dropouts; or if it keeps a dropped design's array alive."""
+    them) beside scattered dropouts, blocks with one node seen; or if it keeps a dropped design's array alive."""
     from hood_decomp.core.method.residual import ResidualTest, check_residual
     from hood_decomp.core.types import FieldErrorModel, ViewPoseError
 
@@ -209,10 +209,15 @@ def test_the_tests_kept_whole_skin_gram_gives_the_check_made_in_one_pass():
         biased = dataclasses.replace(one_pose, bias_correlation=300.0)  # a scan's: no one-ring part
         index = np.arange(n)
         holes = (index >= 150) & (index < 560) | (index >= 1100)  # blocks 2-3 and the last (1152-1199) whole
+        # blocks with one node seen: an interior one (640-767 but 700) and the last one (1152-1199 but 1170)
+        nearly = (index >= 640) & (index < 768) & (index != 700) | (index >= 1152) & (index != 1170)
         for design, errors, unseen in ((fields.T, one_pose, 0.2), (fields[:4].T, biased, 0.3),
                                        (fields.T, fused, 0.2), (fields.T, one_pose, 0.7), (fields.T, biased, 0.1),
-                                       (fields.T, biased, holes), (fields[:4].T, one_pose, holes)):
+                                       (fields.T, biased, holes), (fields[:4].T, one_pose, holes),
+                                       (fields.T, biased, nearly)):
             lost = rng.random(n) < (0.01 if isinstance(unseen, np.ndarray) else unseen)
+            if unseen is nearly:
+                lost[[700, 1170]] = False
             residual = np.where(lost | unseen if isinstance(unseen, np.ndarray) else lost, np.nan,
                                 0.02 * rng.normal(size=n))
             kept = test.check(residual, design, errors)

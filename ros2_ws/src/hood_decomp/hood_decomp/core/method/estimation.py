@@ -116,12 +116,6 @@ class NodeWeight:
         fields instead of forming fields W)."""
         return fields @ self.apply(x)
 
-    def energy(self, x: np.ndarray) -> float:
-        """x^T W x for x (N,) finite."""
-        wx = self.weight * x
-        moved = self.modes[:, :self.weighed].T @ wx
-        return float(x @ wx - moved @ self.core @ moved)
-
     def span(self, fields: np.ndarray, discrepancy: tuple[np.ndarray, np.ndarray] | None = None,
              field: np.ndarray | None = None) -> WeightedSpan:
         """The fields (m, N) of a fit (finite on every node) under this weight, with the field's low-rank errors, a
@@ -151,18 +145,21 @@ class WeightedSpan:
     has_field: bool = False
 
     def normal(self) -> np.ndarray:
-        """F W F^T (m, m): the weighted normal matrix, W = w - V core V^T (:class:`NodeWeight`)."""
+        """F W F^T (m, m): the weighted normal matrix, W = diag(w) - diag(w) U_w core U_w^T diag(w)
+        (:class:`NodeWeight`)."""
         m, kw = self.n_fields, self.weight.weighed
         moved = self.gram[:m, m:m + kw]
         return self.gram[:m, :m] - moved @ self.weight.core @ moved.T
 
     def rhs(self) -> np.ndarray:
         """F W y (m,): the weighted right-hand side of the field the span holds (:meth:`NodeWeight.project`)."""
+        assert self.has_field, "a span made without the field has no right-hand side"
         m, kw = self.n_fields, self.weight.weighed
         return self.gram[:m, -1] - self.gram[:m, m:m + kw] @ (self.weight.core @ self.gram[m:m + kw, -1])
 
     def energy(self) -> float:
-        """y^T W y of the field the span holds (:meth:`NodeWeight.energy`)."""
+        """y^T W y of the field the span holds."""
+        assert self.has_field, "a span made without the field has no energy"
         m, kw = self.n_fields, self.weight.weighed
         moved = self.gram[m:m + kw, -1]
         return float(self.gram[-1, -1] - moved @ self.weight.core @ moved)

@@ -605,7 +605,7 @@ class ResidualTest:
         self.rigid_ = rigid_modes(self.points_, self.normals_)
         self.skin_ = skin
         self._rings: sp.csr_matrix | None = None
-        self._whole_grams: list[tuple[weakref.ref, tuple, np.ndarray]] = []
+        self._whole_grams: list[tuple[weakref.ref, tuple, tuple[np.ndarray, np.ndarray]]] = []
         return self
 
     def rings(self) -> sp.csr_matrix:
@@ -676,7 +676,8 @@ class ResidualTest:
                               rings, self.tested_discrepancy(), self.discrepancy_dof_, self.discrepancy_local_,
                               seen_gram)
 
-    #: whole-skin Grams kept (one per estimator's fields; the PCA and contact-aware estimators of a bases: two)
+    #: whole-skin Grams kept (one per estimator's fields; the PCA and contact-aware estimators of a bases: two), each
+    #: with its block Grams: at paper scale (1,475 blocks) 5.7 MB for 22 columns, 13.6 MB for 34, 29.5 MB for 50
     KEPT_GRAMS = 4
 
     def _seen_gram(self, design: np.ndarray | None, seen: np.ndarray, errors: FieldErrorModel) -> np.ndarray | None:
