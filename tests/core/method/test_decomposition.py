@@ -254,3 +254,50 @@ def test_a_noisy_fields_lock_and_buffer_contributions_hold_still(coarse_hood):
     assert moved["prior"][0] < 0.02
     assert moved["prior"][0] * 5 < moved["paper"][0]
     assert moved["prior"][1] < 0.0005
+
+
+def test_a_smoothed_noises_correlation_strengthens_the_pull(coarse_hood):
+    """Fails if step 4's tau ignores the field's correlation sums: a scan's node noise is smoothed (correlation sums
+    5-10), and a smooth direction sees it sqrt(g) times as strongly as white noise of the same std. Noise made by two
+    one-ring averagings of white noise (its std and correlation sums stated exactly: g ~14 on the coarse hood), 1.5 um
+    per node, three draws at one state: the largest partial RMS change with the product's tau must be below 0.01 mm
+    and a third of the one with tau from the node std alone (measured 6 states x 5 draws: max 0.009 against 0.06 mm,
+    benchmarks/RESULTS.md issue 15 run 19 D), the reconstruction within 0.001 mm RMS of the noise-free one."""
+    from hood_decomp.core.fe.ensemble import solve_members
+    from hood_decomp.core.method.bases import decompose_field, estimate_field
+    from hood_decomp.core.method.residual import ring_incidence
+    from hood_decomp.core.types import DisplacementField, FieldErrorModel
+
+    bases = coarse_hood.bases
+    rings = ring_incidence(bases.skin).astype(float)
+    average = rings.multiply(1.0 / rings.sum(axis=1)).tocsr()
+    smoothing = (average @ average).tocsr()
+    std = np.sqrt(np.asarray(smoothing.multiply(smoothing).sum(axis=1)).ravel())
+    covariance = (smoothing @ smoothing.T).tocsr()
+    correlation = np.asarray(covariance.multiply(1.0 / std[:, None]).multiply(1.0 / std[None, :]).sum(axis=1)).ravel()
+    level = 0.0015
+    errors = FieldErrorModel("stated", np.full(std.size, level), correlation)
+    rng = np.random.default_rng(8)
+    clean = solve_members(coarse_hood.reduced, np.array([[0.41, -0.9, 0.3, -0.45, -0.59, -0.35]])
+                          ).normal_displacement[0]
+
+    def decomposed(values, **options):
+        field = DisplacementField(bases.model_id, values, 1.0, float("nan"), errors)
+        result = decompose_field(bases, field, estimate_field(bases, field), **options)
+        return {e.name: e.partial_displacement for e in result.effects}, result.reconstruction
+
+    draws = [clean + level * (smoothing @ rng.normal(size=clean.size)) / std for _ in range(3)]
+    moved = {}
+    for label, options in (("product", {}), ("std alone", {"tau_mm": 0.1 * level})):
+        base, base_reconstruction = decomposed(clean, **options)
+        changes, drifts = [], []
+        for values in draws:
+            noisy, reconstruction = decomposed(values, **options)
+            changes.append(max(float(np.sqrt(np.mean((noisy.get(n, 0.0) - base.get(n, 0.0)) ** 2)))
+                               for n in set(base) | set(noisy)))
+            drifts.append(float(np.sqrt(np.mean((reconstruction - base_reconstruction) ** 2))))
+        moved[label] = (max(changes), max(drifts))
+    print(f"g median {np.median(correlation):.1f}; largest partial RMS change, reconstruction drift (mm): {moved}")
+    assert moved["product"][0] < 0.01
+    assert moved["product"][0] * 3 < moved["std alone"][0]
+    assert moved["product"][1] < 0.001

@@ -4,8 +4,10 @@
    unilateral boundary is kept: lifting is itself an effect relative to the nominal contact).
 4. Least squares of the field (seen nodes) on the subset's independent basis fields. On a noisy field (one with an
    error model) the pre-factors are pulled toward those of the estimate's own state (:func:`anchored_coefficients`)
-   with the weight n tau^2, tau a tenth of the field's node noise: a direction of the pre-factors that moves the
-   field by less than tau RMS is the estimate's, not the noise's. Without it a lock's or buffer's partial
+   with the weight n tau^2, tau a tenth of the field's node noise with its correlation (RMS of std x sqrt(g), g the
+   node's correlation sum: a smoothed scan's noise reaches a smooth direction sqrt(g) times as strongly as white
+   noise of the same std): a direction of the pre-factors that moves the field by less than tau RMS is the
+   estimate's, not the noise's. Without it a lock's or buffer's partial
    displacement moved by up to half its peak with 1 um of node noise (their pairs are far from antisymmetric and
    nearly collinear with each other; benchmarks/RESULTS.md issue 15 run 18 C). A deviation from the paper's step 4
    (docs/paper_comparison.md); a field without an error model keeps the paper's least squares.
@@ -40,7 +42,8 @@ DEFAULT_MAX_REMOVED_RMS_MM = 0.002
 # Step 3: a parameter with |estimate| below max(this, 3 std) counts as zero.
 DEFAULT_ZERO_TOL_MM = 0.01
 # Step 4 on a noisy field: a direction of the pre-factors that moves the field by less than this fraction of its
-# node noise (RMS) is taken from the estimate's state (:func:`anchored_coefficients`), not from the noise.
+# node noise (RMS, with its correlation: :func:`prior_tau`) is taken from the estimate's state
+# (:func:`anchored_coefficients`), not from the noise.
 DEFAULT_PRIOR_NOISE_SHARE = 0.1
 
 
@@ -100,13 +103,15 @@ def anchored_coefficients(basis: HierarchicalBasis, estimate: ParameterEstimate)
 
 
 def prior_tau(field: DisplacementField, valid: np.ndarray, share: float = DEFAULT_PRIOR_NOISE_SHARE) -> float:
-    """tau (mm) of step 4's prior: ``share`` of the field's node noise RMS over its seen nodes (valid (N,)), 0 for a
-    field without an error model (a simulated field: the paper's least squares)."""
+    """tau (mm) of step 4's prior: ``share`` of the field's node noise over its seen nodes (valid (N,)) as a smooth
+    direction sees it, the RMS of node std x sqrt(correlation sum); 0 for a field without an error model (a simulated
+    field: the paper's least squares). With the std alone a smoothed scan's noise (correlation sums 5-10) still moved
+    the locks' and buffers' partials 3-5x more than with it (benchmarks/RESULTS.md issue 15 run 19 D)."""
     errors = field.errors
     if errors.kind == "none":
         return 0.0
-    std = np.nan_to_num(np.asarray(errors.node_std, float)[valid])
-    return float(share * np.sqrt(np.mean(std**2)))
+    variance, correlation = errors.node_variance(valid.size)
+    return float(share * np.sqrt(np.mean((variance * correlation)[valid])))
 
 
 def _partial_displacement(basis: HierarchicalBasis, coeff: np.ndarray, effect: int) -> np.ndarray:
