@@ -127,12 +127,18 @@ def main(argv: Sequence[str] | None = None) -> int:
 #: server, cluster or open file left behind. :func:`entry` runs them with one BLAS thread and without the
 #: interpreter's teardown.
 _ONE_SHOT_VERBS = frozenset({"estimate"})
+#: Verbs whose linear algebra is many small BLAS calls (a field's estimate: N x K products, K x K solves), run with
+#: one BLAS thread unless OPENBLAS_NUM_THREADS is set: with OpenBLAS' default two the idle worker spins between calls,
+#: and beside other work on the cores the demo's validation of 1,400 x 3 estimates took 608 s instead of 60 s
+#: (load ~4.5, session 18; one field's contact-aware estimate 27-34 ms with one thread, 100-650 ms with two).
+_ONE_BLAS_THREAD_VERBS = _ONE_SHOT_VERBS | {"demo"}
 
 
 def entry() -> NoReturn:
     """The ``hood-decomp`` program: :func:`main` on ``sys.argv``, then exit with its status.
 
-    For a verb of :data:`_ONE_SHOT_VERBS` (issue 19: a one-off `estimate --scan` at paper resolution, 1M points):
+    For a verb of :data:`_ONE_SHOT_VERBS` (issue 19: a one-off `estimate --scan` at paper resolution, 1M points; the
+    first point also for the demo, :data:`_ONE_BLAS_THREAD_VERBS`):
     - OpenBLAS gets one thread unless OPENBLAS_NUM_THREADS is set: its idle workers spin between the many small BLAS
       calls (3 x 3 solves, N x K projections) and took 0.3 s of the process's 1.4 s user CPU on the 2 cores the
       scan path's own threads need. Set before numpy is imported (nothing above this imports it).
@@ -143,8 +149,9 @@ def entry() -> NoReturn:
       reports it instead.
     """
     argv = sys.argv[1:]
-    one_shot = next((a for a in argv if not a.startswith("-")), None) in _ONE_SHOT_VERBS
-    if one_shot:
+    verb = next((a for a in argv if not a.startswith("-")), None)
+    one_shot = verb in _ONE_SHOT_VERBS
+    if verb in _ONE_BLAS_THREAD_VERBS:
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     status = main(argv)
     if one_shot:
