@@ -129,9 +129,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 _ONE_SHOT_VERBS = frozenset({"estimate"})
 #: Verbs whose linear algebra is many small BLAS calls (a field's estimate: N x K products, K x K solves), run with
 #: one BLAS thread unless OPENBLAS_NUM_THREADS is set: with OpenBLAS' default two the idle worker spins between calls,
-#: and beside other work on the cores the demo's validation of 1,400 x 3 estimates took 608 s instead of 60 s
-#: (load ~4.5, session 18; one field's contact-aware estimate 27-34 ms with one thread, 100-650 ms with two).
-_ONE_BLAS_THREAD_VERBS = _ONE_SHOT_VERBS | {"demo"}
+#: and beside other work on the cores the demo's validation of 1,400 x 3 estimates took 608 s instead of 114 s, its
+#: close-the-loop step (close-loop's tracing estimates) 54 s instead of 29 s (load 3-4.8, session 18; one field's
+#: contact-aware estimate 27-34 ms with one thread, 100-650 ms with two). The shift's Dask workers get one already.
+_ONE_BLAS_THREAD_VERBS = _ONE_SHOT_VERBS | {"demo", "close-loop"}
 
 
 def entry() -> NoReturn:
