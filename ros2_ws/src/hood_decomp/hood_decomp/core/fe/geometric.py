@@ -25,6 +25,7 @@ NLGEOM on the coarse hood (benchmarks/bench_nlgeom.py).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -133,35 +134,91 @@ def membrane_forces(facets: FacetTriangles, translations: np.ndarray, nonlinear:
     return facets.thickness[:, None, None] * np.einsum("ij,tjm->tim", facets.D, eps)
 
 
+def _gather(facets: FacetTriangles, translations: np.ndarray) -> np.ndarray:
+    """(9, T, m): J_x (3 components), J_y, the linear strain (xx, yy, 2xy) of nodal translations (n, 3, m)."""
+    m = translations.shape[2]
+    return (facets.operator[0] @ translations.reshape(-1, m)).reshape(9, len(facets.nodes), m)
+
+
+def _strain_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The symmetric bilinear Green-Lagrange term (3, T, m) of two gathered fields (9, T, m): 1/2 J_a^T J_b
+    symmetrised on (xx, yy, 2xy); with a = b the strain's quadratic part 1/2 J^T J."""
+    def dot(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return np.einsum("ctm,ctm->tm", x, y)
+
+    if a is b:
+        return np.stack([0.5 * dot(a[:3], a[:3]), 0.5 * dot(a[3:6], a[3:6]), dot(a[:3], a[3:6])])
+    return 0.5 * np.stack([dot(a[:3], b[:3]), dot(a[3:6], b[3:6]), dot(a[:3], b[3:6]) + dot(a[3:6], b[:3])])
+
+
+def _stress(facets: FacetTriangles, strain: np.ndarray) -> np.ndarray:
+    """A t D strain (3, T, m) N mm of a strain (3, T, m)."""
+    return (facets.D @ strain.reshape(3, -1)).reshape(strain.shape) * (facets.area * facets.thickness)[:, None]
+
+
+def _scatter(facets: FacetTriangles, terms: list[tuple[np.ndarray, np.ndarray]], membrane: np.ndarray | None
+             ) -> np.ndarray:
+    """(n, 3, m) N: the sum over the facets of G^T (stress) G u over the terms (stress (3, T, m) N mm, u's gathered
+    (9, T, m)) plus B_m^T membrane (3, T, m) N mm (None: zero)."""
+    _, T, m = terms[0][1].shape
+    out = np.zeros((9, T, m))
+    for stress, gathered in terms:
+        Jx, Jy = gathered[:3], gathered[3:6]
+        out[:3] += stress[0] * Jx + stress[2] * Jy  # A (Nxx J_x + Nxy J_y)
+        out[3:6] += stress[2] * Jx + stress[1] * Jy  # A (Nxy J_x + Nyy J_y)
+    if membrane is not None:
+        out[6:] = membrane
+    return (facets.operator[1] @ out.reshape(9 * T, m)).reshape(-1, 3, m)
+
+
 def nonlinear_forces(facets: FacetTriangles, translations: np.ndarray) -> np.ndarray:
     """f_nl (n, 3, m) N: the internal force of nodal translations (n, 3, m) mm beyond the linear stiffness's,
     sum over the facets of A [B_m^T N_q + G^T N G u] (module docstring), through :attr:`FacetTriangles.operator`."""
-    operator, transpose = facets.operator
-    T, m = len(facets.nodes), translations.shape[2]
-    gathered = (operator @ translations.reshape(-1, m)).reshape(9, T, m)
-    Jx, Jy, linear = gathered[:3], gathered[3:6], gathered[6:]
-    quadratic = np.stack([0.5 * np.einsum("ctm,ctm->tm", Jx, Jx), 0.5 * np.einsum("ctm,ctm->tm", Jy, Jy),
-                          np.einsum("ctm,ctm->tm", Jx, Jy)])  # (3, T, m): 1/2 J^T J on (xx, yy, 2xy)
-    scale = (facets.area * facets.thickness)[:, None]
-    out = np.empty((9, T, m))
-    out[6:] = (facets.D @ quadratic.reshape(3, -1)).reshape(3, T, m) * scale  # A N_q, for B_m^T
-    stress = (facets.D @ linear.reshape(3, -1)).reshape(3, T, m) * scale + out[6:]  # A N
-    out[:3] = stress[0] * Jx + stress[2] * Jy  # G^T N G u: A (Nxx J_x + Nxy J_y), A (Nxy J_x + Nyy J_y)
-    out[3:6] = stress[2] * Jx + stress[1] * Jy
-    return (transpose @ out.reshape(9 * T, m)).reshape(-1, 3, m)
+    u = _gather(facets, translations)
+    quadratic = _stress(facets, _strain_product(u, u))  # A N_q
+    return _scatter(facets, [(_stress(facets, u[6:]) + quadratic, u)], quadratic)
+
+
+def nonlinear_force_parts(facets: FacetTriangles, translations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """f_nl's quadratic and cubic parts f2(u, u), f3(u, u, u) (n, 3, m) N of nodal translations (n, 3, m) mm
+    (f_nl = f2 + f3 exactly): A [B_m^T N_q + G^T N_L G u] and A G^T N_q G u."""
+    u = _gather(facets, translations)
+    quadratic = _stress(facets, _strain_product(u, u))
+    return _scatter(facets, [(_stress(facets, u[6:]), u)], quadratic), _scatter(facets, [(quadratic, u)], None)
+
+
+def bilinear_force(facets: FacetTriangles, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """f2(a, b) (n, 3, m) N, the symmetric bilinear form of f_nl's quadratic part (f2(u, u) of
+    :func:`nonlinear_force_parts`), column by column of nodal translations a, b (n, 3, m) mm:
+    A [B_m^T t D (1/2 J_a^T J_b)_sym + 1/2 G^T (N_L(a) G b + N_L(b) G a)]."""
+    a, b = _gather(facets, first), _gather(facets, second)
+    return _scatter(facets, [(0.5 * _stress(facets, a[6:]), b), (0.5 * _stress(facets, b[6:]), a)],
+                    _stress(facets, _strain_product(a, b)))
 
 
 def nonlinear_force_vector(facets: FacetTriangles, u: np.ndarray, chunk_bytes: float = 200e6) -> np.ndarray:
     """f_nl (6n, m) N of displacements (6n, m) mm (rotations: zero force, ignored), ``chunk_bytes`` of facet
-    temporaries at a time (:func:`nonlinear_forces` holds about 30 values per facet and column)."""
-    n = u.shape[0] // 6
-    out = np.zeros_like(u)
+    temporaries at a time (:func:`on_displacements`)."""
+    return on_displacements(nonlinear_forces, facets, u, chunk_bytes=chunk_bytes)[0]
+
+
+def on_displacements(forces: Callable[..., np.ndarray | tuple[np.ndarray, ...]], facets: FacetTriangles,
+                     *displacements: np.ndarray, chunk_bytes: float = 200e6) -> tuple[np.ndarray, ...]:
+    """A facet force function of nodal translations (``forces(facets, *translations)``, each (n, 3, m) mm, returning
+    one or a tuple of (n, 3, m) N) applied to displacements (6n, m) mm (rotations ignored) in column chunks of
+    ``chunk_bytes`` of facet temporaries (about 30 values per facet and column): its forces (6n, m) N, a tuple,
+    zero on the rotations."""
+    n, m = displacements[0].shape[0] // 6, displacements[0].shape[1]
     translation = (np.arange(6 * n) % 6) < 3
-    chunk = max(1, int(chunk_bytes / (8 * 30 * len(facets.nodes))))
-    for start in range(0, u.shape[1], chunk):
-        part = u[translation, start:start + chunk]
-        out[translation, start:start + chunk] = nonlinear_forces(facets, part.reshape(n, 3, -1)).reshape(3 * n, -1)
-    return out
+    chunk = max(1, int(chunk_bytes / (8 * 30 * len(facets.nodes) * len(displacements))))
+    outs: list[np.ndarray] = []
+    for start in range(0, m, chunk):
+        parts = forces(facets, *(u[translation, start:start + chunk].reshape(n, 3, -1) for u in displacements))
+        for k, part in enumerate(parts if isinstance(parts, tuple) else (parts,)):
+            if k == len(outs):
+                outs.append(np.zeros((6 * n, m)))
+            outs[k][translation, start:start + chunk] = part.reshape(3 * n, -1)
+    return tuple(outs)
 
 
 def tangent_increment(facets: FacetTriangles, translations: np.ndarray, n_nodes: int) -> sp.csr_matrix:

@@ -71,10 +71,13 @@ from hood_decomp.core.fe.ensemble import MemberBlock, contact_summary, factorial
 from hood_decomp.core.fe.geometric import (
     FacetTriangles,
     NonlinearSolver,
+    bilinear_force,
     facet_triangles,
     gradients,
     linear_strain,
+    nonlinear_force_parts,
     nonlinear_force_vector,
+    on_displacements,
 )
 from hood_decomp.core.fe.model import skin_surface
 from hood_decomp.core.fe.solver import ShellSolver
@@ -393,24 +396,16 @@ def derivative_snapshots(solver: ShellSolver, facets: FacetTriangles, fields: np
     and along each linear member e1 of ``lines`` (6n, l) mm its second- and third-order terms
     e2 = -K^-1 f2(e1, e1), e3 = -K^-1 [2 f2(e1, e2) + f3(e1, e1, e1)]. k = m (m + 1) / 2 + 2 l.
 
-    f_nl is f2(u, u) + f3(u, u, u), nothing else (:func:`.geometric.nonlinear_forces`), so its even part is the
-    quadratic one, Q(w) = [f_nl(w) + f_nl(-w)] / 2 = f2(w, w), and 2 f2(a, b) = Q(a + b) - Q(a) - Q(b); its odd
-    part is the cubic one, [f_nl(w) - f_nl(-w)] / 2 = f3(w, w, w): exact, no step size."""
-    def even_odd(columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        forces = nonlinear_force_vector(facets, np.concatenate([columns, -columns], axis=1))
-        k = columns.shape[1]
-        return (forces[:, :k] + forces[:, k:]) / 2, (forces[:, :k] - forces[:, k:]) / 2
-
-    m = fields.shape[1]
-    first, second = np.triu_indices(m, 1)
-    single, _ = even_odd(fields)
-    pair, _ = even_odd(fields[:, first] + fields[:, second])
-    quadratic = np.concatenate([single, pair - single[:, first] - single[:, second]], axis=1)
-    even, odd = even_odd(lines)
+    f_nl is f2(u, u) + f3(u, u, u), nothing else (:func:`.geometric.nonlinear_forces`); f2's bilinear form and f3
+    are evaluated as such (:func:`.geometric.bilinear_force`, :func:`.geometric.nonlinear_force_parts`): exact, no
+    step size."""
+    first, second = np.triu_indices(fields.shape[1])
+    quadratic = on_displacements(bilinear_force, facets, fields[:, first], fields[:, second])[0]
+    quadratic[:, first != second] *= 2
+    even, odd = on_displacements(nonlinear_force_parts, facets, lines)
     e2 = -solver.solve(even)
-    mixed, _ = even_odd(lines + e2)
-    even2, _ = even_odd(e2)
-    e3 = -solver.solve(mixed - even - even2 + odd)
+    mixed = 2 * on_displacements(bilinear_force, facets, lines, e2)[0] + odd
+    e3 = -solver.solve(mixed)
     return np.concatenate([-solver.solve(quadratic), e2, e3], axis=1)
 
 
