@@ -127,6 +127,22 @@ def test_reduced_member_is_the_full_member_when_its_correction_is_in_the_space(c
     assert np.allclose(member.pad_forces[0], f, atol=1e-6 * f.max())
 
 
+def test_full_member_from_a_guess_is_the_walked_member(coarse_paper) -> None:
+    """Fails if NonlinearSolver.solve_displacement does not start from its guess (the converged member as the guess
+    must converge in one iteration, where the walk from the nearest solved state needs more), or if a guess it
+    cannot converge from (three times the member) is not left for the walk, which reaches the same member."""
+    _, solver = coarse_paper
+    full = NonlinearSolver(solver)
+    state = np.array([0.5, -0.5, -1.0, 1.0, 1.0, 0.0])
+    u, f, walked = full.solve_displacement(state)
+    assert walked > 1
+    for guess, most in ((u, 1), (3 * u, None)):
+        again, forces, iterations = full.solve_displacement(state, guess)
+        assert most is None or iterations <= most
+        assert np.abs(again - u).max() < 1e-5
+        assert np.allclose(forces, f, atol=1e-5 * f.max())
+
+
 @pytest.mark.parametrize("hyper", [None, 1e-4])
 def test_derivative_trained_members_match_the_full_solve(coarse_paper, hyper) -> None:
     """Fails if the reduced model trained by static derivatives and two greedy passes of 4 full solves

@@ -421,9 +421,16 @@ class NonlinearSolver:
                 x = image
         return None
 
-    def solve_displacement(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-        """One member: displacement (6n,) mm, pad forces (S,) N, iterations."""
+    def solve_displacement(self, state: np.ndarray, guess: np.ndarray | None = None
+                           ) -> tuple[np.ndarray, np.ndarray, int]:
+        """One member: displacement (6n,) mm, pad forces (S,) N, iterations. ``guess``: a displacement (6n,) mm near
+        the member's (e.g. a reduced model's member), iterated from first with the nearest solved state's tangent, the
+        whole way at once; when that does not converge, the walk from the nearest solved state as without it."""
         start, u, tangent = min(self._solved, key=lambda solved: float(np.abs(solved[0] - state).sum()))
+        if guess is not None:
+            result = self._iterate(tangent, state, guess)
+            if result is not None:
+                return result
         done, step, fresh, iterations, f = 0.0, 1.0, True, 0, None
         while done < 1.0:
             trial = min(1.0, done + step)

@@ -466,13 +466,18 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
     def linear_forces(commanded: np.ndarray) -> np.ndarray:
         return np.array([solve_lcp(M, z0 + Sa @ s[:B] - s[B:][pads.pad_of] - pads.preload) for s in commanded])
 
-    def corrections(commanded: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Full nonlinear members (6n, m) and their corrections u - u_lin (6n, m), zero on the constrained DOFs."""
+    def corrections(commanded: np.ndarray, guesses: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Full nonlinear members (6n, m) and their corrections u - u_lin (6n, m), zero on the constrained DOFs;
+        guesses: (6n, m) displacements near them to start from (the reduced members), or None."""
         nonlocal full
         full = NonlinearSolver(solver) if full is None else full
         exact, f = np.zeros((6 * n, len(commanded))), np.zeros((len(commanded), len(pads.k)))
+        iterations = 0
         for i, state in enumerate(commanded):
-            exact[:, i], f[i], _ = full.solve_displacement(state)
+            exact[:, i], f[i], count = full.solve_displacement(state, None if guesses is None else guesses[:, i])
+            iterations += count
+        logger.info("%d full solves: %d iterations, %d factorisations so far", len(commanded), iterations,
+                    full.factorisations)
         return exact, exact - u0[:, None] - W @ commanded[:, :B].T - G @ f.T
 
     # pad force shapes: H-weighted POD of the linear members' forces
@@ -531,7 +536,7 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
         size = np.where(solved, -1.0, np.abs(step[:, :3]).max(axis=(0, 1)))
         chosen = np.argsort(size)[::-1][:solves]
         solved[chosen] = True
-        new = corrections(states[chosen])[1]
+        new = corrections(states[chosen], reduced[:, chosen])[1]
         estimate[:, chosen] = new
         logger.info("pass %d: %d full solves, largest indicator %.4f mm (%.1f s)", sweep + 1, len(chosen),
                     size.max(), time.perf_counter() - start)
