@@ -313,6 +313,26 @@ class _Tangent:
     M: np.ndarray
 
 
+class _Mixing:
+    """Anderson mixing of a fixed-point iteration x -> x + r(x) over the last ``history`` iterates: a secant update
+    (the contact's kinks make the map only piecewise smooth)."""
+
+    def __init__(self, history: int) -> None:
+        self.history = history
+        self.xs: list[np.ndarray] = []
+        self.rs: list[np.ndarray] = []
+
+    def next(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """The next iterate after x with the fixed-point residual r = T(x) - x."""
+        self.xs, self.rs = [*self.xs, x][-self.history - 1:], [*self.rs, r][-self.history - 1:]
+        if len(self.rs) == 1:
+            return x + r
+        dR = np.stack([self.rs[i + 1] - self.rs[i] for i in range(len(self.rs) - 1)], axis=1)
+        dX = np.stack([self.xs[i + 1] - self.xs[i] for i in range(len(self.xs) - 1)], axis=1)
+        gamma = np.linalg.lstsq(dR, r, rcond=None)[0]
+        return x + r - (dX + dR) @ gamma
+
+
 class NonlinearSolver:
     """Geometrically nonlinear members of a factorised :class:`~.solver.ShellSolver` (same loads, boundaries and
     pads): an incremental Newton method whose tangents are shared between members.
@@ -321,16 +341,18 @@ class NonlinearSolver:
     g(u) = f_nl(u) - (K_T - K) u, from K_T's own linear responses, with the pad contact re-solved exactly (LCP on
     K_T's compliance) in every iteration; at convergence K u + f_nl(u) = F(a) + P f with the contact conditions,
     whichever tangent was used. A member starts from the solved state nearest to it (the reference state, all
-    parameters 0, is solved by Newton first) and walks to its own state in increments: when an increment does not
+    parameters 0, is solved first: modified Newton steps with Anderson mixing, a new tangent only when a step grows
+    past 1/``contraction`` x the smallest so far) and walks to its own state in increments: when an increment does not
     contract by ``contraction`` per iteration, a new tangent is factorised at the last solved increment (kept for the
     members after it), and then the increment is halved.
 
     tolerance: mm, largest change of any translation between iterations at convergence; min_step: the smallest
-    increment (fraction of the way) before SolverError (near or beyond a buckling load).
+    increment (fraction of the way) before SolverError (near or beyond a buckling load); newton_steps: the reference
+    state's iterations at most.
     """
 
     def __init__(self, solver: ShellSolver, tolerance: float = 1e-6, contraction: float = 0.5,
-                 min_step: float = 1.0 / 64, newton_steps: int = 20) -> None:
+                 min_step: float = 1.0 / 64, newton_steps: int = 30) -> None:
         self.solver = solver
         self.tolerance = tolerance
         self.contraction = contraction
@@ -342,17 +364,25 @@ class NonlinearSolver:
         self._pad_loads = solver.pads.loads.tocsr()
         self._solved: list[tuple[np.ndarray, np.ndarray, _Tangent]] = []  # (state, displacement, its tangent)
         self.factorisations = 0
-        u = solver.load_response()
-        for _ in range(newton_steps):
-            tangent = solver.with_stiffness((solver.K + self._increment(u)).tocsr())
-            self.factorisations += 1
+        u, tangent = solver.load_response(), None
+        for iteration in range(1, newton_steps + 1):
+            if tangent is None:
+                tangent = solver.with_stiffness((solver.K + self._increment(u)).tocsr())
+                mixing, best = _Mixing(6), np.inf
+                self.factorisations += 1
             correction = tangent.solve(solver.load - solver.K @ u - self._f_nl(u[:, None])[:, 0])
-            u = u + correction
-            if np.abs(correction).max() < tolerance:
+            size = float(np.abs(correction).max())
+            if size < tolerance:
+                u = u + correction
+                logger.info("reference state solved in %d iterations with %d tangents", iteration, self.factorisations)
                 break
+            if size > best / contraction:  # a new tangent only when the mixed iteration stops contracting
+                tangent = None
+                continue
+            best = min(best, size)
+            u = mixing.next(u, correction)
         else:
-            raise SolverError(f"the reference state did not converge in {newton_steps} Newton steps")
-        logger.info("reference state solved with %d Newton steps", self.factorisations)
+            raise SolverError(f"the reference state did not converge in {newton_steps} iterations")
         self.reference = u
         self._new_tangent(np.zeros(len(model.names)), u)
 
@@ -386,7 +416,7 @@ class NonlinearSolver:
         iteration does not converge in ``max_iter`` or its change grows past 1/contraction x the smallest so far.
 
         The fixed point x = T(x) of the correction x = -K_T^-1 g(u(x)) is accelerated by Anderson mixing over the
-        last ``history`` iterates (a secant update: the contact's kinks make T only piecewise smooth)."""
+        last ``history`` iterates (:class:`_Mixing`)."""
         B = len(self.solver.model.bilateral)
         pads = self.solver.pads
         target = state[B:][pads.pad_of] + pads.preload
@@ -398,7 +428,7 @@ class NonlinearSolver:
             return tangent.solver.solve(tangent.increment @ u - self._f_nl(u[:, None])[:, 0]), u, f
 
         x = tangent.solver.solve(tangent.increment @ u - self._f_nl(u[:, None])[:, 0])
-        xs, rs = [], []
+        mixing = _Mixing(history)
         best = np.inf
         for iteration in range(1, max_iter + 1):
             image, u, f = step(x)
@@ -409,16 +439,7 @@ class NonlinearSolver:
             if not np.isfinite(change) or change > best / self.contraction:
                 return None
             best = min(best, change)
-            xs.append(x)
-            rs.append(r)
-            xs, rs = xs[-history - 1:], rs[-history - 1:]
-            if len(rs) > 1:
-                dR = np.stack([rs[i + 1] - rs[i] for i in range(len(rs) - 1)], axis=1)
-                dX = np.stack([xs[i + 1] - xs[i] for i in range(len(xs) - 1)], axis=1)
-                gamma = np.linalg.lstsq(dR, r, rcond=None)[0]
-                x = x + r - (dX + dR) @ gamma
-            else:
-                x = image
+            x = mixing.next(x, r)
         return None
 
     def solve_displacement(self, state: np.ndarray, guess: np.ndarray | None = None
