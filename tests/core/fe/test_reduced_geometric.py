@@ -127,20 +127,23 @@ def test_reduced_member_is_the_full_member_when_its_correction_is_in_the_space(c
     assert np.allclose(member.pad_forces[0], f, atol=1e-6 * f.max())
 
 
-def test_full_member_from_a_guess_is_the_walked_member(coarse_paper) -> None:
-    """Fails if NonlinearSolver.solve_displacement does not start from its guess (the converged member as the guess
-    must converge in one iteration, where the walk from the nearest solved state needs more), or if a guess it
-    cannot converge from (three times the member) is not left for the walk, which reaches the same member."""
+def test_full_members_from_guesses_are_the_walked_members(coarse_paper) -> None:
+    """Fails if NonlinearSolver.solve_displacements does not start each member from its guess (a converged member as
+    its guess must converge in one iteration, where the walk from the nearest solved state needs more), if the
+    members iterated together mix their columns, or if a guess it cannot converge from (three times the member) is
+    not left for the walk, which reaches the same member."""
     _, solver = coarse_paper
-    full = NonlinearSolver(solver)
-    state = np.array([0.5, -0.5, -1.0, 1.0, 1.0, 0.0])
-    u, f, walked = full.solve_displacement(state)
-    assert walked > 1
-    for guess, most in ((u, 1), (3 * u, None)):
-        again, forces, iterations = full.solve_displacement(state, guess)
-        assert most is None or iterations <= most
-        assert np.abs(again - u).max() < 1e-5
-        assert np.allclose(forces, f, atol=1e-5 * f.max())
+    states = np.array([[0.3, -0.2, -0.3, 0.3, 0.5, 0.0], [0.0, 0.2, -0.3, -0.3, 0.5, 0.5]])
+    walked = [NonlinearSolver(solver).solve_displacement(state) for state in states]
+    assert all(iterations > 1 for *_, iterations in walked)
+    exact = np.stack([u for u, *_ in walked], axis=1)
+    for guesses, most in ((exact, 2), (exact[:, ::-1], None), (3 * exact, None)):
+        full = NonlinearSolver(solver)  # only the reference solved: both iterated together with its tangent
+        for (u, f, _), (again, forces, iterations) in zip(walked, full.solve_displacements(states, guesses),
+                                                          strict=True):
+            assert most is None or iterations <= most
+            assert np.abs(again - u).max() < 1e-5
+            assert np.allclose(forces, f, atol=1e-5 * f.max())
 
 
 @pytest.mark.parametrize("hyper", [None, 1e-4])

@@ -112,7 +112,7 @@ class ReducedGeometricModel:
     Bf: (S, p) pad force shapes, H-orthonormal. Kq: (r, r) N/mm, Psi^T K Psi.
     T3q: (r, d, d), T4q: (r, d, d, d): the rows of the symmetrised energy tensors for q, d = 1 + B + p + r.
     residual: mm, the training members' difference from the full solve or their one-step correction (see
-    :func:`build_reduced_geometric`). build_s: seconds of the build's parts.
+    :func:`build_reduced_geometric`). build_s, build_cpu_s: wall and CPU seconds of the build's parts.
     """
 
     model_id: str
@@ -142,6 +142,7 @@ class ReducedGeometricModel:
     T4q: np.ndarray
     residual: float
     build_s: dict[str, float] = field(default_factory=dict)
+    build_cpu_s: dict[str, float] = field(default_factory=dict)
 
     @property
     def modes(self) -> int:
@@ -441,19 +442,20 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
     HYPER_ROWS // modes training states, their coordinates q the K-projection of their correction estimates (the
     static derivatives' e2 + e3 along their rays, or the full solve where there is one) on the modes; re-fitted
     whenever the modes grow (opt-in: not exact).
-    ``build_s``: seconds of the build's parts (pads, derivatives, full solves, tensors, indicator or check).
+    ``build_s``, ``build_cpu_s``: wall and CPU seconds (this process) of the build's parts (pads, derivatives, full
+    solves, tensors, indicator or check).
     """
     if training not in TRAININGS:
         raise SolverError(f"training: expected one of {TRAININGS}, got {training!r}")
     if hyper is not None and not 0 < hyper < 1:
         raise SolverError(f"hyper: expected None or a relative tolerance in (0, 1), got {hyper!r}")
     start = time.perf_counter()
-    clock = {"start": start}
+    clock, cpu = {"start": start}, {"start": time.process_time()}
 
     def lap(name: str) -> None:
-        now = time.perf_counter()
-        clock[name] = clock.get(name, 0.0) + now - clock["start"]
-        clock["start"] = now
+        for timer, now in ((clock, time.perf_counter()), (cpu, time.process_time())):
+            timer[name] = timer.get(name, 0.0) + now - timer["start"]
+            timer["start"] = now
 
     model = solver.model
     lower, upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
@@ -477,9 +479,11 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
         nonlocal full
         full = NonlinearSolver(solver, tolerance=TRAINING_TOLERANCE) if full is None else full
         exact, f = np.zeros((6 * n, len(commanded))), np.zeros((len(commanded), len(pads.k)))
+        solved = ([full.solve_displacement(state) for state in commanded] if guesses is None
+                  else full.solve_displacements(commanded, guesses))
         iterations = 0
-        for i, state in enumerate(commanded):
-            exact[:, i], f[i], count = full.solve_displacement(state, None if guesses is None else guesses[:, i])
+        for i, (u, forces, count) in enumerate(solved):
+            exact[:, i], f[i] = u, forces
             iterations += count
         logger.info("%d full solves: %d iterations, %d factorisations so far", len(commanded), iterations,
                     full.factorisations)
@@ -556,9 +560,10 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
         residual = float(np.abs(difference[model.skin_nodes, :3]).max())
         lap("check")
     clock.pop("start")
+    cpu.pop("start")
     logger.info("reduced nonlinear model (%s): %d modes, %d pad force shapes; residual %.4f mm (%.1f s)",
                 training, rom.modes, p, residual, time.perf_counter() - start)
-    return replace(rom, residual=residual, build_s=clock)
+    return replace(rom, residual=residual, build_s=clock, build_cpu_s=cpu)
 
 
 def _pod(K: np.ndarray, snapshots: np.ndarray, modes: int) -> np.ndarray:
