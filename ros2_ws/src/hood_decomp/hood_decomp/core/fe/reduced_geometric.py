@@ -26,17 +26,18 @@ parameters) in one of two ways (:func:`build_reduced_geometric`, ``training``):
 - ``"states"`` (the default): the K-weighted POD of the exact corrections u - u_lin of all training states, each
   solved once by the full nonlinear model (coarse hood-paper, HINGE_Y +-0.5 mm: 0.0077 mm from the full members;
   the 137 solves are 91 % of the build, 69 of 75 s at load ~3).
-- ``"derivatives"``: static derivatives instead of most full solves. f_nl = f2(u, u) + f3(u, u, u) exactly, so its
-  even and odd parts give f2 and f3 with no step size, and back-substitutions with the factorised K give the
+- ``"derivatives"``: static derivatives instead of most full solves. f_nl = f2(u, u) + f3(u, u, u) exactly; f2's
+  bilinear form and f3 evaluated as such (no step size) and back-substitutions with the factorised K give the
   second-order terms -K^-1 f2(v_i, v_j) of the linear fields (u0, W a, G Bf phi at their reach) and the second- and
   third-order terms along each training state's linear member; their POD gives modes - passes x added modes. Then
   greedy passes: the reduced training members' residuals through K^-1 rank them, the worst few are solved by the
-  full model and their corrections add modes (24 full solves instead of 137 by default). Not as accurate: 0.012 mm
-  on the same members, 0.019 mm at default resolution (a low-order expansion leaves about half of the correction
-  at the lock-twist and lock-buffer corners, where the nonlinearity is strong; the greedy full solves carry the
-  accuracy there), and no faster on the coarse hood, 76 s against 75 s (the tensors are summed four times;
-  benchmarks/RESULTS.md, "Training the reduced nonlinear model by static derivatives"). Each greedy pass sums
-  only the tensor terms with a new coordinate (:func:`energy_sums` with the previous sums; exact, 40 % of a
+  full model from the reduced members, a pass's members together (:meth:`.geometric.NonlinearSolver.
+  solve_displacements`, to TRAINING_TOLERANCE), and their corrections add modes (24 full solves instead of 137 by
+  default). Not as accurate: 0.012 mm on the same members, 0.019 mm at default resolution (a low-order expansion
+  leaves about half of the correction at the lock-twist and lock-buffer corners, where the nonlinearity is strong;
+  the greedy full solves carry the accuracy there). The build: ~32 CPU s on the coarse hood (71-74 before session
+  18), default resolution in benchmarks/RESULTS.md ("The nonlinear build's hot paths"). Each greedy pass sums only
+  the tensor terms with a new coordinate (:func:`energy_sums` with the previous sums; exact, 40 % of a
   fresh sum at d = 53).
 
 The tensors are sums over all facets (O(facets x d^4 / 4): one sum at d = 49 is ~35 s at default resolution).
