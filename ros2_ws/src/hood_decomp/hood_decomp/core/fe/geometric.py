@@ -348,18 +348,19 @@ class NonlinearSolver:
 
     tolerance: mm, largest change of any translation between iterations at convergence; min_step: the smallest
     increment (fraction of the way) before SolverError (near or beyond a buckling load); newton_steps: the reference
-    state's iterations at most.
+    state's iterations at most; facets: the model's :func:`facet_triangles` when the caller has them (their sparse
+    operator is ~200 MB at default resolution), else built here.
     """
 
     def __init__(self, solver: ShellSolver, tolerance: float = 1e-6, contraction: float = 0.5,
-                 min_step: float = 1.0 / 64, newton_steps: int = 30) -> None:
+                 min_step: float = 1.0 / 64, newton_steps: int = 30, facets: FacetTriangles | None = None) -> None:
         self.solver = solver
         self.tolerance = tolerance
         self.contraction = contraction
         self.min_step = min_step
         model = solver.model
         n = len(model.nodes)
-        self.facets = facet_triangles(model)
+        self.facets = facet_triangles(model) if facets is None else facets
         self._translation = (np.arange(6 * n) % 6) < 3
         self._pad_loads = solver.pads.loads.tocsr()
         self._solved: list[tuple[np.ndarray, np.ndarray, _Tangent]] = []  # (state, displacement, its tangent)

@@ -478,7 +478,7 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
         """Full nonlinear members (6n, m) and their corrections u - u_lin (6n, m), zero on the constrained DOFs;
         guesses: (6n, m) displacements near them to start from (the reduced members), or None."""
         nonlocal full
-        full = NonlinearSolver(solver, tolerance=TRAINING_TOLERANCE) if full is None else full
+        full = NonlinearSolver(solver, tolerance=TRAINING_TOLERANCE, facets=facets) if full is None else full
         exact, f = np.zeros((6 * n, len(commanded))), np.zeros((len(commanded), len(pads.k)))
         solved = ([full.solve_displacement(state) for state in commanded] if guesses is None
                   else full.solve_displacements(commanded, guesses))
