@@ -168,6 +168,21 @@ def test_derivative_trained_members_match_the_full_solve(coarse_paper, hyper) ->
     assert np.abs(rom.members(states).displacement - full.displacement).max() < 0.015
 
 
+def test_greedy_passes_end_when_the_indicator_is_enough(coarse_paper) -> None:
+    """Fails if the derivative training's greedy passes do not end once the largest indicator of the training
+    members not yet solved is below ``enough`` (mm: fewer modes than all passes give, and the final indicator below
+    it), or if its members are then farther than ``enough`` from full nonlinear members at 3 random states (the
+    rule's meaning on this part); or if enough <= 0 is not rejected naming what was expected."""
+    model, solver = coarse_paper
+    lower, upper = -0.5 * np.ones(len(model.names)), 0.5 * np.ones(len(model.names))
+    rom = build_reduced_geometric(solver, lower, upper, training="derivatives", enough=0.03)
+    assert rom.modes < 36 and rom.residual < 0.03
+    states = validation_plan(lower, upper, 3, 5)
+    assert np.abs(rom.members(states).displacement - NonlinearSolver(solver).members(states).displacement).max() < 0.03
+    with pytest.raises(SolverError, match="expected"):
+        build_reduced_geometric(solver, lower, upper, training="derivatives", enough=0.0)
+
+
 @pytest.mark.parametrize("options", [{"training": "nope"}, {"training": "derivatives", "solves": 0},
                                      {"training": "derivatives", "added": 12}, {"hyper": 0.0}])
 def test_bad_training_options_raise_naming_them(coarse_paper, options) -> None:

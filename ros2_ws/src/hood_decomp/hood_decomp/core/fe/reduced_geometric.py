@@ -418,7 +418,7 @@ def derivative_snapshots(solver: ShellSolver, facets: FacetTriangles, fields: np
 def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.ndarray, modes: int = 36,
                             pad_samples: int = 1400, seed: int = 1, full: NonlinearSolver | None = None,
                             training: str = "states", passes: int = 3, solves: int = 8, added: int = 4,
-                            hyper: float | None = None) -> ReducedGeometricModel:
+                            hyper: float | None = None, enough: float | None = None) -> ReducedGeometricModel:
     """The reduced nonlinear model of a factorised linear solver over the ranges [lower, upper] (P,) mm.
 
     The correction modes (``modes`` of them at most) are trained on the training states (:func:`training_states`)
@@ -435,7 +435,10 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
       them, the ``solves`` largest (not solved before) are solved by the full nonlinear model, and the K-weighted POD
       of their corrections K-orthogonal to the modes so far adds ``added`` modes. ``residual`` is the largest
       |K^-1 r| of the final model's training members on the skin (an error indicator, not a difference from the
-      full solve). ``passes x solves`` full solves instead of 137.
+      full solve). ``passes x solves`` full solves instead of 137; with ``enough`` (mm), fewer: the passes end once
+      the largest indicator of the training members not yet solved is below it, and the model has fewer modes (an
+      estimate, not a bound: on coarse hood-paper the members' largest distance from the full solve was 0.3-0.8x
+      the final indicator; benchmarks/RESULTS.md, session 18).
 
     pad_samples: random states whose linear pad forces (with the factorial's) give the pad force shapes.
     hyper: None (the energy tensors summed over all facets) or the relative tolerance of a hyper-reduction: the
@@ -448,6 +451,8 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
     """
     if training not in TRAININGS:
         raise SolverError(f"training: expected one of {TRAININGS}, got {training!r}")
+    if enough is not None and not enough > 0:
+        raise SolverError(f"enough: expected None or an indicator in mm > 0, got {enough!r}")
     if hyper is not None and not 0 < hyper < 1:
         raise SolverError(f"hyper: expected None or a relative tolerance in (0, 1), got {hyper!r}")
     start = time.perf_counter()
@@ -540,10 +545,13 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
         step = solver.solve(solver.K @ reduced + nonlinear_force_vector(facets, reduced) - solver.load[:, None]
                             - P @ f.T).reshape(n, 6, -1)
         lap("indicator")
-        if sweep == passes:
+        size = np.where(solved, -1.0, np.abs(step[:, :3]).max(axis=(0, 1)))
+        if sweep == passes or (enough is not None and size.max() < enough):
+            if sweep < passes:
+                logger.info("greedy passes end after %d: largest indicator %.4f mm < %.4f mm", sweep, size.max(),
+                            enough)
             residual = float(np.abs(step[model.skin_nodes, :3]).max())
             break
-        size = np.where(solved, -1.0, np.abs(step[:, :3]).max(axis=(0, 1)))
         chosen = np.argsort(size)[::-1][:solves]
         solved[chosen] = True
         new = corrections(states[chosen], reduced[:, chosen])[1]
