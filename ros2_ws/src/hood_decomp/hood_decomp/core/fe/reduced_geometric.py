@@ -25,7 +25,7 @@ parameters) in one of two ways (:func:`build_reduced_geometric`, ``training``):
 
 - ``"states"`` (the default): the K-weighted POD of the exact corrections u - u_lin of all training states, each
   solved once by the full nonlinear model (coarse hood-paper, HINGE_Y +-0.5 mm: 0.0077 mm from the full members;
-  the 137 solves are 91 % of the build, 69 of 75 s at load ~3).
+  the 137 solves are most of the build, 36.5 of 43.5 CPU s).
 - ``"derivatives"``: static derivatives instead of most full solves. f_nl = f2(u, u) + f3(u, u, u) exactly; f2's
   bilinear form and f3 evaluated as such (no step size) and back-substitutions with the factorised K give the
   second-order terms -K^-1 f2(v_i, v_j) of the linear fields (u0, W a, G Bf phi at their reach) and the second- and
