@@ -13,9 +13,11 @@ import pytest
 
 from hood_decomp.core.fe.geometric import (
     NonlinearSolver,
+    bilinear_force,
     buckling_factor,
     facet_triangles,
     membrane_forces,
+    nonlinear_force_parts,
     nonlinear_forces,
     tangent_increment,
 )
@@ -100,3 +102,23 @@ def test_nonlinear_force_is_the_gradient_of_the_green_lagrange_energy() -> None:
     v6[:, :3] = v[..., 0]
     tangent = (tangent_increment(facets, u[..., 0], len(model.nodes)) @ v6.ravel()).reshape(-1, 6)
     np.testing.assert_allclose(tangent[:, :3], step, atol=1e-6 * np.abs(step).max())
+
+
+def test_force_parts_and_bilinear_form_are_those_of_f_nl() -> None:
+    """Fails if nonlinear_force_parts' f2, f3 are not the quadratic and cubic terms of nonlinear_forces (f_nl(s u) =
+    s^2 f2 + s^3 f3 at two scales), or if bilinear_force is not the polarisation of f_nl's even part,
+    2 f2(u, v) = E(u + v) - E(u) - E(v) with E(w) = [f_nl(w) + f_nl(-w)] / 2, in either order."""
+    model = _strip(axial=1.0, nx=6)
+    facets = facet_triangles(model)
+    u, v = np.random.default_rng(5).normal(size=(2, len(model.nodes), 3, 2))
+    f2, f3 = nonlinear_force_parts(facets, u)
+    scale = np.abs(nonlinear_forces(facets, u)).max()
+    for s in (0.5, 2.0):
+        np.testing.assert_allclose(nonlinear_forces(facets, s * u), s**2 * f2 + s**3 * f3, atol=1e-12 * scale * s**3)
+
+    def even(w: np.ndarray) -> np.ndarray:
+        return 0.5 * (nonlinear_forces(facets, w) + nonlinear_forces(facets, -w))
+
+    polarised = 0.5 * (even(u + v) - even(u) - even(v))
+    for a, b in ((u, v), (v, u)):
+        np.testing.assert_allclose(bilinear_force(facets, a, b), polarised, atol=1e-12 * scale)

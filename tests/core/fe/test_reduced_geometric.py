@@ -127,6 +127,25 @@ def test_reduced_member_is_the_full_member_when_its_correction_is_in_the_space(c
     assert np.allclose(member.pad_forces[0], f, atol=1e-6 * f.max())
 
 
+def test_full_members_from_guesses_are_the_walked_members(coarse_paper) -> None:
+    """Fails if NonlinearSolver.solve_displacements does not start each member from its guess (a converged member as
+    its guess must converge in one iteration, where the walk from the nearest solved state needs more), if the
+    members iterated together mix their columns, or if a guess it cannot converge from (three times the member) is
+    not left for the walk, which reaches the same member."""
+    _, solver = coarse_paper
+    states = np.array([[0.3, -0.2, -0.3, 0.3, 0.5, 0.0], [0.0, 0.2, -0.3, -0.3, 0.5, 0.5]])
+    walked = [NonlinearSolver(solver).solve_displacement(state) for state in states]
+    assert all(iterations > 1 for *_, iterations in walked)
+    exact = np.stack([u for u, *_ in walked], axis=1)
+    for guesses, most in ((exact, 2), (exact[:, ::-1], None), (3 * exact, None)):
+        full = NonlinearSolver(solver)  # only the reference solved: both iterated together with its tangent
+        for (u, f, _), (again, forces, iterations) in zip(walked, full.solve_displacements(states, guesses),
+                                                          strict=True):
+            assert most is None or iterations <= most
+            assert np.abs(again - u).max() < 1e-5
+            assert np.allclose(forces, f, atol=1e-5 * f.max())
+
+
 @pytest.mark.parametrize("hyper", [None, 1e-4])
 def test_derivative_trained_members_match_the_full_solve(coarse_paper, hyper) -> None:
     """Fails if the reduced model trained by static derivatives and two greedy passes of 4 full solves
@@ -147,6 +166,21 @@ def test_derivative_trained_members_match_the_full_solve(coarse_paper, hyper) ->
     assert np.isfinite(rom.residual)
     assert np.abs(full.displacement - linear.displacement).max() > 0.08
     assert np.abs(rom.members(states).displacement - full.displacement).max() < 0.015
+
+
+def test_greedy_passes_end_when_the_indicator_is_enough(coarse_paper) -> None:
+    """Fails if the derivative training's greedy passes do not end once the largest indicator of the training
+    members not yet solved is below ``enough`` (mm: fewer modes than all passes give, and the final indicator below
+    it), or if its members are then farther than ``enough`` from full nonlinear members at 3 random states (the
+    rule's meaning on this part); or if enough <= 0 is not rejected naming what was expected."""
+    model, solver = coarse_paper
+    lower, upper = -0.5 * np.ones(len(model.names)), 0.5 * np.ones(len(model.names))
+    rom = build_reduced_geometric(solver, lower, upper, training="derivatives", enough=0.03)
+    assert rom.modes < 36 and rom.residual < 0.03
+    states = validation_plan(lower, upper, 3, 5)
+    assert np.abs(rom.members(states).displacement - NonlinearSolver(solver).members(states).displacement).max() < 0.03
+    with pytest.raises(SolverError, match="expected"):
+        build_reduced_geometric(solver, lower, upper, training="derivatives", enough=0.0)
 
 
 @pytest.mark.parametrize("options", [{"training": "nope"}, {"training": "derivatives", "solves": 0},

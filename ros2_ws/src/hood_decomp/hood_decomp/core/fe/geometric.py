@@ -25,7 +25,9 @@ NLGEOM on the coarse hood (benchmarks/bench_nlgeom.py).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -47,8 +49,7 @@ class FacetTriangles:
 
     nodes: (T, 3) node indices. frame: (T, 3, 3) rows (e1, e2, n). grad: (T, 2, 3) 1/mm, d(shape function i)/d(x, y)
     in the facet frame. thickness: (T,) mm. area: (T,) mm^2, the triangle's area x 1/2 (each quad is both diagonal
-    splits at half weight). D: (3, 3) MPa, plane-stress elasticity on (xx, yy, 2xy). scatter: (n, 3T) sums the
-    triangles' node values onto the nodes.
+    splits at half weight). D: (3, 3) MPa, plane-stress elasticity on (xx, yy, 2xy). n_nodes: the mesh's nodes.
     """
 
     nodes: np.ndarray
@@ -57,20 +58,41 @@ class FacetTriangles:
     thickness: np.ndarray
     area: np.ndarray
     D: np.ndarray
-    scatter: sp.csr_matrix
+    n_nodes: int
 
     def rows(self, start: int, stop: int) -> FacetTriangles:
-        """The facets start:stop (a chunk of the sums over facets; scatter onto the nodes of those facets only)."""
+        """The facets start:stop (a chunk of the sums over facets)."""
         return FacetTriangles(self.nodes[start:stop], self.frame[start:stop], self.grad[start:stop],
-                              self.thickness[start:stop], self.area[start:stop], self.D,
-                              self.scatter[:, 3 * start:3 * stop])
+                              self.thickness[start:stop], self.area[start:stop], self.D, self.n_nodes)
 
     def select(self, index: np.ndarray, weight: np.ndarray) -> FacetTriangles:
         """The facets ``index`` (k,) with their areas scaled by ``weight`` (k,) >= 0: a weighted subset whose sums
-        stand for all facets' (hyper-reduction; scatter onto those facets' nodes only)."""
-        columns = (3 * index[:, None] + np.arange(3)).ravel()
+        stand for all facets' (hyper-reduction)."""
         return FacetTriangles(self.nodes[index], self.frame[index], self.grad[index], self.thickness[index],
-                              self.area[index] * weight, self.D, self.scatter[:, columns])
+                              self.area[index] * weight, self.D, self.n_nodes)
+
+    @cached_property
+    def operator(self) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+        """(9T, 3n) CSR on nodal translations (node-major, 3n) and its transpose: rows k T + t, k = 0-5 the
+        gradient J (J_x of the 3 global components, then J_y), k = 6-8 the linear membrane strain (xx, yy, 2xy,
+        facet frame). One sparse product gathers every facet quantity f_nl needs (component-major: each a contiguous
+        (T, m) block) and the transpose scatters the forces back (5x faster than the per-facet gathers for one
+        column on the coarse hood)."""
+        T, b, c = len(self.nodes), self.grad[:, 0], self.grad[:, 1]  # b, c: (T, 3) over the facet's nodes
+        e1, e2 = self.frame[:, 0], self.frame[:, 1]  # (T, 3) over the global components
+        both = (3 * self.nodes[:, :, None] + np.arange(3)).reshape(T, 9)  # (node, component) columns
+
+        def outer(g: np.ndarray, e: np.ndarray) -> np.ndarray:
+            return (g[:, :, None] * e[:, None]).reshape(T, 9)
+
+        entries = [(3 * a + k, 3 * self.nodes + k, g) for a, g in enumerate((b, c)) for k in range(3)]
+        entries += [(6, both, outer(b, e1)), (7, both, outer(c, e2)), (8, both, outer(c, e1) + outer(b, e2))]
+        rows = np.concatenate([np.broadcast_to(k * T + np.arange(T)[:, None], col.shape).ravel()
+                               for k, col, _ in entries])
+        columns = np.concatenate([col.ravel() for _, col, _ in entries])
+        values = np.concatenate([value.ravel() for *_, value in entries])
+        operator = sp.csr_matrix((values, (rows, columns)), shape=(9 * T, 3 * self.n_nodes))
+        return operator, operator.T.tocsr()
 
 
 def facet_triangles(model: PartModel) -> FacetTriangles:
@@ -84,9 +106,7 @@ def facet_triangles(model: PartModel) -> FacetTriangles:
     c = np.stack([x[:, 2] - x[:, 1], x[:, 0] - x[:, 2], x[:, 1] - x[:, 0]], axis=1) / area2[:, None]
     E, nu = model.material.E, model.material.nu
     D = E / (1 - nu**2) * np.array([[1, nu, 0], [nu, 1, 0], [0, 0, (1 - nu) / 2]])
-    scatter = sp.csr_matrix((np.ones(nodes.size), (nodes.ravel(), np.arange(nodes.size))),
-                            shape=(len(model.nodes), nodes.size))
-    return FacetTriangles(nodes, frame, np.stack([b, c], axis=1), thickness, 0.25 * area2, D, scatter)
+    return FacetTriangles(nodes, frame, np.stack([b, c], axis=1), thickness, 0.25 * area2, D, len(model.nodes))
 
 
 def gradients(facets: FacetTriangles, translations: np.ndarray) -> np.ndarray:
@@ -114,37 +134,91 @@ def membrane_forces(facets: FacetTriangles, translations: np.ndarray, nonlinear:
     return facets.thickness[:, None, None] * np.einsum("ij,tjm->tim", facets.D, eps)
 
 
-def nonlinear_forces(facets: FacetTriangles, translations: np.ndarray) -> np.ndarray:
-    """f_nl (n, 3, m) N: the internal force of nodal translations (n, 3, m) mm beyond the linear stiffness's."""
-    J = gradients(facets, translations)  # once: the gathers and contractions are most of the time
-    linear, quadratic = linear_strain(facets, J), _quadratic(J)
-    tD = (facets.area * facets.thickness)[:, None, None] * facets.D  # (T, 3, 3)
-    stress_q = np.einsum("tij,tjm->tim", tD, quadratic)  # A N_q
-    stress = np.einsum("tij,tjm->tim", tD, linear) + stress_q  # A N
-    b, c = facets.grad[:, 0][:, :, None], facets.grad[:, 1][:, :, None]
-    # B_m^T N_q in the facet frame (node i, x and y), then to the global frame
-    fx = b * stress_q[:, None, 0] + c * stress_q[:, None, 2]
-    fy = c * stress_q[:, None, 1] + b * stress_q[:, None, 2]
-    force = facets.frame[:, None, 0, :, None] * fx[:, :, None] + facets.frame[:, None, 1, :, None] * fy[:, :, None]
-    # G^T N G u: node i gets g_xi (Nxx J_x + Nxy J_y) + g_yi (Nxy J_x + Nyy J_y)
-    NJx = stress[:, None, 0] * J[:, :, 0] + stress[:, None, 2] * J[:, :, 1]  # (T, 3, m)
-    NJy = stress[:, None, 2] * J[:, :, 0] + stress[:, None, 1] * J[:, :, 1]
-    force += b[:, :, None] * NJx[:, None] + c[:, :, None] * NJy[:, None]
+def _gather(facets: FacetTriangles, translations: np.ndarray) -> np.ndarray:
+    """(9, T, m): J_x (3 components), J_y, the linear strain (xx, yy, 2xy) of nodal translations (n, 3, m)."""
     m = translations.shape[2]
-    return (facets.scatter @ force.reshape(-1, 3 * m)).reshape(-1, 3, m)
+    return (facets.operator[0] @ translations.reshape(-1, m)).reshape(9, len(facets.nodes), m)
+
+
+def _strain_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The symmetric bilinear Green-Lagrange term (3, T, m) of two gathered fields (9, T, m): 1/2 J_a^T J_b
+    symmetrised on (xx, yy, 2xy); with a = b the strain's quadratic part 1/2 J^T J."""
+    def dot(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return np.einsum("ctm,ctm->tm", x, y)
+
+    if a is b:
+        return np.stack([0.5 * dot(a[:3], a[:3]), 0.5 * dot(a[3:6], a[3:6]), dot(a[:3], a[3:6])])
+    return 0.5 * np.stack([dot(a[:3], b[:3]), dot(a[3:6], b[3:6]), dot(a[:3], b[3:6]) + dot(a[3:6], b[:3])])
+
+
+def _stress(facets: FacetTriangles, strain: np.ndarray) -> np.ndarray:
+    """A t D strain (3, T, m) N mm of a strain (3, T, m)."""
+    return (facets.D @ strain.reshape(3, -1)).reshape(strain.shape) * (facets.area * facets.thickness)[:, None]
+
+
+def _scatter(facets: FacetTriangles, terms: list[tuple[np.ndarray, np.ndarray]], membrane: np.ndarray | None
+             ) -> np.ndarray:
+    """(n, 3, m) N: the sum over the facets of G^T (stress) G u over the terms (stress (3, T, m) N mm, u's gathered
+    (9, T, m)) plus B_m^T membrane (3, T, m) N mm (None: zero)."""
+    _, T, m = terms[0][1].shape
+    out = np.zeros((9, T, m))
+    for stress, gathered in terms:
+        Jx, Jy = gathered[:3], gathered[3:6]
+        out[:3] += stress[0] * Jx + stress[2] * Jy  # A (Nxx J_x + Nxy J_y)
+        out[3:6] += stress[2] * Jx + stress[1] * Jy  # A (Nxy J_x + Nyy J_y)
+    if membrane is not None:
+        out[6:] = membrane
+    return (facets.operator[1] @ out.reshape(9 * T, m)).reshape(-1, 3, m)
+
+
+def nonlinear_forces(facets: FacetTriangles, translations: np.ndarray) -> np.ndarray:
+    """f_nl (n, 3, m) N: the internal force of nodal translations (n, 3, m) mm beyond the linear stiffness's,
+    sum over the facets of A [B_m^T N_q + G^T N G u] (module docstring), through :attr:`FacetTriangles.operator`."""
+    u = _gather(facets, translations)
+    quadratic = _stress(facets, _strain_product(u, u))  # A N_q
+    return _scatter(facets, [(_stress(facets, u[6:]) + quadratic, u)], quadratic)
+
+
+def nonlinear_force_parts(facets: FacetTriangles, translations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """f_nl's quadratic and cubic parts f2(u, u), f3(u, u, u) (n, 3, m) N of nodal translations (n, 3, m) mm
+    (f_nl = f2 + f3 exactly): A [B_m^T N_q + G^T N_L G u] and A G^T N_q G u."""
+    u = _gather(facets, translations)
+    quadratic = _stress(facets, _strain_product(u, u))
+    return _scatter(facets, [(_stress(facets, u[6:]), u)], quadratic), _scatter(facets, [(quadratic, u)], None)
+
+
+def bilinear_force(facets: FacetTriangles, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """f2(a, b) (n, 3, m) N, the symmetric bilinear form of f_nl's quadratic part (f2(u, u) of
+    :func:`nonlinear_force_parts`), column by column of nodal translations a, b (n, 3, m) mm:
+    A [B_m^T t D (1/2 J_a^T J_b)_sym + 1/2 G^T (N_L(a) G b + N_L(b) G a)]."""
+    a, b = _gather(facets, first), _gather(facets, second)
+    return _scatter(facets, [(0.5 * _stress(facets, a[6:]), b), (0.5 * _stress(facets, b[6:]), a)],
+                    _stress(facets, _strain_product(a, b)))
 
 
 def nonlinear_force_vector(facets: FacetTriangles, u: np.ndarray, chunk_bytes: float = 200e6) -> np.ndarray:
     """f_nl (6n, m) N of displacements (6n, m) mm (rotations: zero force, ignored), ``chunk_bytes`` of facet
-    temporaries at a time (the facet arrays hold 9 values per facet and column)."""
-    n = u.shape[0] // 6
-    out = np.zeros_like(u)
+    temporaries at a time (:func:`on_displacements`)."""
+    return on_displacements(nonlinear_forces, facets, u, chunk_bytes=chunk_bytes)[0]
+
+
+def on_displacements(forces: Callable[..., np.ndarray | tuple[np.ndarray, ...]], facets: FacetTriangles,
+                     *displacements: np.ndarray, chunk_bytes: float = 200e6) -> tuple[np.ndarray, ...]:
+    """A facet force function of nodal translations (``forces(facets, *translations)``, each (n, 3, m) mm, returning
+    one or a tuple of (n, 3, m) N) applied to displacements (6n, m) mm (rotations ignored) in column chunks of
+    ``chunk_bytes`` of facet temporaries (about 30 values per facet and column): its forces (6n, m) N, a tuple,
+    zero on the rotations."""
+    n, m = displacements[0].shape[0] // 6, displacements[0].shape[1]
     translation = (np.arange(6 * n) % 6) < 3
-    chunk = max(1, int(chunk_bytes / (8 * 9 * len(facets.nodes))))
-    for start in range(0, u.shape[1], chunk):
-        part = u[translation, start:start + chunk]
-        out[translation, start:start + chunk] = nonlinear_forces(facets, part.reshape(n, 3, -1)).reshape(3 * n, -1)
-    return out
+    chunk = max(1, int(chunk_bytes / (8 * 30 * len(facets.nodes) * len(displacements))))
+    outs: list[np.ndarray] = []
+    for start in range(0, m, chunk):
+        parts = forces(facets, *(u[translation, start:start + chunk].reshape(n, 3, -1) for u in displacements))
+        for k, part in enumerate(parts if isinstance(parts, tuple) else (parts,)):
+            if k == len(outs):
+                outs.append(np.zeros((6 * n, m)))
+            outs[k][translation, start:start + chunk] = part.reshape(3 * n, -1)
+    return tuple(outs)
 
 
 def tangent_increment(facets: FacetTriangles, translations: np.ndarray, n_nodes: int) -> sp.csr_matrix:
@@ -239,6 +313,26 @@ class _Tangent:
     M: np.ndarray
 
 
+class _Mixing:
+    """Anderson mixing of a fixed-point iteration x -> x + r(x) over the last ``history`` iterates: a secant update
+    (the contact's kinks make the map only piecewise smooth)."""
+
+    def __init__(self, history: int) -> None:
+        self.history = history
+        self.xs: list[np.ndarray] = []
+        self.rs: list[np.ndarray] = []
+
+    def next(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """The next iterate after x with the fixed-point residual r = T(x) - x."""
+        self.xs, self.rs = [*self.xs, x][-self.history - 1:], [*self.rs, r][-self.history - 1:]
+        if len(self.rs) == 1:
+            return x + r
+        dR = np.stack([self.rs[i + 1] - self.rs[i] for i in range(len(self.rs) - 1)], axis=1)
+        dX = np.stack([self.xs[i + 1] - self.xs[i] for i in range(len(self.xs) - 1)], axis=1)
+        gamma = np.linalg.lstsq(dR, r, rcond=None)[0]
+        return x + r - (dX + dR) @ gamma
+
+
 class NonlinearSolver:
     """Geometrically nonlinear members of a factorised :class:`~.solver.ShellSolver` (same loads, boundaries and
     pads): an incremental Newton method whose tangents are shared between members.
@@ -247,38 +341,49 @@ class NonlinearSolver:
     g(u) = f_nl(u) - (K_T - K) u, from K_T's own linear responses, with the pad contact re-solved exactly (LCP on
     K_T's compliance) in every iteration; at convergence K u + f_nl(u) = F(a) + P f with the contact conditions,
     whichever tangent was used. A member starts from the solved state nearest to it (the reference state, all
-    parameters 0, is solved by Newton first) and walks to its own state in increments: when an increment does not
+    parameters 0, is solved first: modified Newton steps with Anderson mixing, a new tangent only when a step grows
+    past 1/``contraction`` x the smallest so far) and walks to its own state in increments: when an increment does not
     contract by ``contraction`` per iteration, a new tangent is factorised at the last solved increment (kept for the
     members after it), and then the increment is halved.
 
     tolerance: mm, largest change of any translation between iterations at convergence; min_step: the smallest
-    increment (fraction of the way) before SolverError (near or beyond a buckling load).
+    increment (fraction of the way) before SolverError (near or beyond a buckling load); newton_steps: the reference
+    state's iterations at most; facets: the model's :func:`facet_triangles` when the caller has them (their sparse
+    operator is ~200 MB at default resolution), else built here.
     """
 
     def __init__(self, solver: ShellSolver, tolerance: float = 1e-6, contraction: float = 0.5,
-                 min_step: float = 1.0 / 64, newton_steps: int = 20) -> None:
+                 min_step: float = 1.0 / 64, newton_steps: int = 30, facets: FacetTriangles | None = None) -> None:
         self.solver = solver
         self.tolerance = tolerance
         self.contraction = contraction
         self.min_step = min_step
         model = solver.model
         n = len(model.nodes)
-        self.facets = facet_triangles(model)
+        self.facets = facet_triangles(model) if facets is None else facets
         self._translation = (np.arange(6 * n) % 6) < 3
         self._pad_loads = solver.pads.loads.tocsr()
         self._solved: list[tuple[np.ndarray, np.ndarray, _Tangent]] = []  # (state, displacement, its tangent)
         self.factorisations = 0
-        u = solver.load_response()
-        for _ in range(newton_steps):
-            tangent = solver.with_stiffness((solver.K + self._increment(u)).tocsr())
-            self.factorisations += 1
+        u, tangent = solver.load_response(), None
+        for iteration in range(1, newton_steps + 1):
+            if tangent is None:
+                tangent = solver.with_stiffness((solver.K + self._increment(u)).tocsr())
+                mixing, best = _Mixing(6), np.inf
+                self.factorisations += 1
             correction = tangent.solve(solver.load - solver.K @ u - self._f_nl(u[:, None])[:, 0])
-            u = u + correction
-            if np.abs(correction).max() < tolerance:
+            size = float(np.abs(correction).max())
+            if size < tolerance:
+                u = u + correction
+                logger.info("reference state solved in %d iterations with %d tangents", iteration, self.factorisations)
                 break
+            if size > best / contraction:  # a new tangent only when the mixed iteration stops contracting
+                tangent = None
+                continue
+            best = min(best, size)
+            u = mixing.next(u, correction)
         else:
-            raise SolverError(f"the reference state did not converge in {newton_steps} Newton steps")
-        logger.info("reference state solved with %d Newton steps", self.factorisations)
+            raise SolverError(f"the reference state did not converge in {newton_steps} iterations")
         self.reference = u
         self._new_tangent(np.zeros(len(model.names)), u)
 
@@ -306,54 +411,58 @@ class NonlinearSolver:
         self._solved.append((state.copy(), u.copy(), out))
         return out
 
-    def _iterate(self, tangent: _Tangent, state: np.ndarray, u: np.ndarray, max_iter: int = 30, history: int = 6
-                 ) -> tuple[np.ndarray, np.ndarray, int] | None:
-        """Converged (displacement (6n,), pad forces (S,), iterations) of ``state`` from ``u``, or None when the
+    def _iterate(self, tangent: _Tangent, states: np.ndarray, u: np.ndarray, max_iter: int = 30, history: int = 6
+                 ) -> list[tuple[np.ndarray, np.ndarray, int] | None]:
+        """Members (m of them) of ``states`` (m, P) from displacements u (6n, m), iterated together (one
+        back-substitution of all the columns still iterating per iteration: several times cheaper a column than
+        one at a time): for each, converged (displacement (6n,), pad forces (S,), iterations), or None when its
         iteration does not converge in ``max_iter`` or its change grows past 1/contraction x the smallest so far.
 
-        The fixed point x = T(x) of the correction x = -K_T^-1 g(u(x)) is accelerated by Anderson mixing over the
-        last ``history`` iterates (a secant update: the contact's kinks make T only piecewise smooth)."""
+        Each member's fixed point x = T(x) of the correction x = -K_T^-1 g(u(x)) is accelerated by Anderson mixing
+        over its last ``history`` iterates (:class:`_Mixing`)."""
         B = len(self.solver.model.bilateral)
         pads = self.solver.pads
-        target = state[B:][pads.pad_of] + pads.preload
-        base = tangent.linear @ np.concatenate([[1.0], state[:B]])
+        target = states[:, B:][:, pads.pad_of] + pads.preload  # (m, S)
+        base = tangent.linear @ np.concatenate([np.ones((1, len(states))), states[:, :B].T])  # (6n, m)
 
-        def step(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            f = solve_lcp(tangent.M, self._pad_loads.T @ (base + x) - target)
-            u = base + x + tangent.pad_fields @ f
-            return tangent.solver.solve(tangent.increment @ u - self._f_nl(u[:, None])[:, 0]), u, f
+        def correction(u: np.ndarray) -> np.ndarray:
+            return tangent.solver.solve(tangent.increment @ u - self._f_nl(u))
 
-        x = tangent.solver.solve(tangent.increment @ u - self._f_nl(u[:, None])[:, 0])
-        xs, rs = [], []
-        best = np.inf
+        x = correction(u)
+        mixing = [_Mixing(history) for _ in states]
+        best = np.full(len(states), np.inf)
+        out: list[tuple[np.ndarray, np.ndarray, int] | None] = [None] * len(states)
+        active = np.arange(len(states))
         for iteration in range(1, max_iter + 1):
-            image, u, f = step(x)
-            r = image - x
-            change = float(np.abs(r).max())
-            if change < self.tolerance:
-                return u, f, iteration
-            if not np.isfinite(change) or change > best / self.contraction:
-                return None
-            best = min(best, change)
-            xs.append(x)
-            rs.append(r)
-            xs, rs = xs[-history - 1:], rs[-history - 1:]
-            if len(rs) > 1:
-                dR = np.stack([rs[i + 1] - rs[i] for i in range(len(rs) - 1)], axis=1)
-                dX = np.stack([xs[i + 1] - xs[i] for i in range(len(xs) - 1)], axis=1)
-                gamma = np.linalg.lstsq(dR, r, rcond=None)[0]
-                x = x + r - (dX + dR) @ gamma
-            else:
-                x = image
-        return None
+            if not len(active):
+                break
+            z = np.asarray(self._pad_loads.T @ (base[:, active] + x[:, active]))
+            f = np.stack([solve_lcp(tangent.M, z[:, i] - target[j]) for i, j in enumerate(active)], axis=1)
+            u = base[:, active] + x[:, active] + tangent.pad_fields @ f
+            r = correction(u) - x[:, active]
+            change = np.abs(r).max(axis=0)
+            going = []
+            for i, j in enumerate(active):
+                if change[i] < self.tolerance:
+                    out[j] = (u[:, i], f[:, i], iteration)
+                elif np.isfinite(change[i]) and change[i] <= best[j] / self.contraction:
+                    best[j] = min(best[j], change[i])
+                    x[:, j] = mixing[j].next(x[:, j].copy(), r[:, i].copy())  # (copies: x changes in place)
+                    going.append(j)
+            active = np.array(going, dtype=np.int64)
+        return out
+
+    def _nearest(self, state: np.ndarray) -> int:
+        """The index of the solved state nearest to ``state`` (1-norm)."""
+        return int(np.argmin([np.abs(solved[0] - state).sum() for solved in self._solved]))
 
     def solve_displacement(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
         """One member: displacement (6n,) mm, pad forces (S,) N, iterations."""
-        start, u, tangent = min(self._solved, key=lambda solved: float(np.abs(solved[0] - state).sum()))
+        start, u, tangent = self._solved[self._nearest(state)]
         done, step, fresh, iterations, f = 0.0, 1.0, True, 0, None
         while done < 1.0:
             trial = min(1.0, done + step)
-            result = self._iterate(tangent, start + trial * (state - start), u)
+            result = self._iterate(tangent, (start + trial * (state - start))[None], u[:, None])[0]
             if result is not None:
                 u, f, count = result
                 iterations += count
@@ -370,6 +479,23 @@ class NonlinearSolver:
             f = solve_lcp(tangent.M, self._pad_loads.T @ u - state[len(self.solver.model.bilateral):][
                 self.solver.pads.pad_of] - self.solver.pads.preload)
         return u, f, iterations
+
+    def solve_displacements(self, states: np.ndarray, guesses: np.ndarray
+                            ) -> list[tuple[np.ndarray, np.ndarray, int]]:
+        """Members (m, P) mm from displacements near them, guesses (6n, m) mm (e.g. a reduced model's members): each
+        iterated from its guess the whole way at once with its nearest solved state's tangent, those sharing a
+        tangent together (:meth:`_iterate`); those that do not converge walk (:meth:`solve_displacement`). For each,
+        displacement (6n,) mm, pad forces (S,) N, iterations."""
+        states = np.atleast_2d(np.asarray(states, dtype=float))
+        nearest = np.array([self._nearest(state) for state in states], dtype=np.int64)
+        out: list[tuple[np.ndarray, np.ndarray, int] | None] = [None] * len(states)
+        for k in np.unique(nearest):
+            members = np.flatnonzero(nearest == k)
+            for j, result in zip(members, self._iterate(self._solved[k][2], states[members], guesses[:, members]),
+                                 strict=True):
+                out[j] = result
+        return [self.solve_displacement(state) if result is None else result
+                for state, result in zip(states, out, strict=True)]
 
     def solve(self, commanded: np.ndarray) -> NonlinearMembers:
         """Members with commanded states (m, P) mm (model.names order), one after the other."""

@@ -25,18 +25,19 @@ parameters) in one of two ways (:func:`build_reduced_geometric`, ``training``):
 
 - ``"states"`` (the default): the K-weighted POD of the exact corrections u - u_lin of all training states, each
   solved once by the full nonlinear model (coarse hood-paper, HINGE_Y +-0.5 mm: 0.0077 mm from the full members;
-  the 137 solves are 91 % of the build, 69 of 75 s at load ~3).
-- ``"derivatives"``: static derivatives instead of most full solves. f_nl = f2(u, u) + f3(u, u, u) exactly, so its
-  even and odd parts give f2 and f3 with no step size, and back-substitutions with the factorised K give the
+  the 137 solves are most of the build, 36.5 of 43.5 CPU s).
+- ``"derivatives"``: static derivatives instead of most full solves. f_nl = f2(u, u) + f3(u, u, u) exactly; f2's
+  bilinear form and f3 evaluated as such (no step size) and back-substitutions with the factorised K give the
   second-order terms -K^-1 f2(v_i, v_j) of the linear fields (u0, W a, G Bf phi at their reach) and the second- and
   third-order terms along each training state's linear member; their POD gives modes - passes x added modes. Then
   greedy passes: the reduced training members' residuals through K^-1 rank them, the worst few are solved by the
-  full model and their corrections add modes (24 full solves instead of 137 by default). Not as accurate: 0.012 mm
-  on the same members, 0.019 mm at default resolution (a low-order expansion leaves about half of the correction
-  at the lock-twist and lock-buffer corners, where the nonlinearity is strong; the greedy full solves carry the
-  accuracy there), and no faster on the coarse hood, 76 s against 75 s (the tensors are summed four times;
-  benchmarks/RESULTS.md, "Training the reduced nonlinear model by static derivatives"). Each greedy pass sums
-  only the tensor terms with a new coordinate (:func:`energy_sums` with the previous sums; exact, 40 % of a
+  full model from the reduced members, a pass's members together (:meth:`.geometric.NonlinearSolver.
+  solve_displacements`, to TRAINING_TOLERANCE), and their corrections add modes (24 full solves instead of 137 by
+  default). Not as accurate: 0.012 mm on the same members, 0.019 mm at default resolution (a low-order expansion
+  leaves about half of the correction at the lock-twist and lock-buffer corners, where the nonlinearity is strong;
+  the greedy full solves carry the accuracy there). The build: ~32 CPU s on the coarse hood (71-74 before session
+  18), default resolution in benchmarks/RESULTS.md ("The nonlinear build's hot paths"). Each greedy pass sums only
+  the tensor terms with a new coordinate (:func:`energy_sums` with the previous sums; exact, 40 % of a
   fresh sum at d = 53).
 
 The tensors are sums over all facets (O(facets x d^4 / 4): one sum at d = 49 is ~35 s at default resolution).
@@ -71,10 +72,13 @@ from hood_decomp.core.fe.ensemble import MemberBlock, contact_summary, factorial
 from hood_decomp.core.fe.geometric import (
     FacetTriangles,
     NonlinearSolver,
+    bilinear_force,
     facet_triangles,
     gradients,
     linear_strain,
+    nonlinear_force_parts,
     nonlinear_force_vector,
+    on_displacements,
 )
 from hood_decomp.core.fe.model import skin_surface
 from hood_decomp.core.fe.solver import ShellSolver
@@ -90,6 +94,10 @@ CHUNK_BYTES = 200e6
 #: (the test's members at tolerance 1e-3: 400 rows 0.027 mm from the full solve, 800 rows 0.013 mm; at 1e-4 and 400
 #: rows 0.0073 mm, all facets 0.007-0.009 mm: the tolerance matters more than the rows)
 HYPER_ROWS = 400
+#: mm, the largest change between iterations at which the build's own full solves stop: the corrections they train
+#: are 0.1-0.8 mm and the model is 0.01-0.02 mm from the full solve, so 1e-4 is ample (coarse hood-paper: the same
+#: members to 2e-5 mm as with NonlinearSolver's 1e-6, and 32 % fewer iterations)
+TRAINING_TOLERANCE = 1e-4
 #: how the correction modes are trained (:func:`build_reduced_geometric`)
 TRAININGS = ("derivatives", "states")
 
@@ -105,7 +113,7 @@ class ReducedGeometricModel:
     Bf: (S, p) pad force shapes, H-orthonormal. Kq: (r, r) N/mm, Psi^T K Psi.
     T3q: (r, d, d), T4q: (r, d, d, d): the rows of the symmetrised energy tensors for q, d = 1 + B + p + r.
     residual: mm, the training members' difference from the full solve or their one-step correction (see
-    :func:`build_reduced_geometric`). build_s: seconds of the build's parts.
+    :func:`build_reduced_geometric`). build_s, build_cpu_s: wall and CPU seconds of the build's parts.
     """
 
     model_id: str
@@ -135,6 +143,7 @@ class ReducedGeometricModel:
     T4q: np.ndarray
     residual: float
     build_s: dict[str, float] = field(default_factory=dict)
+    build_cpu_s: dict[str, float] = field(default_factory=dict)
 
     @property
     def modes(self) -> int:
@@ -393,39 +402,32 @@ def derivative_snapshots(solver: ShellSolver, facets: FacetTriangles, fields: np
     and along each linear member e1 of ``lines`` (6n, l) mm its second- and third-order terms
     e2 = -K^-1 f2(e1, e1), e3 = -K^-1 [2 f2(e1, e2) + f3(e1, e1, e1)]. k = m (m + 1) / 2 + 2 l.
 
-    f_nl is f2(u, u) + f3(u, u, u), nothing else (:func:`.geometric.nonlinear_forces`), so its even part is the
-    quadratic one, Q(w) = [f_nl(w) + f_nl(-w)] / 2 = f2(w, w), and 2 f2(a, b) = Q(a + b) - Q(a) - Q(b); its odd
-    part is the cubic one, [f_nl(w) - f_nl(-w)] / 2 = f3(w, w, w): exact, no step size."""
-    def even_odd(columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        forces = nonlinear_force_vector(facets, np.concatenate([columns, -columns], axis=1))
-        k = columns.shape[1]
-        return (forces[:, :k] + forces[:, k:]) / 2, (forces[:, :k] - forces[:, k:]) / 2
-
-    m = fields.shape[1]
-    first, second = np.triu_indices(m, 1)
-    single, _ = even_odd(fields)
-    pair, _ = even_odd(fields[:, first] + fields[:, second])
-    quadratic = np.concatenate([single, pair - single[:, first] - single[:, second]], axis=1)
-    even, odd = even_odd(lines)
+    f_nl is f2(u, u) + f3(u, u, u), nothing else (:func:`.geometric.nonlinear_forces`); f2's bilinear form and f3
+    are evaluated as such (:func:`.geometric.bilinear_force`, :func:`.geometric.nonlinear_force_parts`): exact, no
+    step size."""
+    first, second = np.triu_indices(fields.shape[1])
+    quadratic = on_displacements(bilinear_force, facets, fields[:, first], fields[:, second])[0]
+    quadratic[:, first != second] *= 2
+    even, odd = on_displacements(nonlinear_force_parts, facets, lines)
     e2 = -solver.solve(even)
-    mixed, _ = even_odd(lines + e2)
-    even2, _ = even_odd(e2)
-    e3 = -solver.solve(mixed - even - even2 + odd)
+    mixed = 2 * on_displacements(bilinear_force, facets, lines, e2)[0] + odd
+    e3 = -solver.solve(mixed)
     return np.concatenate([-solver.solve(quadratic), e2, e3], axis=1)
 
 
 def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.ndarray, modes: int = 36,
                             pad_samples: int = 1400, seed: int = 1, full: NonlinearSolver | None = None,
                             training: str = "states", passes: int = 3, solves: int = 8, added: int = 4,
-                            hyper: float | None = None) -> ReducedGeometricModel:
+                            hyper: float | None = None, enough: float | None = None) -> ReducedGeometricModel:
     """The reduced nonlinear model of a factorised linear solver over the ranges [lower, upper] (P,) mm.
 
     The correction modes (``modes`` of them at most) are trained on the training states (:func:`training_states`)
     in one of two ways (``training``):
 
     - ``"states"``: the K-weighted POD of the exact corrections u - u_lin of all training states, each solved by the
-      full nonlinear model (``full``, or a new :class:`.geometric.NonlinearSolver` of ``solver``); ``residual`` is
-      the largest difference of the reduced model's training members from those (any skin translation).
+      full nonlinear model (``full``, or a new :class:`.geometric.NonlinearSolver` of ``solver`` converged to
+      TRAINING_TOLERANCE); ``residual`` is the largest difference of the reduced model's training members from
+      those (any skin translation).
     - ``"derivatives"``: ``modes - passes x added`` modes from the K-weighted POD of static derivatives
       (:func:`derivative_snapshots`: the second-order terms of the linear fields u0, W a, G Bf phi scaled to their
       reach in the ranges, and the second- and third-order terms along the training states' linear members), then
@@ -433,7 +435,10 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
       them, the ``solves`` largest (not solved before) are solved by the full nonlinear model, and the K-weighted POD
       of their corrections K-orthogonal to the modes so far adds ``added`` modes. ``residual`` is the largest
       |K^-1 r| of the final model's training members on the skin (an error indicator, not a difference from the
-      full solve). ``passes x solves`` full solves instead of 137.
+      full solve). ``passes x solves`` full solves instead of 137; with ``enough`` (mm), fewer: the passes end once
+      the largest indicator of the training members not yet solved is below it, and the model has fewer modes (an
+      estimate, not a bound: on coarse hood-paper the members' largest distance from the full solve was 0.3-0.8x
+      the final indicator; benchmarks/RESULTS.md, session 18).
 
     pad_samples: random states whose linear pad forces (with the factorial's) give the pad force shapes.
     hyper: None (the energy tensors summed over all facets) or the relative tolerance of a hyper-reduction: the
@@ -441,19 +446,22 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
     HYPER_ROWS // modes training states, their coordinates q the K-projection of their correction estimates (the
     static derivatives' e2 + e3 along their rays, or the full solve where there is one) on the modes; re-fitted
     whenever the modes grow (opt-in: not exact).
-    ``build_s``: seconds of the build's parts (pads, derivatives, full solves, tensors, indicator or check).
+    ``build_s``, ``build_cpu_s``: wall and CPU seconds (this process) of the build's parts (pads, derivatives, full
+    solves, tensors, indicator or check).
     """
     if training not in TRAININGS:
         raise SolverError(f"training: expected one of {TRAININGS}, got {training!r}")
+    if enough is not None and not enough > 0:
+        raise SolverError(f"enough: expected None or an indicator in mm > 0, got {enough!r}")
     if hyper is not None and not 0 < hyper < 1:
         raise SolverError(f"hyper: expected None or a relative tolerance in (0, 1), got {hyper!r}")
     start = time.perf_counter()
-    clock = {"start": start}
+    clock, cpu = {"start": start}, {"start": time.process_time()}
 
     def lap(name: str) -> None:
-        now = time.perf_counter()
-        clock[name] = clock.get(name, 0.0) + now - clock["start"]
-        clock["start"] = now
+        for timer, now in ((clock, time.perf_counter()), (cpu, time.process_time())):
+            timer[name] = timer.get(name, 0.0) + now - timer["start"]
+            timer["start"] = now
 
     model = solver.model
     lower, upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
@@ -471,13 +479,20 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
     def linear_forces(commanded: np.ndarray) -> np.ndarray:
         return np.array([solve_lcp(M, z0 + Sa @ s[:B] - s[B:][pads.pad_of] - pads.preload) for s in commanded])
 
-    def corrections(commanded: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Full nonlinear members (6n, m) and their corrections u - u_lin (6n, m), zero on the constrained DOFs."""
+    def corrections(commanded: np.ndarray, guesses: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Full nonlinear members (6n, m) and their corrections u - u_lin (6n, m), zero on the constrained DOFs;
+        guesses: (6n, m) displacements near them to start from (the reduced members), or None."""
         nonlocal full
-        full = NonlinearSolver(solver) if full is None else full
+        full = NonlinearSolver(solver, tolerance=TRAINING_TOLERANCE, facets=facets) if full is None else full
         exact, f = np.zeros((6 * n, len(commanded))), np.zeros((len(commanded), len(pads.k)))
-        for i, state in enumerate(commanded):
-            exact[:, i], f[i], _ = full.solve_displacement(state)
+        solved = ([full.solve_displacement(state) for state in commanded] if guesses is None
+                  else full.solve_displacements(commanded, guesses))
+        iterations = 0
+        for i, (u, forces, count) in enumerate(solved):
+            exact[:, i], f[i] = u, forces
+            iterations += count
+        logger.info("%d full solves: %d iterations, %d factorisations so far", len(commanded), iterations,
+                    full.factorisations)
         return exact, exact - u0[:, None] - W @ commanded[:, :B].T - G @ f.T
 
     # pad force shapes: H-weighted POD of the linear members' forces
@@ -530,13 +545,16 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
         step = solver.solve(solver.K @ reduced + nonlinear_force_vector(facets, reduced) - solver.load[:, None]
                             - P @ f.T).reshape(n, 6, -1)
         lap("indicator")
-        if sweep == passes:
+        size = np.where(solved, -1.0, np.abs(step[:, :3]).max(axis=(0, 1)))
+        if sweep == passes or (enough is not None and size.max() < enough):
+            if sweep < passes:
+                logger.info("greedy passes end after %d: largest indicator %.4f mm < %.4f mm", sweep, size.max(),
+                            enough)
             residual = float(np.abs(step[model.skin_nodes, :3]).max())
             break
-        size = np.where(solved, -1.0, np.abs(step[:, :3]).max(axis=(0, 1)))
         chosen = np.argsort(size)[::-1][:solves]
         solved[chosen] = True
-        new = corrections(states[chosen])[1]
+        new = corrections(states[chosen], reduced[:, chosen])[1]
         estimate[:, chosen] = new
         logger.info("pass %d: %d full solves, largest indicator %.4f mm (%.1f s)", sweep + 1, len(chosen),
                     size.max(), time.perf_counter() - start)
@@ -551,9 +569,10 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
         residual = float(np.abs(difference[model.skin_nodes, :3]).max())
         lap("check")
     clock.pop("start")
+    cpu.pop("start")
     logger.info("reduced nonlinear model (%s): %d modes, %d pad force shapes; residual %.4f mm (%.1f s)",
                 training, rom.modes, p, residual, time.perf_counter() - start)
-    return replace(rom, residual=residual, build_s=clock)
+    return replace(rom, residual=residual, build_s=clock, build_cpu_s=cpu)
 
 
 def _pod(K: np.ndarray, snapshots: np.ndarray, modes: int) -> np.ndarray:
