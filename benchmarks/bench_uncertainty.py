@@ -53,9 +53,9 @@ from tests.conftest import _hood_case  # noqa: E402
 OUT = ROOT / "benchmarks" / "out" / "uncertainty.json"  # --out to change
 LEVELS_MM = (0.0, 0.01, 0.02, 0.05, 0.1, 0.2, 0.3)  # 0: complete model, the gate at 0.02 mm
 Z95 = 1.959964
-#: scan points on the skin per resolution. Paper: 2M, 11 points per node of 9.7 mm^2 (the default's 500k give 17 per
-#: 59 mm^2 node); 500k would leave about 3 points per paper node, every node still seen (the scan step smooths over
-#: 7.8 mm; RESULTS run 19 C: 179,638 against 180,562 nodes seen) but a node std 1.8 times larger
+#: scan points on the skin per resolution. Paper: 2M, 11 points per 9.4 mm^2 node (the default's 500k give 17 per
+#: 59 mm^2 node); 500k would leave under 3 points per paper node, as many nodes seen (the scan step smooths over
+#: 7.8 mm there; RESULTS run 19 C: 179,638 against 180,562 seen) but each node's std 1.8 times larger
 POINTS = {"coarse": 120_000, "default": 500_000, "paper": 2_000_000}
 
 
