@@ -167,6 +167,10 @@ def summary(rows: list[dict], names: tuple[str, ...]) -> dict:
     out["tails"] = [{key: row.get(key) for key in ("scan", "z", "p", "within", "state", "noise_mm", "marker_noise_mm",
                                                    "holes", "scanner_seed", "coverage", "marker_rms_mm", "pose_chi2")}
                     for row, zs in zip(rows, z, strict=True) if np.nanmax(np.abs(zs), initial=0.0) > 4.0]
+    # the alarms: every row the test rejected, with its p-value and level and (scans) what made it
+    out["alarms"] = [{key: row.get(key) for key in ("scan", "p", "noise_scale", "state", "noise_mm", "marker_noise_mm",
+                                                    "holes", "scanner_seed", "coverage", "pose_chi2")}
+                     for row in rows if not row["within"]]
     if "marker_check_rejected" in rows[0]:
         out["marker_check_rejected"] = float(np.mean([bool(r["marker_check_rejected"]) for r in rows]))
     kinds = [kind for r in rows for kind in r["reasons"]]
