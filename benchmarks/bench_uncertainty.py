@@ -1,7 +1,7 @@
 """Calibration of the stated uncertainty and of the one within-model test, on data the estimator's path did not make.
 
 Harness (i), measurement, on the default hood (issue 15; ``--resolution coarse`` for the large counts, ``--resolution
-paper`` for the paper's 188,730 skin nodes: about 10 GB to build, run it under the memory lock).
+paper`` for the paper's 188,730 skin nodes: 14.6 GB peak, run it under the memory lock).
 Truth: random states in the declared ranges, solved exactly by the bases' own FE model (contact included); then
 - ``noise``: the true field plus white node noise 0.01-0.05 mm, the noise stated as the field's error model;
 - ``scan``: the synthetic structured-light scanner (Phong-smooth displaced skin, range noise 0.01-0.05 mm, outliers,
