@@ -1,6 +1,7 @@
 """Calibration of the stated uncertainty and of the one within-model test, on data the estimator's path did not make.
 
-Harness (i), measurement, on the default hood (issue 15; ``--resolution coarse`` for the large counts).
+Harness (i), measurement, on the default hood (issue 15; ``--resolution coarse`` for the large counts, ``--resolution
+paper`` for the paper's 188,730 skin nodes: 14.6 GB peak, run it under the memory lock).
 Truth: random states in the declared ranges, solved exactly by the bases' own FE model (contact included); then
 - ``noise``: the true field plus white node noise 0.01-0.05 mm, the noise stated as the field's error model;
 - ``scan``: the synthetic structured-light scanner (Phong-smooth displaced skin, range noise 0.01-0.05 mm, outliers,
@@ -14,7 +15,7 @@ Truth: random states in the declared ranges, solved exactly by the bases' own FE
 Per parameter: the fraction of |error| / std inside the 95 % interval (|z| <= 1.96) and max |z|, over the parameters
 whose contact state the estimate got right (a lifted pad's value is the part's position, compared with the true
 part position); the false-alarm rate of the test (alpha 1 %); the gate-open rate and the largest error of an
-applied correction when the gate is open.
+applied correction when the gate is open; the CPU time of each estimate (``estimate_field`` alone, median).
 
 Prints a table and writes benchmarks/out/uncertainty.json (rewritten as it goes). Run from the repository root:
     scripts/with-env nice python benchmarks/bench_uncertainty.py [--resolution R] [--noise N] [--scans N]
@@ -40,7 +41,11 @@ sys.path.insert(0, str(ROOT))
 from hood_decomp.core.fe.ensemble import simulate_setting, solve_members  # noqa: E402
 from hood_decomp.core.method.bases import estimate_field  # noqa: E402
 from hood_decomp.core.method.correction import CorrectionPolicy, plan_correction  # noqa: E402
-from hood_decomp.core.scan.scan_field import field_from_scan, prepared_estimator  # noqa: E402
+from hood_decomp.core.scan.scan_field import (  # noqa: E402
+    field_from_scan,
+    prepared_estimator,
+    smoothing_bias_correlation,
+)
 from hood_decomp.core.types import DisplacementField, FieldErrorModel  # noqa: E402
 from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan  # noqa: E402
 from tests.conftest import _hood_case  # noqa: E402
@@ -48,10 +53,21 @@ from tests.conftest import _hood_case  # noqa: E402
 OUT = ROOT / "benchmarks" / "out" / "uncertainty.json"  # --out to change
 LEVELS_MM = (0.0, 0.01, 0.02, 0.05, 0.1, 0.2, 0.3)  # 0: complete model, the gate at 0.02 mm
 Z95 = 1.959964
+#: scan points on the skin per resolution. Paper: 2M, 11 points per 9.4 mm^2 node (the default's 500k give 17 per
+#: 59 mm^2 node); 500k would leave under 3 points per paper node, as many nodes seen (the scan step smooths over
+#: 7.8 mm there; RESULTS run 19 C: 179,638 against 180,562 seen) but each node's std 1.8 times larger
+POINTS = {"coarse": 120_000, "default": 500_000, "paper": 2_000_000}
 
 
 def log(line: str) -> None:
     print(f"[bench_uncertainty {time.strftime('%H:%M:%S')}] {line}", file=sys.stderr, flush=True)
+
+
+def timed_estimate(bases, field):
+    """``estimate_field(bases, field)`` and its CPU time, ms."""
+    start = time.process_time()
+    estimate = estimate_field(bases, field)
+    return estimate, 1e3 * (time.process_time() - start)
 
 
 def judge(estimate, member, names) -> dict:
@@ -145,10 +161,16 @@ def summary(rows: list[dict], names: tuple[str, ...]) -> dict:
     out["applicable_boundaries"] = {name: sum(name in r["applicable"] for r in rows) for name in names}
     out["applicable_boundaries_before"] = {name: sum(name in r["applicable_before"] for r in rows) for name in names}
     out["max_applied_error_mm"] = float(max(r["applied_error_mm"] for r in rows))
+    if "cpu_ms" in rows[0]:
+        out["estimate_cpu_ms_median"] = float(np.median([r["cpu_ms"] for r in rows]))
     # the tails: every scan with a |z| above 4, with what made it (scan rows carry their draws)
     out["tails"] = [{key: row.get(key) for key in ("scan", "z", "p", "within", "state", "noise_mm", "marker_noise_mm",
                                                    "holes", "scanner_seed", "coverage", "marker_rms_mm", "pose_chi2")}
                     for row, zs in zip(rows, z, strict=True) if np.nanmax(np.abs(zs), initial=0.0) > 4.0]
+    # the alarms: every row the test rejected, with its p-value and level and (scans) what made it
+    out["alarms"] = [{key: row.get(key) for key in ("scan", "p", "noise_scale", "state", "noise_mm", "marker_noise_mm",
+                                                    "holes", "scanner_seed", "coverage", "pose_chi2")}
+                     for row in rows if not row["within"]]
     if "marker_check_rejected" in rows[0]:
         out["marker_check_rejected"] = float(np.mean([bool(r["marker_check_rejected"]) for r in rows]))
     kinds = [kind for r in rows for kind in r["reasons"]]
@@ -162,7 +184,7 @@ def start_run(args: argparse.Namespace, log: Callable[[str], None], **results: o
     the run's generator, the hood case (bases, reduced model, skin, model), the results dict (date, names, args and
     ``results``) and the function that writes it to ``args.out`` as the run goes."""
     if args.points is None:
-        args.points = 500_000 if args.resolution == "default" else 120_000
+        args.points = POINTS[args.resolution]
     rng = np.random.default_rng(args.seed)
     log(f"building the {args.resolution} hood, its ensemble and bases")
     with tempfile.TemporaryDirectory() as tmp:
@@ -178,12 +200,13 @@ def start_run(args: argparse.Namespace, log: Callable[[str], None], **results: o
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--resolution", choices=("default", "coarse"), default="default")
+    parser.add_argument("--resolution", choices=tuple(POINTS), default="default")
     parser.add_argument("--noise", type=int, default=1000, help="noise-only fields")
     parser.add_argument("--scans", type=int, default=200, help="scans of harness (i)")
     parser.add_argument("--per-level", type=int, default=20, help="undeclared-effect scans per hinge_R.z level")
     parser.add_argument("--points", type=int, default=None,
-                        help="scan points on the skin (default: 500,000 at default resolution, 120,000 at coarse)")
+                        help="scan points on the skin (default: 500,000 at default resolution, 120,000 at coarse, "
+                             "2,000,000 at paper)")
     parser.add_argument("--levels", type=float, nargs="+", default=LEVELS_MM, help="hinge_R.z levels, mm")
     parser.add_argument("--marker-noise", type=float, default=0.02,
                         help="marker-centre noise of the undeclared-effect scans, mm (0.02: harness (i)'s lowest)")
@@ -210,12 +233,15 @@ def main() -> int:
 
     log(f"{args.noise} noise-only fields")
     rows = []
-    for _ in range(args.noise):
+    for k in range(args.noise):
         member = member_of(rng.uniform(lo, hi))
         sigma = rng.uniform(0.01, 0.05)
         values = member.normal_displacement[0] + rng.normal(0.0, sigma, skin.n_nodes)
         field = DisplacementField(skin.model_id, values, 1.0, float("nan"), FieldErrorModel.stated(sigma, skin.n_nodes))
-        rows.append(judge(estimate_field(bases, field), member, names))
+        estimate, cpu_ms = timed_estimate(bases, field)
+        rows.append(judge(estimate, member, names) | {"cpu_ms": cpu_ms})
+        if (k + 1) % 100 == 0:
+            log(f"noise field {k + 1}: estimate {np.median([r['cpu_ms'] for r in rows]):.1f} CPU ms (median)")
     results["noise"] = summary(rows, names)
     save()
 
@@ -223,7 +249,9 @@ def main() -> int:
     # 10), which _hood_case registers as loading the bases file does
     est = prepared_estimator(skin)
     results["bias_correlation"] = est.bias_correlation_
-    log(f"bias correlation {est.bias_correlation_:.1f} nodes (measured: {est.bias_measured_})")
+    results["bias_correlation_area_fallback"] = smoothing_bias_correlation(skin)  # what a bare estimator would state
+    log(f"bias correlation {est.bias_correlation_:.1f} nodes (measured: {est.bias_measured_}; area fallback "
+        f"{results['bias_correlation_area_fallback']:.1f}), variance floor {est.bias_variance_floor_:.3g} mm^2")
     drawn: dict = {}  # the last scan's draws
 
     def scan(state, noise, marker_noise, extra_3d=None, holes=None):
@@ -250,7 +278,8 @@ def main() -> int:
     scaled: dict[float, list[dict]] = {factor: [] for factor in args.bias_factors}
     for k in range(args.scans):
         member, field = scan(rng.uniform(lo, hi), rng.uniform(0.01, 0.05), rng.uniform(0.02, 0.05))
-        rows.append(judge(estimate_field(bases, field), member, names) | {"scan": k, **drawn})
+        estimate, cpu_ms = timed_estimate(bases, field)
+        rows.append(judge(estimate, member, names) | {"scan": k, "cpu_ms": cpu_ms, **drawn})
         for factor, judged in scaled.items():
             errors = dataclasses.replace(field.errors, bias_correlation=factor * field.errors.bias_correlation)
             judged.append(judge(estimate_field(bases, dataclasses.replace(field, error_model=errors)), member, names))
@@ -260,7 +289,8 @@ def main() -> int:
             save()
             done = results["scan"]
             log(f"scan {k + 1}: {(time.time() - start) / (k + 1):.1f} s per scan, "
-                f"false alarms {done['false_alarm_rate']:.3f}, gate open {done['gate_open_rate']:.3f}")
+                f"false alarms {done['false_alarm_rate']:.3f}, gate open {done['gate_open_rate']:.3f}, "
+                f"estimate {done['estimate_cpu_ms_median']:.1f} CPU ms")
     results["scan"] = summary(rows, names)
     results["bias_factors"] = {f"{factor:g}": summary(judged, names) for factor, judged in scaled.items()}
     save()
@@ -311,7 +341,8 @@ def main() -> int:
                   f"{row['max_abs_z'] or float('nan'):>7.2f}  applicable alone {row['applicable']:.3f}, worst "
                   f"{row['max_applicable_error_mm'] or 0.0:.4f} mm")
         print(f"{key:<8} false alarms {results[key]['false_alarm_rate']:.3f}, gate open "
-              f"{results[key]['gate_open_rate']:.3f}, max applied error {results[key]['max_applied_error_mm']:.4f} mm")
+              f"{results[key]['gate_open_rate']:.3f}, max applied error {results[key]['max_applied_error_mm']:.4f} mm, "
+              f"estimate {results[key]['estimate_cpu_ms_median']:.1f} CPU ms (median)")
     for factor, row in results.get("bias_factors", {}).items():
         if not row.get("n"):
             continue
