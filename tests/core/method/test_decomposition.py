@@ -219,21 +219,16 @@ def test_the_prior_of_a_lifted_buffer_is_its_support_removed():
                                    np.linalg.norm(truth["w3"] - zero["w3"], axis=1), atol=1e-8)
 
 
-def test_a_noisy_fields_lock_and_buffer_contributions_hold_still(coarse_hood):
-    """Fails if step 4 on a field that states its noise is the paper's plain least squares: on the coarse hood 1 um
-    of white node noise moved a lock's or buffer's partial displacement by up to 0.17 mm RMS (benchmarks/RESULTS.md
-    issue 15 run 18 C). Three draws at one state: with the prior (tau a tenth of the stated noise) the largest RMS
-    change of any partial against the noise-free field's decomposition must be below 0.02 mm and 5x below the
-    plain least squares' on the same draws, the reconstruction within 0.0005 mm RMS of the noise-free one."""
-    from hood_decomp.core.fe.ensemble import solve_members
-    from hood_decomp.core.method.bases import decompose_field, estimate_field
-    from hood_decomp.core.types import DisplacementField, FieldErrorModel
+_STATE = np.array([[0.41, -0.9, 0.3, -0.45, -0.59, -0.35]])
 
-    bases = coarse_hood.bases
-    rng = np.random.default_rng(6)
-    clean = solve_members(coarse_hood.reduced, np.array([[0.41, -0.9, 0.3, -0.45, -0.59, -0.35]])
-                          ).normal_displacement[0]
-    errors = FieldErrorModel.stated(0.001, clean.size)
+
+def _partials_moved(bases, errors, clean: np.ndarray, draws: list[np.ndarray], settings: dict[str, dict]
+                    ) -> dict[str, tuple[float, float]]:
+    """Per setting (label: decompose_field options), over the noisy ``draws`` of the field ``clean`` (both stating
+    ``errors``): (largest RMS change of any effect's partial displacement, largest RMS drift of the reconstruction)
+    against the decomposition of ``clean`` itself (mm)."""
+    from hood_decomp.core.method.bases import decompose_field, estimate_field
+    from hood_decomp.core.types import DisplacementField
 
     def decomposed(values, **options):
         field = DisplacementField(bases.model_id, values, 1.0, float("nan"), errors)
@@ -241,15 +236,32 @@ def test_a_noisy_fields_lock_and_buffer_contributions_hold_still(coarse_hood):
         return {e.name: e.partial_displacement for e in result.effects}, result.reconstruction
 
     moved = {}
-    for label, options in (("prior", {}), ("paper", {"tau_mm": 0.0})):
+    for label, options in settings.items():
         base, base_reconstruction = decomposed(clean, **options)
         changes, drifts = [], []
-        for _ in range(3):
-            noisy, reconstruction = decomposed(clean + 0.001 * rng.normal(size=clean.size), **options)
+        for values in draws:
+            noisy, reconstruction = decomposed(values, **options)
             changes.append(max(float(np.sqrt(np.mean((noisy.get(n, 0.0) - base.get(n, 0.0)) ** 2)))
                                for n in set(base) | set(noisy)))
             drifts.append(float(np.sqrt(np.mean((reconstruction - base_reconstruction) ** 2))))
         moved[label] = (max(changes), max(drifts))
+    return moved
+
+
+def test_a_noisy_fields_lock_and_buffer_contributions_hold_still(coarse_hood):
+    """Fails if step 4 on a field that states its noise is the paper's plain least squares: on the coarse hood 1 um
+    of white node noise moved a lock's or buffer's partial displacement by up to 0.17 mm RMS (benchmarks/RESULTS.md
+    issue 15 run 18 C). Three draws at one state: with the prior (tau a tenth of the stated noise) the largest RMS
+    change of any partial against the noise-free field's decomposition must be below 0.02 mm and 5x below the
+    plain least squares' on the same draws, the reconstruction within 0.0005 mm RMS of the noise-free one."""
+    from hood_decomp.core.fe.ensemble import solve_members
+    from hood_decomp.core.types import FieldErrorModel
+
+    rng = np.random.default_rng(6)
+    clean = solve_members(coarse_hood.reduced, _STATE).normal_displacement[0]
+    draws = [clean + 0.001 * rng.normal(size=clean.size) for _ in range(3)]
+    moved = _partials_moved(coarse_hood.bases, FieldErrorModel.stated(0.001, clean.size), clean, draws,
+                            {"prior": {}, "paper": {"tau_mm": 0.0}})
     print(f"largest partial RMS change, reconstruction drift (mm): {moved}")
     assert moved["prior"][0] < 0.02
     assert moved["prior"][0] * 5 < moved["paper"][0]
@@ -264,39 +276,21 @@ def test_a_smoothed_noises_correlation_strengthens_the_pull(coarse_hood):
     and a third of the one with tau from the node std alone (measured 6 states x 5 draws: max 0.009 against 0.06 mm,
     benchmarks/RESULTS.md issue 15 run 19 D), the reconstruction within 0.001 mm RMS of the noise-free one."""
     from hood_decomp.core.fe.ensemble import solve_members
-    from hood_decomp.core.method.bases import decompose_field, estimate_field
     from hood_decomp.core.method.residual import ring_incidence
-    from hood_decomp.core.types import DisplacementField, FieldErrorModel
+    from hood_decomp.core.types import FieldErrorModel
 
-    bases = coarse_hood.bases
-    rings = ring_incidence(bases.skin).astype(float)
+    rings = ring_incidence(coarse_hood.bases.skin).astype(float)
     average = rings.multiply(1.0 / rings.sum(axis=1)).tocsr()
     smoothing = (average @ average).tocsr()
     std = np.sqrt(np.asarray(smoothing.multiply(smoothing).sum(axis=1)).ravel())
     covariance = (smoothing @ smoothing.T).tocsr()
     correlation = np.asarray(covariance.multiply(1.0 / std[:, None]).multiply(1.0 / std[None, :]).sum(axis=1)).ravel()
     level = 0.0015
-    errors = FieldErrorModel("stated", np.full(std.size, level), correlation)
     rng = np.random.default_rng(8)
-    clean = solve_members(coarse_hood.reduced, np.array([[0.41, -0.9, 0.3, -0.45, -0.59, -0.35]])
-                          ).normal_displacement[0]
-
-    def decomposed(values, **options):
-        field = DisplacementField(bases.model_id, values, 1.0, float("nan"), errors)
-        result = decompose_field(bases, field, estimate_field(bases, field), **options)
-        return {e.name: e.partial_displacement for e in result.effects}, result.reconstruction
-
+    clean = solve_members(coarse_hood.reduced, _STATE).normal_displacement[0]
     draws = [clean + level * (smoothing @ rng.normal(size=clean.size)) / std for _ in range(3)]
-    moved = {}
-    for label, options in (("product", {}), ("std alone", {"tau_mm": 0.1 * level})):
-        base, base_reconstruction = decomposed(clean, **options)
-        changes, drifts = [], []
-        for values in draws:
-            noisy, reconstruction = decomposed(values, **options)
-            changes.append(max(float(np.sqrt(np.mean((noisy.get(n, 0.0) - base.get(n, 0.0)) ** 2)))
-                               for n in set(base) | set(noisy)))
-            drifts.append(float(np.sqrt(np.mean((reconstruction - base_reconstruction) ** 2))))
-        moved[label] = (max(changes), max(drifts))
+    moved = _partials_moved(coarse_hood.bases, FieldErrorModel("stated", np.full(std.size, level), correlation),
+                            clean, draws, {"product": {}, "std alone": {"tau_mm": 0.1 * level}})
     print(f"g median {np.median(correlation):.1f}; largest partial RMS change, reconstruction drift (mm): {moved}")
     assert moved["product"][0] < 0.01
     assert moved["product"][0] * 3 < moved["std alone"][0]
