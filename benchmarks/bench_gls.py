@@ -2,8 +2,11 @@
 
 188,700 skin nodes (a 629 x 300 grid of tests/toy_models.make_skin), a 10-component PCA basis of smooth synthetic
 fields (64 members: the estimate's cost does not depend on the member count) and the contact-aware estimator on a
-synthetic reduced model (4 bilateral states, 2 pads of 2 springs) of the same node count. A field with 20 % of the
-nodes unseen, timed as
+synthetic reduced model (4 bilateral states, 2 pads of 2 springs) of the same node count. A toy: the built-in hood's
+contact-aware fit has a column per pad spring and the gate's model spread beside it, and costs far more at paper
+resolution (107 CPU ms on a noise field, 312 ms on a scan: benchmarks/RESULTS.md issue 15 run 19 P, measured by
+``bench_uncertainty.py --resolution paper``); this one isolates the generalised fit and the test. A field with 20 %
+of the nodes unseen, timed as
 
 - ``plain``: no error model, no skin test (what benchmarks/bench_method.py times: the paper's estimator);
 - ``stated``: a white uniform stated noise with the skin's within-model test (Sigma a multiple of I: the ordinary
