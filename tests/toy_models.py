@@ -237,3 +237,21 @@ def plain_hierarchical(
                 basis.append(diffs[int(partner[0])])
             found.append(" & ".join(n for n, s in zip(names, commanded[m], strict=True) if s != 0))
     return found, refits
+
+
+def smoothed_noise(skin: SkinSurface, passes: int) -> tuple[object, np.ndarray, np.ndarray]:
+    """Node noise smoothed as a scan's is, with its error model known exactly (not the scan step's): white noise
+    averaged over each node's one ring ``passes`` times (>= 1). Returns (S (N, N) sparse, the smoothing; std (N,), the
+    per-node std of S e for unit white e; correlation (N,), each node's sum of correlation coefficients with all
+    nodes): ``level * (S @ e) / std`` has node std ``level`` and those correlation sums."""
+    from hood_decomp.core.method.residual import ring_incidence
+
+    rings = ring_incidence(skin).astype(float)
+    average = rings.multiply(1.0 / rings.sum(axis=1)).tocsr()
+    smoothing = average
+    for _ in range(passes - 1):
+        smoothing = (average @ smoothing).tocsr()
+    std = np.sqrt(np.asarray(smoothing.multiply(smoothing).sum(axis=1)).ravel())
+    covariance = (smoothing @ smoothing.T).tocsr()
+    correlation = np.asarray(covariance.multiply(1.0 / std[:, None]).multiply(1.0 / std[None, :]).sum(axis=1)).ravel()
+    return smoothing, std, correlation

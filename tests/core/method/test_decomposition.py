@@ -276,15 +276,10 @@ def test_a_smoothed_noises_correlation_strengthens_the_pull(coarse_hood):
     and a third of the one with tau from the node std alone (measured 6 states x 5 draws: max 0.009 against 0.06 mm,
     benchmarks/RESULTS.md issue 15 run 19 D), the reconstruction within 0.001 mm RMS of the noise-free one."""
     from hood_decomp.core.fe.ensemble import solve_members
-    from hood_decomp.core.method.residual import ring_incidence
     from hood_decomp.core.types import FieldErrorModel
+    from tests.toy_models import smoothed_noise
 
-    rings = ring_incidence(coarse_hood.bases.skin).astype(float)
-    average = rings.multiply(1.0 / rings.sum(axis=1)).tocsr()
-    smoothing = (average @ average).tocsr()
-    std = np.sqrt(np.asarray(smoothing.multiply(smoothing).sum(axis=1)).ravel())
-    covariance = (smoothing @ smoothing.T).tocsr()
-    correlation = np.asarray(covariance.multiply(1.0 / std[:, None]).multiply(1.0 / std[None, :]).sum(axis=1)).ravel()
+    smoothing, std, correlation = smoothed_noise(coarse_hood.bases.skin, 2)
     level = 0.0015
     rng = np.random.default_rng(8)
     clean = solve_members(coarse_hood.reduced, _STATE).normal_displacement[0]

@@ -139,7 +139,7 @@ def entry() -> NoReturn:
     """The ``hood-decomp`` program: :func:`main` on ``sys.argv``, then exit with its status.
 
     For a verb of :data:`_ONE_SHOT_VERBS` (issue 19: a one-off `estimate --scan` at paper resolution, 1M points; the
-    first point also for the demo, :data:`_ONE_BLAS_THREAD_VERBS`):
+    first point also for every verb of :data:`_ONE_BLAS_THREAD_VERBS`):
     - OpenBLAS gets one thread unless OPENBLAS_NUM_THREADS is set: its idle workers spin between the many small BLAS
       calls (3 x 3 solves, N x K projections) and took 0.3 s of the process's 1.4 s user CPU on the 2 cores the
       scan path's own threads need. Set before numpy is imported (nothing above this imports it).

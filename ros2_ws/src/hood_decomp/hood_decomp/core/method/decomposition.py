@@ -7,10 +7,10 @@
    with the weight n tau^2, tau a tenth of the field's node noise with its correlation (RMS of std x sqrt(g), g the
    node's correlation sum: a smoothed scan's noise reaches a smooth direction sqrt(g) times as strongly as white
    noise of the same std): a direction of the pre-factors that moves the field by less than tau RMS is the
-   estimate's, not the noise's. Without it a lock's or buffer's partial
-   displacement moved by up to half its peak with 1 um of node noise (their pairs are far from antisymmetric and
-   nearly collinear with each other; benchmarks/RESULTS.md issue 15 run 18 C). A deviation from the paper's step 4
-   (docs/paper_comparison.md); a field without an error model keeps the paper's least squares.
+   estimate's, not the noise's. Without it a lock's or buffer's partial displacement moved by up to half its peak
+   with 1 um of node noise (their pairs are far from antisymmetric and nearly collinear with each other;
+   benchmarks/RESULTS.md issue 15 run 18 C). A deviation from the paper's step 4 (docs/paper_comparison.md); a field
+   without an error model keeps the paper's least squares.
 5. Coarsening: the effect with the smallest contribution is removed and the fit repeated while that contribution is
    below ``min_share`` of the total and its partial field's RMS is below ``max_removed_rms_mm``. The contribution
    measure of this loop is the RMS of the effect's normal partial field, computed from the Gram matrix in O(F^2) per
