@@ -142,3 +142,68 @@ def test_the_spread_is_the_prior_or_the_calibrations(coarse_hood, physics):
     np.testing.assert_allclose(calibrated[f"calibrated thickness of {skin_group}"].plus.G - model.G,
                                0.006 * physics.thickness[skin_group].G, atol=1e-12)
     assert "calibrated gas spring" not in {f.name for f in factor_spread(model, record)}
+
+
+def test_a_factors_effect_is_the_estimates_shift_by_its_changed_field_at_the_same_state():
+    """Fails if the stated effect of a factor differs (beyond 1e-9 mm) from the estimator's own shift when the field
+    changes by what the factor changes in the part at the estimate's state and contact state: the changed model's
+    field (w0' + R' a + G' f', f' solved here with the changed springs) added to a noise-free field and estimated
+    again. That is factor_effects' definition, made by another path than its split through the normal matrix
+    (model_spread.SkinChange): a factor scaling w0 and G (compliance), one changing the pads only (stiffness), and
+    one changing w0, R and G arbitrarily, on a weighted fit (non-uniform node std, a third of the nodes unseen;
+    without a pose the weight's scale cancels, so the shifted field has the same estimator) and an ordinary one. A
+    wrong scale term, a remainder left out or the pads' forces taken at the nominal springs turn it red."""
+    from dataclasses import replace
+
+    from hood_decomp.core.method.contact_estimation import ContactEstimator
+    from hood_decomp.core.method.model_spread import Factor
+    from hood_decomp.core.method.residual import ResidualTest
+    from tests.toy_models import make_reduced_model, make_skin
+
+    skin = make_skin()
+    model = make_reduced_model(skin, seed=0, springs_per_pad=3)
+    rng = np.random.default_rng(5)
+    n, s = skin.n_nodes, model.k.size
+
+    def scaled(c: float):
+        return replace(model, w0=c * model.w0, G=c * model.G, H=c * model.H, z0=c * model.z0)
+
+    def general(sign: float):
+        return replace(model, w0=(1 + 0.1 * sign) * model.w0 + sign * 0.01 * np.sin(skin.points[:, 0] / 40.0),
+                       R=model.R + sign * 0.002 * rng.normal(size=model.R.shape),
+                       G=(1 - 0.05 * sign) * model.G + sign * 2e-4 * rng.normal(size=(n, s)),
+                       k=model.k * (1 + 0.1 * sign))
+
+    factors = (Factor("compliance", scaled(1.03), scaled(1 / 1.03)),
+               Factor("pads", replace(model, k=1.3 * model.k), replace(model, k=model.k / 1.3)),
+               Factor("general", general(1.0), general(-1.0)))
+    lower, upper = np.full(6, -1.0), np.full(6, 1.0)
+    estimator = ContactEstimator().fit(model, lower, upper, ResidualTest().fit(skin), factors=factors)
+    state = np.array([0.3, -0.2, 0.1, 0.4, 0.5, 0.6])  # both pads pressed: every spring touches
+    a, b = state[:4], state[4:]
+
+    def field(m):
+        f = np.linalg.solve(np.diag(1.0 / m.k) + m.H, b[m.pad_of] + m.preload - m.z0 - m.Sa @ a)
+        assert np.all(f > 0), "not every spring touches"
+        return m.w0 + m.R @ a + m.G @ f
+
+    unseen = skin.points[:, 1] < np.quantile(skin.points[:, 1], 0.33)
+    std = 0.01 + 0.02 * rng.uniform(size=n)
+    weighted = FieldErrorModel("scan", std, np.ones(n), 0.0)
+    checked = 0
+    for errors in (weighted, FieldErrorModel.none()):
+        def estimate(values, errors=errors):
+            return estimator.estimate(DisplacementField(skin.model_id, np.where(unseen, np.nan, values), 0.67,
+                                                        float("nan"), errors))
+
+        nominal = field(model)
+        at = estimate(nominal)
+        np.testing.assert_allclose(at.values, state, atol=1e-9)
+        assert at.weighting == ("generalised" if errors is weighted else "ordinary")
+        for factor, effect in zip(factors, at.model_effects, strict=True):
+            up, down = (estimate(field(m)).values - at.values
+                        for m in (factor.plus, factor.minus))
+            expected = up if np.max(np.abs(up)) >= np.max(np.abs(down)) else -down
+            np.testing.assert_allclose(effect, expected, atol=1e-9, err_msg=factor.name)
+            checked += int(np.max(np.abs(expected)) > 1e-3)
+    assert checked >= 4, "the factors hardly move the estimate: the comparison would be empty"

@@ -39,7 +39,7 @@ from hood_decomp.core.method.estimation import (
     weighted_normal,
     weighted_rhs,
 )
-from hood_decomp.core.method.model_spread import Factor, factor_effects
+from hood_decomp.core.method.model_spread import Factor, SkinChange, factor_effects
 from hood_decomp.core.method.residual import ResidualTest, node_variance
 from hood_decomp.core.types import DisplacementField, FieldErrorModel, ModelCheck, ParameterEstimate, ReducedModel
 from hood_decomp.errors import FieldError, ModelError
@@ -106,8 +106,8 @@ class ContactEstimator:
     warm part's thermal expansion, :meth:`Bases.at_temperature`), taken out of a lifted pad's reported position (the
     part's position there as at the reference temperature); None: none. factors: the model's physical factors
     considered (:func:`~.model_spread.factor_spread`; each estimate reports their effects); (): none.
-    Fitted: model_, lower_, upper_, test_, pad_shift_ (S,), factors_, fields_ (B + S, N) = [R G]^T,
-    gram_ (B + S, B + S), touching_pads_.
+    Fitted: model_, lower_, upper_, test_, pad_shift_ (S,), factors_, changes_ (per factor the (plus, minus)
+    :class:`~.model_spread.SkinChange`), fields_ (B + S, N) = [R G]^T, gram_ (B + S, B + S), touching_pads_.
     """
 
     def __init__(self, min_coverage: float = DEFAULT_MIN_COVERAGE,
@@ -127,6 +127,8 @@ class ContactEstimator:
         self.model_ = model
         self.test_ = test
         self.factors_ = tuple(factors)
+        self.changes_ = tuple((SkinChange.between(model, factor.plus), SkinChange.between(model, factor.minus))
+                              for factor in self.factors_)
         self.pad_shift_ = np.zeros(model.k.size) if pad_shift is None else np.asarray(pad_shift, dtype=float)
         if self.pad_shift_.shape != model.k.shape:
             raise ModelError(f"pad_shift must have shape {model.k.shape}, got {self.pad_shift_.shape}")
@@ -259,7 +261,7 @@ class ContactEstimator:
         best = self._select(list(candidates.values()), n_valid)
         measured = noise2 > 0  # a noisy field: its noise level stated by noise_rms or by its error model
         min_force = self.measured_min_pad_force_n if measured else 0.0
-        fit = self._fit(best, values, valid, errors, min_force, span, check, modes)
+        fit = self._fit(best, values, valid, errors, min_force, normal, span, check, modes)
         if fit.unseen.any() and not measured:
             # Without a noise level nothing weighs the contact states (no spread term): a touch the field cannot show
             # (compression within LIFTED_SIGMAS of its std, the model's discrepancy included) is decided lifted, and
@@ -271,7 +273,7 @@ class ContactEstimator:
             cand, tension, penetration = self._evaluate(best.active & ~free, problem, cache)
             if cand.feasible and not tension.any() and not penetration.any():
                 best = candidates.setdefault(cand.active.tobytes(), cand)
-                fit = self._fit(best, values, valid, errors, min_force, span, check, modes)
+                fit = self._fit(best, values, valid, errors, min_force, normal, span, check, modes)
         covariance = fit.covariance + self._between_states(candidates.values(), best, fit.values, noise2, min_force,
                                                              n_valid)
         return ParameterEstimate(
@@ -297,10 +299,11 @@ class ContactEstimator:
         )
 
     def _fit(self, best: _Candidate, values: np.ndarray, valid: np.ndarray, errors: FieldErrorModel,
-             min_force_n: float, span: WeightedSpan | None, check: ModelCheck | None,
+             min_force_n: float, normal: np.ndarray, span: WeightedSpan | None, check: ModelCheck | None,
              registration: np.ndarray | None) -> _Fit:
-        """The reported fit of a contact state: refined theta, residual, within-model test and values; span: the
-        field's generalised least-squares weight over the fields (None: the ordinary fit); check: the field's
+        """The reported fit of a contact state: refined theta, residual, within-model test and values; normal: the
+        fields' (weighted) normal matrix over the seen nodes; span: the field's generalised least-squares weight over
+        the fields (None: the ordinary fit); check: the field's
         within-model test made before the fit (:func:`~.estimation.fit_weight`) and its low-rank field errors, None:
         judged here on the fit's residual."""
         model = self.model_
@@ -328,7 +331,7 @@ class ContactEstimator:
         out_values, covariance, lifted, unseen = self._report(best, theta, theta_cov, min_force_n)
         effects = None
         if self.factors_:
-            effects, read = self._factor_effects(best, theta, valid, theta_cov, min_force_n, weight)
+            effects, read = self._factor_effects(best, theta, valid, theta_cov, min_force_n, normal, weight)
             # A calibration's uncertainty of its fitted factors belongs to the stated covariance (its skin part is the
             # bases' calibration_noise); the part no field shows, a lifted pad's position read through the calibrated
             # pad springs (z0 + Sa a + H f - preload, which the skin-only correction does not calibrate), is added
@@ -341,18 +344,23 @@ class ContactEstimator:
         return _Fit(out_values, covariance, lifted, unseen, reconstruction, residual, rms, worst, check, effects)
 
     def _factor_effects(self, best: _Candidate, theta: np.ndarray, valid: np.ndarray, theta_cov: np.ndarray,
-                        min_force_n: float, weight: NodeWeight | None) -> tuple[np.ndarray, np.ndarray]:
+                        min_force_n: float, normal: np.ndarray, weight: NodeWeight | None
+                        ) -> tuple[np.ndarray, np.ndarray]:
         """(F, P) mm: the considered factors' effects and their part read through the pad springs
         (:func:`~.model_spread.factor_effects`) through this fit's linear map, in the (B + S) space: a field change
         dw moves rhs by [R G]^T W dw over the seen nodes (the weighted fit leans on non-rigid shape, which the factors
-        move too)."""
-        def to_theta(dw: np.ndarray) -> np.ndarray:
-            return best.normal_inverse @ (best.lift.T @ weighted_rhs(self.fields_, dw, valid, weight))
+        move too); normal: [R G]^T W [R G] there."""
+        def project(x: np.ndarray) -> np.ndarray:
+            return weighted_rhs(self.fields_, x, valid, weight)
+
+        def to_theta(rhs: np.ndarray) -> np.ndarray:
+            return best.normal_inverse @ (best.lift.T @ rhs)
 
         def report(t: np.ndarray, springs: ReducedModel | None) -> np.ndarray:
             return self._report(best, t, theta_cov, min_force_n, springs)[0]
 
-        return factor_effects(self.model_, self.factors_, best.active, theta, to_theta, report)
+        return factor_effects(self.model_, self.factors_, self.changes_, best.active, theta, normal, project, to_theta,
+                              report)
 
     def _between_states(self, candidates: Iterable[_Candidate], best: _Candidate, values: np.ndarray, noise2: float,
                         min_force_n: float, n_valid: int) -> np.ndarray:

@@ -112,8 +112,8 @@ class NodeWeight:
         return wx - (self.weight * back if x.ndim == 1 else self.weight[:, None] * back)
 
     def project(self, fields: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """fields (m, N) @ W x (m,) for x (N,) finite: the weighted right-hand side (W x first: one pass over the
-        fields instead of forming fields W)."""
+        """fields (m, N) @ W x, (m,) for x (N,) or (m, j) for x (N, j), finite: the weighted right-hand side (W x
+        first: one pass over the fields instead of forming fields W)."""
         return fields @ self.apply(x)
 
     def span(self, fields: np.ndarray, discrepancy: tuple[np.ndarray, np.ndarray] | None = None,
@@ -225,8 +225,9 @@ def weighted_normal(fields: np.ndarray, gram: np.ndarray, valid: np.ndarray, spa
 
 
 def weighted_rhs(fields: np.ndarray, x: np.ndarray, valid: np.ndarray, weight: NodeWeight | None) -> np.ndarray:
-    """fields (m, N) @ W x over the seen nodes (m,): W the field's weight, the identity for an ordinary fit (None)."""
-    x = np.where(valid, x, 0.0)
+    """fields (m, N) @ W x over the seen nodes, (m,) for x (N,) or (m, j) for x (N, j): W the field's weight, the
+    identity for an ordinary fit (None)."""
+    x = np.where(valid if x.ndim == 1 else valid[:, None], x, 0.0)
     return fields @ x if weight is None else weight.project(fields, x)
 
 

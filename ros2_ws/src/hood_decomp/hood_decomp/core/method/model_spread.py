@@ -158,11 +158,45 @@ def factor_spread(model: ReducedModel, calibration: str = "",
     return tuple(factors)
 
 
-def _field(model: ReducedModel, active: np.ndarray, pads: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """The skin normal field (N,) mm of ``model`` at theta = (a, b of the touching ``pads``) with the springs
-    ``active`` in contact (the estimate's contact state): w0 + R a + G f, f the springs' forces there."""
+@dataclass(frozen=True)
+class SkinChange:
+    """How a changed reduced model's skin normal arrays differ from the nominal's: w0' = scale w0 + (w0' - scale w0),
+    G' = scale G + (G' - scale G), R' = R + (R' - R), each flag telling whether its remainder is more than round-off
+    (1e-13 of the array). Any scale makes the split exact; the one fitted to G makes a changed compliance (w0 and G
+    scaled, :func:`apply_factors`) a pure scale and a changed pad stiffness or preload no skin change at all, so
+    their field changes lie in the estimator's own span and cost no pass over the nodes (:func:`factor_effects`)."""
+
+    scale: float
+    w0: bool
+    R: bool
+    G: bool
+
+    @staticmethod
+    def between(model: ReducedModel, changed: ReducedModel) -> SkinChange:
+        """The change from ``model`` to ``changed`` (the same skin and springs)."""
+        new, old = (changed.G, model.G) if model.G.size else (changed.w0, model.w0)
+        scale = _scale(new, old) if _differs(new, old) else 1.0
+        return SkinChange(scale, _differs(changed.w0, scale * model.w0), _differs(changed.R, model.R),
+                          _differs(changed.G, scale * model.G))
+
+
+def _scale(new: np.ndarray, old: np.ndarray) -> float:
+    """The least-squares scale s of ``old`` to ``new`` (new ~ s old); 1 for a zero ``old``."""
+    norm = float(np.vdot(old, old))
+    return float(np.vdot(new, old)) / norm if norm > 0 else 1.0
+
+
+def _differs(new: np.ndarray, old: np.ndarray) -> bool:
+    """Whether ``new`` differs from ``old`` by more than 1e-13 of its largest entry."""
+    if new is old or new.size == 0:
+        return False
+    return bool(np.max(np.abs(new - old)) > 1e-13 * max(float(np.max(np.abs(new))), 1e-300))
+
+
+def _forces(model: ReducedModel, active: np.ndarray, pads: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """The pad springs' forces (S,) N of ``model`` at theta = (a, b of the touching ``pads``) with the springs
+    ``active`` in contact (the estimate's contact state); 0 on the free springs."""
     n_b = model.n_bilateral
-    a = theta[:n_b]
     f = np.zeros(model.k.size)
     idx = np.flatnonzero(active)
     if idx.size:
@@ -170,35 +204,67 @@ def _field(model: ReducedModel, active: np.ndarray, pads: np.ndarray, theta: np.
         b[pads] = theta[n_b:]
         compliance = np.diag(1.0 / model.k[idx]) + model.H[np.ix_(idx, idx)]
         f[idx] = np.linalg.solve(compliance, b[model.pad_of[idx]] + model.preload[idx] - model.z0[idx]
-                                 - model.Sa[idx] @ a)
-    return model.w0 + model.R @ a + model.G @ f
+                                 - model.Sa[idx] @ theta[:n_b])
+    return f
 
 
-def factor_effects(model: ReducedModel, factors: tuple[Factor, ...], active: np.ndarray, theta: np.ndarray,
-                   to_theta: Callable[[np.ndarray], np.ndarray],
+def factor_effects(model: ReducedModel, factors: tuple[Factor, ...], changes: tuple[tuple[SkinChange, SkinChange],
+                   ...], active: np.ndarray, theta: np.ndarray, normal: np.ndarray,
+                   project: Callable[[np.ndarray], np.ndarray], to_theta: Callable[[np.ndarray], np.ndarray],
                    report: Callable[[np.ndarray, ReducedModel | None], np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """(F, P) mm: each factor's one-sigma effect on the reported values, and (F, P) mm the part of it read through
     the pad springs (report(theta, None) - report(theta, changed): a lifted pad's position z - preload; zero for the
     bilateral states and a touching pad's commanded position), which no field shows.
 
-    active: (S,) bool the estimate's contact state; theta: (n_theta,) its unknowns; to_theta(dw): the estimator's
-    linear map (over the seen nodes) from a skin field change dw (N,) mm to theta; report(theta, springs): the (P,)
-    reported values, read with the pad springs of ``springs`` (None: the model's). The effect is what the estimate
-    (read with the model) reports minus what the changed part is (read with its own springs): a lifted pad's value is
-    the part's position z - preload, which the change moves too. A factor's change is applied with both signs; the
-    larger shift of the two (by its largest entry) is kept, signed as the + change's, so a nonlinear factor (the pad
-    compliance 1/k) is not understated.
+    changes: per factor the (plus, minus) :class:`SkinChange` of its changed models against ``model``; active: (S,)
+    bool the estimate's contact state; theta: (n_theta,) its unknowns; normal: (B + S, B + S) the estimator's
+    weighted normal matrix F W F^T over the seen nodes (F = [R G]^T); project(x): F W x (B + S, m) for skin fields x
+    (N, m) mm over the seen nodes; to_theta(rhs): the estimator's linear map from a right-hand side change (B + S,)
+    to theta; report(theta, springs): the (P,) reported values, read with the pad springs of ``springs`` (None: the
+    model's). The effect is what the estimate (read with the model) reports minus what the changed part is (read
+    with its own springs): a lifted pad's value is the part's position z - preload, which the change moves too. A
+    factor's change is applied with both signs; the larger shift of the two (by its largest entry) is kept, signed
+    as the + change's, so a nonlinear factor (the pad compliance 1/k) is not understated.
+
+    The changed part's field less the nominal one at the estimate's state, w0' + R' a + G' f' - (w0 + R a + G f),
+    is (s - 1) w0 + G (s f' - f) + e with e = (w0' - s w0) + (R' - R) a + (G' - s G) f' (:class:`SkinChange`, s its
+    scale): its G part reaches the right-hand side through ``normal``, w0 and the e that are not zero through one
+    ``project`` of all of them. Before, each factor and sign made its field and projected it: 60 of the 107 ms of a
+    paper-resolution estimate (benchmarks/RESULTS.md issue 15 run 19 P).
     """
+    n_b = model.n_bilateral
     pads = np.unique(model.pad_of[active])
-    nominal = _field(model, active, pads, theta)
+    nominal = _forces(model, active, pads, theta)
     reported = report(theta, None)
+    solved, columns = [], []
+    for factor, pair in zip(factors, changes, strict=True):
+        for changed, change in zip((factor.plus, factor.minus), pair, strict=True):
+            forces = _forces(changed, active, pads, theta)
+            column = None
+            if change.w0 or change.R or change.G:
+                extra = np.zeros(model.w0.shape[0])
+                if change.w0:
+                    extra += changed.w0 - change.scale * model.w0
+                if change.R:
+                    extra += (changed.R - model.R) @ theta[:n_b]
+                if change.G:
+                    extra += changed.G @ forces - change.scale * (model.G @ forces)
+                column = len(columns)
+                columns.append(extra)
+            solved.append((changed, change, forces, column))
+    scaled = any(change.scale != 1.0 for _, change, _, _ in solved)
+    projected = project(np.column_stack([*columns, model.w0] if scaled else columns)) if columns or scaled else None
     effects, read = np.zeros((2, len(factors), reported.size))
-    for i, factor in enumerate(factors):
+    for i in range(len(factors)):
         shifts = []
-        for changed in (factor.plus, factor.minus):
+        for changed, change, forces, column in solved[2 * i:2 * i + 2]:
+            rhs = normal[:, n_b:] @ (change.scale * forces - nominal)
+            if change.scale != 1.0:
+                rhs = rhs + (change.scale - 1.0) * projected[:, -1]
+            if column is not None:
+                rhs = rhs + projected[:, column]
             part = report(theta, changed)
-            shifts.append((np.nan_to_num(report(theta + to_theta(_field(changed, active, pads, theta) - nominal), None)
-                                         - part), np.nan_to_num(reported - part)))
+            shifts.append((np.nan_to_num(report(theta + to_theta(rhs), None) - part), np.nan_to_num(reported - part)))
         (up, up_read), (down, down_read) = shifts
         effects[i], read[i] = (up, up_read) if np.max(np.abs(up)) >= np.max(np.abs(down)) else (-down, -down_read)
     return effects, read
