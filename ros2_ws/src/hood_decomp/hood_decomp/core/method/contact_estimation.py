@@ -41,7 +41,14 @@ from hood_decomp.core.method.estimation import (
 )
 from hood_decomp.core.method.model_spread import Factor, SkinChange, factor_effects
 from hood_decomp.core.method.residual import ResidualTest, node_variance
-from hood_decomp.core.types import DisplacementField, FieldErrorModel, ModelCheck, ParameterEstimate, ReducedModel
+from hood_decomp.core.types import (
+    DisplacementField,
+    FieldErrorModel,
+    ModelCheck,
+    ParameterEstimate,
+    ReducedModel,
+    side_by_side,
+)
 from hood_decomp.errors import FieldError, ModelError
 
 # Start from every pad combination up to this many pads (2^U starts); beyond it, all-touching and all-lifted only.
@@ -134,7 +141,9 @@ class ContactEstimator:
             raise ModelError(f"pad_shift must have shape {model.k.shape}, got {self.pad_shift_.shape}")
         self.lower_ = np.asarray(lower, dtype=float)
         self.upper_ = np.asarray(upper, dtype=float)
-        self.fields_ = np.vstack([model.R.T, model.G.T])
+        # row by row in memory whatever the model's arrays' order (a loaded file's are row-major, and np.vstack of
+        # their transposes is then column-major): the weighted Grams read the fields transposed, column by column
+        self.fields_ = side_by_side(model.R, model.G).T
         self.gram_ = self.fields_ @ self.fields_.T
         if n_pads <= MAX_ENUMERATED_PADS:
             starts = list(itertools.product((True, False), repeat=n_pads))
