@@ -91,17 +91,19 @@ def apply_factors(reduced: ReducedModel, physics: PhysicalResponses, theta: np.n
     stiffness = np.exp(np.asarray(theta[2 + n_groups:2 + n_groups + n_pads]))
     preload = np.asarray(theta[2 + n_groups + n_pads:2 + n_groups + 2 * n_pads])
     arrays = SENSITIVE_ARRAYS if full else tuple(name for name in SENSITIVE_ARRAYS if not name.endswith("_3d"))
-    if n_groups:
+    # an array no factor changes is shared, not copied: a factor's changed models are kept per estimator, and at
+    # paper resolution a copy of G is 97 MB
+    if np.any(theta[2:2 + n_groups]):
         reduced = replace(reduced, **{name: getattr(reduced, name) + sum(
             t * getattr(sens, name) for t, sens in zip(theta[2:2 + n_groups], physics.thickness.values(),
                                                        strict=True)) for name in arrays})
-    reduced = replace(
-        reduced,
-        w0=c * (reduced.w0 + g * physics.gas_w), z0=c * (reduced.z0 + g * physics.gas_z),
-        G=c * reduced.G, H=c * reduced.H,
-        k=reduced.k * stiffness[reduced.pad_of], preload=reduced.preload + preload[reduced.pad_of],
-    )
-    if not full:
+    if c != 1.0 or g != 0.0:
+        reduced = replace(reduced, w0=c * (reduced.w0 + g * physics.gas_w), z0=c * (reduced.z0 + g * physics.gas_z))
+    if c != 1.0:
+        reduced = replace(reduced, G=c * reduced.G, H=c * reduced.H)
+    reduced = replace(reduced, k=reduced.k * stiffness[reduced.pad_of],
+                      preload=reduced.preload + preload[reduced.pad_of])
+    if not full or (c == 1.0 and g == 0.0):
         return reduced
     return replace(reduced, w0_3d=c * (reduced.w0_3d + g * physics.gas_w3), G_3d=c * reduced.G_3d)
 
