@@ -200,7 +200,8 @@ def test_a_part_reference_overrides_the_cells_for_that_part_only(cell, coarse_ho
     """Fails if a part given its own reference (set_reference) is not made relative to it while another part keeps
     the cell's, if an empty path does not give the part the cell's again, or if more parts than
     ``remembered_references`` are kept (the oldest must be forgotten, and the answer must say so; a lower bound
-    forgets at once). The part's own
+    forgets at once), or if the decomposition node does not warn when its reference for a part differs from the
+    estimator's. The part's own
     static error differs from the cell's: with the cell's reference it is off by more than 0.05 mm."""
     peer, names, files = cell["peer"], coarse_hood.reduced.names, cell["files"]
     own, truth = part_field(coarse_hood, cell["part_error"])
@@ -228,8 +229,13 @@ def test_a_part_reference_overrides_the_cells_for_that_part_only(cell, coarse_ho
     assert accepted and "part R1's reference forgotten" in message, message
     state, _ = send(cell, coarse_hood, own, 14, "R1")
     assert state.reference == f"cell:{files['cell']}"
-    state, _ = send(cell, coarse_hood, own, 15, "R3")
-    assert state.reference == f"part:{files['part']}"
+    state, effects = send(cell, coarse_hood, own, 15, "R3")
+    assert state.reference == f"part:{files['part']}" and effects.reference == f"cell:{files['cell']}"
+    # R3's reference was given to the estimator only: the decomposition node says so
+    assert cell["peer"].wait(lambda: any(
+        s.level == DiagnosticStatus.WARN and s.name == "hood_decomp/hood_decomp_decomposition"
+        and "both nodes" in s.message and ("stamp", "15.000000000") in [(kv.key, kv.value) for kv in s.values]
+        for a in cell["received"]["/diagnostics"] for s in a.status), 10.0)
     # a lower bound forgets at once (R2, the older), not at the next part's reference
     assert set_parameter(peer, "estimator_node", "remembered_references", 1) == (True, "")
     state, _ = send(cell, coarse_hood, own, 16, "R2")
