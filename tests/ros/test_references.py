@@ -1,7 +1,8 @@
 """Issue 16 on the nodes, as real processes on the real middleware (Fast DDS, loopback, a per-run domain): a reference
 per cell (the ``reference`` parameter) and per part (the ``set_reference`` service) on the estimator and the
 decomposition node, refused references that leave the node serving, and calibrated bases (made by
-``hood-decomp calibrate``) swapped in through lifecycle transitions, reported on /diagnostics.
+``hood-decomp calibrate``) swapped in through lifecycle transitions, reported on /diagnostics; bases without the
+reduced model a reference needs refuse one.
 
 The "real part" has a static model error the FE model lacks: a smooth springback-like shape added to the model's own
 field (made by the FE model at the part's state, not by the code under test). A reference of the part at a known
@@ -325,4 +326,39 @@ def test_calibrated_bases_swap_in_through_lifecycle_transitions(cell, coarse_hoo
     after, effects = send(cell, coarse_hood, values, 31, "C")
     assert error_mm(after, reduced.names, effective).max() < 0.01, error_mm(after, reduced.names, effective)
     assert after.reference == effects.reference == ""
+    assert all(p.poll() is None for p in cell["processes"]), "a node died"
+
+
+def test_bases_without_a_reduced_model_refuse_a_reference(cell, coarse_hood):
+    """Fails if a node whose bases hold no reduced model (the model's field at the reference's state cannot be made)
+    takes a reference (at configure, as a parameter or by the service) instead of refusing it with the reason, or
+    stops serving its fields as measured (the estimator with the paper's PCA method, which needs no reduced model)."""
+    from hood_decomp.io.bases import save_bases
+
+    peer, root, diagnostics, files = cell["peer"], cell["root"], cell["received"]["/diagnostics"], cell["files"]
+    bare = root / "bare.h5"
+    save_bases(bare, replace(coarse_hood.bases, reduced_model=None))
+    assert set_parameter(peer, "estimator_node", "method", "pca") == (True, "")
+    for node in NODES:
+        assert transition(peer, node, Transition.TRANSITION_DEACTIVATE)
+        assert transition(peer, node, Transition.TRANSITION_CLEANUP)
+        assert set_parameter(peer, node, "bases", str(bare)) == (True, "")
+        assert set_parameter(peer, node, "reference", files["cell"]) == (True, "")  # read at configure
+        assert not transition(peer, node, Transition.TRANSITION_CONFIGURE)
+        assert peer.wait(lambda n=node: any(
+            s.name == f"hood_decomp/{NODE_NAMES[n]}" and "configure failed" in s.message
+            and "no reduced model" in s.message for a in diagnostics for s in a.status), 10.0), node
+        assert set_parameter(peer, node, "reference", "") == (True, "")
+        assert transition(peer, node, Transition.TRANSITION_CONFIGURE)
+        assert transition(peer, node, Transition.TRANSITION_ACTIVATE)
+        ok, reason = set_parameter(peer, node, "reference", files["cell"])
+        assert not ok and "no reduced model" in reason and "keeps none" in reason, reason
+        accepted, message = set_reference(peer, node, "D", files["cell"])
+        assert not accepted and "no reduced model" in message, message
+    start = len(diagnostics)
+    assert peer.wait(lambda: all(int(latest_heartbeat(diagnostics[start:], NODE_NAMES[node]).get(
+        "publishers /hood_decomp/displacement", 0)) >= 1 for node in NODES), 30.0)
+    values, _ = part_field(coarse_hood, np.zeros(coarse_hood.skin.n_nodes))
+    state, effects = send(cell, coarse_hood, values, 40, "D")
+    assert state.reference == effects.reference == ""
     assert all(p.poll() is None for p in cell["processes"]), "a node died"
