@@ -253,7 +253,7 @@ from hood_decomp.cli._common import write_json
 from hood_decomp.core.method.bases import estimate_field
 from hood_decomp.core.scan.fusion import fuse_views
 from hood_decomp.core.scan.scan_field import prepared_estimator
-from hood_decomp.io.bases import load_bases
+from hood_decomp.io.bases import bases_provenance, load_bases
 from hood_decomp.io.scans import scan_file_view
 mark("imports")
 bases = load_bases(sys.argv[1])
@@ -267,7 +267,7 @@ mark("scan_path")
 estimate = estimate_field(bases, field, "contact", 0.0, 0.0)
 mark("estimate")
 payload = verb.estimate_payload(estimate, bases.pca.n_bilateral_)
-payload.update(verb.bases_provenance(bases))
+payload.update(bases_provenance(bases))
 write_json(Path(sys.argv[3]), payload)
 mark("json")
 print("PHASES", json.dumps({**out, "numba_loaded": "numba" in sys.modules}))

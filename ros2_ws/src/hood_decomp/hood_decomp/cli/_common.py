@@ -105,20 +105,14 @@ def add_reference(parser: argparse.ArgumentParser) -> None:
 
 def apply_reference(args: argparse.Namespace, bases: Bases, fields: list[DisplacementField]
                     ) -> list[DisplacementField]:
-    """The fields made reference-relative when --reference was given (:func:`add_reference`), else unchanged."""
+    """The fields made reference-relative when --reference was given (:func:`add_reference`), else unchanged
+    (io.calibration_files.read_reference, as the nodes' ``reference`` parameter)."""
     if getattr(args, "reference", None) is None:
         return fields
-    from hood_decomp.core.loop.calibration import relative_field
-    from hood_decomp.errors import CalibrationError
-    from hood_decomp.io.calibration_files import read_entries
+    from hood_decomp.io.calibration_files import read_reference
 
-    if bases.reduced_model is None:
-        raise CalibrationError(f"--reference needs the bases' reduced model, which {args.bases} lacks")
-    entry = read_entries(args.reference, bases.skin, args.min_coverage, single=True)[0]
-    setting = entry.setting_vector(bases.names)
-    # a scanned reference's slide and bias need the bases' reading, prepared once (none for a field)
-    reading = bases.reading() if entry.field.errors.kind == "scan" else None
-    return [relative_field(bases.reduced_model, field, entry.field, setting, reading) for field in fields]
+    reference = read_reference(args.reference, bases, args.min_coverage)
+    return [reference.relative(field) for field in fields]
 
 
 def add_json(parser: argparse.ArgumentParser) -> None:

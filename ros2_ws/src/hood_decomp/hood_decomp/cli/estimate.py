@@ -80,20 +80,6 @@ def estimate_payload(estimate, n_bilateral: int) -> dict:
     }
 
 
-def bases_provenance(bases) -> dict:
-    """Which bases and which calibration an estimate used: ``bases_id`` and ``calibration`` (null for uncalibrated
-    bases, else the calibration's id, entries, leave-one-out RMS, mm, and the model discrepancy the stated std
-    includes: its rank and RMS, mm; null for a record made before the discrepancy was stated)."""
-    import json
-
-    from hood_decomp.io.bases import loaded_bases_id
-
-    record = json.loads(bases.calibration) if bases.calibration else None
-    return {"bases_id": loaded_bases_id(bases), "calibration": None if record is None else {
-        "id": record["id"], "entries": [e["name"] for e in record["entries"]], "loo_rms_mm": record["loo_rms_mm"],
-        "discrepancy": record.get("discrepancy")}}
-
-
 def zones_payload(verdicts) -> dict:
     """The tolerance zones' verdicts (core.method.tolerance.zone_verdicts) as `estimate` writes them: ``zones`` (per
     zone name, ok, lower_mm, upper_mm, worst_deviation_mm, worst_node, coverage, outside, reason) and ``zones_ok``."""
@@ -106,6 +92,7 @@ def zones_payload(verdicts) -> dict:
 def run(args: argparse.Namespace) -> int:
     from hood_decomp.core.method.bases import estimate_field
     from hood_decomp.core.method.tolerance import zone_verdicts
+    from hood_decomp.io.bases import bases_provenance
 
     check_json(args)
     # the estimator is fitted (0.1-0.4 s at paper resolution) while the scan is read and turned into a field

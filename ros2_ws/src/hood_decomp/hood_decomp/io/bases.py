@@ -103,6 +103,19 @@ def loaded_bases_id(bases: Bases) -> str:
     return bases_id(bases)
 
 
+def bases_provenance(bases: Bases) -> dict:
+    """Which bases and which calibration an estimate used (what ``estimate --json`` and the nodes' /diagnostics
+    report): ``bases_id`` and ``calibration`` (null for uncalibrated bases, else the calibration's id, entries,
+    leave-one-out RMS, mm, the physical factors with their std (``factors``, ``factor_std``: name -> value) and the
+    model discrepancy the stated std includes: its rank and RMS, mm; null for a record made before the discrepancy was
+    stated)."""
+    record = json.loads(bases.calibration) if bases.calibration else None
+    return {"bases_id": loaded_bases_id(bases), "calibration": None if record is None else {
+        "id": record["id"], "entries": [e["name"] for e in record["entries"]], "loo_rms_mm": record["loo_rms_mm"],
+        "factors": record.get("factors"), "factor_std": record.get("factor_std"),
+        "discrepancy": record.get("discrepancy")}}
+
+
 # --- writing -----------------------------------------------------------------------------------------------------
 def _write_array(group: h5py.Group, name: str, values: np.ndarray, pack: bool = True) -> None:
     """Integer and boolean arrays gzip level 1 with shuffle when ``pack``; floats plain: they shrink by a quarter at

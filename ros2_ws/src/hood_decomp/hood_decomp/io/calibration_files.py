@@ -9,6 +9,9 @@ CAL.json is a JSON list of entries; REF.json is one entry (or a list of one). An
 with the setting in mm per parameter label (unset parameters are 0). Optional "name" (how messages call the entry;
 default: its file). File names are relative to the JSON file's directory and must stay inside it (no absolute path,
 no ".." out of it, resolved through links): a calibration file cannot make the program read any other file.
+
+:func:`read_reference` reads a REF.json for a set of bases and prepares it once (:class:`Reference`): what the CLI's
+``--reference`` and the estimator and decomposition nodes' ``reference`` parameter and ``set_reference`` service use.
 """
 
 from __future__ import annotations
@@ -16,12 +19,17 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from hood_decomp.core.types import DisplacementField, SkinSurface
 from hood_decomp.errors import CalibrationError, HoodDecompError
 from hood_decomp.io.json_values import loads_strict
+
+if TYPE_CHECKING:  # only named in annotations: the module stays light for the CLI's start-up
+    from hood_decomp.core.loop.calibration import ReferenceOffset
+    from hood_decomp.core.method.bases import Bases
 
 #: largest calibration file (bytes) read: a list of entries, not data
 MAX_BYTES = 1 << 20
@@ -45,6 +53,51 @@ class FieldEntry:
             raise CalibrationError(f"calibration entry {self.name}: unknown parameter {unknown[0]!r} in its setting; "
                                    f"the bases have {list(names)}")
         return np.array([self.setting.get(label, 0.0) for label in names])
+
+
+@dataclass(frozen=True)
+class Reference:
+    """A REF.json read for one set of bases, ready to make fields of their model reference-relative.
+
+    path: the file as given; name: the entry's name; setting: label -> mm of its known state; bases_id: the bases it
+    was prepared with (a reference is prepared again for other bases); offset: what it takes off each field."""
+
+    path: str
+    name: str
+    setting: dict[str, float]
+    bases_id: str
+    offset: ReferenceOffset
+
+    @property
+    def model_id(self) -> str:
+        return self.offset.model_id
+
+    def relative(self, field: DisplacementField) -> DisplacementField:
+        """``field`` as measured - reference + the model's field at the reference's setting (core.loop.calibration)."""
+        return self.offset.relative(field)
+
+
+def read_reference(path: str | Path, bases: Bases, min_coverage: float = 0.2) -> Reference:
+    """The reference of REF.json ``path`` (one entry, :func:`read_entries`) prepared for ``bases``: its field read on
+    their skin (a scan with ``min_coverage``), its setting checked against their parameters, the model's own field at
+    that setting solved once. CalibrationError naming the problem: the file (unreadable, not one entry, a file outside
+    its directory, an unknown parameter), a reference of another model_id, or bases without the reduced model the
+    reference needs."""
+    from hood_decomp.core.loop.calibration import reference_offset
+    from hood_decomp.io.bases import loaded_bases_id
+
+    if bases.reduced_model is None:
+        raise CalibrationError(f"reference {path}: the bases of model {bases.model_id} hold no reduced model (build "
+                               "them with --model), which a reference needs")
+    entry = read_entries(path, bases.skin, min_coverage, single=True)[0]
+    setting = entry.setting_vector(bases.names)
+    # a scanned reference's slide and bias need the bases' reading, prepared once (none for a field)
+    reading = bases.reading() if entry.field.errors.kind == "scan" else None
+    try:
+        offset = reference_offset(bases.reduced_model, entry.field, setting, reading)
+    except CalibrationError as error:
+        raise CalibrationError(f"reference {path}: {error}") from error
+    return Reference(str(path), entry.name, dict(entry.setting), loaded_bases_id(bases), offset)
 
 
 def read_entries(path: str | Path, skin: SkinSurface, min_coverage: float = 0.2, single: bool = False

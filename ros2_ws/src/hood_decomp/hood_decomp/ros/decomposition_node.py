@@ -18,7 +18,7 @@ from sensor_msgs.msg import PointCloud2
 
 from hood_decomp.errors import HoodDecompError
 from hood_decomp.ros import messages
-from hood_decomp.ros.node_common import HoodNode, declare, spin
+from hood_decomp.ros.node_common import ReferencedNode, declare, spin
 
 MAX_UNPAIRED_STATES = 100  # states are small; one whose field never comes is dropped after this many newer ones
 
@@ -37,7 +37,7 @@ def _key(msg: Any) -> _Key:
     return msg.header.stamp.sec, msg.header.stamp.nanosec, messages.part_id_of(msg)
 
 
-class DecompositionNode(HoodNode):
+class DecompositionNode(ReferencedNode):
     def __init__(self) -> None:
         super().__init__("hood_decomp_decomposition")
         declare(self, "use_boundary_state", True, "choose the hierarchical subset from the estimator's boundary state "
@@ -53,6 +53,7 @@ class DecompositionNode(HoodNode):
         self.refuse_state = self.guarded("boundary state", self.other_model)
 
     def configure_node(self) -> None:
+        super().configure_node()  # the references, read with the new bases
         self.skin_clouds = {bases.model_id: messages.SkinClouds(bases.skin)  # each variant's skin xyz once
                             for bases in self.variant_bases.values()}
         self.effects_pub = self.publisher(EffectFields, "hood_decomp/effects", latest=True)
@@ -101,17 +102,21 @@ class DecompositionNode(HoodNode):
     def decompose(self, pair: _Pair) -> dict[str, object]:
         from hood_decomp.core.method.bases import decompose_field
 
-        bases = self.bases_for_model(pair.field.model_id)
+        bases, field, reference = self.field_of(pair.field)
         if pair.state is not None and pair.state.model_id != bases.model_id:
             raise HoodDecompError(f"field of model_id {bases.model_id!r} paired with a boundary state of model_id "
                                   f"{pair.state.model_id!r}")
         estimate = messages.msg_to_estimate(pair.state) if pair.state is not None else None
-        decomposition = decompose_field(bases, messages.msg_to_field(pair.field), estimate,
-                                        min_coverage=self.param("min_coverage"))
+        decomposition = decompose_field(bases, field, estimate, min_coverage=self.param("min_coverage"))
         part_id = messages.part_id_of(pair.field)
-        self.effects_pub.publish(messages.decomposition_to_msg(decomposition, pair.header, part_id))
+        self.effects_pub.publish(messages.decomposition_to_msg(decomposition, pair.header, part_id, reference))
         self.cloud_pub.publish(self.skin_clouds[bases.model_id].effects(decomposition, pair.header))
-        return {"part_id": part_id, "effects": ", ".join(effect.name for effect in decomposition.effects),
+        # the estimator and this node each hold the references: a part given its own on one of them only is named
+        differs = pair.state is not None and pair.state.reference != reference
+        return {"part_id": part_id, "reference": reference or "none",
+                "warning": f"the boundary state's field was relative to {pair.state.reference or 'no reference'}, "
+                f"this one to {reference or 'none'}: give the part's reference to both nodes" if differs else "",
+                "effects": ", ".join(effect.name for effect in decomposition.effects),
                 "paired_with_boundary_state": pair.state is not None,
                 "reconstruction_rms_mm": f"{decomposition.reconstruction_rms:.4f}"}
 

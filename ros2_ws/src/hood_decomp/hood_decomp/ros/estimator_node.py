@@ -33,7 +33,15 @@ from hood_decomp.core.types import FieldErrorModel, ParameterEstimate
 from hood_decomp.errors import HoodDecompError
 from hood_decomp.io.history import HistoryWriter, PartRecord, bases_file_id, inspection_record
 from hood_decomp.ros import messages
-from hood_decomp.ros.node_common import ERROR, HoodNode, declare, declare_list, parse_entries, spin, through_middleware
+from hood_decomp.ros.node_common import (
+    ERROR,
+    ReferencedNode,
+    declare,
+    declare_list,
+    parse_entries,
+    spin,
+    through_middleware,
+)
 
 METHODS = ("contact", "pca")
 #: seconds between two retries of a history that could not be written
@@ -61,7 +69,7 @@ def parse_step_limits(entries: list[str]) -> dict[str, float]:
     return limits
 
 
-class EstimatorNode(HoodNode):
+class EstimatorNode(ReferencedNode):
     def __init__(self) -> None:
         super().__init__("hood_decomp_estimator")
         declare(self, "method", "contact", "estimator: 'contact' (contact-aware, default) or 'pca' (the paper's "
@@ -112,6 +120,7 @@ class EstimatorNode(HoodNode):
         return np.array([by_name.get(name, self.param("max_step_mm")) for name in names])
 
     def configure_node(self) -> None:
+        super().configure_node()  # the references, read with the new bases
         self.sent.clear()
         for bases in self.variant_bases.values():  # fitted now, so the first field is answered at steady speed
             bases.prepare_estimation(self.param("method"), self.param("min_coverage"))
@@ -199,15 +208,16 @@ class EstimatorNode(HoodNode):
             self.writer.close()
         return super().on_deactivate(state)
 
-    def answer(self, msg: DisplacementField) -> tuple[CoreField, ParameterEstimate, CoreCorrection]:
-        """A field message -> the field, its estimate and the step-limited correction (nothing published or kept)."""
+    def answer(self, msg: DisplacementField) -> tuple[CoreField, ParameterEstimate, CoreCorrection, str]:
+        """A field message -> the field (reference-relative when the part or the cell has a reference), its
+        estimate, the step-limited correction and the reference used (nothing published or kept)."""
         from hood_decomp.core.method.bases import estimate_field
 
         policy = self.policy()
-        field = messages.msg_to_field(msg)
-        estimate = estimate_field(self.bases_for_model(msg.model_id), field, method=self.param("method"),
-                                  min_coverage=policy.min_coverage)
-        return field, estimate, limit_steps(plan_correction(estimate, policy), self.step_limits(estimate.names))
+        bases, field, reference = self.field_of(msg)
+        estimate = estimate_field(bases, field, method=self.param("method"), min_coverage=policy.min_coverage)
+        correction = limit_steps(plan_correction(estimate, policy), self.step_limits(estimate.names))
+        return field, estimate, correction, reference
 
     def warm_up(self, bases: Any) -> None:
         """One synthetic field of ``bases`` (the PCA mean field, scan-like node errors) through :meth:`answer` and
@@ -219,15 +229,15 @@ class EstimatorNode(HoodNode):
                                  bias_correlation=smoothing_bias_correlation(bases.skin))
         field = CoreField(bases.model_id, np.array(bases.pca.mean_field_, dtype=float), 1.0, 0.05, errors)
         header = Header()
-        _, estimate, correction = self.answer(through_middleware(messages.field_to_msg(field, header, "warm-up")))
+        _, estimate, correction, _ = self.answer(through_middleware(messages.field_to_msg(field, header, "warm-up")))
         messages.estimate_to_msg(estimate, header, "warm-up")
         messages.correction_to_msg(correction, header, "warm-up")
 
     def on_field(self, msg: DisplacementField) -> dict[str, object]:
         self.received += 1
-        field, estimate, correction = self.answer(msg)
+        field, estimate, correction, reference = self.answer(msg)
         part_id = messages.part_id_of(msg)
-        values: dict[str, object] = {"part_id": part_id}
+        values: dict[str, object] = {"part_id": part_id, "reference": reference or "none"}
         earlier = self.sent.pop(part_id, None)
         if earlier is not None:
             verification = verify_move(earlier.estimate, earlier.correction, estimate,
@@ -239,7 +249,7 @@ class EstimatorNode(HoodNode):
         self.sent[part_id] = _Sent(estimate, correction, msg.header.stamp)
         while len(self.sent) > self.param("remembered_parts"):
             self.sent.popitem(last=False)
-        self.state_pub.publish(messages.estimate_to_msg(estimate, msg.header, part_id))
+        self.state_pub.publish(messages.estimate_to_msg(estimate, msg.header, part_id, reference))
         self.correction_pub.publish(messages.correction_to_msg(correction, msg.header, part_id))
         values.update(self.record(msg, field, estimate, correction, part_id))  # after publishing: the robot first
         return {**values, "residual_rms_mm": f"{estimate.residual_rms:.4f}", "within_model": estimate.within_model,

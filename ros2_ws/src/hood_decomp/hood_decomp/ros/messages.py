@@ -144,8 +144,9 @@ def _view_poses(msg: Any, n_nodes: int, unit: np.ndarray) -> tuple[ViewPoseError
                  for p, w in zip(poses, weights, strict=True))
 
 
-def estimate_to_msg(estimate: ParameterEstimate, header: Any, part_id: str) -> Any:
-    """core ParameterEstimate (mm) -> hood_decomp_msgs/BoundaryState (m) of the part ``part_id``."""
+def estimate_to_msg(estimate: ParameterEstimate, header: Any, part_id: str, reference: str = "") -> Any:
+    """core ParameterEstimate (mm) -> hood_decomp_msgs/BoundaryState (m) of the part ``part_id``; ``reference``: the
+    reference its field was made relative to ("cell:PATH", "part:PATH"; "" none)."""
     from hood_decomp_msgs.msg import BoundaryState
 
     return BoundaryState(
@@ -168,6 +169,7 @@ def estimate_to_msg(estimate: ParameterEstimate, header: Any, part_id: str) -> A
         noise_scale=float("nan") if estimate.check is None else estimate.check.noise_scale,
         noise_source="" if estimate.check is None else estimate.check.noise_source,
         measured_effect=_flags(estimate.measured_effect),
+        reference=reference,
     )
 
 
@@ -272,9 +274,9 @@ def zone_verdicts_to_msg(verdicts: Sequence[ZoneVerdict]) -> list[Any]:
                 coverage=float(v.coverage)) for v in verdicts]
 
 
-def decomposition_to_msg(decomposition: Decomposition, header: Any, part_id: str) -> Any:
+def decomposition_to_msg(decomposition: Decomposition, header: Any, part_id: str, reference: str = "") -> Any:
     """core Decomposition (mm) -> hood_decomp_msgs/EffectFields (m; contributions stay 0..1) of the part
-    ``part_id``."""
+    ``part_id``; ``reference`` as :func:`estimate_to_msg`'s."""
     from hood_decomp_msgs.msg import EffectField, EffectFields
 
     return EffectFields(
@@ -293,6 +295,7 @@ def decomposition_to_msg(decomposition: Decomposition, header: Any, part_id: str
         reconstruction=_float32_array(decomposition.reconstruction, M_PER_MM),
         residual=_float32_array(decomposition.residual, M_PER_MM),
         reconstruction_rms=float(decomposition.reconstruction_rms) * M_PER_MM,
+        reference=reference,
     )
 
 

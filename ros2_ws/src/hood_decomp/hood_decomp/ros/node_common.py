@@ -12,6 +12,7 @@ its state, counters and the matched subscriptions of its outputs.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import pathlib
@@ -270,6 +271,25 @@ def load_bases_or_reason(path: str) -> tuple[Any, str]:
         return None, f"bases {path} not loaded: {type(error).__name__}: {error}"
 
 
+def bases_provenance_values(variant_bases: dict[str, Any]) -> dict[str, str]:
+    """Diagnostic key-values of the bases served (variant "" = default): ``bases_id`` and ``calibration`` (the
+    calibration's id, "none" for uncalibrated bases) of the default variant, and per variant ``bases_provenance``
+    (``bases_provenance <variant>``): what ``estimate --json`` reports of them (io.bases.bases_provenance: bases_id
+    and the calibration's id, entries, leave-one-out RMS, physical factors with their std, model discrepancy), JSON."""
+    from hood_decomp.io.bases import bases_provenance
+
+    values: dict[str, str] = {}
+    for variant, bases in variant_bases.items():
+        provenance = bases_provenance(bases)
+        if not variant:
+            calibration = provenance["calibration"]
+            values["bases_id"] = provenance["bases_id"]
+            values["calibration"] = "none" if calibration is None else calibration["id"]
+        key = f"bases_provenance {variant}" if variant else "bases_provenance"
+        values[key] = json.dumps(provenance, sort_keys=True)
+    return values
+
+
 class RosLogHandler(logging.Handler):
     """Forwards :mod:`logging` records to an rclpy logger at the matching severity."""
 
@@ -338,6 +358,7 @@ class HoodNode(LifecycleNode):
         self.configure_error = ""
         self.bases: Any = None  # the default variant's
         self.variant_bases: dict[str, Any] = {}  # variant ("" = default) -> bases
+        self.provenance: dict[str, str] = {}  # heartbeat key -> the bases' id and calibration (JSON), per variant
         self.depth = 10
         self._outputs: list[Any] = []
         self._inputs: list[Any] = []
@@ -369,7 +390,12 @@ class HoodNode(LifecycleNode):
             reason = self.check_parameter(parameter)
             if reason:
                 return SetParametersResult(successful=False, reason=f"{parameter.name}: {reason}")
+        self.accept_parameters(parameters)
         return SetParametersResult(successful=True)
+
+    def accept_parameters(self, parameters: list[Parameter]) -> None:
+        """Called once every parameter of a set passed :meth:`check_parameter` (one set is accepted or refused whole):
+        a subclass takes what it prepared while checking (e.g. a file it read)."""
 
     # --- life cycle -----------------------------------------------------------------------------------------------
     def configure_node(self) -> None:
@@ -384,13 +410,14 @@ class HoodNode(LifecycleNode):
         try:
             self.variant_bases = self._load_variants(path)
             self.bases = self.variant_bases[""]
+            self.provenance = bases_provenance_values(self.variant_bases)
             self.configure_node()
             small_pages_from_now()  # the bases and prepared skins keep their huge pages; per-message buffers not
         except Exception as error:  # any failure is a failed transition, never a dead process
             reason = str(error) if isinstance(error, HoodDecompError) else f"{type(error).__name__}: {error}"
             self.get_logger().error(f"configure failed: {reason}")
             self._destroy(self._outputs)
-            self.bases, self.variant_bases, self.configure_error = None, {}, reason
+            self.bases, self.variant_bases, self.provenance, self.configure_error = None, {}, {}, reason
             self.diagnostics.report(ERROR, f"configure failed: {reason}", bases=path)
             return TransitionCallbackReturn.FAILURE
         self.configure_error = ""
@@ -398,7 +425,7 @@ class HoodNode(LifecycleNode):
         served = ", ".join(f"{variant or 'default'} (model {bases.model_id})"
                            for variant, bases in self.variant_bases.items())
         self.get_logger().info(f"configured with bases {path}; serving {served}")
-        self.diagnostics.report(OK, "configured", bases=path, variants=served)
+        self.diagnostics.report(OK, "configured", bases=path, variants=served, **self.provenance)
         return super().on_configure(state)
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -415,7 +442,7 @@ class HoodNode(LifecycleNode):
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._destroy(self._outputs)
-        self.bases, self.variant_bases = None, {}
+        self.bases, self.variant_bases, self.provenance = None, {}, {}
         self.state = "unconfigured"
         return super().on_cleanup(state)
 
@@ -441,8 +468,10 @@ class HoodNode(LifecycleNode):
         matched publishers (DDS matches each pair on both sides; a sender that counts our subscription may not be
         counted by it yet, and a best-effort subscription loses what comes before), the BLAS threads in use,
         whether freed memory is kept for the next message (:func:`keep_freed_memory`) and the process id (two nodes of
-        one name on one ROS domain answer each other's lifecycle calls: the launcher tells them apart by it)."""
+        one name on one ROS domain answer each other's lifecycle calls: the launcher tells them apart by it), and the
+        bases' id and calibration when configured (:func:`bases_provenance_values`)."""
         return {"state": self.state, "blas_threads": blas_threads(), "memory_kept": _memory_kept, "pid": os.getpid(),
+                **self.provenance,
                 **{f"subscribers {entity.topic_name}": entity.get_subscription_count()
                    for entity in self._outputs if isinstance(entity, LifecyclePublisher)},
                 **{f"publishers {entity.topic_name}": entity.get_publisher_count()
@@ -559,6 +588,159 @@ class HoodNode(LifecycleNode):
 
     def guarded(self, what: str, handler: Callable[[Any], dict[str, object] | None]) -> Callable[[Any], None]:
         return guarded(self, self.diagnostics, what, handler)
+
+
+class ReferencedNode(HoodNode):
+    """A HoodNode that estimates from fields (the estimator and the decomposition node): each field is made
+    reference-relative before it is used (measured - reference + the model's field at the reference's known state, so
+    a static model error cancels; docs/calibration.md), with the same code as the CLI's ``--reference``
+    (io.calibration_files.read_reference).
+
+    A reference per cell: the parameter ``reference`` (a REF.json exactly as ``--reference`` takes it; empty: none),
+    for the fields of the default bases' model_id. It is read at configure (a bad one fails the transition, saying
+    why) and when it changes while configured: a file that does not read, a reference of another model_id, bases
+    without a reduced model, ... refuse the change with a one-line reason; the node keeps its old reference and keeps
+    serving. A reference per part: the service ``<node>/set_reference`` (hood_decomp_msgs/SetReference: part_id,
+    variant, path; an empty path forgets the part's), at most ``remembered_references`` parts (the oldest forgotten
+    first, and said so). A field whose part_id has one is made relative to it, else to the cell's. After a bases
+    swap (cleanup, configure) every reference is read again with the new bases; a part reference that no longer reads
+    is forgotten with a WARN naming it. Every result says which reference it used (``reference`` in the output
+    message and the diagnostic: "cell:PATH", "part:PATH" or empty); the heartbeat names the cell's and counts the
+    parts'."""
+
+    def __init__(self, name: str) -> None:
+        from hood_decomp_msgs.srv import SetReference
+
+        self.cell_reference: Any = None  # io.calibration_files.Reference of the parameter, while configured
+        self.part_references: OrderedDict[str, tuple[str, Any]] = OrderedDict()  # part_id -> (variant, Reference)
+        self._staged: dict[str, Any] = {}  # parameter -> what check_parameter read, taken by accept_parameters
+        super().__init__(name)
+        declare(self, "reference", "", "reference of the cell: REF.json (a part in a known state, as --reference "
+                "takes it) every field of the default bases' model is made relative to, unless its part has its "
+                "own (service set_reference); empty: none. Read at configure and when changed")
+        declare(self, "remembered_references", 100, "parts whose own reference (service set_reference) is kept, "
+                "oldest forgotten first (each holds two floats per skin node)", 1, 100_000)
+        self.create_service(SetReference, "~/set_reference", self.on_set_reference)
+
+    # --- reading ----------------------------------------------------------------------------------------------------
+    def read_reference(self, path: str, variant: str = "") -> Any:
+        """The REF.json ``path`` read for the bases of ``variant`` (io.calibration_files.read_reference); a
+        HoodDecompError naming the problem."""
+        from hood_decomp.io.calibration_files import read_reference
+
+        try:
+            return read_reference(path, self.bases_for_variant(variant), float(self.param("min_coverage")))
+        except HoodDecompError:
+            raise
+        except Exception as error:  # e.g. memory: a reason, never a dead node
+            raise HoodDecompError(f"reference {path} not read: {type(error).__name__}: {error}") from error
+
+    def check_parameter(self, parameter: Parameter) -> str:
+        if parameter.name == "reference" and self.variant_bases:  # unconfigured: read at configure
+            try:
+                self._staged["reference"] = self.read_reference(str(parameter.value)) if parameter.value else None
+            except HoodDecompError as error:
+                return f"{error} (the node keeps {self.reference_label(self.cell_reference, 'cell') or 'none'})"
+        return super().check_parameter(parameter)
+
+    def accept_parameters(self, parameters: list[Parameter]) -> None:
+        staged = self._staged.pop("reference", False)  # what a refused set left behind is never taken
+        names = {parameter.name: parameter.value for parameter in parameters}
+        if staged is not False and "reference" in names:
+            self.cell_reference = staged
+            self.diagnostics.report(OK, "reference set", reference=self.reference_label(self.cell_reference, "cell"))
+        if "remembered_references" in names:  # a lower bound applies now, not at the next part's reference
+            self._forget_beyond(int(names["remembered_references"]))
+        super().accept_parameters(parameters)
+
+    def configure_node(self) -> None:
+        """Read the cell's reference (a bad one fails the transition) and every part's again with the new bases."""
+        path = str(self.param("reference"))
+        self.cell_reference = self.read_reference(path) if path else None
+        forgotten = []
+        for part_id, (variant, reference) in list(self.part_references.items()):
+            try:
+                self.part_references[part_id] = (variant, self.read_reference(reference.path, variant))
+            except HoodDecompError as error:
+                del self.part_references[part_id]
+                forgotten.append(f"{part_id}: {error}")
+        if forgotten:
+            self.get_logger().warning(f"part references forgotten: {'; '.join(forgotten)}")
+            self.diagnostics.report(WARN, f"{len(forgotten)} part reference(s) forgotten at configure: "
+                                    f"{'; '.join(forgotten)}")
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.cell_reference = None  # prepared with the bases that go now; part references are read again at configure
+        return super().on_cleanup(state)
+
+    # --- the service ------------------------------------------------------------------------------------------------
+    def on_set_reference(self, request: Any, response: Any) -> Any:
+        """SetReference: read the part's REF.json with its variant's bases (or forget it: empty path); refused with
+        a one-line reason (the part keeps what it had) when the node is not configured or the file does not serve."""
+        part_id, path = request.part_id.strip(), request.path.strip()
+        response.accepted, response.message = self._set_reference(part_id, request.variant.strip(), path)
+        level = OK if response.accepted else WARN
+        self.diagnostics.report(level, f"set_reference {part_id!r}: {response.message}", part_id=part_id,
+                                part_references=len(self.part_references))
+        return response
+
+    def _set_reference(self, part_id: str, variant: str, path: str) -> tuple[bool, str]:
+        if not part_id:
+            return False, "part_id is empty: name the part (the cell's reference is the parameter 'reference')"
+        if not path:
+            had = self.part_references.pop(part_id, None)
+            return True, (f"part {part_id} forgot its reference {had[1].path}" if had else
+                          f"part {part_id} had no reference of its own")
+        if not self.variant_bases:
+            return False, f"node {self.state}: configure it first (references are read with its bases)"
+        try:
+            reference = self.read_reference(path, variant)
+        except HoodDecompError as error:
+            kept = self.part_references.get(part_id)
+            return False, f"{error} (part {part_id} keeps {kept[1].path if kept else 'no reference of its own'})"
+        self.part_references.pop(part_id, None)
+        self.part_references[part_id] = (variant, reference)
+        message = f"part {part_id}: reference {reference.name} of {path} (model {reference.model_id})"
+        return True, message + "".join(f"; part {oldest}'s reference forgotten (remembered_references)"
+                                       for oldest in self._forget_beyond(int(self.param("remembered_references"))))
+
+    def _forget_beyond(self, limit: int) -> list[str]:
+        """Forget the oldest part references beyond ``limit``; their part ids."""
+        forgotten = []
+        while len(self.part_references) > limit:
+            forgotten.append(self.part_references.popitem(last=False)[0])
+        return forgotten
+
+    # --- use --------------------------------------------------------------------------------------------------------
+    @staticmethod
+    def reference_label(reference: Any, scope: str) -> str:
+        """What an output says of the reference it used: "cell:PATH" / "part:PATH", "" for none."""
+        return "" if reference is None else f"{scope}:{reference.path}"
+
+    def field_of(self, msg: Any) -> tuple[Any, Any, str]:
+        """A DisplacementField message -> (its bases, the field made relative to the part's reference, else the
+        cell's when of the same model, else as measured; the reference's label). A part whose own reference is of
+        another model than its field is refused by name (never the cell's used in its place)."""
+        from hood_decomp.ros import messages
+
+        bases = self.bases_for_model(msg.model_id)
+        field = messages.msg_to_field(msg)
+        part_id = messages.part_id_of(msg)
+        own = self.part_references.get(part_id)
+        if own is not None:
+            reference, scope = own[1], "part"
+            if reference.model_id != msg.model_id:
+                raise HoodDecompError(f"part {part_id}'s reference {reference.path} is of model {reference.model_id},"
+                                      f" its field of model {msg.model_id}: set its reference again (set_reference)")
+        elif self.cell_reference is not None and self.cell_reference.model_id == msg.model_id:
+            reference, scope = self.cell_reference, "cell"
+        else:
+            return bases, field, ""
+        return bases, reference.relative(field), self.reference_label(reference, scope)
+
+    def heartbeat_values(self) -> dict[str, object]:
+        return {**super().heartbeat_values(), "reference": self.reference_label(self.cell_reference, "cell") or "none",
+                "part_references": len(self.part_references)}
 
 
 def spin(node_factory: Callable[[], HoodNode], args: list[str] | None = None) -> int:

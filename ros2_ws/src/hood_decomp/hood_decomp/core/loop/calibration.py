@@ -761,37 +761,71 @@ def rebuild_bases(bases: Bases, reduced: ReducedModel, calibration: str = "",
                    tolerance_zones=bases.tolerance_zones, measured_effects=bases.measured_effects)
 
 
-def relative_field(reduced: ReducedModel, field: DisplacementField, reference: DisplacementField,
-                   setting: np.ndarray, reading: ReadingOfBasis | None = None) -> DisplacementField:
-    """Reference-relative field: measured - reference + the model's own field at the reference's known setting
-    (P,) mm, so a static model error cancels. Unseen where either is unseen; the error model's node variances add
-    (the correlation and pose of the measured field are kept; the reference's registration error adds as noise).
-    A scanned reference reads its surface less its slide at that setting, through the scan step's bias
-    (core.method.surface_reading): the slide is added back from the model and the bias inside the basis taken out
-    (``reading``: ``Bases.reading()``, needed then; :func:`as_node_displacement`): the result is then a scan of the
-    measured part as the estimator takes it, which takes the measured part's own slide and bias out."""
-    for what, other in (("field", field.model_id), ("reference", reference.model_id)):
-        if other != reduced.model_id:
-            raise CalibrationError(f"{what} model_id {other!r} is not the bases' {reduced.model_id!r}")
+@dataclass(frozen=True)
+class ReferenceOffset:
+    """A reference (a part in a known state) prepared once for many fields: what it takes off each field.
+
+    model_id: the bases' model; offset (N,) mm: the reference read as node displacement less the model's own field at
+    the reference's setting (NaN where the reference is unseen); node_std (N,) mm: the reference's node std (its error
+    model, else its noise_rms, else 0); stated: whether the reference has an error model; noise_rms: its noise, mm
+    (NaN: unknown)."""
+
+    model_id: str
+    offset: np.ndarray
+    node_std: np.ndarray
+    stated: bool
+    noise_rms: float
+
+    def relative(self, field: DisplacementField) -> DisplacementField:
+        """``field`` made reference-relative: measured - offset. Unseen where either is unseen; the error model's
+        node variances add (the correlation and pose of the measured field are kept; the reference's registration
+        error adds as noise). CalibrationError for a field of another model or node count."""
+        if field.model_id != self.model_id:
+            raise CalibrationError(f"field model_id {field.model_id!r} is not the reference's {self.model_id!r}")
+        values = np.asarray(field.normal_displacement, float)
+        if values.shape != self.offset.shape:
+            raise CalibrationError(f"field has shape {values.shape}, the reference {self.offset.shape}")
+        values = values - self.offset
+        n = values.size
+        errors = field.errors
+        if errors.kind != "none" or self.stated:
+            corr = np.asarray(errors.correlation, float) if errors.kind != "none" else np.ones(n)
+            errors = replace(errors, kind="stated" if errors.kind == "none" else errors.kind,
+                             node_std=np.sqrt(_node_std(field, n)**2 + self.node_std**2), correlation=corr)
+        noise = float(np.hypot(np.nan_to_num(field.noise_rms), np.nan_to_num(self.noise_rms)))
+        return DisplacementField(model_id=field.model_id, normal_displacement=values,
+                                 coverage=float(np.isfinite(values).mean()),
+                                 noise_rms=noise if noise > 0 else np.nan, error_model=errors)
+
+
+def reference_offset(reduced: ReducedModel, reference: DisplacementField, setting: np.ndarray,
+                     reading: ReadingOfBasis | None = None) -> ReferenceOffset:
+    """The reference field of a part at its known setting (P,) mm prepared for :func:`relative_field`: read as node
+    displacement (a scanned reference less its slide at that setting, through the scan step's bias: the slide added
+    back from the model and the bias inside the basis taken out, ``reading``: ``Bases.reading()``, needed then;
+    :func:`as_node_displacement`), less the model's own field at that setting. CalibrationError for a reference of
+    another model or a setting of the wrong shape."""
+    if reference.model_id != reduced.model_id:
+        raise CalibrationError(f"reference model_id {reference.model_id!r} is not the bases' {reduced.model_id!r}")
     setting = np.asarray(setting, dtype=float)
     if setting.shape != (len(reduced.names),):
         raise CalibrationError(f"reference setting has shape {setting.shape}, expected ({len(reduced.names)},)")
     own = solve_members(reduced, setting[None, :]).normal_displacement[0]
     gradient = None if reading is None else reading.gradient
-    read = as_node_displacement(reference, reduced, setting, gradient, reading).normal_displacement
-    values = np.asarray(field.normal_displacement, float) - np.asarray(read, float) + own
-    n = values.size
-    errors = field.errors
-    if errors.kind != "none" or reference.errors.kind != "none":
-        std_f = _node_std(field, n)
-        std_r = _node_std(reference, n)
-        corr = np.asarray(errors.correlation, float) if errors.kind != "none" else np.ones(n)
-        errors = replace(errors, kind="stated" if errors.kind == "none" else errors.kind,
-                         node_std=np.sqrt(std_f**2 + std_r**2), correlation=corr)
-    noise = float(np.hypot(np.nan_to_num(field.noise_rms), np.nan_to_num(reference.noise_rms)))
-    return DisplacementField(model_id=field.model_id, normal_displacement=values,
-                             coverage=float(np.isfinite(values).mean()),
-                             noise_rms=noise if noise > 0 else np.nan, error_model=errors)
+    read = np.asarray(as_node_displacement(reference, reduced, setting, gradient, reading).normal_displacement, float)
+    if read.shape != own.shape:
+        raise CalibrationError(f"reference has shape {read.shape}, the bases' skin ({own.size},)")
+    return ReferenceOffset(reduced.model_id, read - own, _node_std(reference, read.size),
+                           reference.errors.kind != "none", float(reference.noise_rms))
+
+
+def relative_field(reduced: ReducedModel, field: DisplacementField, reference: DisplacementField,
+                   setting: np.ndarray, reading: ReadingOfBasis | None = None) -> DisplacementField:
+    """Reference-relative field: measured - reference + the model's own field at the reference's known setting
+    (P,) mm, so a static model error cancels (:func:`reference_offset`, :meth:`ReferenceOffset.relative`). The
+    result is then a scan of the measured part as the estimator takes it, which takes the measured part's own slide
+    and bias out."""
+    return reference_offset(reduced, reference, setting, reading).relative(field)
 
 
 def as_node_displacement(field: DisplacementField, reduced: ReducedModel, setting: np.ndarray,
@@ -829,6 +863,7 @@ __all__ = [
     "Calibration",
     "CalibrationEntry",
     "PhysicalResponses",
+    "ReferenceOffset",
     "apply_factors",
     "as_node_displacement",
     "calibrate",
@@ -840,6 +875,7 @@ __all__ = [
     "loo_smoother",
     "one_at_a_time",
     "rebuild_bases",
+    "reference_offset",
     "relative_field",
     "with_correction",
 ]

@@ -1,0 +1,57 @@
+"""A REF.json read once for a set of bases (io.calibration_files.read_reference, what ``--reference`` and the nodes'
+``reference`` parameter and ``set_reference`` service use): the prepared reference makes any number of fields
+relative as the written-out formula does, and the references a node must refuse are refused by name."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from hood_decomp.core.fe.ensemble import solve_members
+from hood_decomp.core.types import DisplacementField, FieldErrorModel
+from hood_decomp.errors import CalibrationError
+from hood_decomp.io.calibration_files import read_reference
+from hood_decomp.io.fields import write_field
+
+
+def _reference(directory, skin, values, setting):
+    write_field(directory / "ref.vtu", skin, DisplacementField(skin.model_id, values, 1.0, 0.01))
+    (directory / "ref.json").write_text(json.dumps({"field": "ref.vtu", "setting": setting}))
+    return directory / "ref.json"
+
+
+def test_a_prepared_reference_is_measured_minus_reference_plus_the_models_field(coarse_hood, tmp_path):
+    """Fails if a reference read once does not give, for each of several fields, measured - reference + the model's
+    field at the reference's setting (written out here, the model's field solved by the FE reduction directly), with
+    the node variances of field and reference added, unseen where the field is unseen."""
+    reduced, skin = coarse_hood.reduced, coarse_hood.skin
+    rng = np.random.default_rng(5)
+    setting = np.zeros(len(reduced.names))
+    setting[reduced.names.index("LOCK_L")] = 0.25
+    reference_values = rng.normal(0.0, 0.3, skin.n_nodes)
+    reference = read_reference(_reference(tmp_path, skin, reference_values, {"LOCK_L": 0.25}), coarse_hood.bases)
+    own = solve_members(reduced, setting[None]).normal_displacement[0]
+    assert reference.model_id == reduced.model_id and reference.setting == {"LOCK_L": 0.25}
+    for _ in range(3):
+        values = rng.normal(0.0, 0.5, skin.n_nodes)
+        values[:10] = np.nan
+        field = DisplacementField(reduced.model_id, values, 1.0, 0.02, FieldErrorModel.stated(0.02, skin.n_nodes))
+        relative = reference.relative(field)
+        np.testing.assert_allclose(relative.normal_displacement, values - reference_values + own, atol=1e-6)
+        np.testing.assert_allclose(relative.errors.node_std, np.hypot(0.02, 0.01))
+        assert relative.coverage == pytest.approx(1.0 - 10 / skin.n_nodes)
+
+
+def test_a_reference_of_another_model_or_for_bases_without_a_reduced_model_is_refused(coarse_hood, tmp_path):
+    """Fails if a reference whose field is of another model_id, or a reference for bases without the reduced model
+    it needs, is accepted instead of refused with a CalibrationError naming the problem and the file."""
+    foreign = replace(coarse_hood.skin, model_id="0123456789abcdef")
+    path = _reference(tmp_path, foreign, np.zeros(foreign.n_nodes), {})
+    with pytest.raises(CalibrationError, match=r"ref\.json: reference model_id '0123456789abcdef' is not the bases'"):
+        read_reference(path, coarse_hood.bases)
+    path = _reference(tmp_path, coarse_hood.skin, np.zeros(foreign.n_nodes), {})
+    with pytest.raises(CalibrationError, match="hold no reduced model"):
+        read_reference(path, replace(coarse_hood.bases, reduced_model=None))
