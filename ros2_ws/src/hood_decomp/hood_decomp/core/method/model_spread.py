@@ -178,8 +178,12 @@ class SkinChange:
         """The change from ``model`` to ``changed`` (the same skin and springs)."""
         new, old = (changed.G, model.G) if model.G.size else (changed.w0, model.w0)
         scale = _scale(new, old) if _differs(new, old) else 1.0
-        return SkinChange(scale, _differs(changed.w0, scale * model.w0), _differs(changed.R, model.R),
-                          _differs(changed.G, scale * model.G))
+
+        def scaled(array: np.ndarray) -> np.ndarray:  # the array itself at scale 1: a shared one is not compared
+            return array if scale == 1.0 else scale * array
+
+        return SkinChange(scale, _differs(changed.w0, scaled(model.w0)), _differs(changed.R, model.R),
+                          _differs(changed.G, scaled(model.G)))
 
 
 def _scale(new: np.ndarray, old: np.ndarray) -> float:

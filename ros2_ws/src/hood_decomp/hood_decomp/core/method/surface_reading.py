@@ -176,20 +176,19 @@ class ReadingOfBasis:
         changes the slide by about 1e-4 mm), and it costs a K x K solve where the estimator's own generalised fit,
         run twice, would double the estimate's time (117 -> 243 ms on a default-hood scan)."""
         seen, normal_matrix, coeff = self._fit(values)
-        slopes, moved = self._affine
-        combination = np.concatenate([[1.0], coeff])
-        added = np.sum(np.tensordot(combination, moved, axes=1) * np.tensordot(combination, slopes, axes=1),
-                       axis=1)  # the fitted field's slide, u_t . grad u_n (:func:`slide`)
+        moved = self.mean_field_3d + np.tensordot(coeff, self.components_3d, axes=1)
+        slope = self._slopes[0] + np.tensordot(coeff, self._slopes[1:], axes=1)
+        added = np.sum(moved * slope, axis=1)  # the fitted field's slide, u_t . grad u_n (:func:`slide`)
         return added - self._inside(seen, normal_matrix, coeff, radius_mm)
 
     @cached_property
-    def _affine(self) -> tuple[np.ndarray, np.ndarray]:
-        """(K + 1, N, 3) each: the tangential gradients of the mean field and of each basis field, and their 3D
-        fields (the gradients being tangential, the 3D fields' normal part does not count). A basis field's slide is
-        the product of the same combination of each, so a scan's reading takes no gradient of its own (at paper
-        resolution the gradient's sums over the triangles were about 20 of a scan's 29 ms reading)."""
-        slopes = np.stack([self.gradient(field) for field in (self.mean_field, *self.components)])
-        return slopes, np.concatenate([self.mean_field_3d[None], self.components_3d])
+    def _slopes(self) -> np.ndarray:
+        """(K + 1, N, 3) the tangential gradients of the mean field and of each basis field, made at the first scan
+        (11 gradients, about 0.2 s at paper resolution; a node's warm-up makes them). A basis field's gradient is
+        the same combination of these, so a scan's reading takes no gradient of its own (at paper resolution the
+        gradient's sums over the triangles were about 20 of a scan's 29 ms reading); the gradients being tangential,
+        the 3D field's normal part does not count in the slide."""
+        return np.stack([self.gradient(field) for field in (self.mean_field, *self.components)])
 
     def bias_inside(self, values: np.ndarray, radius_mm: float) -> np.ndarray:
         """(N,) mm, the part inside the basis of the smoothing bias (:class:`ScanReadingBias`) of the basis field that
