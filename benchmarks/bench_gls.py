@@ -4,7 +4,7 @@
 fields (64 members: the estimate's cost does not depend on the member count) and the contact-aware estimator on a
 synthetic reduced model (4 bilateral states, 2 pads of 2 springs) of the same node count. A toy: the built-in hood's
 contact-aware fit has a column per pad spring and the gate's model spread beside it, and costs far more at paper
-resolution (``bench_estimate.py`` times it phase by phase: benchmarks/RESULTS.md issue 15 runs 19 P and 20); this
+resolution (``bench_estimate.py`` times it phase by phase: benchmarks/RESULTS.md issue 15 runs 19 P and 20 speed); this
 one isolates the generalised fit and the test. A field with 20 % of the nodes unseen, timed as
 
 - ``plain``: no error model, no skin test (what benchmarks/bench_method.py times: the paper's estimator);
