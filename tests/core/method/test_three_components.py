@@ -117,3 +117,63 @@ def test_fields_xyz_cannot_fit_are_refused_by_name(coarse_hood, members) -> None
     # the normal fit ignores a 3D displacement it does not read
     assert estimate_field(bases, field).components == "normal"
 
+
+@pytest.mark.parametrize("method", ["contact", "pca"])
+def test_an_in_plane_effect_the_model_lacks_fails_the_xyz_test_only(coarse_hood, members, method) -> None:
+    """A smooth in-plane field the model does not make (0.02 mm, tangential: no normal part) added to a state of the
+    model under 0.003 mm white noise per component (fixed seed): the normal fit cannot see it and passes the
+    within-model test; the three-component fit's test (the skin's, on each component of the stacked residual)
+    rejects it, and passes the same field without it."""
+    _, block = members
+    skin = coarse_hood.skin
+    x = (skin.points - skin.points.mean(axis=0)) / np.ptp(skin.points, axis=0).max()
+    bend = np.stack([x[:, 1] ** 2, x[:, 0] * x[:, 1], np.zeros(len(x))], axis=1)
+    bend -= np.sum(bend * skin.normals, axis=1, keepdims=True) * skin.normals
+    bend *= 0.02 / np.abs(bend).max()
+    noise = np.random.default_rng(7).normal(0.0, 0.003, bend.shape)
+    clean = field_3d(coarse_hood, block.displacement[1] + noise)
+    lacking = field_3d(coarse_hood, block.displacement[1] + noise + bend)
+    np.testing.assert_allclose(lacking.normal_displacement, clean.normal_displacement, atol=1e-12)
+    assert estimate_field(coarse_hood.bases, lacking, method).within_model
+    assert estimate_field(coarse_hood.bases, clean, method, components="xyz").within_model
+    flagged = estimate_field(coarse_hood.bases, lacking, method, components="xyz")
+    assert not flagged.within_model and flagged.check.dof > 0, flagged.check
+
+
+def test_the_stacked_test_is_the_skins_test_on_each_component(coarse_hood) -> None:
+    """The stacked test's smooth modes and one-ring incidence on component a of the stacked values are the skin
+    test's (and nothing across components); its rigid-body modes' normal part is the skin's rigid modes
+    (core.types.rigid_modes, the normal part computed there)."""
+    from hood_decomp.core.types import rigid_modes
+
+    test = coarse_hood.bases.residual_test()
+    stacked = coarse_hood.bases.stacked_test()
+    rings = test.rings().toarray()
+    stacked_rings = stacked.rings().toarray()
+    for a in range(3):
+        for b in range(3):
+            np.testing.assert_array_equal(stacked.modes_[a::3, b::3], test.modes_ if a == b else 0.0)
+            np.testing.assert_array_equal(stacked_rings[a::3, b::3], rings if a == b else 0.0)
+    normal_part = np.einsum("nak,na->nk", stacked.rigid_.reshape(-1, 3, 6), coarse_hood.skin.normals)
+    np.testing.assert_allclose(normal_part, rigid_modes(coarse_hood.skin.points, coarse_hood.skin.normals),
+                               rtol=0.0, atol=1e-9)
+
+
+def test_a_warm_part_is_fitted_with_its_3d_thermal_field(coarse_hood, members) -> None:
+    """A part ``t`` K warm: its field is the state's plus t times the thermal response (here a made-up smooth 3D
+    field, its normal part the normal response, pads unmoved); fitted with ``temperature_k=t`` the three components
+    return the state (contact-aware, to round-off) and the PCA estimate of the cold field (the thermal field is taken
+    out of all three components)."""
+    _, block = members
+    skin = coarse_hood.skin
+    x = (skin.points - skin.points.mean(axis=0)) / np.ptp(skin.points, axis=0).max()
+    w3 = 0.01 * np.stack([x[:, 0], x[:, 1] ** 2, x[:, 0] * x[:, 1]], axis=1)
+    thermal = (np.einsum("na,na->n", w3, skin.normals), np.zeros(coarse_hood.reduced.k.size), w3)
+    warm = dataclasses.replace(coarse_hood.bases, thermal=thermal)
+    t = 7.0
+    cold = field_3d(coarse_hood, block.displacement[2])
+    hot = field_3d(coarse_hood, block.displacement[2] + t * w3)
+    contact = estimate_field(warm, hot, "contact", temperature_k=t, components="xyz")
+    np.testing.assert_allclose(contact.values, block.effective[2], rtol=0.0, atol=1e-9)
+    pca = estimate_field(warm, hot, "pca", temperature_k=t, components="xyz")
+    np.testing.assert_allclose(pca.values, estimate_field(warm, cold, "pca", components="xyz").values, atol=1e-9)

@@ -32,7 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--components", choices=("normal", "xyz"), default="normal",
                         help="displacement components fitted: normal (default; a scan measures normal distances) or "
                         "xyz, all three, as the paper does (a field file with a 3D displacement, e.g. from "
-                        "`simulate`, and no error model; its within-model test is then the level test only)")
+                        "`simulate`, and no error model; the within-model test then judges each component)")
 
 
 def estimate_payload(estimate, n_bilateral: int) -> dict:

@@ -95,8 +95,10 @@ class Bases:
     # bases' value
     _contact_estimators: dict[tuple[float, float, str], ContactEstimator] = dataclasses.field(
         default_factory=dict, init=False, repr=False, compare=False)
-    # the PCA basis with its 3D fields as the fields it fits (PCABasis.stacked), made on first use
-    _stacked: dict[str, PCABasis] = dataclasses.field(default_factory=dict, init=False, repr=False, compare=False)
+    # what a three-component fit reads: the PCA basis with its 3D fields (PCABasis.stacked) and the within-model
+    # test on the stacked values (ResidualTest.stacked), made on first use
+    _stacked: dict[str, PCABasis | ResidualTest] = dataclasses.field(default_factory=dict, init=False, repr=False,
+                                                                     compare=False)
     # the skin's within-model test (its smooth modes), prepared on first use
     _tests: dict[str, ResidualTest] = dataclasses.field(default_factory=dict, init=False, repr=False, compare=False)
     # what a scan reads less than the basis' fields (their slide along the skin, the smoothing bias inside the
@@ -137,7 +139,7 @@ class Bases:
         """The contact-aware estimator on these bases, fitted on first use and kept (one per ``min_coverage``, part
         temperature ``temperature_k``, K off the model's reference: its thermal response joins the load case, and
         ``components``: "xyz" fits the reduced model's 3D responses, :func:`~.contact_estimation.stacked_model`, its
-        factors' changes too, judged by the level test alone: the skin's test is of N normal values).
+        factors' changes too, judged by :meth:`stacked_test`).
 
         Fitting forms the (B + S, N) fields and their Gram matrix, which costs as much as estimating a field; the
         fitted estimator is only read by ``estimate``, so one instance serves every later field.
@@ -156,7 +158,8 @@ class Bases:
                 factors = tuple(dataclasses.replace(factor, plus=stacked_model(factor.plus),
                                                     minus=stacked_model(factor.minus)) for factor in factors)
             estimator = ContactEstimator(min_coverage).fit(warm, self.pca.lower_, self.pca.upper_,
-                                                           None if xyz else self.residual_test(), shift, factors)
+                                                           self.stacked_test() if xyz else self.residual_test(),
+                                                           shift, factors)
             estimator = self._contact_estimators.setdefault(key, estimator)
         return estimator
 
@@ -166,6 +169,14 @@ class Bases:
         if "pca" not in self._stacked:
             self._stacked.setdefault("pca", self.pca.stacked())
         return self._stacked["pca"]
+
+    def stacked_test(self) -> ResidualTest:
+        """The within-model test of a three-component fit (:meth:`ResidualTest.stacked` of :meth:`residual_test`),
+        made once."""
+        self._components("xyz")
+        if "test" not in self._stacked:
+            self._stacked.setdefault("test", self.residual_test().stacked())
+        return self._stacked["test"]
 
     def _components(self, components: str) -> bool:
         """Whether ``components`` is "xyz"; raises BasisError for an unknown one and for "xyz" on bases that state
@@ -187,6 +198,7 @@ class Bases:
             self.contact_estimator(min_coverage, temperature_k, components)
         elif self._components(components):
             self.stacked_pca()
+            self.stacked_test()
         else:
             self.residual_test()
 
@@ -259,9 +271,9 @@ def estimate_field(
     components: "normal" (default) fits the normal displacement; "xyz" fits all three components of a field that
     has them (a simulated or FE field without an error model, :func:`~.estimation.stacked_field`) with the model's
     3D fields, as the paper does (section 3.2): the same estimators on the stacked values (3 N of them). A slide
-    in the skin's plane (a hinge moved along the hood) the normal values barely show is then seen. Its within-model
-    test is the level test of the stacked residual, not the skin's smooth-mode test, which is of N normal values
-    (:class:`ParameterEstimate` ``components``). Raises FieldError for a field without a 3D displacement or with an
+    in the skin's plane (a hinge moved along the hood) the normal values barely show is then seen, and so is an
+    in-plane effect the model lacks: the within-model test is the skin's on each component of the stacked residual
+    (:meth:`Bases.stacked_test`). Raises FieldError for a field without a 3D displacement or with an
     error model, BasisError for calibrated bases with a discrepancy (:meth:`Bases.stacked_pca`).
 
     The field is estimated as its nodes' displacement (:func:`node_field`: a scan's slide taken out), so the estimate,
@@ -275,7 +287,7 @@ def estimate_field(
             warm = bases.at_temperature(temperature_k)
             thermal = (warm.w0_3d - bases.reduced_model.w0_3d).reshape(-1) if xyz else warm.w0 - bases.reduced_model.w0
             fitted = dataclasses.replace(fitted, normal_displacement=fitted.normal_displacement - thermal)
-        estimate = (estimate_pca(bases.stacked_pca(), fitted, min_coverage) if xyz
+        estimate = (estimate_pca(bases.stacked_pca(), fitted, min_coverage, bases.stacked_test()) if xyz
                     else estimate_pca(bases.pca, fitted, min_coverage, bases.residual_test()))
     else:
         estimate = bases.contact_estimator(min_coverage, temperature_k, components).estimate(fitted)

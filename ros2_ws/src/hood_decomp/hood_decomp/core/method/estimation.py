@@ -394,8 +394,8 @@ def estimate_pca(
     level checked against the residual), reconstruction (N,) = mean_field + c @ components, and the within-model test
     (``test``: the skin's one test; None: the level test only, see :func:`judge`).
     A unilateral boundary is reported lifted when its reaction, carried through the same combination, is about zero.
-    The stacked basis and field of a three-component fit (:meth:`PCABasis.stacked`, :func:`stacked_field`; no test)
-    are fitted alike, their 3 N values as the N here.
+    The stacked basis, field and test of a three-component fit (:meth:`PCABasis.stacked`, :func:`stacked_field`,
+    :meth:`ResidualTest.stacked`) are fitted alike, their 3 N values as the N here.
     """
     n_nodes = basis.components_.shape[1]
     values, valid = check_field(field, basis.model_id_, n_nodes, min_coverage)

@@ -139,8 +139,8 @@ class PCABasis:
         mean_field_ (3 N,) and components_ (K, 3 N) are mean_field_3d_ and components_3d_ node by node x, y, z,
         gram_ their Gram; the pre-factors, states and reactions are the same pairs (the 3D field of component k is
         made by the same member weights as its normal field). training_residual_rms_ stays the normal fields' (the
-        3D fields' is not kept): a "none" field's level and covariance come from its residual, where it cancels
-        (:func:`~.residual.check_residual`). A copy; this basis is unchanged."""
+        3D fields' is not kept): the model floor the covariance and the within-model test count on each of the
+        3 N values. A copy; this basis is unchanged."""
         stacked = copy.copy(self)
         stacked.mean_field_ = self.mean_field_3d_.reshape(-1)
         stacked.components_ = self.components_3d_.reshape(self.components_3d_.shape[0], -1)
