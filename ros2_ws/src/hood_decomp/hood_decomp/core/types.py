@@ -314,8 +314,9 @@ class DisplacementField:
         the skin), its normal part equal to ``normal_displacement`` within :data:`NORMAL_PART_RTOL`. Raises
         FieldError naming the problem, and for a field without a 3D displacement."""
         if self.displacement is None:
-            raise FieldError("the field carries no 3D displacement (a scan measures normal distances only): fit "
-                             "its normal component (components 'normal')")
+            raise FieldError("the field carries no 3D displacement (a scan measures normal distances only; a field "
+                             "file states one with displacement_3d, which files written before it lack): fit its "
+                             "normal component (components 'normal')")
         values = np.asarray(self.normal_displacement, dtype=float)
         vectors = np.asarray(self.displacement, dtype=float)
         if vectors.shape != (values.size, 3):
