@@ -66,8 +66,8 @@ def build_workspace(root: Path) -> Workspace:
     write_ensemble(root / "ensemble.h5", reduced, skin, model.lower, model.upper, n_validation=8)
     save_bases(root / "bases.h5", build_bases(load_ensemble(root / "ensemble.h5"), skin, reduced))
     result = simulate_setting(solver, {"LOCK_L": 0.4})
-    write_field(root / "field.vtu", skin, DisplacementField(skin.model_id, result.normal_displacement, 1.0, 0.0),
-                result.displacement)
+    write_field(root / "field.vtu", skin, DisplacementField(skin.model_id, result.normal_displacement, 1.0, 0.0,
+                                                            displacement=result.displacement))
     # a scan in the part frame: the displaced skin nodes, densified, with a little noise
     rng = np.random.default_rng(0)
     points = skin.points + result.displacement

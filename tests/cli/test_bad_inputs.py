@@ -346,7 +346,7 @@ def _field(values: Callable[[np.ndarray], np.ndarray] | None = None, model_id: s
             field, _ = read_field(ws.field)
             new = values(field.normal_displacement.copy()) if values is not None else field.normal_displacement
             skin = dataclasses.replace(skin, model_id=model_id or skin.model_id)
-            write_field(bad, skin, DisplacementField(skin.model_id, new, 1.0, 0.0), np.zeros((len(new), 3)))
+            write_field(bad, skin, DisplacementField(skin.model_id, new, 1.0, 0.0))
         return _verb_with("field", bad, ws, tmp)
 
     return build

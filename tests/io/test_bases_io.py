@@ -128,6 +128,48 @@ def test_field_file_round_trip_and_missing_model_id(saved, tmp_path):
         read_field(plain, moved)
 
 
+def test_field_file_carries_a_3d_displacement_only_when_the_field_has_one(saved, tmp_path):
+    """A field's 3D displacement (issue 21) is written and read back as it was; a field without one, or a file
+    written before the flag (its ``displacement`` is normal x value, a picture), reads without one; a file cannot
+    state one it does not hold, one that is not the field's, or a flag that is not 0 or 1."""
+    skin, model, _, _ = saved
+    values, vectors = model.w0.copy(), model.w0_3d.copy()  # the toy model's 3D field has its w0 as normal part
+    values[:10] = np.nan
+    vectors[:10] = np.nan
+    path = tmp_path / "field3.vtu"
+    write_field(path, skin, replace(field_of(skin, values), displacement=vectors))
+    field, picture = read_field(path, skin)
+    np.testing.assert_array_equal(field.displacement, vectors)
+    np.testing.assert_array_equal(field.normal_displacement, values)
+    np.testing.assert_array_equal(picture, vectors)
+    assert np.abs(vectors[10:] - skin.normals[10:] * values[10:, None]).max() > 0.1  # not the normal picture
+
+    plain = tmp_path / "normal.vtu"
+    write_field(plain, skin, field_of(skin, values))
+    assert read_field(plain, skin)[0].displacement is None
+    text = path.read_text()
+    flag = '<DataArray type="UInt8" Name="displacement_3d" NumberOfTuples="1" format="ascii">1</DataArray>\n'
+    assert flag in text
+    old = tmp_path / "old.vtu"  # as written before the flag: its displacement is not read as the field's
+    old.write_text(text.replace(flag, ""))
+    assert read_field(old, skin)[0].displacement is None
+    for bad, message in ((flag.replace(">1<", ">2<"), "0 or 1"), (flag.replace(">1<", ">nan<"), "0 or 1")):
+        wrong = tmp_path / "wrong.vtu"
+        wrong.write_text(text.replace(flag, bad.replace("UInt8", "Float64") if "nan" in bad else bad))
+        with pytest.raises(FieldError, match=message):
+            read_field(wrong, skin)
+    with pytest.raises(FieldError, match="normal part differs"):
+        write_field(tmp_path / "x.vtu", skin, replace(field_of(skin, values), displacement=vectors + skin.normals))
+    # a file whose 3D field is not its normal one on this skin: written against other normals
+    tilted = np.cross(skin.normals, [1.0, 0.0, 0.0]) * 0.3 + skin.normals
+    other = replace(skin, normals=tilted / np.linalg.norm(tilted, axis=1, keepdims=True))
+    forged = replace(field_of(skin, np.einsum("na,na->n", vectors, other.normals)), displacement=vectors)
+    write_field(tmp_path / "forged.vtu", other, forged)
+    with pytest.raises(FieldError, match="normal part differs"):
+        read_field(tmp_path / "forged.vtu", skin)
+    read_field(tmp_path / "forged.vtu")  # without the skin the normal part is not checked (the estimator does)
+
+
 def test_cli_estimate_and_decompose(saved, tmp_path, capsys):
     skin, model, _, path = saved
     truth = np.array([0.3, -0.6, 0.5, 0.2, 0.4, -1.0])

@@ -36,6 +36,7 @@ def test_every_json_a_verb_prints_is_strict_json(tiny_workspace, tmp_path, capsy
     printed = [capsys.readouterr().out]
     field, _ = read_field(tmp_path / "f.vtu")
     field.normal_displacement[:100] = np.nan  # a quarter of the skin unseen
+    field.displacement[:100] = np.nan  # and its 3D displacement with it (simulate writes one)
     write_field(tmp_path / "partial.vtu", load_bases(ws.bases).skin, field)
     for verb in ("estimate", "decompose"):
         assert main([verb, "--bases", str(ws.bases), "--field", str(tmp_path / "partial.vtu")]) == 0

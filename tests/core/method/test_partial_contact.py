@@ -21,10 +21,10 @@ from hood_decomp.core.types import DisplacementField
 EXACT_MM = 1e-6
 
 
-def fe_member(case, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(skin normal displacement (N,) mm, pad forces (S,) N) of ``state`` (P,) mm from a direct FE solve with the
-    member's pad reactions; asserts that the reactions push (f >= 0), that every loaded spring touches its buffer and
-    that no free spring penetrates it, on the FE solution."""
+def fe_member(case, state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(skin normal displacement (N,) mm, pad forces (S,) N, skin 3D displacement (N, 3) mm) of ``state`` (P,) mm from
+    a direct FE solve with the member's pad reactions; asserts that the reactions push (f >= 0), that every loaded
+    spring touches its buffer and that no free spring penetrates it, on the FE solution."""
     solver, reduced, model = case.solver, case.reduced, case.model
     forces = solve_members(reduced, state[None, :]).pad_forces[0]
     prescribed = np.zeros(len(solver.constrained))
@@ -37,8 +37,8 @@ def fe_member(case, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     assert forces.min() >= 0.0
     assert np.all(gap[forces == 0] >= -scale)
     np.testing.assert_allclose(-gap[forces > 0], forces[forces > 0] / reduced.k[forces > 0], atol=scale)
-    normal = np.einsum("na,na->n", u.reshape(-1, 6)[model.skin_nodes, :3], case.skin.normals)
-    return normal, forces
+    vectors = u.reshape(-1, 6)[model.skin_nodes, :3]
+    return np.einsum("na,na->n", vectors, case.skin.normals), forces, vectors
 
 
 def partial_contact_members(case, n: int, count: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -80,7 +80,7 @@ def test_noise_free_partial_contact_is_estimated_exactly(preset, request) -> Non
     case = request.getfixturevalue(preset)
     worst = 0.0
     for state, forces in partial_contact_members(case, 300, 5):
-        normal, _ = fe_member(case, state)
+        normal, _, _ = fe_member(case, state)
         estimate = estimate_field(case.bases, DisplacementField(case.model.model_id, normal, 1.0, float("nan")))
         values, lifted = observable(case, state, forces)
         np.testing.assert_array_equal(estimate.lifted, lifted)
@@ -113,7 +113,7 @@ def test_noisy_light_touch_bilateral_states_within_their_std(coarse_hood) -> Non
     rng = np.random.default_rng(5)
     z = []
     for state in parts:
-        normal, _ = fe_member(case, state)
+        normal, _, _ = fe_member(case, state)
         for _ in range(30):
             noisy = normal + rng.normal(0.0, 0.02, normal.size)
             estimate = estimate_field(case.bases, DisplacementField(case.model.model_id, noisy, 1.0, 0.02))

@@ -29,6 +29,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "calibrated bases, which carry the thermal response)")
     parser.add_argument("--method", choices=("contact", "pca"), default="contact",
                         help="contact-aware estimator (default) or the paper's PCA estimator")
+    parser.add_argument("--components", choices=("normal", "xyz"), default="normal",
+                        help="displacement components fitted: normal (default; a scan measures normal distances) or "
+                        "xyz, all three, as the paper does (a field file with a 3D displacement, e.g. from "
+                        "`simulate`, and no error model; the within-model test then judges each component)")
 
 
 def estimate_payload(estimate, n_bilateral: int) -> dict:
@@ -40,8 +44,10 @@ def estimate_payload(estimate, n_bilateral: int) -> dict:
     by the field's error model, registration included; "ordinary": a field without one), within_model with the one
     test behind it (``within_model_test``: p_value, alpha, statistic, dof, noise_scale, noise_source: "residual" when
     the field states no error model and the noise level is estimated from the residual with ``denominator_dof``
-    degrees of freedom) and method. ``measured_effects`` names the parameters without a boundary (measured effects:
-    their value is an amplitude); ``correction`` is what the estimator node would send the robot with the default policy
+    degrees of freedom), method and ``components`` ("normal" or "xyz": the displacement components fitted; for
+    "xyz" the residual RMS and max are over the 3 N fitted values). ``measured_effects`` names the parameters without
+    a boundary (measured effects: their value is an amplitude); ``correction`` is what the estimator node would send
+    the robot with the default policy
     (core.method.correction.plan_correction: the move per boundary, mm, never one for a measured effect or a lifted
     buffer; safe_to_apply, applicable, reason)."""
     from hood_decomp.core.method.correction import plan_correction
@@ -72,6 +78,7 @@ def estimate_payload(estimate, n_bilateral: int) -> dict:
         "within_model": estimate.within_model,
         "method": estimate.method,
         "weighting": estimate.weighting,
+        "components": estimate.components,
         "measured_effects": [name for name, boundary in zip(names, estimate.boundary, strict=True) if not boundary],
         "correction": {
             "corrections_mm": dict(zip(names, correction.corrections, strict=True)),
@@ -98,8 +105,8 @@ def run(args: argparse.Namespace) -> int:
     # the estimator is fitted (0.1-0.4 s at paper resolution) while the scan is read and turned into a field
     checks: list[dict] = []
     bases, field = read_bases_and_field(args, lambda bases: bases.prepare_estimation(
-        args.method, args.min_coverage, args.temperature_k), marker_checks=checks)
-    estimate = estimate_field(bases, field, args.method, args.min_coverage, args.temperature_k)
+        args.method, args.min_coverage, args.temperature_k, args.components), marker_checks=checks)
+    estimate = estimate_field(bases, field, args.method, args.min_coverage, args.temperature_k, args.components)
     payload = estimate_payload(estimate, bases.pca.n_bilateral_)
     payload.update(bases_provenance(bases), reference=None if args.reference is None else str(args.reference),
                    temperature_k=args.temperature_k, marker_noise_checks=marker_checks_or_none(args, checks))

@@ -12,8 +12,8 @@ HELP = "one forward FE solve of a boundary setting (any boundary, declared param
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", required=True, help="model directory or its model.yaml")
     add_setting(parser)
-    parser.add_argument("--out", required=True, help="output field file (.vtu, skin point data displacement and "
-                        "normal_displacement in mm)")
+    parser.add_argument("--out", required=True, help="output field file (.vtu, skin point data displacement (the "
+                        "3D field, estimate --components xyz fits it) and normal_displacement in mm)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -29,9 +29,9 @@ def run(args: argparse.Namespace) -> int:
     model = load_model(args.model)
     result = simulate_setting(build_solver(model), settings)
     field = DisplacementField(model_id=model.model_id, normal_displacement=result.normal_displacement, coverage=1.0,
-                              noise_rms=float("nan"))
+                              noise_rms=float("nan"), displacement=result.displacement)
     with written_whole(out) as temporary:
-        write_field(temporary, skin_surface(model), field, result.displacement)
+        write_field(temporary, skin_surface(model), field)
     emit_json({"out": args.out, "settings_mm": settings,
                "max_abs_normal_displacement_mm": float(abs(result.normal_displacement).max()),
                "pad_contact_fraction": result.contact_fraction, "pad_reaction_n": result.reactions})

@@ -276,6 +276,11 @@ def _pose_mixing(covariance: np.ndarray, center: np.ndarray) -> np.ndarray:
     return about @ (vectors * np.sqrt(np.clip(values, 0.0, None)))
 
 
+#: how far a 3D displacement's normal part may differ from the field's normal value, per mm of the field's largest
+#: displacement (at least 1 mm): round-off of the dot product with the normal, never a measurement's difference
+NORMAL_PART_RTOL = 1e-9
+
+
 @dataclass(frozen=True)
 class DisplacementField:
     """A signed normal displacement per visible skin node (paper: the condensed scalar field).
@@ -285,6 +290,10 @@ class DisplacementField:
     noise_rms: estimated scan noise per scan point, mm (NaN when unknown, e.g. a simulated field); informative only:
         the within-model test and the covariance use ``error_model``, with its level checked against the residual.
     error_model: the field's :class:`FieldErrorModel`; None means :meth:`FieldErrorModel.none`.
+    displacement: (N, 3) float64, mm, the field's own 3D displacement where it has one (a simulated or FE field: the
+        paper fits all three components, section 3.2), NaN rows where ``normal_displacement`` is NaN; its normal part
+        is ``normal_displacement``. None for a field that measures normal distances only (a scan). Checked against a
+        skin by :meth:`checked_displacement`.
     """
 
     model_id: str
@@ -292,11 +301,40 @@ class DisplacementField:
     coverage: float
     noise_rms: float
     error_model: FieldErrorModel | None = None
+    displacement: np.ndarray | None = None
 
     @property
     def errors(self) -> FieldErrorModel:
         """The error model, "none" when the field states none."""
         return self.error_model if self.error_model is not None else FieldErrorModel.none()
+
+    def checked_displacement(self, normals: np.ndarray | None) -> np.ndarray:
+        """The field's 3D displacement (N, 3) mm, validated: its shape, finite exactly on the nodes whose normal value
+        is (NaN rows elsewhere) and, given the skin's unit ``normals`` (N, 3) (None: not checked, a reader without
+        the skin), its normal part equal to ``normal_displacement`` within :data:`NORMAL_PART_RTOL`. Raises
+        FieldError naming the problem, and for a field without a 3D displacement."""
+        if self.displacement is None:
+            raise FieldError("the field carries no 3D displacement (a scan measures normal distances only; a field "
+                             "file states one with displacement_3d, which files written before it lack): fit its "
+                             "normal component (components 'normal')")
+        values = np.asarray(self.normal_displacement, dtype=float)
+        vectors = np.asarray(self.displacement, dtype=float)
+        if vectors.shape != (values.size, 3):
+            raise FieldError(f"3D displacement has shape {vectors.shape}, expected ({values.size}, 3)")
+        seen = np.isfinite(values)
+        if not np.all(np.isfinite(vectors[seen])) or not np.all(np.isnan(vectors[~seen])):
+            wrong = int(np.sum(~np.all(np.isfinite(vectors), axis=1) & seen)
+                        + np.sum(~np.all(np.isnan(vectors), axis=1) & ~seen))
+            raise FieldError(f"3D displacement must be finite exactly where the normal displacement is (NaN rows "
+                             f"elsewhere); {wrong} nodes differ")
+        if normals is not None:
+            part = np.einsum("na,na->n", vectors[seen], np.asarray(normals, float)[seen])
+            gap = float(np.max(np.abs(part - values[seen]), initial=0.0))
+            limit = NORMAL_PART_RTOL * max(1.0, float(np.max(np.abs(vectors[seen]), initial=0.0)))
+            if gap > limit:
+                raise FieldError(f"3D displacement's normal part differs from normal_displacement by up to {gap:.3g} "
+                                 f"mm (round-off allows {limit:.3g} mm): not the same field")
+        return vectors
 
     def vectors(self, normals: np.ndarray) -> np.ndarray:
         """The 3D displacement (N, 3) mm as normal times value, as the paper does."""
@@ -397,6 +435,12 @@ class ParameterEstimate:
     weighting: how the field was fitted: "generalised" (least squares weighted by the field's error model, its node
         covariance with the registration's rigid-body modes: :mod:`hood_decomp.core.method.estimation`) or
         "ordinary" (a field without an error model, or one whose covariance is a multiple of the identity).
+    components: the displacement components fitted: "normal" (the default; scans measure normal distances) or "xyz"
+        (all three, stacked, as the paper does for FE fields: :func:`hood_decomp.core.method.bases.estimate_field`).
+        For "xyz" ``reconstruction`` and ``residual`` are the normal part (N,) of the 3D ones, ``residual_rms`` and
+        ``residual_max`` are over the 3 N fitted values, and ``check`` is the skin's test on each component of the
+        stacked residual (:meth:`hood_decomp.core.method.residual.ResidualTest.stacked`; its level from the rough
+        part of all 3 N values, which ``covariance`` uses).
     """
 
     model_id: str
@@ -419,6 +463,7 @@ class ParameterEstimate:
     model_factors: tuple[str, ...] = ()
     model_effects: np.ndarray | None = None
     weighting: str = "ordinary"
+    components: str = "normal"
 
     @property
     def model_covariance(self) -> np.ndarray | None:

@@ -278,6 +278,6 @@ def export_member(path: str | Path, group: str, index: int, out: str | Path) -> 
         raise EnsembleError(f"{path}: group {group!r} has members 0..{size - 1}, asked for {index}")
     member = load_ensemble(path, group, members=slice(index, index + 1))
     field = DisplacementField(model_id=member.model_id, normal_displacement=member.normal_displacement[0],
-                              coverage=1.0, noise_rms=float("nan"))
-    write_field(out, load_skin(path), field, member.displacement[0])
+                              coverage=1.0, noise_rms=float("nan"), displacement=member.displacement[0])
+    write_field(out, load_skin(path), field)
     return Path(out)

@@ -1,7 +1,10 @@
 """Field files: a displacement field as a ``.vtu`` on the visible skin.
 
 Layout: points = skin node positions (N, 3) mm, triangle cells = skin triangles, point data ``normal_displacement``
-(N,) mm (NaN where unknown) and, when known, ``displacement`` (N, 3) mm. VTK FieldData carries ``model_id`` (UInt8
+(N,) mm (NaN where unknown) and ``displacement`` (N, 3) mm. ``displacement`` is the field's own 3D displacement
+(:attr:`DisplacementField.displacement`, what a ``components="xyz"`` fit reads) only when FieldData
+``displacement_3d`` is 1 (UInt8); without it (0, or a file written before it) it is normal x value, a picture for
+ParaView, and the field read has no 3D displacement. VTK FieldData carries ``model_id`` (UInt8
 ASCII codes), ``coverage`` and ``noise_rms`` (mm, NaN when unknown), and the field's error model (FieldData
 ``error_model`` (kind, ASCII codes; "none" for a simulated field), ``error_correlation_length_mm``,
 ``error_pose_covariance`` (36, row-major 6 x 6, [rad, mm]^2 about ``error_pose_center_mm`` (3)),
@@ -89,18 +92,17 @@ def _read_error_model(mesh: meshio.Mesh, path: Path, n_nodes: int) -> FieldError
     return errors
 
 
-def write_field(
-    path: str | Path, skin: SkinSurface, field: DisplacementField, displacement: np.ndarray | None = None
-) -> None:
-    """Write ``field`` on ``skin`` to ``path`` (.vtu). displacement: optional (N, 3) mm; default normal x value."""
+def write_field(path: str | Path, skin: SkinSurface, field: DisplacementField) -> None:
+    """Write ``field`` on ``skin`` to ``path`` (.vtu): point data ``displacement`` is the field's 3D displacement
+    (validated against the skin, :meth:`DisplacementField.checked_displacement`) when it has one, else normal x value
+    (module docstring)."""
     if field.model_id != skin.model_id:
         raise FieldError(f"field model_id {field.model_id!r} differs from the skin's {skin.model_id!r}")
     values = np.asarray(field.normal_displacement, dtype=float)
     if values.shape != (skin.n_nodes,):
         raise FieldError(f"field has shape {values.shape}, expected ({skin.n_nodes},)")
-    vectors = field.vectors(skin.normals) if displacement is None else np.asarray(displacement, dtype=float)
-    if vectors.shape != (skin.n_nodes, 3):
-        raise FieldError(f"displacement has shape {vectors.shape}, expected ({skin.n_nodes}, 3)")
+    has_3d = field.displacement is not None
+    vectors = field.checked_displacement(skin.normals) if has_3d else field.vectors(skin.normals)
     field.errors.validate(skin.n_nodes)
     error_points, error_data = _error_model_items(field.errors)
     from xml.sax.saxutils import escape  # writing only: it loads urllib and http (30 ms of a reader's start)
@@ -118,7 +120,8 @@ def write_field(
     marker = "<UnstructuredGrid>\n"
     extra = _field_data_xml({"model_id": _ascii_codes(escape(field.model_id)),
                              "coverage": np.array([float(field.coverage)]),
-                             "noise_rms": np.array([float(field.noise_rms)]), **error_data})
+                             "noise_rms": np.array([float(field.noise_rms)]),
+                             "displacement_3d": np.array([int(has_3d)], np.uint8), **error_data})
     path.write_text(text.replace(marker, marker + extra, 1))
 
 
@@ -129,7 +132,9 @@ def read_field(path: str | Path, skin: SkinSurface | None = None) -> tuple[Displ
     when ``skin`` is given and the file's points are the skin's nodes in the skin's order (within 1e-6 mm); it then
     gets the skin's model_id. Raises FieldError when the file is missing or unreadable, has no
     ``normal_displacement``, or has no ``model_id`` and no matching skin. Coverage is recomputed from the values; a
-    missing ``noise_rms`` is NaN.
+    missing ``noise_rms`` is NaN. The field has a 3D displacement when the file states one (module docstring),
+    validated (:meth:`DisplacementField.checked_displacement`; its normal part only given ``skin``); the second value
+    returned is the file's point data ``displacement`` whatever it is.
     """
     path = Path(path)
     if not path.is_file():
@@ -166,8 +171,28 @@ def read_field(path: str | Path, skin: SkinSurface | None = None) -> tuple[Displ
         if vectors.shape != (len(values), 3):
             raise FieldError(f"{path}: displacement has shape {vectors.shape}, expected ({len(values)}, 3)")
     field = DisplacementField(model_id=model_id, normal_displacement=values, coverage=coverage, noise_rms=noise_rms,
-                              error_model=_read_error_model(mesh, path, values.size))
+                              error_model=_read_error_model(mesh, path, values.size),
+                              displacement=vectors if _states_3d(mesh, path, vectors) else None)
+    if field.displacement is not None:
+        try:
+            field.checked_displacement(None if skin is None else skin.normals)
+        except FieldError as error:
+            raise FieldError(f"{path}: {error}") from None
     return field, vectors
+
+
+def _states_3d(mesh: meshio.Mesh, path: Path, vectors: np.ndarray | None) -> bool:
+    """Whether the file states its point data ``displacement`` is the field's own 3D displacement (FieldData
+    ``displacement_3d``: one value, 0 or 1; absent in files written before it: no)."""
+    flag = mesh.field_data.get("displacement_3d")
+    if flag is None:
+        return False
+    flag = np.asarray(flag).reshape(-1)
+    if flag.size != 1 or flag.dtype.kind not in "fiu" or flag[0] not in (0, 1):
+        raise FieldError(f"{path}: field data displacement_3d must be one value, 0 or 1")
+    if flag[0] == 1 and vectors is None:
+        raise FieldError(f"{path} states a 3D displacement (displacement_3d 1) but has no point data 'displacement'")
+    return bool(flag[0] == 1)
 
 
 #: largest displacement (mm) a field may hold: the method models sheet-metal deviations of a few millimetres (the

@@ -13,9 +13,15 @@ import logging
 
 import numpy as np
 
-from hood_decomp.core.method.contact_estimation import ContactEstimator
+from hood_decomp.core.method.contact_estimation import ContactEstimator, stacked_model
 from hood_decomp.core.method.decomposition import decompose
-from hood_decomp.core.method.estimation import DEFAULT_MIN_COVERAGE, check_field, estimate_pca
+from hood_decomp.core.method.estimation import (
+    COMPONENTS,
+    DEFAULT_MIN_COVERAGE,
+    check_field,
+    estimate_pca,
+    stacked_field,
+)
 from hood_decomp.core.method.hierarchical import HierarchicalBasis
 from hood_decomp.core.method.model_spread import PhysicalResponses, factor_spread
 from hood_decomp.core.method.pca import PCABasis
@@ -85,9 +91,14 @@ class Bases:
     #: out of a scanned field inside the basis (:meth:`reading`). None: not measured (only the slide is taken out).
     #: Measured from the bases, not part of their value (not in bases_id)
     scan_reading_bias: ScanReadingBias | None = dataclasses.field(default=None, compare=False)
-    # (min_coverage, temperature K) -> fitted ContactEstimator; filled on first use, not part of the bases' value
-    _contact_estimators: dict[tuple[float, float], ContactEstimator] = dataclasses.field(
+    # (min_coverage, temperature K, components) -> fitted ContactEstimator; filled on first use, not part of the
+    # bases' value
+    _contact_estimators: dict[tuple[float, float, str], ContactEstimator] = dataclasses.field(
         default_factory=dict, init=False, repr=False, compare=False)
+    # what a three-component fit reads: the PCA basis with its 3D fields (PCABasis.stacked) and the within-model
+    # test on the stacked values (ResidualTest.stacked), made on first use
+    _stacked: dict[str, PCABasis | ResidualTest] = dataclasses.field(default_factory=dict, init=False, repr=False,
+                                                                     compare=False)
     # the skin's within-model test (its smooth modes), prepared on first use
     _tests: dict[str, ResidualTest] = dataclasses.field(default_factory=dict, init=False, repr=False, compare=False)
     # what a scan reads less than the basis' fields (their slide along the skin, the smoothing bias inside the
@@ -123,34 +134,71 @@ class Bases:
             return np.inf
         return float(len(json.loads(self.calibration).get("entries", ()))) or np.inf
 
-    def contact_estimator(self, min_coverage: float = DEFAULT_MIN_COVERAGE,
-                          temperature_k: float = 0.0) -> ContactEstimator:
-        """The contact-aware estimator on these bases, fitted on first use and kept (one per ``min_coverage`` and
-        part temperature ``temperature_k``, K off the model's reference: its thermal response joins the load case).
+    def contact_estimator(self, min_coverage: float = DEFAULT_MIN_COVERAGE, temperature_k: float = 0.0,
+                          components: str = "normal") -> ContactEstimator:
+        """The contact-aware estimator on these bases, fitted on first use and kept (one per ``min_coverage``, part
+        temperature ``temperature_k``, K off the model's reference: its thermal response joins the load case, and
+        ``components``: "xyz" fits the reduced model's 3D responses, :func:`~.contact_estimation.stacked_model`, its
+        factors' changes too, judged by :meth:`stacked_test`).
 
         Fitting forms the (B + S, N) fields and their Gram matrix, which costs as much as estimating a field; the
         fitted estimator is only read by ``estimate``, so one instance serves every later field.
         """
         if self.reduced_model is None:
             raise BasisError("the bases file holds no reduced model: the contact-aware estimator needs one (use 'pca')")
-        key = (min_coverage, float(temperature_k))
+        xyz = self._components(components)
+        key = (min_coverage, float(temperature_k), components)
         estimator = self._contact_estimators.get(key)
         if estimator is None:
             warm = self.at_temperature(temperature_k)
             shift = None if self.reduced_model is warm else warm.z0 - self.reduced_model.z0
+            factors = factor_spread(warm, self.calibration, self.physics, full=xyz)
+            if xyz:
+                warm = stacked_model(warm)
+                factors = tuple(dataclasses.replace(factor, plus=stacked_model(factor.plus),
+                                                    minus=stacked_model(factor.minus)) for factor in factors)
             estimator = ContactEstimator(min_coverage).fit(warm, self.pca.lower_, self.pca.upper_,
-                                                           self.residual_test(), shift,
-                                                           factor_spread(warm, self.calibration, self.physics))
+                                                           self.stacked_test() if xyz else self.residual_test(),
+                                                           shift, factors)
             estimator = self._contact_estimators.setdefault(key, estimator)
         return estimator
 
+    def stacked_pca(self) -> PCABasis:
+        """The PCA basis fitting all three displacement components (:meth:`PCABasis.stacked`), made once."""
+        self._components("xyz")
+        if "pca" not in self._stacked:
+            self._stacked.setdefault("pca", self.pca.stacked())
+        return self._stacked["pca"]
+
+    def stacked_test(self) -> ResidualTest:
+        """The within-model test of a three-component fit (:meth:`ResidualTest.stacked` of :meth:`residual_test`),
+        made once."""
+        self._components("xyz")
+        if "test" not in self._stacked:
+            self._stacked.setdefault("test", self.residual_test().stacked())
+        return self._stacked["test"]
+
+    def _components(self, components: str) -> bool:
+        """Whether ``components`` is "xyz"; raises BasisError for an unknown one and for "xyz" on bases that state
+        a calibrated model's discrepancy (of the normal displacement only: a fit of all three could not count it)."""
+        if components not in COMPONENTS:
+            raise BasisError(f"unknown displacement components {components!r}, expected one of {COMPONENTS}")
+        if components == "xyz" and self.discrepancy is not None:
+            raise BasisError("these calibrated bases state the model's discrepancy on the normal displacement only: "
+                             "components 'xyz' cannot count it; fit the normal component")
+        return components == "xyz"
+
     def prepare_estimation(self, method: str = "contact", min_coverage: float = DEFAULT_MIN_COVERAGE,
-                           temperature_k: float = 0.0) -> None:
+                           temperature_k: float = 0.0, components: str = "normal") -> None:
         """Fit now what :func:`estimate_field` with these arguments fits on its first call (the contact-aware
-        estimator, or for "pca" and for bases without a reduced model the within-model test), so that estimating
-        then only reads it: a node before it serves, a one-off run while it reads its scan."""
+        estimator, or for "pca" and for bases without a reduced model the within-model test or, for "xyz", the
+        stacked basis), so that estimating then only reads it: a node before it serves, a one-off run while it
+        reads its scan."""
         if method == "contact" and self.reduced_model is not None:
-            self.contact_estimator(min_coverage, temperature_k)
+            self.contact_estimator(min_coverage, temperature_k, components)
+        elif self._components(components):
+            self.stacked_pca()
+            self.stacked_test()
         else:
             self.residual_test()
 
@@ -213,28 +261,51 @@ def rebuilt_like(rebuilt: Bases, source: Bases) -> Bases:
 
 def estimate_field(
     bases: Bases, field: DisplacementField, method: str = "contact", min_coverage: float = DEFAULT_MIN_COVERAGE,
-    temperature_k: float = 0.0,
+    temperature_k: float = 0.0, components: str = "normal",
 ) -> ParameterEstimate:
     """Estimate a field's parameter states: "contact" (default, needs the reduced model) or "pca" (the paper's).
     temperature_k: the part's temperature minus the model's reference temperature, K (needs bases with a thermal
     response; the PCA estimator removes the thermal field from the measured one, the contact-aware one also lets it
     move the pads).
 
+    components: "normal" (default) fits the normal displacement; "xyz" fits all three components of a field that
+    has them (a simulated or FE field without an error model, :func:`~.estimation.stacked_field`) with the model's
+    3D fields, as the paper does (section 3.2): the same estimators on the stacked values (3 N of them). A slide
+    in the skin's plane (a hinge moved along the hood) the normal values barely show is then seen, and so is an
+    in-plane effect the model lacks: the within-model test is the skin's on each component of the stacked residual
+    (:meth:`Bases.stacked_test`). Raises FieldError for a field without a 3D displacement or with an
+    error model, BasisError for calibrated bases with a discrepancy (:meth:`Bases.stacked_pca`).
+
     The field is estimated as its nodes' displacement (:func:`node_field`: a scan's slide taken out), so the estimate,
     its residual and its within-model test are of the node displacements the model makes."""
     if method not in METHODS:
         raise BasisError(f"unknown estimation method {method!r}, expected one of {METHODS}")
-    field = node_field(bases, field, min_coverage)
+    xyz = bases._components(components)
+    fitted = stacked_field(field, bases.skin.normals, min_coverage) if xyz else node_field(bases, field, min_coverage)
     if method == "pca":
-        if temperature_k != 0.0 and np.shape(field.normal_displacement) == bases.pca.mean_field_.shape:
-            thermal = bases.at_temperature(temperature_k).w0 - bases.reduced_model.w0
-            field = dataclasses.replace(field, normal_displacement=field.normal_displacement - thermal)
-        estimate = estimate_pca(bases.pca, field, min_coverage, bases.residual_test())
+        if temperature_k != 0.0 and (xyz or np.shape(fitted.normal_displacement) == bases.pca.mean_field_.shape):
+            warm = bases.at_temperature(temperature_k)
+            thermal = (warm.w0_3d - bases.reduced_model.w0_3d).reshape(-1) if xyz else warm.w0 - bases.reduced_model.w0
+            fitted = dataclasses.replace(fitted, normal_displacement=fitted.normal_displacement - thermal)
+        estimate = (estimate_pca(bases.stacked_pca(), fitted, min_coverage, bases.stacked_test()) if xyz
+                    else estimate_pca(bases.pca, fitted, min_coverage, bases.residual_test()))
     else:
-        estimate = bases.contact_estimator(min_coverage, temperature_k).estimate(field)
+        estimate = bases.contact_estimator(min_coverage, temperature_k, components).estimate(fitted)
+    if xyz:
+        estimate = normal_part(estimate, field, bases.skin.normals)
     if not bases.measured_effects:
         return estimate
     return dataclasses.replace(estimate, measured_effect=np.isin(estimate.names, bases.measured_effects))
+
+
+def normal_part(estimate: ParameterEstimate, field: DisplacementField, normals: np.ndarray) -> ParameterEstimate:
+    """A ``components="xyz"`` estimate of the stacked values (reconstruction (3 N,) mm) as every consumer reads an
+    estimate: its reconstruction and residual the normal part (N,) of the 3D ones (``field``'s normal values minus
+    the reconstruction's normal part, NaN where unseen), ``components`` "xyz"; normals (N, 3) the skin's."""
+    reconstruction = np.einsum("na,na->n", estimate.reconstruction.reshape(-1, 3), normals)
+    values = np.asarray(field.normal_displacement, dtype=float)
+    residual = np.where(np.isfinite(values), values - reconstruction, np.nan)
+    return dataclasses.replace(estimate, reconstruction=reconstruction, residual=residual, components="xyz")
 
 
 def node_field(bases: Bases, field: DisplacementField, min_coverage: float = DEFAULT_MIN_COVERAGE

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -73,6 +73,15 @@ LIFTED_SIGMAS = 2.0
 # pad carries 100-250 N); on white-noise fields a light touch took a lifted pad's correction 6 std off. The commanded
 # position of such a pad is not observable; its part position is.
 MEASURED_MIN_PAD_FORCE_N = 5.0
+
+
+def stacked_model(model: ReducedModel) -> ReducedModel:
+    """``model`` with its 3D skin responses as the skin fields it fits (a ``components="xyz"`` estimate, paper section
+    3.2): w0 (3 N,), R (3 N, B), G (3 N, S) are w0_3d, R_3d, G_3d node by node x, y, z, the values of
+    :func:`~.estimation.stacked_field`; the pad springs and the 3D arrays are the model's."""
+    n_values = 3 * model.w0_3d.shape[0]
+    return replace(model, w0=model.w0_3d.reshape(n_values), R=model.R_3d.reshape(n_values, -1),
+                   G=model.G_3d.reshape(n_values, -1))
 
 
 @dataclass(frozen=True)
@@ -236,7 +245,8 @@ class ContactEstimator:
         return None
 
     def estimate(self, field: DisplacementField) -> ParameterEstimate:
-        """Estimate (a, b) of one field (N,) mm, NaN where unseen; see the module docstring."""
+        """Estimate (a, b) of one field (N,) mm, NaN where unseen; see the module docstring. An estimator fitted on
+        a :func:`stacked_model` estimates a :func:`~.estimation.stacked_field` alike, its 3 N values as the N here."""
         model = self.model_
         n_nodes = model.w0.shape[0]
         values, valid = check_field(field, model.model_id, n_nodes, self.min_coverage)

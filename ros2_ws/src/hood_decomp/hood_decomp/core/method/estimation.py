@@ -60,6 +60,30 @@ def check_field(
     return values, valid
 
 
+#: the displacement components an estimate may fit: the normal one (scans measure normal distances; the default)
+#: or all three stacked (a simulated or FE field, paper section 3.2: :func:`stacked_field`)
+COMPONENTS = ("normal", "xyz")
+
+
+def stacked_field(field: DisplacementField, normals: np.ndarray, min_coverage: float = DEFAULT_MIN_COVERAGE
+                  ) -> DisplacementField:
+    """``field``'s three displacement components as the values a ``components="xyz"`` fit reads, (3 N,) mm node by
+    node x, y, z (NaN where unseen), in ``normal_displacement`` of the field returned: fitted on the stacked fields of
+    the model (:meth:`PCABasis.stacked`, :func:`~.contact_estimation.stacked_model`) by the same estimators.
+
+    normals: (N, 3) the skin's unit normals. Only a field without an error model (kind "none": a simulated or FE
+    field): a scan's or a user's stated error model is of the normal values alone, and nothing states the in-plane
+    components' errors. Raises FieldError for a field :func:`check_field` refuses (on the skin's N nodes, model id
+    not checked: the estimator checks it), one with an error model, without a 3D displacement or whose 3D
+    displacement is not the same field (:meth:`DisplacementField.checked_displacement`)."""
+    if field.errors.kind != "none":
+        raise FieldError(f"components 'xyz' fits a field without an error model (a simulated or FE field); this "
+                         f"field's {field.errors.kind!r} error model states the errors of its normal values only")
+    check_field(field, field.model_id, np.shape(normals)[0], min_coverage)
+    vectors = field.checked_displacement(normals)
+    return DisplacementField(field.model_id, vectors.reshape(-1), field.coverage, field.noise_rms)
+
+
 def valid_normal_matrix(fields: np.ndarray, gram: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """Normal matrix over the valid nodes: fields (K, N), gram (K, K) = fields @ fields.T, valid (N,) -> (K, K)."""
     unseen = ~valid
@@ -370,6 +394,8 @@ def estimate_pca(
     level checked against the residual), reconstruction (N,) = mean_field + c @ components, and the within-model test
     (``test``: the skin's one test; None: the level test only, see :func:`judge`).
     A unilateral boundary is reported lifted when its reaction, carried through the same combination, is about zero.
+    The stacked basis, field and test of a three-component fit (:meth:`PCABasis.stacked`, :func:`stacked_field`,
+    :meth:`ResidualTest.stacked`) are fitted alike, their 3 N values as the N here.
     """
     n_nodes = basis.components_.shape[1]
     values, valid = check_field(field, basis.model_id_, n_nodes, min_coverage)

@@ -123,10 +123,12 @@ class Factor:
 
 
 def factor_spread(model: ReducedModel, calibration: str = "",
-                  physics: PhysicalResponses | None = None) -> tuple[Factor, ...]:
+                  physics: PhysicalResponses | None = None, full: bool = False) -> tuple[Factor, ...]:
     """The considered factors of ``model`` with their one-sigma changes: from the calibration record (JSON text,
     ``Bases.calibration``; its ``factor_std``) when there is one, else the uncalibrated prior :data:`HALF_WIDTH`.
-    ``physics``: the FE model's responses to gas springs and thickness (None: these two are not considered)."""
+    ``physics``: the FE model's responses to gas springs and thickness (None: these two are not considered).
+    ``full``: the changed models' 3D arrays changed too (:func:`apply_factors`; a fit of all three components reads
+    them), else kept."""
     known = physics is not None
     if physics is None:
         n, s = model.w0.shape[0], model.k.size
@@ -155,8 +157,8 @@ def factor_spread(model: ReducedModel, calibration: str = "",
     for label, change in changes:
         theta = np.array([change.get(name, 0.0) for name in names])
         if np.any(theta):
-            factors.append(Factor(label, apply_factors(model, physics, theta, full=False),
-                                  apply_factors(model, physics, -theta, full=False), calibrated=record is not None))
+            factors.append(Factor(label, apply_factors(model, physics, theta, full=full),
+                                  apply_factors(model, physics, -theta, full=full), calibrated=record is not None))
     return tuple(factors)
 
 

@@ -12,6 +12,8 @@ does not support turns round-off into parameter states of size 1e13.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 from hood_decomp.core.types import Ensemble
@@ -131,6 +133,19 @@ class PCABasis:
         self.gram_ = self.components_ @ self.components_.T
         self.notes_ = tuple(notes)
         return self
+
+    def stacked(self) -> PCABasis:
+        """This basis with its 3D fields as the fields it fits (a ``components="xyz"`` estimate, paper section 3.2):
+        mean_field_ (3 N,) and components_ (K, 3 N) are mean_field_3d_ and components_3d_ node by node x, y, z,
+        gram_ their Gram; the pre-factors, states and reactions are the same pairs (the 3D field of component k is
+        made by the same member weights as its normal field). training_residual_rms_ stays the normal fields' (the
+        3D fields' is not kept): the model floor the covariance and the within-model test count on each of the
+        3 N values. A copy; this basis is unchanged."""
+        stacked = copy.copy(self)
+        stacked.mean_field_ = self.mean_field_3d_.reshape(-1)
+        stacked.components_ = self.components_3d_.reshape(self.components_3d_.shape[0], -1)
+        stacked.gram_ = stacked.components_ @ stacked.components_.T
+        return stacked
 
     @property
     def cumulative_explained_variance_(self) -> np.ndarray:

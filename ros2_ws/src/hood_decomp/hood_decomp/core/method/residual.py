@@ -611,6 +611,31 @@ class ResidualTest:
         self._whole_grams: list[tuple[weakref.ref, tuple, tuple[np.ndarray, np.ndarray]]] = []
         return self
 
+    def stacked(self) -> ResidualTest:
+        """This test on the stacked values of a three-component fit (3 N of them, node by node x, y, z:
+        :func:`~.estimation.stacked_field`): each component's residual is judged as a normal residual is, its smooth
+        part in the skin's smooth modes (modes_ (3 N, 3 M): each mode on each component) and its one-ring means
+        (:meth:`rings` (3 N, 3 N): each node's ring on the same component); rigid_ (3 N, 6) the rigid-body motions'
+        displacement about the origin (:func:`~hood_decomp.core.types.rigid_modes` gives its normal part). For a
+        model without a discrepancy (a three-component fit cannot count one stated on the normal field); points_ and
+        normals_ stay the skin's (a field with a registration is normal-only). A copy; this test is unchanged."""
+        if self.discrepancy_ is not None:
+            raise FieldError("a test of the stacked three components cannot count a discrepancy stated on the normal "
+                             "field")
+        import copy
+
+        import scipy.sparse as sp
+
+        stacked = copy.copy(self)
+        eye = np.eye(3)
+        stacked.modes_ = side_by_side(np.kron(self.modes_, eye))
+        turns = np.cross(eye[None, :, :], self.points_[:, None, :])  # (N, 3 axes, 3): e_k x x, about the origin
+        stacked.rigid_ = side_by_side(np.concatenate([turns.transpose(0, 2, 1), np.broadcast_to(eye, turns.shape)],
+                                                     axis=2).reshape(-1, 6))
+        stacked._rings = sp.kron(self.rings(), sp.identity(3), format="csr")
+        stacked._whole_grams = []
+        return stacked
+
     def rings(self) -> sp.csr_matrix:
         """(N, N) the skin's one-ring incidence (:func:`ring_incidence`), built at the first check that uses it: only
         a field without a bias correlation takes the local test; a scan's field never does, and building it costs a
