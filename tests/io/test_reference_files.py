@@ -5,6 +5,11 @@ relative as the written-out formula does, and the references a node must refuse 
 from __future__ import annotations
 
 import json
+import os
+import resource
+import subprocess
+import sys
+import threading
 from dataclasses import replace
 
 import numpy as np
@@ -55,3 +60,42 @@ def test_a_reference_of_another_model_or_for_bases_without_a_reduced_model_is_re
     path = _reference(tmp_path, coarse_hood.skin, np.zeros(foreign.n_nodes), {})
     with pytest.raises(CalibrationError, match="hold no reduced model"):
         read_reference(path, replace(coarse_hood.bases, reduced_model=None))
+
+
+def _read_in_a_bounded_process(path: str) -> subprocess.CompletedProcess:
+    """read_entries(path) in a process held to 1 GB of address space and 60 s: a reader that takes /dev/zero for a
+    file fails there (MemoryError) instead of eating the machine's memory."""
+    code = (f"from hood_decomp.io.calibration_files import read_entries\nread_entries({path!r}, None, single=True)")
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                          preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (1 << 30, 1 << 30)))
+
+
+def test_a_fifo_or_a_device_given_as_a_reference_is_refused_by_name(coarse_hood, tmp_path):
+    """Fails if a FIFO blocks the reader (it reports size 0; opening it for reading waits for a writer) or if
+    /dev/zero (size 0, endless) is read instead of refused at once with a one-line CalibrationError naming the kind
+    of file. A blocked reader is unblocked after 10 s (a writer opens and closes the FIFO) so the test fails, not
+    hangs."""
+    fifo = tmp_path / "ref.json"
+    os.mkfifo(fifo)
+    outcome: list[BaseException | None] = []
+
+    def read() -> None:
+        try:
+            read_reference(fifo, coarse_hood.bases)
+            outcome.append(None)
+        except BaseException as error:  # handed to the test's thread
+            outcome.append(error)
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    reader.join(10.0)
+    blocked = reader.is_alive()
+    if blocked:
+        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+        reader.join(10.0)
+    assert not blocked, "read_reference blocked on a FIFO"
+    assert isinstance(outcome[0], CalibrationError) and "is a FIFO, not a regular file" in str(outcome[0]), outcome
+    assert "\n" not in str(outcome[0])
+    run = _read_in_a_bounded_process("/dev/zero")
+    assert "CalibrationError: reference file /dev/zero is a character device, not a regular file" in run.stderr, (
+        run.stderr[-2000:])

@@ -12,6 +12,7 @@ one left, in file order."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from dataclasses import replace
@@ -104,6 +105,8 @@ def cell(coarse_hood, tmp_path_factory):
     (root / "secret.vtu").write_bytes((root / "cell" / "ref.vtu").read_bytes())
     (root / "cell" / "escape.json").write_text(json.dumps({"field": "../secret.vtu", "setting": {}}))
     files["escape"] = str(root / "cell" / "escape.json")
+    os.mkfifo(root / "fifo.json")  # no writer ever: a reader that opens it blocks
+    files["fifo"], files["zero"] = str(root / "fifo.json"), "/dev/zero"
     logs = root / "logs"
     logs.mkdir()
     processes = start_nodes(coarse_hood.bases_path, nodes=NODES, extra_params=["pair_timeout_s:=30.0"], log_dir=logs)
@@ -248,10 +251,13 @@ def test_a_part_reference_overrides_the_cells_for_that_part_only(cell, coarse_ho
     ("missing", "cannot be read"),
     ("foreign", FOREIGN_MODEL),
     ("escape", "leaves the calibration file's directory"),
+    ("fifo", "is a FIFO, not a regular file"),
+    ("zero", "/dev/zero is a character device, not a regular file"),
 ])
 def test_a_bad_reference_is_refused_and_the_node_keeps_serving(cell, coarse_hood, which, named):
-    """Fails if a reference file that does not read, a reference of another model_id, or one naming a file outside
-    its directory is accepted (parameter or service), refused without a one-line reason naming the problem, or if
+    """Fails if a reference file that does not read, a reference of another model_id, one naming a file outside
+    its directory, a FIFO (blocks a reader that opens it) or /dev/zero (endless: read, it eats the node's memory) is
+    accepted (parameter or service), refused without a one-line reason naming the problem, or if
     the node then loses its reference or stops serving: the parameter keeps its value, the part keeps none of its
     own, and the next field is still made relative to the cell's reference."""
     peer, files, names = cell["peer"], cell["files"], coarse_hood.reduced.names
@@ -263,7 +269,7 @@ def test_a_bad_reference_is_refused_and_the_node_keeps_serving(cell, coarse_hood
         accepted, message = set_reference(peer, node, "B", path)
         assert not accepted and named in message and "\n" not in message, message
     values, truth = part_field(coarse_hood, cell["cell_error"])
-    sec = 20 + ("missing", "foreign", "escape").index(which)
+    sec = 20 + ("missing", "foreign", "escape", "fifo", "zero").index(which)
     state, effects = send(cell, coarse_hood, values, sec, "B")
     assert state.reference == effects.reference == f"cell:{files['cell']}"
     assert error_mm(state, names, truth).max() < 1e-4

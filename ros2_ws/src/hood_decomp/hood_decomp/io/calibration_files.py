@@ -26,6 +26,7 @@ import numpy as np
 from hood_decomp.core.types import DisplacementField, SkinSurface
 from hood_decomp.errors import CalibrationError, HoodDecompError
 from hood_decomp.io.json_values import loads_strict
+from hood_decomp.io.small_files import read_small_file
 
 if TYPE_CHECKING:  # only named in annotations: the module stays light for the CLI's start-up
     from hood_decomp.core.loop.calibration import ReferenceOffset
@@ -107,9 +108,7 @@ def read_entries(path: str | Path, skin: SkinSurface, min_coverage: float = 0.2,
     path = Path(path)
     what = "reference" if single else "calibration"
     try:
-        if path.stat().st_size > MAX_BYTES:
-            raise CalibrationError(f"{what} file {path} is larger than {MAX_BYTES} bytes")
-        data = loads_strict(path.read_text())
+        data = loads_strict(read_small_file(path, MAX_BYTES, CalibrationError, f"{what} file").decode("utf-8"))
     except (OSError, UnicodeDecodeError, ValueError) as error:
         raise CalibrationError(f"{what} file {path} cannot be read as JSON: {error}") from error
     if isinstance(data, dict):
