@@ -18,7 +18,7 @@ import pytest
 from hood_decomp.core.fe.ensemble import solve_members
 from hood_decomp.core.types import DisplacementField, FieldErrorModel
 from hood_decomp.errors import CalibrationError
-from hood_decomp.io.calibration_files import read_reference
+from hood_decomp.io.calibration_files import file_key, read_reference
 from hood_decomp.io.fields import write_field
 
 
@@ -99,3 +99,18 @@ def test_a_fifo_or_a_device_given_as_a_reference_is_refused_by_name(coarse_hood,
     run = _read_in_a_bounded_process("/dev/zero")
     assert "CalibrationError: reference file /dev/zero is a character device, not a regular file" in run.stderr, (
         run.stderr[-2000:])
+
+
+def test_a_reference_reads_the_same_files_until_either_changes(coarse_hood, tmp_path):
+    """Fails if a prepared reference does not say it reads what REF.json ``path`` holds now (what lets parts naming
+    the same file share one read), or still says so after the field file it names or the REF.json itself changed
+    (a part given the file then would get the old field)."""
+    skin = coarse_hood.skin
+    path = _reference(tmp_path, skin, np.zeros(skin.n_nodes), {})
+    reference = read_reference(path, coarse_hood.bases)
+    assert reference.reads(file_key(path)) and reference.reads(file_key(tmp_path / "." / "ref.json"))
+    write_field(tmp_path / "ref.vtu", skin, DisplacementField(skin.model_id, np.ones(skin.n_nodes), 1.0, 0.01))
+    assert not reference.reads(file_key(path))
+    reference = read_reference(path, coarse_hood.bases)
+    os.utime(path, ns=(1, 1))
+    assert not reference.reads(file_key(path))

@@ -204,9 +204,9 @@ def test_a_part_reference_overrides_the_cells_for_that_part_only(cell, coarse_ho
     """Fails if a part given its own reference (set_reference) is not made relative to it while another part keeps
     the cell's, if an empty path does not give the part the cell's again, or if more parts than
     ``remembered_references`` are kept (the oldest must be forgotten, and the answer must say so; a lower bound
-    forgets at once), or if the decomposition node does not warn when its reference for a part differs from the
-    estimator's. The part's own
-    static error differs from the cell's: with the cell's reference it is off by more than 0.05 mm."""
+    forgets at once; more than 1000 is refused), if two parts naming the same unchanged file do not share one read,
+    or if the decomposition node does not warn when its reference for a part differs from the estimator's. The part's
+    own static error differs from the cell's: with the cell's reference it is off by more than 0.05 mm."""
     peer, names, files = cell["peer"], coarse_hood.reduced.names, cell["files"]
     own, truth = part_field(coarse_hood, cell["part_error"])
     other, _ = part_field(coarse_hood, cell["cell_error"])
@@ -231,6 +231,14 @@ def test_a_part_reference_overrides_the_cells_for_that_part_only(cell, coarse_ho
         assert set_reference(peer, "estimator_node", part_id, files["part"])[0]
     accepted, message = set_reference(peer, "estimator_node", "R3", files["part"])
     assert accepted and "part R1's reference forgotten" in message, message
+    # R2 and R3 name the same unchanged file: one read serves both (3 MB a file at paper resolution)
+    diagnostics = cell["received"]["/diagnostics"]
+    start = len(diagnostics)
+    assert peer.wait(lambda: latest_heartbeat(diagnostics[start:], NODE_NAMES["estimator_node"]).get(
+        "part_reference_files") == "1", 5.0), latest_heartbeat(diagnostics[start:], NODE_NAMES["estimator_node"])
+    assert latest_heartbeat(diagnostics[start:], NODE_NAMES["estimator_node"])["part_references"] == "2"
+    ok, reason = set_parameter(peer, "estimator_node", "remembered_references", 1001)  # at most 1000 (3 GB)
+    assert not ok, reason
     state, _ = send(cell, coarse_hood, own, 14, "R1")
     assert state.reference == f"cell:{files['cell']}"
     state, effects = send(cell, coarse_hood, own, 15, "R3")

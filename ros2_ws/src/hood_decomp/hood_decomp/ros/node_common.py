@@ -41,6 +41,8 @@ from hood_decomp.errors import HoodDecompError
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 TRANSIENT_LOCAL, VOLATILE = DurabilityPolicy.TRANSIENT_LOCAL, DurabilityPolicy.VOLATILE
 HEARTBEAT_S = 1.0
+#: most parts with a reference of their own (3 MB each at paper resolution when all files differ: 3 GB)
+MAX_REMEMBERED_REFERENCES = 1000
 TAKEN_REMEMBERED = 1000  # (publisher, sequence) pairs kept to drop the second copy of a doubly subscribed message
 
 
@@ -602,11 +604,11 @@ class ReferencedNode(HoodNode):
     without a reduced model, ... refuse the change with a one-line reason; the node keeps its old reference and keeps
     serving. A reference per part: the service ``<node>/set_reference`` (hood_decomp_msgs/SetReference: part_id,
     variant, path; an empty path forgets the part's), at most ``remembered_references`` parts (the oldest forgotten
-    first, and said so). A field whose part_id has one is made relative to it, else to the cell's. After a bases
-    swap (cleanup, configure) every reference is read again with the new bases; a part reference that no longer reads
-    is forgotten with a WARN naming it. Every result says which reference it used (``reference`` in the output
-    message and the diagnostic: "cell:PATH", "part:PATH" or empty); the heartbeat names the cell's and counts the
-    parts'."""
+    first, and said so; parts naming the same unchanged file share one read). A field whose part_id has one is made
+    relative to it, else to the cell's. After a bases swap (cleanup, configure) every reference is read again with the
+    new bases; a part reference that no longer reads is forgotten with a WARN naming it. Every result says which
+    reference it used (``reference`` in the output message and the diagnostic: "cell:PATH", "part:PATH" or empty);
+    the heartbeat names the cell's and counts the parts' and the files read for them."""
 
     def __init__(self, name: str) -> None:
         from hood_decomp_msgs.srv import SetReference
@@ -619,10 +621,30 @@ class ReferencedNode(HoodNode):
                 "takes it) every field of the default bases' model is made relative to, unless its part has its "
                 "own (service set_reference); empty: none. Read at configure and when changed")
         declare(self, "remembered_references", 100, "parts whose own reference (service set_reference) is kept, "
-                "oldest forgotten first (each holds two floats per skin node)", 1, 100_000)
+                "oldest forgotten first. Each file read holds two float64 per skin node (0.5 MB on the default hood, "
+                "3 MB at paper resolution: 1000 parts of distinct files, 3 GB); parts naming the same unchanged "
+                "file share one", 1, MAX_REMEMBERED_REFERENCES)
         self.create_service(SetReference, "~/set_reference", self.on_set_reference)
 
     # --- reading ----------------------------------------------------------------------------------------------------
+    def shared_reference(self, path: str, variant: str, held: list[tuple[str, Any]]) -> Any:
+        """The reference of REF.json ``path`` for ``variant``: one of ``held`` ((variant, Reference) pairs) that read
+        the same files, unchanged since, for the same variant (shared: 16 bytes a skin node each), else read now."""
+        from hood_decomp.io.calibration_files import file_key
+
+        try:
+            source = file_key(path)
+        except OSError:
+            source = None  # not shared: read_reference names the problem
+        shared = next((reference for held_variant, reference in held
+                       if source is not None and held_variant == variant and reference.reads(source)), None)
+        return shared if shared is not None else self.read_reference(path, variant)
+
+    def held_references(self) -> list[tuple[str, Any]]:
+        """(variant, Reference) of every reference held: the parts' and the cell's (of the default variant)."""
+        cell = [("", self.cell_reference)] if self.cell_reference is not None else []
+        return list(self.part_references.values()) + cell
+
     def read_reference(self, path: str, variant: str = "") -> Any:
         """The REF.json ``path`` read for the bases of ``variant`` (io.calibration_files.read_reference); a
         HoodDecompError naming the problem."""
@@ -657,13 +679,14 @@ class ReferencedNode(HoodNode):
         """Read the cell's reference (a bad one fails the transition) and every part's again with the new bases."""
         path = str(self.param("reference"))
         self.cell_reference = self.read_reference(path) if path else None
-        forgotten = []
-        for part_id, (variant, reference) in list(self.part_references.items()):
-            try:
-                self.part_references[part_id] = (variant, self.read_reference(reference.path, variant))
+        forgotten, parts = [], OrderedDict()
+        for part_id, (variant, reference) in self.part_references.items():
+            try:  # shared with those read already with the new bases, as they were shared before
+                held = list(parts.values()) + ([("", self.cell_reference)] if self.cell_reference else [])
+                parts[part_id] = (variant, self.shared_reference(reference.path, variant, held))
             except HoodDecompError as error:
-                del self.part_references[part_id]
                 forgotten.append(f"{part_id}: {error}")
+        self.part_references = parts
         if forgotten:
             self.get_logger().warning(f"part references forgotten: {'; '.join(forgotten)}")
             self.diagnostics.report(WARN, f"{len(forgotten)} part reference(s) forgotten at configure: "
@@ -694,7 +717,7 @@ class ReferencedNode(HoodNode):
         if not self.variant_bases:
             return False, f"node {self.state}: configure it first (references are read with its bases)"
         try:
-            reference = self.read_reference(path, variant)
+            reference = self.shared_reference(path, variant, self.held_references())
         except HoodDecompError as error:
             kept = self.part_references.get(part_id)
             return False, f"{error} (part {part_id} keeps {kept[1].path if kept else 'no reference of its own'})"
@@ -740,7 +763,8 @@ class ReferencedNode(HoodNode):
 
     def heartbeat_values(self) -> dict[str, object]:
         return {**super().heartbeat_values(), "reference": self.reference_label(self.cell_reference, "cell") or "none",
-                "part_references": len(self.part_references)}
+                "part_references": len(self.part_references),
+                "part_reference_files": len({id(reference) for _, reference in self.part_references.values()})}
 
 
 def spin(node_factory: Callable[[], HoodNode], args: list[str] | None = None) -> int:
