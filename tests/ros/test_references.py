@@ -26,7 +26,7 @@ from tests.required import require_import
 require_import("hood_decomp_msgs.msg", "colcon build", "run inside scripts/with-env after scripts/setup.sh")
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from hood_decomp_msgs.msg import BoundaryState, DisplacementField, EffectFields
+from hood_decomp_msgs.msg import BoundaryState, DisplacementField, EffectFields, MoveVerification
 from hood_decomp_msgs.srv import SetReference
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState
@@ -113,7 +113,7 @@ def cell(coarse_hood, tmp_path_factory):
     peer = Participant("test_references", depth=1000)
     received = {topic: peer.collect(topic, cls) for topic, cls in (
         ("hood_decomp/boundary_state", BoundaryState), ("hood_decomp/effects", EffectFields),
-        ("/diagnostics", DiagnosticArray))}
+        ("hood_decomp/move_verification", MoveVerification), ("/diagnostics", DiagnosticArray))}
     peer.publisher("hood_decomp/displacement", DisplacementField)
     connected = peer.connected(["hood_decomp/displacement"], ["hood_decomp/boundary_state", "hood_decomp/effects"],
                                60.0, subscribers=2) and peer.wait(lambda: all(
@@ -205,8 +205,10 @@ def test_a_part_reference_overrides_the_cells_for_that_part_only(cell, coarse_ho
     the cell's, if an empty path does not give the part the cell's again, or if more parts than
     ``remembered_references`` are kept (the oldest must be forgotten, and the answer must say so; a lower bound
     forgets at once; more than 1000 is refused), if two parts naming the same unchanged file do not share one read,
-    or if the decomposition node does not warn when its reference for a part differs from the estimator's. The part's
-    own static error differs from the cell's: with the cell's reference it is off by more than 0.05 mm."""
+    or if the decomposition node does not warn when its reference for a part differs from the estimator's, or if a
+    move is verified across a change of the part's reference (estimates relative to different references) or not
+    verified when the reference stayed. The part's own static error differs from the cell's: with the cell's
+    reference it is off by more than 0.05 mm."""
     peer, names, files = cell["peer"], coarse_hood.reduced.names, cell["files"]
     own, truth = part_field(coarse_hood, cell["part_error"])
     other, _ = part_field(coarse_hood, cell["cell_error"])
@@ -218,6 +220,14 @@ def test_a_part_reference_overrides_the_cells_for_that_part_only(cell, coarse_ho
     state, effects = send(cell, coarse_hood, own, 11, "P")
     assert error_mm(state, names, truth).max() < 1e-4, error_mm(state, names, truth)
     assert state.reference == effects.reference == f"part:{files['part']}"
+    # P's correction of field 10 was made relative to the cell's reference, field 11 to its own: the two estimates
+    # differ by the references' difference, so the move is not verified (no MoveVerification), and the report says so
+    assert peer.wait(lambda: any(
+        s.level == DiagnosticStatus.WARN and s.name == "hood_decomp/hood_decomp_estimator"
+        and "reference changed between inspections" in s.message
+        and ("stamp", "11.000000000") in [(kv.key, kv.value) for kv in s.values]
+        for a in cell["received"]["/diagnostics"] for s in a.status), 10.0)
+    assert not any(v.header.stamp.sec == 11 for v in cell["received"]["hood_decomp/move_verification"])
     state, effects = send(cell, coarse_hood, other, 12, "Q")
     assert error_mm(state, names, truth).max() < 1e-4
     assert state.reference == effects.reference == f"cell:{files['cell']}"
@@ -252,6 +262,10 @@ def test_a_part_reference_overrides_the_cells_for_that_part_only(cell, coarse_ho
     assert set_parameter(peer, "estimator_node", "remembered_references", 1) == (True, "")
     state, _ = send(cell, coarse_hood, own, 16, "R2")
     assert state.reference == f"cell:{files['cell']}"
+    # Q's two inspections (12, 17) were both relative to the cell's reference: its move is verified
+    send(cell, coarse_hood, other, 17, "Q")
+    assert peer.wait(lambda: any(v.header.stamp.sec == 17 and v.part_id == "Q"
+                                 for v in cell["received"]["hood_decomp/move_verification"]), 10.0)
     assert set_reference(peer, "estimator_node", "R3", "") == (True, f"part R3 forgot its reference {files['part']}")
 
 
