@@ -201,14 +201,14 @@ def test_a_cell_reference_cancels_a_static_model_error(cell, coarse_hood):
 
 
 def test_a_part_reference_overrides_the_cells_for_that_part_only(cell, coarse_hood):
-    """Fails if a part given its own reference (set_reference) is not made relative to it while another part keeps
-    the cell's, if an empty path does not give the part the cell's again, or if more parts than
-    ``remembered_references`` are kept (the oldest must be forgotten, and the answer must say so; a lower bound
-    forgets at once; more than 1000 is refused), if two parts naming the same unchanged file do not share one read,
-    or if the decomposition node does not warn when its reference for a part differs from the estimator's, or if a
-    move is verified across a change of the part's reference (estimates relative to different references) or not
-    verified when the reference stayed. The part's own static error differs from the cell's: with the cell's
-    reference it is off by more than 0.05 mm."""
+    """Fails if a part given its own reference (set_reference) is not made relative to it while another part keeps the
+    cell's, if an empty path does not give the part the cell's again, or if more parts than ``remembered_references``
+    are kept (the oldest must be forgotten, and the answer must say so; a lower bound forgets at once, with a WARN
+    naming the parts; more than 1000 is refused), if two parts naming the same unchanged file do not share one read, or
+    if the decomposition node does not warn when its reference for a part differs from the estimator's, or if a move is
+    verified across a change of the part's reference (estimates relative to different references) or not verified when
+    the reference stayed. The part's own static error differs from the cell's: with the cell's reference it is off by
+    more than 0.05 mm."""
     peer, names, files = cell["peer"], coarse_hood.reduced.names, cell["files"]
     own, truth = part_field(coarse_hood, cell["part_error"])
     other, _ = part_field(coarse_hood, cell["cell_error"])
@@ -260,6 +260,10 @@ def test_a_part_reference_overrides_the_cells_for_that_part_only(cell, coarse_ho
         for a in cell["received"]["/diagnostics"] for s in a.status), 10.0)
     # a lower bound forgets at once (R2, the older), not at the next part's reference
     assert set_parameter(peer, "estimator_node", "remembered_references", 1) == (True, "")
+    assert peer.wait(lambda: any(  # and says so, naming the part
+        s.level == DiagnosticStatus.WARN and s.name == "hood_decomp/hood_decomp_estimator"
+        and s.message == "remembered_references 1: part reference(s) forgotten: R2"
+        for a in cell["received"]["/diagnostics"] for s in a.status), 10.0)
     state, _ = send(cell, coarse_hood, own, 16, "R2")
     assert state.reference == f"cell:{files['cell']}"
     # Q's two inspections (12, 17) were both relative to the cell's reference: its move is verified

@@ -672,7 +672,12 @@ class ReferencedNode(HoodNode):
             self.cell_reference = staged
             self.diagnostics.report(OK, "reference set", reference=self.reference_label(self.cell_reference, "cell"))
         if "remembered_references" in names:  # a lower bound applies now, not at the next part's reference
-            self._forget_beyond(int(names["remembered_references"]))
+            limit = int(names["remembered_references"])
+            forgotten = self._forget_beyond(limit)
+            if forgotten:
+                message = f"remembered_references {limit}: part reference(s) forgotten: {', '.join(forgotten)}"
+                self.get_logger().warning(message)
+                self.diagnostics.report(WARN, message, part_references=len(self.part_references))
         super().accept_parameters(parameters)
 
     def configure_node(self) -> None:
