@@ -394,3 +394,55 @@ def test_bases_without_a_reduced_model_refuse_a_reference(cell, coarse_hood):
     state, effects = send(cell, coarse_hood, values, 40, "D")
     assert state.reference == effects.reference == ""
     assert all(p.poll() is None for p in cell["processes"]), "a node died"
+
+
+FAILED_CONFIGURE_SCRIPT = """
+import json, sys
+import rclpy
+from rclpy.parameter import Parameter
+from hood_decomp.ros.estimator_node import EstimatorNode
+rclpy.init()
+node = EstimatorNode()
+node.set_parameters([Parameter("bases", value=sys.argv[1]), Parameter("reference", value=sys.argv[2])])
+node.trigger_configure()
+node._set_reference("P", "", sys.argv[3])
+before = node.part_references["P"][1]
+node.trigger_cleanup()
+publisher = node.publisher
+def broken(*args, **kwargs):
+    raise RuntimeError("no publisher")
+node.publisher = broken  # fails the configure after the references were read
+node.trigger_configure()
+after_failure = {"cell": node.reference_label(node.cell_reference, "cell"), "heartbeat": node.heartbeat_values()[
+    "reference"], "part_kept": node.part_references["P"][1] is before, "state": node.state}
+node.publisher = publisher
+node.trigger_configure()
+print("CONFIGURE", json.dumps({"after_failure": after_failure, "state": node.state,
+                               "cell": node.reference_label(node.cell_reference, "cell"),
+                               "part_read_again": node.part_references["P"][1] is not before}))
+node.destroy_node()
+rclpy.shutdown()
+"""
+
+
+def test_a_failed_configure_keeps_no_reference_of_the_bases_it_dropped(coarse_hood, tmp_path):
+    """Fails if a configure that fails after the references were read leaves the cell's reference (read for bases
+    the failure dropped; the heartbeat would name it) or the parts' references half read again, or if the next
+    configure does not read them all again."""
+    import pathlib
+
+    skin, reduced = coarse_hood.skin, coarse_hood.reduced
+    setting = np.array([REFERENCE_SETTING.get(name, 0.0) for name in reduced.names])
+    at_reference = solve_members(reduced, setting[None]).normal_displacement[0]
+    cell_path = write_reference(tmp_path / "cell", skin, at_reference, "ref", coarse_hood.bases.model_id)
+    part_path = write_reference(tmp_path / "part", skin, at_reference, "ref", coarse_hood.bases.model_id)
+    root = pathlib.Path(__file__).resolve().parents[2]
+    done = subprocess.run([sys.executable, "-c", FAILED_CONFIGURE_SCRIPT, str(coarse_hood.bases_path), cell_path,
+                           part_path], cwd=root, capture_output=True, text=True, timeout=120, env=os.environ.copy())
+    line = next((row for row in done.stdout.splitlines() if row.startswith("CONFIGURE ")), None)
+    assert line is not None, done.stderr[-3000:]
+    found = json.loads(line[len("CONFIGURE "):])
+    assert "no publisher" in done.stdout + done.stderr
+    assert found["after_failure"] == {"cell": "", "heartbeat": "none", "part_kept": True, "state": "unconfigured"}, (
+        found)
+    assert found["state"] == "inactive" and found["cell"] == f"cell:{cell_path}" and found["part_read_again"], found

@@ -681,21 +681,32 @@ class ReferencedNode(HoodNode):
         super().accept_parameters(parameters)
 
     def configure_node(self) -> None:
-        """Read the cell's reference (a bad one fails the transition) and every part's again with the new bases."""
+        """Read the cell's reference (a bad one fails the transition) and every part's again with the new bases, into
+        temporaries: :meth:`on_configure` takes them when the whole transition succeeds."""
         path = str(self.param("reference"))
-        self.cell_reference = self.read_reference(path) if path else None
+        cell = self.read_reference(path) if path else None
         forgotten, parts = [], OrderedDict()
         for part_id, (variant, reference) in self.part_references.items():
             try:  # shared with those read already with the new bases, as they were shared before
-                held = list(parts.values()) + ([("", self.cell_reference)] if self.cell_reference else [])
+                held = list(parts.values()) + ([("", cell)] if cell is not None else [])
                 parts[part_id] = (variant, self.shared_reference(reference.path, variant, held))
             except HoodDecompError as error:
                 forgotten.append(f"{part_id}: {error}")
-        self.part_references = parts
+        self._staged["configure"] = (cell, parts, forgotten)
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        result = super().on_configure(state)
+        cell, parts, forgotten = self._staged.pop("configure", (None, self.part_references, []))
+        if result != TransitionCallbackReturn.SUCCESS:
+            # no reference of bases that are gone; the parts keep theirs as they were (read again at configure)
+            self.cell_reference = None
+            return result
+        self.cell_reference, self.part_references = cell, parts
         if forgotten:
             self.get_logger().warning(f"part references forgotten: {'; '.join(forgotten)}")
             self.diagnostics.report(WARN, f"{len(forgotten)} part reference(s) forgotten at configure: "
                                     f"{'; '.join(forgotten)}")
+        return result
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         self.cell_reference = None  # prepared with the bases that go now; part references are read again at configure
