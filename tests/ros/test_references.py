@@ -107,6 +107,7 @@ def cell(coarse_hood, tmp_path_factory):
     files["escape"] = str(root / "cell" / "escape.json")
     os.mkfifo(root / "fifo.json")  # no writer ever: a reader that opens it blocks
     files["fifo"], files["zero"] = str(root / "fifo.json"), "/dev/zero"
+    files["relative"], files["long"] = "cell/ref.json", "/" + "x" * 1100
     logs = root / "logs"
     logs.mkdir()
     processes = start_nodes(coarse_hood.bases_path, nodes=NODES, extra_params=["pair_timeout_s:=30.0"], log_dir=logs)
@@ -279,13 +280,16 @@ def test_a_part_reference_overrides_the_cells_for_that_part_only(cell, coarse_ho
     ("escape", "leaves the calibration file's directory"),
     ("fifo", "is a FIFO, not a regular file"),
     ("zero", "/dev/zero is a character device, not a regular file"),
+    ("relative", "'cell/ref.json' is a relative path: give it absolute"),
+    ("long", "reference path of 1101 bytes: at most 1024"),
 ])
 def test_a_bad_reference_is_refused_and_the_node_keeps_serving(cell, coarse_hood, which, named):
-    """Fails if a reference file that does not read, a reference of another model_id, one naming a file outside
-    its directory, a FIFO (blocks a reader that opens it) or /dev/zero (endless: read, it eats the node's memory) is
-    accepted (parameter or service), refused without a one-line reason naming the problem, or if
-    the node then loses its reference or stops serving: the parameter keeps its value, the part keeps none of its
-    own, and the next field is still made relative to the cell's reference."""
+    """Fails if a reference file that does not read, a reference of another model_id, one naming a file outside its
+    directory, a FIFO (blocks a reader that opens it), /dev/zero (endless: read, it eats the node's memory), a relative
+    path (the node's working directory is not the caller's) or a path over 1 KB is accepted (parameter or service),
+    refused without a one-line reason naming the problem, or if the node then loses its reference or stops serving: the
+    parameter keeps its value, the part keeps none of its own, and the next field is still made relative to the cell's
+    reference."""
     peer, files, names = cell["peer"], cell["files"], coarse_hood.reduced.names
     path = str(cell["root"] / "missing.json") if which == "missing" else files[which]
     for node in NODES:
@@ -295,11 +299,28 @@ def test_a_bad_reference_is_refused_and_the_node_keeps_serving(cell, coarse_hood
         accepted, message = set_reference(peer, node, "B", path)
         assert not accepted and named in message and "\n" not in message, message
     values, truth = part_field(coarse_hood, cell["cell_error"])
-    sec = 20 + ("missing", "foreign", "escape", "fifo", "zero").index(which)
+    sec = 20 + ("missing", "foreign", "escape", "fifo", "zero", "relative", "long").index(which)
     state, effects = send(cell, coarse_hood, values, sec, "B")
     assert state.reference == effects.reference == f"cell:{files['cell']}"
     assert error_mm(state, names, truth).max() < 1e-4
     assert all(p.poll() is None for p in cell["processes"]), "a node died"
+
+
+def test_a_part_id_is_taken_as_sent_and_a_long_one_refused(cell, coarse_hood):
+    """Fails if set_reference strips the part_id (a field's part_id is matched as sent: the reference of " W" would
+    serve the fields of "W") or takes a part_id over 1 KB."""
+    peer, files = cell["peer"], cell["files"]
+    own, _ = part_field(coarse_hood, cell["part_error"])
+    for node in NODES:
+        assert set_reference(peer, node, " W", files["part"])[0]
+        accepted, message = set_reference(peer, node, "W" * 1025, files["part"])
+        assert not accepted and message == "part_id of 1025 bytes: at most 1024", message
+    state, effects = send(cell, coarse_hood, own, 27, "W")
+    assert state.reference == effects.reference == f"cell:{files['cell']}"
+    state, effects = send(cell, coarse_hood, own, 28, " W")
+    assert state.reference == effects.reference == f"part:{files['part']}"
+    for node in NODES:
+        assert set_reference(peer, node, " W", "")[0]
 
 
 def test_calibrated_bases_swap_in_through_lifecycle_transitions(cell, coarse_hood):

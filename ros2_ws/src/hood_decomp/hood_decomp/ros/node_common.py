@@ -43,6 +43,8 @@ TRANSIENT_LOCAL, VOLATILE = DurabilityPolicy.TRANSIENT_LOCAL, DurabilityPolicy.V
 HEARTBEAT_S = 1.0
 #: most parts with a reference of their own (3 MB each at paper resolution when all files differ: 3 GB)
 MAX_REMEMBERED_REFERENCES = 1000
+#: longest part_id, variant and reference path (UTF-8 bytes) a reference is set with: names, not data
+MAX_REFERENCE_TEXT_BYTES = 1024
 TAKEN_REMEMBERED = 1000  # (publisher, sequence) pairs kept to drop the second copy of a doubly subscribed message
 
 
@@ -592,6 +594,23 @@ class HoodNode(LifecycleNode):
         return guarded(self, self.diagnostics, what, handler)
 
 
+def too_long(text: str, what: str) -> None:
+    """HoodDecompError when ``text`` is longer than MAX_REFERENCE_TEXT_BYTES (UTF-8): a name, not data."""
+    size = len(text.encode("utf-8", "surrogatepass"))
+    if size > MAX_REFERENCE_TEXT_BYTES:
+        raise HoodDecompError(f"{what} of {size} bytes: at most {MAX_REFERENCE_TEXT_BYTES}")
+
+
+def check_reference_path(path: str) -> None:
+    """HoodDecompError unless ``path`` is absolute and at most MAX_REFERENCE_TEXT_BYTES: a relative one would resolve
+    against the node's working directory (wherever its launcher ran), not the caller's, and read another file than
+    meant."""
+    too_long(path, "reference path")
+    if not os.path.isabs(path):
+        raise HoodDecompError(f"reference {path!r} is a relative path: give it absolute (the node would resolve it "
+                              "against its own working directory, not yours)")
+
+
 class ReferencedNode(HoodNode):
     """A HoodNode that estimates from fields (the estimator and the decomposition node): each field is made
     reference-relative before it is used (measured - reference + the model's field at the reference's known state, so
@@ -617,9 +636,9 @@ class ReferencedNode(HoodNode):
         self.part_references: OrderedDict[str, tuple[str, Any]] = OrderedDict()  # part_id -> (variant, Reference)
         self._staged: dict[str, Any] = {}  # parameter -> what check_parameter read, taken by accept_parameters
         super().__init__(name)
-        declare(self, "reference", "", "reference of the cell: REF.json (a part in a known state, as --reference "
-                "takes it) every field of the default bases' model is made relative to, unless its part has its "
-                "own (service set_reference); empty: none. Read at configure and when changed")
+        declare(self, "reference", "", "reference of the cell: REF.json, an absolute path (a part in a known "
+                "state, as --reference takes it) every field of the default bases' model is made relative to, unless "
+                "its part has its own (service set_reference); empty: none. Read at configure and when changed")
         declare(self, "remembered_references", 100, "parts whose own reference (service set_reference) is kept, "
                 "oldest forgotten first. Each file read holds two float64 per skin node (0.5 MB on the default hood, "
                 "3 MB at paper resolution: 1000 parts of distinct files, 3 GB); parts naming the same unchanged "
@@ -632,6 +651,7 @@ class ReferencedNode(HoodNode):
         the same files, unchanged since, for the same variant (shared: 16 bytes a skin node each), else read now."""
         from hood_decomp.io.calibration_files import file_key
 
+        check_reference_path(path)  # before the file is looked at: a relative path is never shared either
         try:
             source = file_key(path)
         except OSError:
@@ -647,9 +667,10 @@ class ReferencedNode(HoodNode):
 
     def read_reference(self, path: str, variant: str = "") -> Any:
         """The REF.json ``path`` read for the bases of ``variant`` (io.calibration_files.read_reference); a
-        HoodDecompError naming the problem."""
+        HoodDecompError naming the problem (:func:`check_reference_path` first)."""
         from hood_decomp.io.calibration_files import read_reference
 
+        check_reference_path(path)
         try:
             return read_reference(path, self.bases_for_variant(variant), float(self.param("min_coverage")))
         except HoodDecompError:
@@ -716,10 +737,17 @@ class ReferencedNode(HoodNode):
     def on_set_reference(self, request: Any, response: Any) -> Any:
         """SetReference: read the part's REF.json with its variant's bases (or forget it: empty path); refused with
         a one-line reason (the part keeps what it had) when the node is not configured or the file does not serve."""
-        part_id, path = request.part_id.strip(), request.path.strip()
-        response.accepted, response.message = self._set_reference(part_id, request.variant.strip(), path)
+        # taken as sent, not stripped: a field's part_id is matched as it comes (messages.part_id_of)
+        part_id, path = request.part_id, request.path
+        try:
+            too_long(part_id, "part_id")
+            too_long(request.variant, "variant")
+            response.accepted, response.message = self._set_reference(part_id, request.variant, path)
+        except HoodDecompError as error:
+            response.accepted, response.message = False, str(error)
         level = OK if response.accepted else WARN
-        self.diagnostics.report(level, f"set_reference {part_id!r}: {response.message}", part_id=part_id,
+        shown = part_id if len(part_id) <= 80 else part_id[:77] + "..."
+        self.diagnostics.report(level, f"set_reference {shown!r}: {response.message}", part_id=shown,
                                 part_references=len(self.part_references))
         return response
 
