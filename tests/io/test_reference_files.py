@@ -39,12 +39,12 @@ def test_a_prepared_reference_is_measured_minus_reference_plus_the_models_field(
     reference_values = rng.normal(0.0, 0.3, skin.n_nodes)
     reference = read_reference(_reference(tmp_path, skin, reference_values, {"LOCK_L": 0.25}), coarse_hood.bases)
     own = solve_members(reduced, setting[None]).normal_displacement[0]
-    assert reference.model_id == reduced.model_id and reference.setting == {"LOCK_L": 0.25}
+    assert reference.model_id == reduced.model_id
     for _ in range(3):
         values = rng.normal(0.0, 0.5, skin.n_nodes)
         values[:10] = np.nan
         field = DisplacementField(reduced.model_id, values, 1.0, 0.02, FieldErrorModel.stated(0.02, skin.n_nodes))
-        relative = reference.relative(field)
+        relative = reference.relative(field, coarse_hood.bases)
         np.testing.assert_allclose(relative.normal_displacement, values - reference_values + own, atol=1e-6)
         np.testing.assert_allclose(relative.errors.node_std, np.hypot(0.02, 0.01))
         assert relative.coverage == pytest.approx(1.0 - 10 / skin.n_nodes)
@@ -114,3 +114,17 @@ def test_a_reference_reads_the_same_files_until_either_changes(coarse_hood, tmp_
     reference = read_reference(path, coarse_hood.bases)
     os.utime(path, ns=(1, 1))
     assert not reference.reads(file_key(path))
+
+
+def test_a_reference_is_refused_for_fields_used_with_other_bases(coarse_hood, tmp_path):
+    """Fails if a reference read for the uncalibrated bases makes a field relative for calibrated ones (their
+    reduced model stiffer: the model's field at the reference's setting is another) instead of refusing it with a
+    CalibrationError saying to read it again."""
+    skin, reduced = coarse_hood.skin, coarse_hood.reduced
+    reference = read_reference(_reference(tmp_path, skin, np.zeros(skin.n_nodes), {"LOCK_L": 0.25}),
+                               coarse_hood.bases)
+    stiffer = replace(coarse_hood.bases, reduced_model=replace(reduced, k=reduced.k * 1.25))
+    field = DisplacementField(reduced.model_id, np.zeros(skin.n_nodes), 1.0, 0.02)
+    with pytest.raises(CalibrationError, match=r"ref\.json was read for bases [0-9a-f]{16}, the field is used with "
+                       r"bases [0-9a-f]{16}: read the reference again"):
+        reference.relative(field, stiffer)

@@ -62,14 +62,13 @@ class FieldEntry:
 class Reference:
     """A REF.json read for one set of bases, ready to make fields of their model reference-relative.
 
-    path: the file as given; name: the entry's name; setting: label -> mm of its known state; bases_id: the bases it
-    was prepared with (a reference is prepared again for other bases); offset: what it takes off each field (two
+    path: the file as given; name: the entry's name; bases_id: the bases it was prepared with (:meth:`relative`
+    refuses fields of other bases: a reference is read again for them); offset: what it takes off each field (two
     float64 per skin node: 16 bytes a node, 0.5 MB on the default hood, 3 MB at paper resolution); sources: the
     REF.json and the file it names as :func:`file_key` saw them before they were read."""
 
     path: str
     name: str
-    setting: dict[str, float]
     bases_id: str
     offset: ReferenceOffset
     sources: tuple[tuple[str, int, int], ...]
@@ -86,8 +85,16 @@ class Reference:
         except OSError:
             return False
 
-    def relative(self, field: DisplacementField) -> DisplacementField:
-        """``field`` as measured - reference + the model's field at the reference's setting (core.loop.calibration)."""
+    def relative(self, field: DisplacementField, bases: Bases) -> DisplacementField:
+        """``field`` as measured - reference + the model's field at the reference's setting (core.loop.calibration),
+        for estimation with ``bases``: CalibrationError when the reference was prepared for other bases (its model's
+        field at the setting, its scan reading are theirs), saying to read it again."""
+        from hood_decomp.io.bases import loaded_bases_id
+
+        used = loaded_bases_id(bases)
+        if used != self.bases_id:
+            raise CalibrationError(f"reference {self.path} was read for bases {self.bases_id}, the field is used with "
+                                   f"bases {used}: read the reference again for them")
         return self.offset.relative(field)
 
 
@@ -123,7 +130,7 @@ def read_reference(path: str | Path, bases: Bases, min_coverage: float = 0.2) ->
         offset = reference_offset(bases.reduced_model, entry.field, setting, reading)
     except CalibrationError as error:
         raise CalibrationError(f"reference {path}: {error}") from error
-    return Reference(str(path), entry.name, dict(entry.setting), loaded_bases_id(bases), offset, (source, entry.source))
+    return Reference(str(path), entry.name, loaded_bases_id(bases), offset, (source, entry.source))
 
 
 def read_entries(path: str | Path, skin: SkinSurface, min_coverage: float = 0.2, single: bool = False

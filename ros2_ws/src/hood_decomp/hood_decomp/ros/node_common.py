@@ -803,7 +803,7 @@ class ReferencedNode(HoodNode):
             reference, scope = self.cell_reference, "cell"
         else:
             return bases, field, ""
-        return bases, reference.relative(field), self.reference_label(reference, scope)
+        return bases, reference.relative(field, bases), self.reference_label(reference, scope)
 
     def heartbeat_values(self) -> dict[str, object]:
         return {**super().heartbeat_values(), "reference": self.reference_label(self.cell_reference, "cell") or "none",
