@@ -323,6 +323,29 @@ def test_a_part_id_is_taken_as_sent_and_a_long_one_refused(cell, coarse_hood):
         assert set_reference(peer, node, " W", "")[0]
 
 
+def test_two_spellings_of_one_reference_file_are_one_reference(cell, coarse_hood):
+    """Fails if the part's reference given to the estimator as ``DIR/./ref.json`` and to the decomposition node as
+    ``DIR/ref.json`` is not named alike by both (the file's resolved path) or makes the decomposition node warn that
+    the two nodes used different references."""
+    peer, files, diagnostics = cell["peer"], cell["files"], cell["received"]["/diagnostics"]
+    spelled = files["part"].replace("/ref.json", "/./ref.json")
+    assert spelled != files["part"]
+    assert set_reference(peer, "estimator_node", "S", spelled)[0]
+    assert set_reference(peer, "decomposition_node", "S", files["part"])[0]
+    own, _ = part_field(coarse_hood, cell["part_error"])
+    state, effects = send(cell, coarse_hood, own, 29, "S")
+    assert state.reference == effects.reference == f"part:{files['part']}"
+    assert peer.wait(lambda: any(
+        s.name == "hood_decomp/hood_decomp_decomposition" and ("stamp", "29.000000000") in [(kv.key, kv.value)
+                                                                                          for kv in s.values]
+        for a in diagnostics for s in a.status), 10.0)
+    assert not any(s.name == "hood_decomp/hood_decomp_decomposition" and "both nodes" in s.message
+                   and ("stamp", "29.000000000") in [(kv.key, kv.value) for kv in s.values]
+                   for a in diagnostics for s in a.status)
+    for node in NODES:
+        assert set_reference(peer, node, "S", "")[0]
+
+
 def test_calibrated_bases_swap_in_through_lifecycle_transitions(cell, coarse_hood):
     """Fails if deactivate -> cleanup -> set ``bases`` -> configure -> activate does not swap in calibrated bases
     (made by `hood-decomp calibrate` from 13 entries of a part whose pads are 25 % stiffer, preloaded 40 % more and

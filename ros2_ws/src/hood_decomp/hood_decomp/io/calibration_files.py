@@ -77,6 +77,11 @@ class Reference:
     def model_id(self) -> str:
         return self.offset.model_id
 
+    @property
+    def resolved(self) -> str:
+        """The REF.json's path resolved (absolute, through links): one name for one file, however it was given."""
+        return self.sources[0][0]
+
     def reads(self, source: tuple[str, int, int]) -> bool:
         """Whether reading the REF.json of :func:`file_key` ``source`` now would read what this reference read: the
         same file, unchanged, and the file it names unchanged since (modification time and size)."""
