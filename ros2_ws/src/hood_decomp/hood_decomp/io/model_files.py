@@ -217,7 +217,7 @@ def _show(value: object) -> str:
 
 def _document(path: Path) -> dict:
     """The parsed model.yaml: a mapping of the known format and version. ModelError otherwise."""
-    if not path.is_file():
+    if not path.exists():  # anything else that is not a regular file is named by read_small_file
         raise ModelError(f"model file {path} does not exist (expected a model directory or its model.yaml)")
     try:
         text = read_small_file(path, MAX_BYTES, ModelError, "model file").decode("utf-8")
