@@ -12,6 +12,7 @@ one left, in file order."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from dataclasses import replace
@@ -25,7 +26,7 @@ from tests.required import require_import
 require_import("hood_decomp_msgs.msg", "colcon build", "run inside scripts/with-env after scripts/setup.sh")
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from hood_decomp_msgs.msg import BoundaryState, DisplacementField, EffectFields
+from hood_decomp_msgs.msg import BoundaryState, DisplacementField, EffectFields, MoveVerification
 from hood_decomp_msgs.srv import SetReference
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState
@@ -104,13 +105,16 @@ def cell(coarse_hood, tmp_path_factory):
     (root / "secret.vtu").write_bytes((root / "cell" / "ref.vtu").read_bytes())
     (root / "cell" / "escape.json").write_text(json.dumps({"field": "../secret.vtu", "setting": {}}))
     files["escape"] = str(root / "cell" / "escape.json")
+    os.mkfifo(root / "fifo.json")  # no writer ever: a reader that opens it blocks
+    files["fifo"], files["zero"] = str(root / "fifo.json"), "/dev/zero"
+    files["relative"], files["long"] = "cell/ref.json", "/" + "x" * 1100
     logs = root / "logs"
     logs.mkdir()
     processes = start_nodes(coarse_hood.bases_path, nodes=NODES, extra_params=["pair_timeout_s:=30.0"], log_dir=logs)
     peer = Participant("test_references", depth=1000)
     received = {topic: peer.collect(topic, cls) for topic, cls in (
         ("hood_decomp/boundary_state", BoundaryState), ("hood_decomp/effects", EffectFields),
-        ("/diagnostics", DiagnosticArray))}
+        ("hood_decomp/move_verification", MoveVerification), ("/diagnostics", DiagnosticArray))}
     peer.publisher("hood_decomp/displacement", DisplacementField)
     connected = peer.connected(["hood_decomp/displacement"], ["hood_decomp/boundary_state", "hood_decomp/effects"],
                                60.0, subscribers=2) and peer.wait(lambda: all(
@@ -198,12 +202,14 @@ def test_a_cell_reference_cancels_a_static_model_error(cell, coarse_hood):
 
 
 def test_a_part_reference_overrides_the_cells_for_that_part_only(cell, coarse_hood):
-    """Fails if a part given its own reference (set_reference) is not made relative to it while another part keeps
-    the cell's, if an empty path does not give the part the cell's again, or if more parts than
-    ``remembered_references`` are kept (the oldest must be forgotten, and the answer must say so; a lower bound
-    forgets at once), or if the decomposition node does not warn when its reference for a part differs from the
-    estimator's. The part's own
-    static error differs from the cell's: with the cell's reference it is off by more than 0.05 mm."""
+    """Fails if a part given its own reference (set_reference) is not made relative to it while another part keeps the
+    cell's, if an empty path does not give the part the cell's again, or if more parts than ``remembered_references``
+    are kept (the oldest must be forgotten, and the answer must say so; a lower bound forgets at once, with a WARN
+    naming the parts; more than 1000 is refused), if two parts naming the same unchanged file do not share one read, or
+    if the decomposition node does not warn when its reference for a part differs from the estimator's, or if a move is
+    verified across a change of the part's reference (estimates relative to different references) or not verified when
+    the reference stayed. The part's own static error differs from the cell's: with the cell's reference it is off by
+    more than 0.05 mm."""
     peer, names, files = cell["peer"], coarse_hood.reduced.names, cell["files"]
     own, truth = part_field(coarse_hood, cell["part_error"])
     other, _ = part_field(coarse_hood, cell["cell_error"])
@@ -215,6 +221,14 @@ def test_a_part_reference_overrides_the_cells_for_that_part_only(cell, coarse_ho
     state, effects = send(cell, coarse_hood, own, 11, "P")
     assert error_mm(state, names, truth).max() < 1e-4, error_mm(state, names, truth)
     assert state.reference == effects.reference == f"part:{files['part']}"
+    # P's correction of field 10 was made relative to the cell's reference, field 11 to its own: the two estimates
+    # differ by the references' difference, so the move is not verified (no MoveVerification), and the report says so
+    assert peer.wait(lambda: any(
+        s.level == DiagnosticStatus.WARN and s.name == "hood_decomp/hood_decomp_estimator"
+        and "reference changed between inspections" in s.message
+        and ("stamp", "11.000000000") in [(kv.key, kv.value) for kv in s.values]
+        for a in cell["received"]["/diagnostics"] for s in a.status), 10.0)
+    assert not any(v.header.stamp.sec == 11 for v in cell["received"]["hood_decomp/move_verification"])
     state, effects = send(cell, coarse_hood, other, 12, "Q")
     assert error_mm(state, names, truth).max() < 1e-4
     assert state.reference == effects.reference == f"cell:{files['cell']}"
@@ -228,6 +242,14 @@ def test_a_part_reference_overrides_the_cells_for_that_part_only(cell, coarse_ho
         assert set_reference(peer, "estimator_node", part_id, files["part"])[0]
     accepted, message = set_reference(peer, "estimator_node", "R3", files["part"])
     assert accepted and "part R1's reference forgotten" in message, message
+    # R2 and R3 name the same unchanged file: one read serves both (3 MB a file at paper resolution)
+    diagnostics = cell["received"]["/diagnostics"]
+    start = len(diagnostics)
+    assert peer.wait(lambda: latest_heartbeat(diagnostics[start:], NODE_NAMES["estimator_node"]).get(
+        "part_reference_files") == "1", 5.0), latest_heartbeat(diagnostics[start:], NODE_NAMES["estimator_node"])
+    assert latest_heartbeat(diagnostics[start:], NODE_NAMES["estimator_node"])["part_references"] == "2"
+    ok, reason = set_parameter(peer, "estimator_node", "remembered_references", 1001)  # at most 1000 (3 GB)
+    assert not ok, reason
     state, _ = send(cell, coarse_hood, own, 14, "R1")
     assert state.reference == f"cell:{files['cell']}"
     state, effects = send(cell, coarse_hood, own, 15, "R3")
@@ -239,8 +261,16 @@ def test_a_part_reference_overrides_the_cells_for_that_part_only(cell, coarse_ho
         for a in cell["received"]["/diagnostics"] for s in a.status), 10.0)
     # a lower bound forgets at once (R2, the older), not at the next part's reference
     assert set_parameter(peer, "estimator_node", "remembered_references", 1) == (True, "")
+    assert peer.wait(lambda: any(  # and says so, naming the part
+        s.level == DiagnosticStatus.WARN and s.name == "hood_decomp/hood_decomp_estimator"
+        and s.message == "remembered_references 1: part reference(s) forgotten: R2"
+        for a in cell["received"]["/diagnostics"] for s in a.status), 10.0)
     state, _ = send(cell, coarse_hood, own, 16, "R2")
     assert state.reference == f"cell:{files['cell']}"
+    # Q's two inspections (12, 17) were both relative to the cell's reference: its move is verified
+    send(cell, coarse_hood, other, 17, "Q")
+    assert peer.wait(lambda: any(v.header.stamp.sec == 17 and v.part_id == "Q"
+                                 for v in cell["received"]["hood_decomp/move_verification"]), 10.0)
     assert set_reference(peer, "estimator_node", "R3", "") == (True, f"part R3 forgot its reference {files['part']}")
 
 
@@ -248,12 +278,18 @@ def test_a_part_reference_overrides_the_cells_for_that_part_only(cell, coarse_ho
     ("missing", "cannot be read"),
     ("foreign", FOREIGN_MODEL),
     ("escape", "leaves the calibration file's directory"),
+    ("fifo", "is a FIFO, not a regular file"),
+    ("zero", "/dev/zero is a character device, not a regular file"),
+    ("relative", "'cell/ref.json' is a relative path: give it absolute"),
+    ("long", "reference path of 1101 bytes: at most 1024"),
 ])
 def test_a_bad_reference_is_refused_and_the_node_keeps_serving(cell, coarse_hood, which, named):
-    """Fails if a reference file that does not read, a reference of another model_id, or one naming a file outside
-    its directory is accepted (parameter or service), refused without a one-line reason naming the problem, or if
-    the node then loses its reference or stops serving: the parameter keeps its value, the part keeps none of its
-    own, and the next field is still made relative to the cell's reference."""
+    """Fails if a reference file that does not read, a reference of another model_id, one naming a file outside its
+    directory, a FIFO (blocks a reader that opens it), /dev/zero (endless: read, it eats the node's memory), a relative
+    path (the node's working directory is not the caller's) or a path over 1 KB is accepted (parameter or service),
+    refused without a one-line reason naming the problem, or if the node then loses its reference or stops serving: the
+    parameter keeps its value, the part keeps none of its own, and the next field is still made relative to the cell's
+    reference."""
     peer, files, names = cell["peer"], cell["files"], coarse_hood.reduced.names
     path = str(cell["root"] / "missing.json") if which == "missing" else files[which]
     for node in NODES:
@@ -263,11 +299,51 @@ def test_a_bad_reference_is_refused_and_the_node_keeps_serving(cell, coarse_hood
         accepted, message = set_reference(peer, node, "B", path)
         assert not accepted and named in message and "\n" not in message, message
     values, truth = part_field(coarse_hood, cell["cell_error"])
-    sec = 20 + ("missing", "foreign", "escape").index(which)
+    sec = 20 + ("missing", "foreign", "escape", "fifo", "zero", "relative", "long").index(which)
     state, effects = send(cell, coarse_hood, values, sec, "B")
     assert state.reference == effects.reference == f"cell:{files['cell']}"
     assert error_mm(state, names, truth).max() < 1e-4
     assert all(p.poll() is None for p in cell["processes"]), "a node died"
+
+
+def test_a_part_id_is_taken_as_sent_and_a_long_one_refused(cell, coarse_hood):
+    """Fails if set_reference strips the part_id (a field's part_id is matched as sent: the reference of " W" would
+    serve the fields of "W") or takes a part_id over 1 KB."""
+    peer, files = cell["peer"], cell["files"]
+    own, _ = part_field(coarse_hood, cell["part_error"])
+    for node in NODES:
+        assert set_reference(peer, node, " W", files["part"])[0]
+        accepted, message = set_reference(peer, node, "W" * 1025, files["part"])
+        assert not accepted and message == "part_id of 1025 bytes: at most 1024", message
+    state, effects = send(cell, coarse_hood, own, 27, "W")
+    assert state.reference == effects.reference == f"cell:{files['cell']}"
+    state, effects = send(cell, coarse_hood, own, 28, " W")
+    assert state.reference == effects.reference == f"part:{files['part']}"
+    for node in NODES:
+        assert set_reference(peer, node, " W", "")[0]
+
+
+def test_two_spellings_of_one_reference_file_are_one_reference(cell, coarse_hood):
+    """Fails if the part's reference given to the estimator as ``DIR/./ref.json`` and to the decomposition node as
+    ``DIR/ref.json`` is not named alike by both (the file's resolved path) or makes the decomposition node warn that
+    the two nodes used different references."""
+    peer, files, diagnostics = cell["peer"], cell["files"], cell["received"]["/diagnostics"]
+    spelled = files["part"].replace("/ref.json", "/./ref.json")
+    assert spelled != files["part"]
+    assert set_reference(peer, "estimator_node", "S", spelled)[0]
+    assert set_reference(peer, "decomposition_node", "S", files["part"])[0]
+    own, _ = part_field(coarse_hood, cell["part_error"])
+    state, effects = send(cell, coarse_hood, own, 29, "S")
+    assert state.reference == effects.reference == f"part:{files['part']}"
+    assert peer.wait(lambda: any(
+        s.name == "hood_decomp/hood_decomp_decomposition" and ("stamp", "29.000000000") in [(kv.key, kv.value)
+                                                                                          for kv in s.values]
+        for a in diagnostics for s in a.status), 10.0)
+    assert not any(s.name == "hood_decomp/hood_decomp_decomposition" and "both nodes" in s.message
+                   and ("stamp", "29.000000000") in [(kv.key, kv.value) for kv in s.values]
+                   for a in diagnostics for s in a.status)
+    for node in NODES:
+        assert set_reference(peer, node, "S", "")[0]
 
 
 def test_calibrated_bases_swap_in_through_lifecycle_transitions(cell, coarse_hood):
@@ -362,3 +438,55 @@ def test_bases_without_a_reduced_model_refuse_a_reference(cell, coarse_hood):
     state, effects = send(cell, coarse_hood, values, 40, "D")
     assert state.reference == effects.reference == ""
     assert all(p.poll() is None for p in cell["processes"]), "a node died"
+
+
+FAILED_CONFIGURE_SCRIPT = """
+import json, sys
+import rclpy
+from rclpy.parameter import Parameter
+from hood_decomp.ros.estimator_node import EstimatorNode
+rclpy.init()
+node = EstimatorNode()
+node.set_parameters([Parameter("bases", value=sys.argv[1]), Parameter("reference", value=sys.argv[2])])
+node.trigger_configure()
+node._set_reference("P", "", sys.argv[3])
+before = node.part_references["P"][1]
+node.trigger_cleanup()
+publisher = node.publisher
+def broken(*args, **kwargs):
+    raise RuntimeError("no publisher")
+node.publisher = broken  # fails the configure after the references were read
+node.trigger_configure()
+after_failure = {"cell": node.reference_label(node.cell_reference, "cell"), "heartbeat": node.heartbeat_values()[
+    "reference"], "part_kept": node.part_references["P"][1] is before, "state": node.state}
+node.publisher = publisher
+node.trigger_configure()
+print("CONFIGURE", json.dumps({"after_failure": after_failure, "state": node.state,
+                               "cell": node.reference_label(node.cell_reference, "cell"),
+                               "part_read_again": node.part_references["P"][1] is not before}))
+node.destroy_node()
+rclpy.shutdown()
+"""
+
+
+def test_a_failed_configure_keeps_no_reference_of_the_bases_it_dropped(coarse_hood, tmp_path):
+    """Fails if a configure that fails after the references were read leaves the cell's reference (read for bases
+    the failure dropped; the heartbeat would name it) or the parts' references half read again, or if the next
+    configure does not read them all again."""
+    import pathlib
+
+    skin, reduced = coarse_hood.skin, coarse_hood.reduced
+    setting = np.array([REFERENCE_SETTING.get(name, 0.0) for name in reduced.names])
+    at_reference = solve_members(reduced, setting[None]).normal_displacement[0]
+    cell_path = write_reference(tmp_path / "cell", skin, at_reference, "ref", coarse_hood.bases.model_id)
+    part_path = write_reference(tmp_path / "part", skin, at_reference, "ref", coarse_hood.bases.model_id)
+    root = pathlib.Path(__file__).resolve().parents[2]
+    done = subprocess.run([sys.executable, "-c", FAILED_CONFIGURE_SCRIPT, str(coarse_hood.bases_path), cell_path,
+                           part_path], cwd=root, capture_output=True, text=True, timeout=120, env=os.environ.copy())
+    line = next((row for row in done.stdout.splitlines() if row.startswith("CONFIGURE ")), None)
+    assert line is not None, done.stderr[-3000:]
+    found = json.loads(line[len("CONFIGURE "):])
+    assert "no publisher" in done.stdout + done.stderr
+    assert found["after_failure"] == {"cell": "", "heartbeat": "none", "part_kept": True, "state": "unconfigured"}, (
+        found)
+    assert found["state"] == "inactive" and found["cell"] == f"cell:{cell_path}" and found["part_read_again"], found

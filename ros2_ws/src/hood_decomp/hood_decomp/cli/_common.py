@@ -112,7 +112,7 @@ def apply_reference(args: argparse.Namespace, bases: Bases, fields: list[Displac
     from hood_decomp.io.calibration_files import read_reference
 
     reference = read_reference(args.reference, bases, args.min_coverage)
-    return [reference.relative(field) for field in fields]
+    return [reference.relative(field, bases) for field in fields]
 
 
 def add_json(parser: argparse.ArgumentParser) -> None:

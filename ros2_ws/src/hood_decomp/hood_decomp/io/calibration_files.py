@@ -26,6 +26,7 @@ import numpy as np
 from hood_decomp.core.types import DisplacementField, SkinSurface
 from hood_decomp.errors import CalibrationError, HoodDecompError
 from hood_decomp.io.json_values import loads_strict
+from hood_decomp.io.small_files import read_small_file
 
 if TYPE_CHECKING:  # only named in annotations: the module stays light for the CLI's start-up
     from hood_decomp.core.loop.calibration import ReferenceOffset
@@ -40,11 +41,13 @@ ENTRY_KEYS = {"field", "scans", "poses", "setting", "name"}
 
 @dataclass(frozen=True)
 class FieldEntry:
-    """One entry read: its name, field (N,) mm and setting label -> mm."""
+    """One entry read: its name, field (N,) mm, setting label -> mm and its field's or scan's :func:`file_key`
+    (taken before reading it)."""
 
     name: str
     field: DisplacementField
     setting: dict[str, float]
+    source: tuple[str, int, int]
 
     def setting_vector(self, names: tuple[str, ...]) -> np.ndarray:
         """The setting (P,) mm in ``names`` order (unset: 0); CalibrationError naming an unknown label."""
@@ -59,22 +62,53 @@ class FieldEntry:
 class Reference:
     """A REF.json read for one set of bases, ready to make fields of their model reference-relative.
 
-    path: the file as given; name: the entry's name; setting: label -> mm of its known state; bases_id: the bases it
-    was prepared with (a reference is prepared again for other bases); offset: what it takes off each field."""
+    path: the file as given; name: the entry's name; bases_id: the bases it was prepared with (:meth:`relative`
+    refuses fields of other bases: a reference is read again for them); offset: what it takes off each field (two
+    float64 per skin node: 16 bytes a node, 0.5 MB on the default hood, 3 MB at paper resolution); sources: the
+    REF.json and the file it names as :func:`file_key` saw them before they were read."""
 
     path: str
     name: str
-    setting: dict[str, float]
     bases_id: str
     offset: ReferenceOffset
+    sources: tuple[tuple[str, int, int], ...]
 
     @property
     def model_id(self) -> str:
         return self.offset.model_id
 
-    def relative(self, field: DisplacementField) -> DisplacementField:
-        """``field`` as measured - reference + the model's field at the reference's setting (core.loop.calibration)."""
+    @property
+    def resolved(self) -> str:
+        """The REF.json's path resolved (absolute, through links): one name for one file, however it was given."""
+        return self.sources[0][0]
+
+    def reads(self, source: tuple[str, int, int]) -> bool:
+        """Whether reading the REF.json of :func:`file_key` ``source`` now would read what this reference read: the
+        same file, unchanged, and the file it names unchanged since (modification time and size)."""
+        try:
+            return source == self.sources[0] and all(file_key(key[0]) == key for key in self.sources[1:])
+        except OSError:
+            return False
+
+    def relative(self, field: DisplacementField, bases: Bases) -> DisplacementField:
+        """``field`` as measured - reference + the model's field at the reference's setting (core.loop.calibration),
+        for estimation with ``bases``: CalibrationError when the reference was prepared for other bases (its model's
+        field at the setting, its scan reading are theirs), saying to read it again."""
+        from hood_decomp.io.bases import loaded_bases_id
+
+        used = loaded_bases_id(bases)
+        if used != self.bases_id:
+            raise CalibrationError(f"reference {self.path} was read for bases {self.bases_id}, the field is used with "
+                                   f"bases {used}: read the reference again for them")
         return self.offset.relative(field)
+
+
+def file_key(path: str | Path) -> tuple[str, int, int]:
+    """(resolved path, modification time ns, size bytes) of ``path``: a file read again is read anew when any of them
+    changed. OSError when it cannot be seen."""
+    resolved = Path(path).resolve()
+    stat = resolved.stat()
+    return str(resolved), stat.st_mtime_ns, stat.st_size
 
 
 def read_reference(path: str | Path, bases: Bases, min_coverage: float = 0.2) -> Reference:
@@ -89,6 +123,10 @@ def read_reference(path: str | Path, bases: Bases, min_coverage: float = 0.2) ->
     if bases.reduced_model is None:
         raise CalibrationError(f"reference {path}: the bases of model {bases.model_id} hold no reduced model (build "
                                "them with --model), which a reference needs")
+    try:  # taken before reading: a change while it is read shows later
+        source = file_key(path)
+    except OSError:
+        source = (str(path), -1, -1)  # read_entries names the problem
     entry = read_entries(path, bases.skin, min_coverage, single=True)[0]
     setting = entry.setting_vector(bases.names)
     # a scanned reference's slide and bias need the bases' reading, prepared once (none for a field)
@@ -97,7 +135,7 @@ def read_reference(path: str | Path, bases: Bases, min_coverage: float = 0.2) ->
         offset = reference_offset(bases.reduced_model, entry.field, setting, reading)
     except CalibrationError as error:
         raise CalibrationError(f"reference {path}: {error}") from error
-    return Reference(str(path), entry.name, dict(entry.setting), loaded_bases_id(bases), offset)
+    return Reference(str(path), entry.name, loaded_bases_id(bases), offset, (source, entry.source))
 
 
 def read_entries(path: str | Path, skin: SkinSurface, min_coverage: float = 0.2, single: bool = False
@@ -107,9 +145,7 @@ def read_entries(path: str | Path, skin: SkinSurface, min_coverage: float = 0.2,
     path = Path(path)
     what = "reference" if single else "calibration"
     try:
-        if path.stat().st_size > MAX_BYTES:
-            raise CalibrationError(f"{what} file {path} is larger than {MAX_BYTES} bytes")
-        data = loads_strict(path.read_text())
+        data = loads_strict(read_small_file(path, MAX_BYTES, CalibrationError, f"{what} file").decode("utf-8"))
     except (OSError, UnicodeDecodeError, ValueError) as error:
         raise CalibrationError(f"{what} file {path} cannot be read as JSON: {error}") from error
     if isinstance(data, dict):
@@ -164,10 +200,15 @@ def _entry(raw: dict, index: int, base: Path, path: Path, skin: SkinSurface, min
             raise CalibrationError(f"{where}: several views with scanner poses need the multi-view fusion (issue 17),"
                                    " not in this build; give one scan (registered by its markers or stored pose)")
         file, scan = _inside(base, scans[0], where), True
+    try:
+        source = file_key(file)
+    except OSError as error:
+        raise CalibrationError(f"{where}: {file.name} cannot be read: {error.strerror}") from error
     name = raw.get("name")
     name = name if isinstance(name, str) and name else str(raw.get("field") or raw["scans"][0])
     try:
         field = field_from_scan_file(skin, file, min_coverage) if scan else read_field(file, skin)[0]
     except HoodDecompError as error:
         raise CalibrationError(f"{where} ({name}): {error}") from error
-    return FieldEntry(name=name[:200], field=field, setting={k: float(v) for k, v in setting.items()})
+    return FieldEntry(name=name[:200], field=field, setting={k: float(v) for k, v in setting.items()},
+                      source=source)

@@ -75,6 +75,7 @@ from hood_decomp.core.method.tolerance import zone_nodes
 from hood_decomp.core.types import ToleranceZone
 from hood_decomp.errors import MeshError, ModelError
 from hood_decomp.io.mesh import read_inp_mesh, read_mesh, write_mesh
+from hood_decomp.io.small_files import read_small_file
 
 if TYPE_CHECKING:
     from hood_decomp.core.loop.candidates import Candidate
@@ -216,14 +217,13 @@ def _show(value: object) -> str:
 
 def _document(path: Path) -> dict:
     """The parsed model.yaml: a mapping of the known format and version. ModelError otherwise."""
-    if not path.is_file():
+    if not path.exists():  # anything else that is not a regular file is named by read_small_file
         raise ModelError(f"model file {path} does not exist (expected a model directory or its model.yaml)")
-    size = path.stat().st_size
-    if size > MAX_BYTES:
-        raise ModelError(f"{path}: {size} bytes, more than the {MAX_BYTES} a model.yaml may have")
     try:
-        text = path.read_bytes().decode("utf-8")
+        text = read_small_file(path, MAX_BYTES, ModelError, "model file").decode("utf-8")
         document = yaml.load(text, Loader=_NoAliasLoader)  # a SafeLoader: no Python objects either
+    except OSError as error:
+        raise ModelError(f"{path}: cannot be read: {error.strerror}") from error
     except UnicodeDecodeError as error:
         raise ModelError(f"{path}: not UTF-8 text (byte {error.start})") from error
     except yaml.YAMLError as error:

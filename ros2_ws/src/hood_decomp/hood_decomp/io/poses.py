@@ -15,6 +15,7 @@ import numpy as np
 from hood_decomp.core.scan.fusion import check_pose
 from hood_decomp.errors import ScanError
 from hood_decomp.io.json_values import loads_strict
+from hood_decomp.io.small_files import read_small_file
 
 #: a pose file is 16 numbers; anything far larger is not one (and is not read whole)
 MAX_POSE_FILE_BYTES = 64 * 1024
@@ -25,12 +26,10 @@ def read_pose_file(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     what = f"scanner pose {path}"
     try:
-        if not path.is_file():
-            raise ScanError(f"{what}: no such file" if not path.exists() else f"{what}: not a regular file")
-        if path.stat().st_size > MAX_POSE_FILE_BYTES:
-            raise ScanError(f"{what}: {path.stat().st_size} bytes; a pose file holds 16 numbers "
-                            f"(at most {MAX_POSE_FILE_BYTES} bytes)")
-        document = loads_strict(path.read_text(encoding="utf-8"))
+        if not path.exists():
+            raise ScanError(f"{what}: no such file")
+        # a pose file holds 16 numbers: MAX_POSE_FILE_BYTES is far more
+        document = loads_strict(read_small_file(path, MAX_POSE_FILE_BYTES, ScanError, "scanner pose").decode("utf-8"))
     except (OSError, UnicodeDecodeError, ValueError) as error:
         raise ScanError(f"{what}: not a readable JSON file: {' '.join(str(error).split())[:120]}") from None
     if isinstance(document, dict):

@@ -49,11 +49,13 @@ HISTORY_RETRY_S = 5.0
 
 
 class _Sent(NamedTuple):
-    """What the node told the robot for a part: the estimate it came from, the correction, the field's stamp."""
+    """What the node told the robot for a part: the estimate it came from, the correction, the field's stamp, the
+    label of the reference the field was made relative to ("" none)."""
 
     estimate: ParameterEstimate
     correction: CoreCorrection
     stamp: Any
+    reference: str
 
 
 def parse_step_limits(entries: list[str]) -> dict[str, float]:
@@ -239,14 +241,20 @@ class EstimatorNode(ReferencedNode):
         part_id = messages.part_id_of(msg)
         values: dict[str, object] = {"part_id": part_id, "reference": reference or "none"}
         earlier = self.sent.pop(part_id, None)
-        if earlier is not None:
+        if earlier is not None and earlier.reference != reference:
+            # two estimates relative to different references differ by the references' difference, not by the move
+            # no move_verified: it announces a MoveVerification (the inspection action waits for one), none comes
+            values["move_summary"] = "not verified: reference changed between inspections"
+            values["warning"] = (f"reference changed between inspections ({earlier.reference or 'none'} -> "
+                                 f"{reference or 'none'}): the correction sent for this part is not verified")
+        elif earlier is not None:
             verification = verify_move(earlier.estimate, earlier.correction, estimate,
                                        self.param("verify_sigmas"), self.param("verify_min_tolerance_mm"))
             self.verification_pub.publish(messages.verification_to_msg(verification, msg.header, part_id,
                                                                        earlier.stamp))
             values["move_verified"] = verification.all_achieved
             values["move_summary"] = verification.summary or "every commanded move achieved"
-        self.sent[part_id] = _Sent(estimate, correction, msg.header.stamp)
+        self.sent[part_id] = _Sent(estimate, correction, msg.header.stamp, reference)
         while len(self.sent) > self.param("remembered_parts"):
             self.sent.popitem(last=False)
         self.state_pub.publish(messages.estimate_to_msg(estimate, msg.header, part_id, reference))

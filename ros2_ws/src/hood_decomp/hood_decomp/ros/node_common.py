@@ -41,6 +41,10 @@ from hood_decomp.errors import HoodDecompError
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 TRANSIENT_LOCAL, VOLATILE = DurabilityPolicy.TRANSIENT_LOCAL, DurabilityPolicy.VOLATILE
 HEARTBEAT_S = 1.0
+#: most parts with a reference of their own (3 MB each at paper resolution when all files differ: 3 GB)
+MAX_REMEMBERED_REFERENCES = 1000
+#: longest part_id, variant and reference path (UTF-8 bytes) a reference is set with: names, not data
+MAX_REFERENCE_TEXT_BYTES = 1024
 TAKEN_REMEMBERED = 1000  # (publisher, sequence) pairs kept to drop the second copy of a doubly subscribed message
 
 
@@ -590,6 +594,23 @@ class HoodNode(LifecycleNode):
         return guarded(self, self.diagnostics, what, handler)
 
 
+def too_long(text: str, what: str) -> None:
+    """HoodDecompError when ``text`` is longer than MAX_REFERENCE_TEXT_BYTES (UTF-8): a name, not data."""
+    size = len(text.encode("utf-8", "surrogatepass"))
+    if size > MAX_REFERENCE_TEXT_BYTES:
+        raise HoodDecompError(f"{what} of {size} bytes: at most {MAX_REFERENCE_TEXT_BYTES}")
+
+
+def check_reference_path(path: str) -> None:
+    """HoodDecompError unless ``path`` is absolute and at most MAX_REFERENCE_TEXT_BYTES: a relative one would resolve
+    against the node's working directory (wherever its launcher ran), not the caller's, and read another file than
+    meant."""
+    too_long(path, "reference path")
+    if not os.path.isabs(path):
+        raise HoodDecompError(f"reference {path!r} is a relative path: give it absolute (the node would resolve it "
+                              "against its own working directory, not yours)")
+
+
 class ReferencedNode(HoodNode):
     """A HoodNode that estimates from fields (the estimator and the decomposition node): each field is made
     reference-relative before it is used (measured - reference + the model's field at the reference's known state, so
@@ -602,11 +623,11 @@ class ReferencedNode(HoodNode):
     without a reduced model, ... refuse the change with a one-line reason; the node keeps its old reference and keeps
     serving. A reference per part: the service ``<node>/set_reference`` (hood_decomp_msgs/SetReference: part_id,
     variant, path; an empty path forgets the part's), at most ``remembered_references`` parts (the oldest forgotten
-    first, and said so). A field whose part_id has one is made relative to it, else to the cell's. After a bases
-    swap (cleanup, configure) every reference is read again with the new bases; a part reference that no longer reads
-    is forgotten with a WARN naming it. Every result says which reference it used (``reference`` in the output
-    message and the diagnostic: "cell:PATH", "part:PATH" or empty); the heartbeat names the cell's and counts the
-    parts'."""
+    first, and said so; parts naming the same unchanged file share one read). A field whose part_id has one is made
+    relative to it, else to the cell's. After a bases swap (cleanup, configure) every reference is read again with the
+    new bases; a part reference that no longer reads is forgotten with a WARN naming it. Every result says which
+    reference it used (``reference`` in the output message and the diagnostic: "cell:PATH", "part:PATH" or empty);
+    the heartbeat names the cell's and counts the parts' and the files read for them."""
 
     def __init__(self, name: str) -> None:
         from hood_decomp_msgs.srv import SetReference
@@ -615,19 +636,41 @@ class ReferencedNode(HoodNode):
         self.part_references: OrderedDict[str, tuple[str, Any]] = OrderedDict()  # part_id -> (variant, Reference)
         self._staged: dict[str, Any] = {}  # parameter -> what check_parameter read, taken by accept_parameters
         super().__init__(name)
-        declare(self, "reference", "", "reference of the cell: REF.json (a part in a known state, as --reference "
-                "takes it) every field of the default bases' model is made relative to, unless its part has its "
-                "own (service set_reference); empty: none. Read at configure and when changed")
+        declare(self, "reference", "", "reference of the cell: REF.json, an absolute path (a part in a known "
+                "state, as --reference takes it) every field of the default bases' model is made relative to, unless "
+                "its part has its own (service set_reference); empty: none. Read at configure and when changed")
         declare(self, "remembered_references", 100, "parts whose own reference (service set_reference) is kept, "
-                "oldest forgotten first (each holds two floats per skin node)", 1, 100_000)
+                "oldest forgotten first. Each file read holds two float64 per skin node (0.5 MB on the default hood, "
+                "3 MB at paper resolution: 1000 parts of distinct files, 3 GB); parts naming the same unchanged "
+                "file share one", 1, MAX_REMEMBERED_REFERENCES)
         self.create_service(SetReference, "~/set_reference", self.on_set_reference)
 
     # --- reading ----------------------------------------------------------------------------------------------------
+    def shared_reference(self, path: str, variant: str, held: list[tuple[str, Any]]) -> Any:
+        """The reference of REF.json ``path`` for ``variant``: one of ``held`` ((variant, Reference) pairs) that read
+        the same files, unchanged since, for the same variant (shared: 16 bytes a skin node each), else read now."""
+        from hood_decomp.io.calibration_files import file_key
+
+        check_reference_path(path)  # before the file is looked at: a relative path is never shared either
+        try:
+            source = file_key(path)
+        except OSError:
+            source = None  # not shared: read_reference names the problem
+        shared = next((reference for held_variant, reference in held
+                       if source is not None and held_variant == variant and reference.reads(source)), None)
+        return shared if shared is not None else self.read_reference(path, variant)
+
+    def held_references(self) -> list[tuple[str, Any]]:
+        """(variant, Reference) of every reference held: the parts' and the cell's (of the default variant)."""
+        cell = [("", self.cell_reference)] if self.cell_reference is not None else []
+        return list(self.part_references.values()) + cell
+
     def read_reference(self, path: str, variant: str = "") -> Any:
         """The REF.json ``path`` read for the bases of ``variant`` (io.calibration_files.read_reference); a
-        HoodDecompError naming the problem."""
+        HoodDecompError naming the problem (:func:`check_reference_path` first)."""
         from hood_decomp.io.calibration_files import read_reference
 
+        check_reference_path(path)
         try:
             return read_reference(path, self.bases_for_variant(variant), float(self.param("min_coverage")))
         except HoodDecompError:
@@ -650,24 +693,41 @@ class ReferencedNode(HoodNode):
             self.cell_reference = staged
             self.diagnostics.report(OK, "reference set", reference=self.reference_label(self.cell_reference, "cell"))
         if "remembered_references" in names:  # a lower bound applies now, not at the next part's reference
-            self._forget_beyond(int(names["remembered_references"]))
+            limit = int(names["remembered_references"])
+            forgotten = self._forget_beyond(limit)
+            if forgotten:
+                message = f"remembered_references {limit}: part reference(s) forgotten: {', '.join(forgotten)}"
+                self.get_logger().warning(message)
+                self.diagnostics.report(WARN, message, part_references=len(self.part_references))
         super().accept_parameters(parameters)
 
     def configure_node(self) -> None:
-        """Read the cell's reference (a bad one fails the transition) and every part's again with the new bases."""
+        """Read the cell's reference (a bad one fails the transition) and every part's again with the new bases, into
+        temporaries: :meth:`on_configure` takes them when the whole transition succeeds."""
         path = str(self.param("reference"))
-        self.cell_reference = self.read_reference(path) if path else None
-        forgotten = []
-        for part_id, (variant, reference) in list(self.part_references.items()):
-            try:
-                self.part_references[part_id] = (variant, self.read_reference(reference.path, variant))
+        cell = self.read_reference(path) if path else None
+        forgotten, parts = [], OrderedDict()
+        for part_id, (variant, reference) in self.part_references.items():
+            try:  # shared with those read already with the new bases, as they were shared before
+                held = list(parts.values()) + ([("", cell)] if cell is not None else [])
+                parts[part_id] = (variant, self.shared_reference(reference.path, variant, held))
             except HoodDecompError as error:
-                del self.part_references[part_id]
                 forgotten.append(f"{part_id}: {error}")
+        self._staged["configure"] = (cell, parts, forgotten)
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        result = super().on_configure(state)
+        cell, parts, forgotten = self._staged.pop("configure", (None, self.part_references, []))
+        if result != TransitionCallbackReturn.SUCCESS:
+            # no reference of bases that are gone; the parts keep theirs as they were (read again at configure)
+            self.cell_reference = None
+            return result
+        self.cell_reference, self.part_references = cell, parts
         if forgotten:
             self.get_logger().warning(f"part references forgotten: {'; '.join(forgotten)}")
             self.diagnostics.report(WARN, f"{len(forgotten)} part reference(s) forgotten at configure: "
                                     f"{'; '.join(forgotten)}")
+        return result
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         self.cell_reference = None  # prepared with the bases that go now; part references are read again at configure
@@ -677,10 +737,17 @@ class ReferencedNode(HoodNode):
     def on_set_reference(self, request: Any, response: Any) -> Any:
         """SetReference: read the part's REF.json with its variant's bases (or forget it: empty path); refused with
         a one-line reason (the part keeps what it had) when the node is not configured or the file does not serve."""
-        part_id, path = request.part_id.strip(), request.path.strip()
-        response.accepted, response.message = self._set_reference(part_id, request.variant.strip(), path)
+        # taken as sent, not stripped: a field's part_id is matched as it comes (messages.part_id_of)
+        part_id, path = request.part_id, request.path
+        try:
+            too_long(part_id, "part_id")
+            too_long(request.variant, "variant")
+            response.accepted, response.message = self._set_reference(part_id, request.variant, path)
+        except HoodDecompError as error:
+            response.accepted, response.message = False, str(error)
         level = OK if response.accepted else WARN
-        self.diagnostics.report(level, f"set_reference {part_id!r}: {response.message}", part_id=part_id,
+        shown = part_id if len(part_id) <= 80 else part_id[:77] + "..."
+        self.diagnostics.report(level, f"set_reference {shown!r}: {response.message}", part_id=shown,
                                 part_references=len(self.part_references))
         return response
 
@@ -694,7 +761,7 @@ class ReferencedNode(HoodNode):
         if not self.variant_bases:
             return False, f"node {self.state}: configure it first (references are read with its bases)"
         try:
-            reference = self.read_reference(path, variant)
+            reference = self.shared_reference(path, variant, self.held_references())
         except HoodDecompError as error:
             kept = self.part_references.get(part_id)
             return False, f"{error} (part {part_id} keeps {kept[1].path if kept else 'no reference of its own'})"
@@ -714,8 +781,9 @@ class ReferencedNode(HoodNode):
     # --- use --------------------------------------------------------------------------------------------------------
     @staticmethod
     def reference_label(reference: Any, scope: str) -> str:
-        """What an output says of the reference it used: "cell:PATH" / "part:PATH", "" for none."""
-        return "" if reference is None else f"{scope}:{reference.path}"
+        """What an output says of the reference it used: "cell:PATH" / "part:PATH" (the file's resolved path, so two
+        spellings of one file compare equal), "" for none."""
+        return "" if reference is None else f"{scope}:{reference.resolved}"
 
     def field_of(self, msg: Any) -> tuple[Any, Any, str]:
         """A DisplacementField message -> (its bases, the field made relative to the part's reference, else the
@@ -736,11 +804,12 @@ class ReferencedNode(HoodNode):
             reference, scope = self.cell_reference, "cell"
         else:
             return bases, field, ""
-        return bases, reference.relative(field), self.reference_label(reference, scope)
+        return bases, reference.relative(field, bases), self.reference_label(reference, scope)
 
     def heartbeat_values(self) -> dict[str, object]:
         return {**super().heartbeat_values(), "reference": self.reference_label(self.cell_reference, "cell") or "none",
-                "part_references": len(self.part_references)}
+                "part_references": len(self.part_references),
+                "part_reference_files": len({id(reference) for _, reference in self.part_references.values()})}
 
 
 def spin(node_factory: Callable[[], HoodNode], args: list[str] | None = None) -> int:
