@@ -102,10 +102,12 @@ def run(args: argparse.Namespace) -> int:
     from hood_decomp.io.bases import bases_provenance
 
     check_json(args)
-    # the estimator is fitted (0.1-0.4 s at paper resolution) while the scan is read and turned into a field
+    # the estimator is fitted (0.1-0.4 s at paper resolution), and for a scan its reading's gradients made (0.2 s),
+    # while the scan is read and turned into a field
     checks: list[dict] = []
+    scan = any(kind == "scan" for kind, _ in args.inputs)
     bases, field = read_bases_and_field(args, lambda bases: bases.prepare_estimation(
-        args.method, args.min_coverage, args.temperature_k, args.components), marker_checks=checks)
+        args.method, args.min_coverage, args.temperature_k, args.components, scan), marker_checks=checks)
     estimate = estimate_field(bases, field, args.method, args.min_coverage, args.temperature_k, args.components)
     payload = estimate_payload(estimate, bases.pca.n_bilateral_)
     payload.update(bases_provenance(bases), reference=None if args.reference is None else str(args.reference),

@@ -189,11 +189,13 @@ class Bases:
         return components == "xyz"
 
     def prepare_estimation(self, method: str = "contact", min_coverage: float = DEFAULT_MIN_COVERAGE,
-                           temperature_k: float = 0.0, components: str = "normal") -> None:
+                           temperature_k: float = 0.0, components: str = "normal", scan: bool = False) -> None:
         """Fit now what :func:`estimate_field` with these arguments fits on its first call (the contact-aware
         estimator, or for "pca" and for bases without a reduced model the within-model test or, for "xyz", the
-        stacked basis), so that estimating then only reads it: a node before it serves, a one-off run while it
-        reads its scan."""
+        stacked basis; with ``scan``, for a scanned field, the reading of the basis' fields and their gradients), so
+        that estimating then only reads it: a node before it serves, a one-off run while it reads its scan."""
+        if scan:
+            self.reading().slopes  # noqa: B018 (made now, kept by the reading)
         if method == "contact" and self.reduced_model is not None:
             self.contact_estimator(min_coverage, temperature_k, components)
         elif self._components(components):

@@ -177,14 +177,15 @@ class ReadingOfBasis:
         run twice, would double the estimate's time (117 -> 243 ms on a default-hood scan)."""
         seen, normal_matrix, coeff = self._fit(values)
         moved = self.mean_field_3d + np.tensordot(coeff, self.components_3d, axes=1)
-        slope = self._slopes[0] + np.tensordot(coeff, self._slopes[1:], axes=1)
+        slope = self.slopes[0] + np.tensordot(coeff, self.slopes[1:], axes=1)
         added = np.sum(moved * slope, axis=1)  # the fitted field's slide, u_t . grad u_n (:func:`slide`)
         return added - self._inside(seen, normal_matrix, coeff, radius_mm)
 
     @cached_property
-    def _slopes(self) -> np.ndarray:
+    def slopes(self) -> np.ndarray:
         """(K + 1, N, 3) the tangential gradients of the mean field and of each basis field, made at the first scan
-        (11 gradients, about 0.2 s at paper resolution; a node's warm-up makes them). A basis field's gradient is
+        (11 gradients, about 0.2 s at paper resolution: a node's warm-up and `estimate --scan` while it reads the scan
+        make them, :meth:`~.bases.Bases.prepare_estimation`). A basis field's gradient is
         the same combination of these, so a scan's reading takes no gradient of its own (at paper resolution the
         gradient's sums over the triangles were about 20 of a scan's 29 ms reading); the gradients being tangential,
         the 3D field's normal part does not count in the slide."""
