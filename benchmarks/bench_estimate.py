@@ -40,6 +40,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench_uncertainty import POINTS  # noqa: E402  (scan points on the skin per resolution)
+
 from hood_decomp.core.fe.ensemble import solve_members  # noqa: E402
 from hood_decomp.core.method import bases as bases_module  # noqa: E402
 from hood_decomp.core.method import contact_estimation, estimation, residual  # noqa: E402
@@ -51,8 +53,6 @@ from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan  # noqa
 from tests.conftest import _hood_case  # noqa: E402
 
 OUT = ROOT / "benchmarks" / "out" / "estimate.json"
-#: scan points on the skin per resolution (as bench_uncertainty.py)
-POINTS = {"coarse": 120_000, "default": 500_000, "paper": 2_000_000}
 PHASES = ("reading", "weight", "test", "grams", "spread")
 
 
