@@ -343,23 +343,26 @@ def test_taking_the_scan_bias_out_inside_the_basis_removes_the_hinge_gain(defaul
     assert np.all(rms["with"] <= 1.25 * rms["without"] + 1e-4)
 
 
-def test_preparing_a_scans_estimate_makes_the_readings_gradients_and_they_give_the_slide(toy):
+def test_preparing_a_scans_estimate_makes_the_readings_slide_terms_and_they_give_the_slide(toy):
     """Fails if preparing the estimate of a scan (what `estimate --scan` does while it reads the scan) leaves the
-    reading's gradients to the first scan, or if the kept gradients' combination differs from the gradient of the
-    fitted field itself (SurfaceGradient of mean + c @ components, taken directly): the slide would be another."""
+    reading's slide terms to the first scan, or if the kept terms' combination differs from the slide of the fitted
+    field itself (:func:`slide` of mean + c @ components with its 3D field, the gradient taken directly): a pair's
+    term left out, not symmetrised, or counted twice on the diagonal."""
     import dataclasses
 
-    from hood_decomp.core.method.surface_reading import SurfaceGradient
+    from hood_decomp.core.method.surface_reading import SurfaceGradient, slide
 
     plain, _, _, _ = toy
     bases = dataclasses.replace(plain)  # fresh caches
     bases.prepare_estimation("pca")
-    assert "slopes" not in bases.reading().__dict__
+    assert "slide_terms" not in bases.reading().__dict__
     bases.prepare_estimation("pca", scan=True)
-    assert "slopes" in bases.reading().__dict__
+    assert "slide_terms" in bases.reading().__dict__
     pca = bases.pca
     coeff = np.array([0.7, -0.2, 0.4, 0.1, -0.3, 0.05])
-    kept = bases.reading().slopes
-    direct = SurfaceGradient.fit(bases.skin)(pca.mean_field_ + coeff @ pca.components_)
-    combined = kept[0] + np.tensordot(coeff, kept[1:], axes=1)
+    weights = np.r_[1.0, coeff]
+    first, second = np.triu_indices(weights.size)
+    combined = (weights[first] * weights[second]) @ bases.reading().slide_terms
+    direct = slide(SurfaceGradient.fit(bases.skin), pca.mean_field_ + coeff @ pca.components_,
+                   pca.mean_field_3d_ + np.tensordot(coeff, pca.components_3d_, axes=1))
     np.testing.assert_allclose(combined, direct, atol=1e-12 * np.abs(direct).max())

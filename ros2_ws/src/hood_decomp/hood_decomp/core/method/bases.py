@@ -195,7 +195,7 @@ class Bases:
         stacked basis; with ``scan``, for a scanned field, the reading of the basis' fields and their gradients), so
         that estimating then only reads it: a node before it serves, a one-off run while it reads its scan."""
         if scan:
-            self.reading().slopes  # noqa: B018 (made now, kept by the reading)
+            self.reading().slide_terms  # noqa: B018 (made now, kept by the reading)
         if method == "contact" and self.reduced_model is not None:
             self.contact_estimator(min_coverage, temperature_k, components)
         elif self._components(components):
