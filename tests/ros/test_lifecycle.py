@@ -148,6 +148,8 @@ def test_parameters_read_at_configure_refuse_a_change_and_the_others_apply(cell,
         assert not ok and "read at configure" in reason and "active" in reason, reason
     ok, reason = set_parameter(peer, "estimator_node", "method", "least-squares")
     assert not ok and "contact" in reason
+    ok, reason = set_parameter(peer, "estimator_node", "coarsen", "half")
+    assert not ok and "stride" in reason
     ok, reason = set_parameter(peer, "scan_node", "scanner_pose", [1.0, 0.0, 0.0])
     assert not ok and "16" in reason
     # transient-local: the correction arrives even if this subscription matches the estimator after it was sent
@@ -175,6 +177,12 @@ def test_parameters_read_at_configure_refuse_a_change_and_the_others_apply(cell,
     rest = dict(zip(third.names, np.abs(third.remaining), strict=True))
     assert max(moves.values()) <= 1e-4 + 1e-12 and moves["LOCK_L"] == pytest.approx(5e-5)
     assert rest["LOCK_L"] == pytest.approx(5e-4 - 5e-5) and "LOCK_L: step limited to" in third.reason
+    # the paper's coarsening, set live: a quarter of the nodes of this member of the model gives the same moves
+    assert set_parameter(peer, "estimator_node", "coarsen", "2") == (True, "")
+    publisher.publish(_field_msg(coarse_hood, values, 14))
+    assert peer.wait(lambda: any(c.header.stamp.sec == 14 for c in corrections), 60.0)
+    fourth = next(c for c in corrections if c.header.stamp.sec == 14)
+    np.testing.assert_allclose(fourth.corrections, third.corrections, atol=1e-9)
 
 
 def test_bulk_parameter_get_answers_every_parameter(cell):

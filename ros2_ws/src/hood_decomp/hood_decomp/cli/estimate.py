@@ -33,6 +33,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="displacement components fitted: normal (default; a scan measures normal distances) or "
                         "xyz, all three, as the paper does (a field file with a 3D displacement, e.g. from "
                         "`simulate`, and no error model; the within-model test then judges each component)")
+    parser.add_argument("--coarsen", type=coarsening, default="auto", metavar="auto|STRIDE",
+                        help="the paper's coarsening of the input field: fit and test it on one node per cell of "
+                        "STRIDE node spacings (1: every node); auto (default): a quarter of the nodes on a skin of "
+                        "more than 100,000 nodes fitted on its normal component (the paper-resolution hood), every "
+                        "node otherwise")
+
+
+def coarsening(text: str) -> int | str:
+    """``--coarsen``'s value (:func:`~hood_decomp.core.method.coarsening.parse_coarsening`; argparse names anything
+    else, exit 2)."""
+    from hood_decomp.core.method.coarsening import parse_coarsening
+    from hood_decomp.errors import BasisError
+
+    try:
+        return parse_coarsening(text)
+    except BasisError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def estimate_payload(estimate, n_bilateral: int) -> dict:
@@ -98,6 +115,7 @@ def zones_payload(verdicts) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     from hood_decomp.core.method.bases import estimate_field
+    from hood_decomp.core.method.coarsening import coarsening_stride
     from hood_decomp.core.method.tolerance import zone_verdicts
     from hood_decomp.io.bases import bases_provenance
 
@@ -107,9 +125,13 @@ def run(args: argparse.Namespace) -> int:
     checks: list[dict] = []
     scan = any(kind == "scan" for kind, _ in args.inputs)
     bases, field = read_bases_and_field(args, lambda bases: bases.prepare_estimation(
-        args.method, args.min_coverage, args.temperature_k, args.components, scan), marker_checks=checks)
-    estimate = estimate_field(bases, field, args.method, args.min_coverage, args.temperature_k, args.components)
+        args.method, args.min_coverage, args.temperature_k, args.components, scan, args.coarsen), marker_checks=checks)
+    estimate = estimate_field(bases, field, args.method, args.min_coverage, args.temperature_k, args.components,
+                              args.coarsen)
     payload = estimate_payload(estimate, bases.pca.n_bilateral_)
+    stride = coarsening_stride(args.coarsen, bases.skin.n_nodes, args.components)
+    payload["coarsening"] = {"stride": stride, "fitted_nodes": int(
+        bases.coarsened(stride).nodes.size if stride > 1 else bases.skin.n_nodes), "nodes": bases.skin.n_nodes}
     payload.update(bases_provenance(bases), reference=None if args.reference is None else str(args.reference),
                    temperature_k=args.temperature_k, marker_noise_checks=marker_checks_or_none(args, checks))
     payload.update(zones_payload(zone_verdicts(field, bases.tolerance_zones)))

@@ -9,7 +9,7 @@ per-node array is in the model's visible-skin node order (N nodes).
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -383,6 +383,13 @@ class ReducedModel:
     R_3d: np.ndarray
     G_3d: np.ndarray
     parameter_states: str = "effective"
+
+    def on_nodes(self, nodes: np.ndarray) -> ReducedModel:
+        """This model's skin responses on the kept skin ``nodes`` (n,) (a coarsened estimate,
+        :mod:`hood_decomp.core.method.coarsening`); the pad springs' arrays as they are."""
+        return replace(self, w0=self.w0[nodes], R=np.ascontiguousarray(self.R[nodes]),
+                       G=np.ascontiguousarray(self.G[nodes]), w0_3d=self.w0_3d[nodes], R_3d=self.R_3d[nodes],
+                       G_3d=self.G_3d[nodes])
 
 
 @dataclass(frozen=True)

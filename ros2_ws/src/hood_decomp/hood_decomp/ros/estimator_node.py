@@ -26,11 +26,12 @@ from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState, Displacement
 from rclpy.parameter import Parameter
 from std_msgs.msg import Header
 
+from hood_decomp.core.method.coarsening import parse_coarsening
 from hood_decomp.core.method.correction import CorrectionPolicy, limit_steps, plan_correction, verify_move
 from hood_decomp.core.types import BoundaryCorrection as CoreCorrection
 from hood_decomp.core.types import DisplacementField as CoreField
 from hood_decomp.core.types import FieldErrorModel, ParameterEstimate
-from hood_decomp.errors import HoodDecompError
+from hood_decomp.errors import BasisError, HoodDecompError
 from hood_decomp.io.history import HistoryWriter, PartRecord, bases_file_id, inspection_record
 from hood_decomp.ros import messages
 from hood_decomp.ros.node_common import (
@@ -77,6 +78,8 @@ class EstimatorNode(ReferencedNode):
         declare(self, "method", "contact", "estimator: 'contact' (contact-aware, default) or 'pca' (the paper's "
                 "eqs. 4-5)")
         declare(self, "min_coverage", 0.6, "smallest seen fraction of the skin to act on", 0.0, 1.0)
+        declare(self, "coarsen", "auto", "the paper's coarsening of the input field: 'auto' (a quarter of the nodes "
+                "of a skin above 100,000 nodes, every node otherwise) or an integer stride >= 1 (1: every node)")
         declare(self, "max_std_mm", CorrectionPolicy.max_std_mm, "largest uncertainty (mm, 1 sigma) to act on",
                 0.0, 100.0)
         declare(self, "range_tolerance_mm", 0.02, "tolerance (mm) on the declared parameter ranges", 0.0, 10.0)
@@ -105,6 +108,11 @@ class EstimatorNode(ReferencedNode):
     def check_parameter(self, parameter: Parameter) -> str:
         if parameter.name == "method" and parameter.value not in METHODS:
             return f"one of {', '.join(METHODS)}, got {parameter.value!r}"
+        if parameter.name == "coarsen":
+            try:
+                parse_coarsening(parameter.value)
+            except BasisError as error:
+                return str(error)
         if parameter.name == "max_step_by_boundary":
             try:
                 parse_step_limits(list(parameter.value or []))
@@ -125,7 +133,8 @@ class EstimatorNode(ReferencedNode):
         super().configure_node()  # the references, read with the new bases
         self.sent.clear()
         for bases in self.variant_bases.values():  # fitted now, so the first field is answered at steady speed
-            bases.prepare_estimation(self.param("method"), self.param("min_coverage"))
+            bases.prepare_estimation(self.param("method"), self.param("min_coverage"),
+                                     coarsen=parse_coarsening(self.param("coarsen")))
             try:
                 self.warm_up(bases)
             except HoodDecompError as error:  # the bases serve real fields all the same: said, not fatal
@@ -217,7 +226,8 @@ class EstimatorNode(ReferencedNode):
 
         policy = self.policy()
         bases, field, reference = self.field_of(msg)
-        estimate = estimate_field(bases, field, method=self.param("method"), min_coverage=policy.min_coverage)
+        estimate = estimate_field(bases, field, method=self.param("method"), min_coverage=policy.min_coverage,
+                                  coarsen=parse_coarsening(self.param("coarsen")))
         correction = limit_steps(plan_correction(estimate, policy), self.step_limits(estimate.names))
         return field, estimate, correction, reference
 

@@ -10,9 +10,18 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from hood_decomp.core.method.coarsening import (
+    SpanLift,
+    coarsening_stride,
+    kept_rings,
+    restricted_field,
+    stratified_nodes,
+)
 from hood_decomp.core.method.contact_estimation import ContactEstimator, stacked_model
 from hood_decomp.core.method.decomposition import decompose
 from hood_decomp.core.method.estimation import (
@@ -20,12 +29,19 @@ from hood_decomp.core.method.estimation import (
     DEFAULT_MIN_COVERAGE,
     check_field,
     estimate_pca,
+    residual_stats,
     stacked_field,
 )
 from hood_decomp.core.method.hierarchical import HierarchicalBasis
 from hood_decomp.core.method.model_spread import PhysicalResponses, factor_spread
 from hood_decomp.core.method.pca import PCABasis
-from hood_decomp.core.method.residual import DEFAULT_ALPHA, ResidualAnalysis, ResidualTest, analyse_residual
+from hood_decomp.core.method.residual import (
+    DEFAULT_ALPHA,
+    ResidualAnalysis,
+    ResidualTest,
+    analyse_residual,
+    ring_incidence,
+)
 from hood_decomp.core.method.surface_reading import ReadingOfBasis, ScanReadingBias
 from hood_decomp.core.types import (
     Decomposition,
@@ -35,8 +51,12 @@ from hood_decomp.core.types import (
     ReducedModel,
     SkinSurface,
     ToleranceZone,
+    side_by_side,
 )
 from hood_decomp.errors import BasisError, ModelIdMismatchError
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
 
 logger = logging.getLogger(__name__)
 
@@ -105,6 +125,9 @@ class Bases:
     # basis), prepared on first use
     _readings: dict[str, ReadingOfBasis] = dataclasses.field(default_factory=dict, init=False, repr=False,
                                                              compare=False)
+    # stride -> these bases on a stratified subset of the skin's nodes (a coarsened estimate), made on first use
+    _coarsened: dict[int, CoarsenedBases] = dataclasses.field(default_factory=dict, init=False, repr=False,
+                                                              compare=False)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -114,10 +137,12 @@ class Bases:
         """The one within-model test on this skin with this model's discrepancy (:class:`~.residual.ResidualTest`),
         prepared once."""
         if "test" not in self._tests:
-            self._tests.setdefault("test", ResidualTest().fit(self.skin, self.discrepancy, self.discrepancy_dof,
-                                                              self.discrepancy_local, self.discrepancy_noise,
-                                                              self.calibration_noise))
+            self._tests.setdefault("test", self._fit_test())
         return self._tests["test"]
+
+    def _fit_test(self, rings: Callable[[], sp.csr_matrix] | None = None) -> ResidualTest:
+        return ResidualTest().fit(self.skin, self.discrepancy, self.discrepancy_dof, self.discrepancy_local,
+                                  self.discrepancy_noise, self.calibration_noise, rings)
 
     def reading(self) -> ReadingOfBasis:
         """What a scan reads less than this model's fields (:mod:`~.surface_reading`: their slide, and the smoothing
@@ -188,15 +213,26 @@ class Bases:
                              "components 'xyz' cannot count it; fit the normal component")
         return components == "xyz"
 
+    def coarsened(self, stride: int) -> CoarsenedBases:
+        """These bases on a stratified subset of the skin's nodes (:class:`CoarsenedBases`), made once per stride."""
+        if stride not in self._coarsened:
+            self._coarsened.setdefault(stride, CoarsenedBases.of(self, stride))
+        return self._coarsened[stride]
+
     def prepare_estimation(self, method: str = "contact", min_coverage: float = DEFAULT_MIN_COVERAGE,
-                           temperature_k: float = 0.0, components: str = "normal", scan: bool = False) -> None:
+                           temperature_k: float = 0.0, components: str = "normal", scan: bool = False,
+                           coarsen: int | str = "auto") -> None:
         """Fit now what :func:`estimate_field` with these arguments fits on its first call (the contact-aware
         estimator, or for "pca" and for bases without a reduced model the within-model test or, for "xyz", the
-        stacked basis; with ``scan``, for a scanned field, the reading of the basis' fields and their gradients), so
-        that estimating then only reads it: a node before it serves, a one-off run while it reads its scan."""
+        stacked basis; with ``scan``, for a scanned field, the reading of the basis' fields and their gradients; for
+        a coarsened estimate those of the coarsened bases and their lift), so that estimating then only reads it: a
+        node before it serves, a one-off run while it reads its scan."""
         if scan:
             self.reading().slide_terms  # noqa: B018 (made now, kept by the reading)
-        if method == "contact" and self.reduced_model is not None:
+        stride = coarsening_stride(coarsen, self.skin.n_nodes, components)
+        if stride > 1:
+            self.coarsened(stride).prepare(self, method, min_coverage, temperature_k)
+        elif method == "contact" and self.reduced_model is not None:
             self.contact_estimator(min_coverage, temperature_k, components)
         elif self._components(components):
             self.stacked_pca()
@@ -263,7 +299,7 @@ def rebuilt_like(rebuilt: Bases, source: Bases) -> Bases:
 
 def estimate_field(
     bases: Bases, field: DisplacementField, method: str = "contact", min_coverage: float = DEFAULT_MIN_COVERAGE,
-    temperature_k: float = 0.0, components: str = "normal",
+    temperature_k: float = 0.0, components: str = "normal", coarsen: int | str = "auto",
 ) -> ParameterEstimate:
     """Estimate a field's parameter states: "contact" (default, needs the reduced model) or "pca" (the paper's).
     temperature_k: the part's temperature minus the model's reference temperature, K (needs bases with a thermal
@@ -278,26 +314,127 @@ def estimate_field(
     (:meth:`Bases.stacked_test`). Raises FieldError for a field without a 3D displacement or with an
     error model, BasisError for calibrated bases with a discrepancy (:meth:`Bases.stacked_pca`).
 
+    coarsen: the paper's coarsening of the input field (:mod:`~.coarsening`): a stride >= 1 (1: every node) or
+    "auto" (a quarter of the nodes on a skin of more than :data:`~.coarsening.AUTO_MIN_NODES` nodes fitted on its
+    normal component, the paper-resolution hood; every node otherwise). A coarsened estimate fits and tests the
+    field on the kept nodes (:meth:`CoarsenedBases.estimate`); its reconstruction and residual are of every node.
+
     The field is estimated as its nodes' displacement (:func:`node_field`: a scan's slide taken out), so the estimate,
     its residual and its within-model test are of the node displacements the model makes."""
     if method not in METHODS:
         raise BasisError(f"unknown estimation method {method!r}, expected one of {METHODS}")
     xyz = bases._components(components)
+    stride = coarsening_stride(coarsen, bases.skin.n_nodes, components)
     fitted = stacked_field(field, bases.skin.normals, min_coverage) if xyz else node_field(bases, field, min_coverage)
-    if method == "pca":
-        if temperature_k != 0.0 and (xyz or np.shape(fitted.normal_displacement) == bases.pca.mean_field_.shape):
-            warm = bases.at_temperature(temperature_k)
-            thermal = (warm.w0_3d - bases.reduced_model.w0_3d).reshape(-1) if xyz else warm.w0 - bases.reduced_model.w0
-            fitted = dataclasses.replace(fitted, normal_displacement=fitted.normal_displacement - thermal)
-        estimate = (estimate_pca(bases.stacked_pca(), fitted, min_coverage, bases.stacked_test()) if xyz
-                    else estimate_pca(bases.pca, fitted, min_coverage, bases.residual_test()))
+    if method == "pca" and temperature_k != 0.0 and (
+            xyz or np.shape(fitted.normal_displacement) == bases.pca.mean_field_.shape):
+        warm = bases.at_temperature(temperature_k)
+        thermal = (warm.w0_3d - bases.reduced_model.w0_3d).reshape(-1) if xyz else warm.w0 - bases.reduced_model.w0
+        fitted = dataclasses.replace(fitted, normal_displacement=fitted.normal_displacement - thermal)
+    if stride > 1:
+        estimate = bases.coarsened(stride).estimate(bases, fitted, method, min_coverage, temperature_k)
     else:
-        estimate = bases.contact_estimator(min_coverage, temperature_k, components).estimate(fitted)
+        estimate = _estimate_nodes(bases, fitted, method, min_coverage, temperature_k, components)
     if xyz:
         estimate = normal_part(estimate, field, bases.skin.normals)
     if not bases.measured_effects:
         return estimate
     return dataclasses.replace(estimate, measured_effect=np.isin(estimate.names, bases.measured_effects))
+
+
+def _estimate_nodes(bases: Bases, fitted: DisplacementField, method: str, min_coverage: float, temperature_k: float,
+                    components: str = "normal") -> ParameterEstimate:
+    """The estimate of ``fitted``, a field of node displacements (:func:`node_field`, the PCA's thermal field taken
+    out) on every node of ``bases``."""
+    if method == "pca":
+        if components == "xyz":
+            return estimate_pca(bases.stacked_pca(), fitted, min_coverage, bases.stacked_test())
+        return estimate_pca(bases.pca, fitted, min_coverage, bases.residual_test())
+    return bases.contact_estimator(min_coverage, temperature_k, components).estimate(fitted)
+
+
+@dataclasses.dataclass(frozen=True)
+class CoarsenedBases:
+    """Bases on a stratified subset of their skin's nodes (:mod:`~.coarsening`): a coarsened estimate fits and tests
+    a field there and carries its fit back to every node through the span it fitted in.
+
+    stride: cells of ``stride`` node spacings; nodes: (n,) the kept node indices of the whole skin; kept: the bases
+    on them (their skin has no triangles: the within-model test's one-ring part uses :func:`~.coarsening.kept_rings`;
+    a scan is read on the whole skin first, so they carry no reading of their own).
+    """
+
+    stride: int
+    nodes: np.ndarray
+    kept: Bases
+    # method -> the lift of its estimator's span (kept nodes -> coefficients), made on first use
+    _lifts: dict[str, SpanLift] = dataclasses.field(default_factory=dict, init=False, repr=False,
+                                                                  compare=False)
+
+    @classmethod
+    def of(cls, bases: Bases, stride: int) -> CoarsenedBases:
+        """``bases`` coarsened with ``stride`` (:func:`~.coarsening.stratified_nodes` of its skin)."""
+        nodes = stratified_nodes(bases.skin.points, stride)
+        skin = bases.skin
+        kept_skin = SkinSurface(np.asarray(skin.points)[nodes], np.asarray(skin.normals)[nodes],
+                                np.zeros((0, 3), np.int64), skin.model_id)
+
+        def rows(array: np.ndarray | None) -> np.ndarray | None:
+            return None if array is None else np.asarray(array)[nodes]
+
+        thermal = None if bases.thermal is None else (rows(bases.thermal[0]), bases.thermal[1], rows(bases.thermal[2]))
+        kept = dataclasses.replace(
+            bases, skin=kept_skin, pca=bases.pca.on_nodes(nodes),
+            reduced_model=None if bases.reduced_model is None else bases.reduced_model.on_nodes(nodes),
+            thermal=thermal, tolerance_zones=(), discrepancy=rows(bases.discrepancy),
+            discrepancy_local=rows(bases.discrepancy_local), discrepancy_noise=rows(bases.discrepancy_noise),
+            calibration_noise=rows(bases.calibration_noise),
+            physics=None if bases.physics is None else bases.physics.on_nodes(nodes), scan_reading_bias=None)
+        kept._tests["test"] = kept._fit_test(lambda: kept_rings(ring_incidence(skin), nodes, stride))
+        return cls(stride, nodes, kept)
+
+    def prepare(self, bases: Bases, method: str, min_coverage: float, temperature_k: float) -> None:
+        """Fit now what :meth:`estimate` of a field of ``bases`` fits on its first call."""
+        self.kept.prepare_estimation(method, min_coverage, temperature_k, coarsen=1)
+        self._lift(method)
+
+    def estimate(self, bases: Bases, fitted: DisplacementField, method: str, min_coverage: float,
+                 temperature_k: float) -> ParameterEstimate:
+        """The estimate of ``fitted`` (N node displacements of ``bases``' skin, as :func:`estimate_field` prepares
+        them) made on the kept nodes; reconstruction, residual, its RMS and max and the coverage of every node (the
+        reconstruction lifted through the fitted span), the rest (values, covariance, within-model test on the kept
+        nodes) as the kept bases' estimate states it."""
+        kept = _estimate_nodes(self.kept, restricted_field(fitted, self.nodes), method, min_coverage, temperature_k)
+        lift = self._lift(method)
+        if method == "pca":
+            offset, kept_offset = bases.pca.mean_field_, self.kept.pca.mean_field_
+        else:
+            offset, kept_offset = bases.at_temperature(temperature_k).w0, self.kept.at_temperature(temperature_k).w0
+        coefficients = lift(kept.reconstruction - kept_offset)
+        if method == "pca":
+            reconstruction = offset + coefficients @ bases.pca.components_
+        else:
+            model = bases.reduced_model
+            reconstruction = offset + model.R @ coefficients[:model.n_bilateral] + model.G @ coefficients[
+                model.n_bilateral:]
+        values = np.asarray(fitted.normal_displacement, dtype=float)
+        valid = np.isfinite(values)
+        residual, rms, worst = residual_stats(values, reconstruction, valid)
+        return dataclasses.replace(kept, reconstruction=reconstruction, residual=residual, residual_rms=rms,
+                                   residual_max=worst, coverage=float(valid.mean()))
+
+    def _lift(self, method: str) -> SpanLift:
+        """The lift of the span ``method``'s estimator fits in (the PCA basis' fields; the reduced model's unit and
+        pad-spring responses: a part temperature moves only the offset), kept nodes -> coefficients."""
+        if method not in self._lifts:
+            if method == "pca":
+                rows = self.kept.pca.components_.T
+            else:
+                if self.kept.reduced_model is None:
+                    raise BasisError("the bases file holds no reduced model: the contact-aware estimator needs one "
+                                     "(use 'pca')")
+                rows = side_by_side(self.kept.reduced_model.R, self.kept.reduced_model.G)
+            self._lifts.setdefault(method, SpanLift.of(rows))
+        return self._lifts[method]
 
 
 def normal_part(estimate: ParameterEstimate, field: DisplacementField, normals: np.ndarray) -> ParameterEstimate:

@@ -60,6 +60,13 @@ class PhysicalResponses:
         (gw, gz, g3), (tw, tz, t3) = responses["gas_spring"], responses["thermal"]
         return PhysicalResponses(gw, gz, g3, tw, tz, t3, thickness, np.asarray(thermal_moves, float))
 
+    def on_nodes(self, nodes: np.ndarray) -> PhysicalResponses:
+        """These responses on the kept skin ``nodes`` (n,) (a coarsened estimate, :mod:`.coarsening`)."""
+        return PhysicalResponses(self.gas_w[nodes], self.gas_z, self.gas_w3[nodes], self.thermal_w[nodes],
+                                 self.thermal_z, self.thermal_w3[nodes],
+                                 {group: sens.on_nodes(nodes) for group, sens in self.thickness.items()},
+                                 self.thermal_moves)
+
     def thermal(self, model: ReducedModel, calibrated: ReducedModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The thermal response (skin normal (N,), pad springs (S,), skin 3D (N, 3) mm per K) of a calibrated reduced
         model: the FE model's (of ``model``, the reduced model these responses belong to) with its unit responses'

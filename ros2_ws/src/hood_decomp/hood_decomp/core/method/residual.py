@@ -22,6 +22,7 @@ The residual r = measured - reconstruction (N,) mm of an estimate is judged agai
 from __future__ import annotations
 
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -585,7 +586,11 @@ class ResidualTest:
 
     def fit(self, skin: SkinSurface, discrepancy: np.ndarray | None = None, discrepancy_dof: float = np.inf,
             discrepancy_local: np.ndarray | None = None, discrepancy_noise: np.ndarray | None = None,
-            calibration_noise: np.ndarray | None = None) -> ResidualTest:
+            calibration_noise: np.ndarray | None = None,
+            rings: Callable[[], sp.csr_matrix] | None = None) -> ResidualTest:
+        """Prepare the test on ``skin`` (arguments: class docstring); ``rings`` makes its one-ring incidence (N, N)
+        where the skin's own triangles do not give it (a coarsened skin: :func:`~.coarsening.kept_rings`), at the
+        first check that uses it."""
         for what, modes in (("discrepancy", discrepancy), ("discrepancy noise", discrepancy_noise),
                             ("correction noise", calibration_noise)):
             if modes is not None and (np.ndim(modes) != 2 or np.shape(modes)[0] != skin.n_nodes):
@@ -608,6 +613,7 @@ class ResidualTest:
         self.rigid_ = rigid_modes(self.points_, self.normals_)
         self.skin_ = skin
         self._rings: sp.csr_matrix | None = None
+        self._ring_source = rings
         self._whole_grams: list[tuple[weakref.ref, tuple, tuple[np.ndarray, np.ndarray]]] = []
         return self
 
@@ -641,7 +647,7 @@ class ResidualTest:
         a field without a bias correlation takes the local test; a scan's field never does, and building it costs a
         one-off `estimate --scan` 0.06-0.12 s of CPU at paper resolution (2.3 M entries)."""
         if self._rings is None:
-            self._rings = ring_incidence(self.skin_)
+            self._rings = ring_incidence(self.skin_) if self._ring_source is None else self._ring_source()
         return self._rings
 
     @staticmethod

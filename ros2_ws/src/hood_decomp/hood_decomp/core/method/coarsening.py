@@ -1,0 +1,171 @@
+"""The paper's coarsening of the input field (section 5 on Table 3's 1.84 s estimate over 188,559 nodes: "This step
+could be accelerated significantly by coarsening the input displacement field"): a field is estimated on a
+stratified subset of the skin's nodes.
+
+Why it loses little: the node values of a scan are correlated over the scan step's smoothing radius (at paper
+resolution a node's correlation sum is about 10: some 17,000 independent samples among 180,000 seen nodes), so a
+quarter of the nodes carries nearly all of the information (issue 15 run 20 B: the stated std 2-3 % larger, the same
+coverage; a white-noise field loses sqrt(N / n) instead, and is coarsened only on request). What it saves: every
+pass over the nodes (the weighted Grams, the test, the reading) is divided by N / n.
+
+The subset: the skin's points projected on their principal plane, cut into square cells of ``stride`` node
+spacings, the node nearest each cell's centre (deterministic, spread evenly, holes and outline kept). A field on it
+keeps its error model with each node's correlation sum scaled to the nodes kept (:func:`restricted_errors`), and the
+fit on the subset is carried back to every node through the span the estimator fits in (:class:`SpanLift`), so the
+reconstruction and residual of a coarsened estimate are of the whole skin, as every consumer reads them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from hood_decomp.core.types import DisplacementField, FieldErrorModel
+from hood_decomp.errors import BasisError
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
+
+#: a skin with more nodes than this is coarsened when the coarsening is left to the tool ("auto"): the paper-
+#: resolution hood (188,730 nodes), not the built-in default (its correlation sums are smaller: a quarter of its nodes
+#: costs 16-20 % of std, run 20 B)
+AUTO_MIN_NODES = 100_000
+#: the stride "auto" takes: a quarter of the nodes (a ninth costs 6-8 % of std at paper resolution, run 20 B)
+AUTO_STRIDE = 2
+#: the singular values of a span's rows on the kept nodes below this fraction of the largest are not lifted (their
+#: fields are round-off on every node: a contact-aware span's numerical rank is 66 of 68 at 1e-10 on the paper hood)
+LIFT_RCOND = 1e-10
+
+
+def coarsening_stride(coarsen: int | str, n_nodes: int, components: str = "normal") -> int:
+    """The stride to use: ``coarsen`` an int >= 1 (1: every node), or "auto": :data:`AUTO_STRIDE` for a skin of more
+    than :data:`AUTO_MIN_NODES` nodes fitted on its normal component, else 1. Raises BasisError for anything else
+    and for a stride > 1 with ``components`` "xyz" (a three-component fit is not coarsened)."""
+    if isinstance(coarsen, str):
+        if coarsen != "auto":
+            raise BasisError(f"coarsening must be 'auto' or a stride >= 1, got {coarsen!r}")
+        return AUTO_STRIDE if n_nodes > AUTO_MIN_NODES and components == "normal" else 1
+    if isinstance(coarsen, bool) or not isinstance(coarsen, (int, np.integer)) or coarsen < 1:
+        raise BasisError(f"coarsening stride must be an integer >= 1 or 'auto', got {coarsen!r}")
+    if coarsen > 1 and components != "normal":
+        raise BasisError(f"a fit of components {components!r} is not coarsened: give stride 1 or 'auto'")
+    return int(coarsen)
+
+
+def parse_coarsening(text: str) -> int | str:
+    """A coarsening as a user writes it (``estimate --coarsen``, the estimator node's ``coarsen`` parameter): "auto"
+    or an integer stride >= 1. Raises BasisError naming anything else."""
+    if text == "auto":
+        return text
+    try:
+        stride = int(text)
+    except ValueError:
+        stride = 0
+    if stride < 1:
+        raise BasisError(f"coarsening must be 'auto' or an integer stride >= 1, got {text!r}")
+    return stride
+
+
+def stratified_nodes(points: np.ndarray, stride: int) -> np.ndarray:
+    """(n,) sorted node indices: per square cell of ``stride`` x the mean node spacing in the principal plane of
+    ``points`` (N, 3) mm, the node nearest the cell's centre (every node for stride 1)."""
+    points = np.asarray(points, dtype=float)
+    if stride == 1:
+        return np.arange(points.shape[0])
+    centred = points - points.mean(axis=0)
+    plane = centred @ np.linalg.svd(centred, full_matrices=False)[2][:2].T
+    spacing = np.sqrt(np.ptp(plane[:, 0]) * np.ptp(plane[:, 1]) / points.shape[0])
+    cell = np.floor((plane - plane.min(axis=0)) / (stride * spacing)).astype(np.int64)
+    distance = np.linalg.norm(plane - ((cell + 0.5) * stride * spacing + plane.min(axis=0)), axis=1)
+    key = cell[:, 0] * (int(cell[:, 1].max()) + 1) + cell[:, 1]
+    order = np.lexsort((distance, key))
+    first = np.r_[True, key[order][1:] != key[order][:-1]]
+    return np.sort(order[first])
+
+
+def kept_rings(rings: sp.csr_matrix, nodes: np.ndarray, stride: int) -> sp.csr_matrix:
+    """(n, n) the one-ring incidence of the kept ``nodes`` (:func:`~.residual.ring_incidence` of the whole skin,
+    ``rings`` (N, N)): each kept node with the kept nodes within ``stride`` edges, the ring on the coarser grid."""
+    reach = rings[nodes]
+    for _ in range(stride - 1):
+        reach = reach @ rings
+    reach = reach[:, nodes]
+    reach.data[:] = 1.0
+    return reach.tocsr()
+
+
+def _lattice_sum(spacing: np.ndarray) -> np.ndarray:
+    """T(a) = sum over integers k of exp(-k^2 a^2 / 2): a Gaussian correlation's sum along a line of nodes ``spacing``
+    a correlation lengths apart (the square is the sum over a square lattice)."""
+    k = np.arange(1, 64)
+    return 1.0 + 2.0 * np.exp(-0.5 * np.multiply.outer(np.square(spacing), k**2)).sum(axis=-1)
+
+
+#: spacings (correlation lengths) and their lattice sums T^2, falling from about 6e6 to 1, for inverting a correlation
+#: sum to its spacing
+_SPACINGS = np.geomspace(1e-3, 12.0, 600)
+_SUMS = _lattice_sum(_SPACINGS) ** 2
+
+
+@functools.lru_cache(maxsize=16)
+def _kept_sums(ratio: float) -> np.ndarray:
+    """The lattice sums T^2 at :data:`_SPACINGS` / sqrt(``ratio``): those of the kept nodes."""
+    return _lattice_sum(_SPACINGS / np.sqrt(ratio)) ** 2
+
+
+def kept_correlation(correlation: np.ndarray | float, ratio: float) -> np.ndarray:
+    """Correlation sums on the kept nodes, a fraction ``ratio`` of a field's: each node's sum g over all nodes (>= 1)
+    read as the lattice sum of a Gaussian correlation, T(a)^2 = g with a the node spacing in correlation lengths, and
+    the kept nodes' sum T(a / sqrt(ratio))^2 at their wider spacing (interpolated in g). It is g x ratio where the
+    correlation spans many kept nodes and 1 where it spans none (a white field; a stride wider than the smoothing):
+    on a coarse-hood field smoothed by three one-ring passes (g = 20) a quarter keeps 5.0 and a ninth 2.2, as the
+    estimates' spread shows, where 1 + (g - 1) x ratio (5.8, 3.1) over-stated their std by 7 and 20 %."""
+    g = np.maximum(np.asarray(correlation, dtype=float), 1.0)
+    return np.interp(g, _SUMS[::-1], _kept_sums(float(ratio))[::-1])
+
+
+def restricted_errors(errors: FieldErrorModel, nodes: np.ndarray, n_nodes: int) -> FieldErrorModel:
+    """``errors`` of a field of ``n_nodes`` nodes, on the kept ``nodes``: their std and view weights, and each
+    correlation sum of the kept nodes (:func:`kept_correlation`; the same for the making's bias correlation); the
+    pose as it is. A model without node values ("none") is returned as it is."""
+    if errors.kind == "none":
+        return errors
+    ratio = nodes.size / n_nodes
+
+    def kept(correlation):
+        return kept_correlation(correlation, ratio)
+
+    views = tuple(dataclasses.replace(view, weight=np.asarray(view.weight)[nodes]) for view in errors.view_poses)
+    return dataclasses.replace(
+        errors, node_std=np.asarray(errors.node_std)[nodes], correlation=kept(np.asarray(errors.correlation)[nodes]),
+        bias_correlation=float(kept(errors.bias_correlation)) if errors.bias_correlation > 0 else 0.0,
+        view_poses=views)
+
+
+def restricted_field(field: DisplacementField, nodes: np.ndarray) -> DisplacementField:
+    """``field`` (N node values) on the kept ``nodes`` (module docstring), its error model restricted alike
+    (:func:`restricted_errors`); its 3D displacement is not kept (a coarsened fit is of the normal component)."""
+    values = np.asarray(field.normal_displacement, dtype=float)
+    return DisplacementField(field.model_id, values[nodes], field.coverage, field.noise_rms,
+                             restricted_errors(field.errors, nodes, values.shape[0]))
+
+
+@dataclasses.dataclass(frozen=True)
+class SpanLift:
+    """The coefficients x of a span's field from its values on the kept nodes: the span's rows there A (n, k), x =
+    A^+ v with singular values below :data:`LIFT_RCOND` of the largest left out; the field on every node is then
+    the whole skin's rows times x. pinv: (k, n)."""
+
+    pinv: np.ndarray
+
+    @classmethod
+    def of(cls, rows: np.ndarray) -> SpanLift:
+        """The lift of the span with rows ``rows`` (n, k) on the kept nodes."""
+        return cls(np.linalg.pinv(np.asarray(rows, dtype=float), rcond=LIFT_RCOND))
+
+    def __call__(self, values: np.ndarray) -> np.ndarray:
+        """(k,) the coefficients of the span's field whose values on the kept nodes are ``values`` (n,)."""
+        return self.pinv @ values
