@@ -9,7 +9,9 @@ minutes: run it under the memory lock) and written to ``--store DIR`` when given
 Fields: ``--fields`` members of the model (random states over the declared ranges) with white noise of a stated
 error model, and ``--scans`` synthetic scans of such members (the synthetic scanner's points, markers recovered,
 holes) through the scan step with its error model. Each field is estimated once to warm up, then timed
-``--repeat`` times (CPU, one BLAS thread); the phases are timed by wrapping the functions that make them:
+``--repeat`` times (CPU, one BLAS thread), with each ``--coarsen`` stride (the paper's coarsening of the input
+field, ``estimate_field``'s ``coarsen``; "auto" coarsens the paper-resolution hood to a quarter of its nodes); the
+phases are timed by wrapping the functions that make them:
 
 - ``reading``: a scan's slide and reading bias taken out (``bases.node_field``);
 - ``weight``: the weight and the test made before the fit (``fit_weight``), with its weighted Gram inside;
@@ -101,18 +103,24 @@ def phase_clocks():
         yield spent
 
 
-def timed(bases, fields: list[DisplacementField], method: str, repeat: int) -> dict[str, float]:
-    """Median CPU ms per estimate of ``fields`` (each estimated once untimed first), whole and per phase."""
-    rows = []
+def timed(bases, fields: list[DisplacementField], method: str, repeat: int, strides: list[int | str]
+          ) -> dict[int | str, dict[str, float]]:
+    """Per coarsening stride, median CPU ms per estimate of ``fields`` (each estimated once untimed first), whole (a
+    run of its own) and per phase. The strides take turns field by field, so that a shared machine's load falls on
+    them alike, each repeated on its field in a row as a node estimates with one stride."""
+    rows: dict[int | str, list[dict]] = {stride: [] for stride in strides}
     for field in fields:
-        estimate_field(bases, field, method)
-        for _ in range(repeat):
-            with phase_clocks() as spent:
-                start = time.process_time()
-                estimate_field(bases, field, method)
+        for stride in strides:
+            estimate_field(bases, field, method, coarsen=stride)
+            for _ in range(repeat):
+                start = time.process_time()  # unwrapped: the phases' clocks cost ~1 ms at paper resolution
+                estimate_field(bases, field, method, coarsen=stride)
                 whole = time.process_time() - start
-            rows.append({"whole": whole, **{name: spent[name] for name in PHASES}})
-    return {name: 1e3 * float(np.median([row[name] for row in rows])) for name in ("whole", *PHASES)}
+                with phase_clocks() as spent:
+                    estimate_field(bases, field, method, coarsen=stride)
+                rows[stride].append({"whole": whole, **{name: spent[name] for name in PHASES}})
+    return {stride: {name: 1e3 * float(np.median([row[name] for row in judged])) for name in ("whole", *PHASES)}
+            for stride, judged in rows.items()}
 
 
 def main() -> int:
@@ -124,8 +132,11 @@ def main() -> int:
     parser.add_argument("--scans", type=int, default=4, help="synthetic scans through the scan step")
     parser.add_argument("--repeat", type=int, default=3, help="timed estimates per field")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--coarsen", nargs="+", default=["auto"],
+                        help="coarsening strides to time (estimate_field's coarsen: 'auto' or an integer >= 1)")
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args()
+    strides = [value if value == "auto" else int(value) for value in args.coarsen]
     bases = read_bases(args)
     skin, reduced = bases.skin, bases.reduced_model
     rng = np.random.default_rng(args.seed)
@@ -151,14 +162,15 @@ def main() -> int:
     for method in ("contact", "pca"):
         for kind, fields in (("noise field", noise_fields), ("scan", scans)):
             if fields:
-                log(f"timing {method} on {len(fields)} {kind}s")
-                record["cases"][f"{method}, {kind}"] = timed(bases, fields, method, args.repeat)
+                log(f"timing {method} on {len(fields)} {kind}s, coarsen {', '.join(map(str, strides))}")
+                for stride, row in timed(bases, fields, method, args.repeat, strides).items():
+                    record["cases"][f"{method}, {kind}, {stride}"] = row
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(record, indent=1, default=str))
     print(f"{skin.n_nodes} skin nodes, {reduced.k.size} pad springs; median CPU ms per estimate")
-    print(f"{'case':<22} {'whole':>8} " + " ".join(f"{name:>8}" for name in PHASES))
+    print(f"{'case (method, field, coarsen)':<30} {'whole':>8} " + " ".join(f"{name:>8}" for name in PHASES))
     for case, row in record["cases"].items():
-        print(f"{case:<22} {row['whole']:>8.1f} " + " ".join(f"{row[name]:>8.1f}" for name in PHASES))
+        print(f"{case:<30} {row['whole']:>8.1f} " + " ".join(f"{row[name]:>8.1f}" for name in PHASES))
     return 0
 
 
