@@ -65,6 +65,7 @@ def truths(kind: str, preset: str, bases, reduced, model, members: int, rng: np.
     from hood_decomp.core.fe.ensemble import solve_members, validation_plan
     from hood_decomp.synthetic.standin import (
         FAMILY_SPREAD,
+        THICKNESS_SCALES,
         Family,
         StandIn,
         calculix_responses,
@@ -101,9 +102,11 @@ def truths(kind: str, preset: str, bases, reduced, model, members: int, rng: np.
         if not ccx_cache.exists():
             return f"no CalculiX cache at {ccx_cache} (never run here)"
         with np.load(ccx_cache, allow_pickle=False) as data:
-            # a cache of another model would be made again by CalculiX (hours): refused here
-            if str(data["model_id"]) != model.model_id or "scales" not in data.files:
-                return f"{ccx_cache} holds model {data['model_id']}, not {model.model_id}'s three thickness scales"
+            # a cache of another model or of other scales would be made again by CalculiX (hours): refused here
+            scales = tuple(data["scales"].tolist()) if "scales" in data.files else ()
+            if str(data["model_id"]) != model.model_id or scales != THICKNESS_SCALES:
+                return (f"{ccx_cache} holds model {data['model_id']} at thickness scales {scales}, not "
+                        f"{model.model_id}'s at {THICKNESS_SCALES}")
         if bases.skin.n_nodes > 10_000:
             # the default hood's CalculiX jobs without pads (68 pad jobs of ~7.7 GB are out of reach)
             standin = StandIn(model, serial_responses(model, ccx_cache), embedded_pads=True)
