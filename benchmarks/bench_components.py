@@ -58,10 +58,10 @@ def log(line: str) -> None:
     print(f"[bench_components {time.strftime('%H:%M:%S')}] {line}", file=sys.stderr, flush=True)
 
 
-def truths(kind: str, preset: str, bases, reduced, model, members: int, rng: np.random.Generator, ccx_cache: Path
-           ) -> tuple[np.ndarray, np.ndarray] | str:
+def truths(kind: str, preset: str, resolution: str, bases, reduced, model, members: int, rng: np.random.Generator,
+           ccx_cache: Path) -> tuple[np.ndarray, np.ndarray] | str:
     """(displacement (m, N, 3) mm on the bases' skin nodes, effective states (m, P) mm) of ``members`` fields of
-    ``kind`` (``model``: the bases' PartModel), or the reason it is not run."""
+    ``kind`` (``model``: the bases' PartModel, of ``preset`` at ``resolution``), or the reason it is not run."""
     from hood_decomp.core.fe.ensemble import solve_members, validation_plan
     from hood_decomp.synthetic.standin import (
         FAMILY_SPREAD,
@@ -79,7 +79,7 @@ def truths(kind: str, preset: str, bases, reduced, model, members: int, rng: np.
         return block.displacement, block.effective
     settings = rng.uniform(lo, hi, (members, lo.size))
     if kind == "mesh_finer":
-        if bases.skin.n_nodes > 10_000:
+        if resolution != "coarse":
             return "the finer mesh is the default hood's: only against coarse bases"
         from scipy.interpolate import LinearNDInterpolator
 
@@ -107,7 +107,7 @@ def truths(kind: str, preset: str, bases, reduced, model, members: int, rng: np.
             if str(data["model_id"]) != model.model_id or scales != THICKNESS_SCALES:
                 return (f"{ccx_cache} holds model {data['model_id']} at thickness scales {scales}, not "
                         f"{model.model_id}'s at {THICKNESS_SCALES}")
-        if bases.skin.n_nodes > 10_000:
+        if resolution != "coarse":
             # the default hood's CalculiX jobs without pads (68 pad jobs of ~7.7 GB are out of reach)
             standin = StandIn(model, serial_responses(model, ccx_cache), embedded_pads=True)
         else:
@@ -216,7 +216,7 @@ def run(preset: str, resolution: str, members: int, noise: float, kinds: tuple[s
     results: dict[str, object] = {}
     for kind in kinds:
         log(f"{kind}: {members} truths")
-        made = truths(kind, preset, bases, reduced, model, members, rng, ccx_cache)
+        made = truths(kind, preset, resolution, bases, reduced, model, members, rng, ccx_cache)
         if isinstance(made, str):
             log(f"{kind} not run: {made}")
             results[kind] = {"not_run": made}
