@@ -103,6 +103,28 @@ def test_displacement_field_mm_to_m(typestore):
     assert back.coverage == 0.75 and back.noise_rms == pytest.approx(0.02)
 
 
+
+def test_a_fields_3d_displacement_travels_in_metres_and_a_wrong_length_is_named(typestore):
+    """A simulated field's 3D displacement (N, 3) mm comes back (mm, NaN rows kept) through rclpy and rosbags' CDR
+    reader; a field without one (a scan) sends none and comes back without; 3 N - 1 values are a FieldError."""
+    from hood_decomp.errors import FieldError
+
+    vectors = np.array([[1.5, -0.25, 0.125], [np.nan, np.nan, np.nan], [0.0, 2.0, -3.0], [1e-3, 0.0, 0.5]])
+    normal = np.array([0.125, np.nan, -3.0, 0.5])  # the normal part for normals (0, 0, 1)
+    field = DisplacementField("abc123", normal, 0.75, np.nan, displacement=vectors)
+    msg = messages.field_to_msg(field, Header(), "P-21")
+    decoded = rosbags_decode(typestore, msg)
+    np.testing.assert_allclose(decoded.displacement_3d, vectors.ravel() / 1000.0, rtol=1e-7)
+    for sent in (msg, decoded):
+        back = messages.msg_to_field(sent)
+        np.testing.assert_allclose(back.displacement, vectors, rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose(back.checked_displacement(np.tile([0.0, 0.0, 1.0], (4, 1))), vectors, rtol=1e-7)
+    plain = messages.field_to_msg(DisplacementField("abc123", normal, 0.75, np.nan), Header(), "P-21")
+    assert len(plain.displacement_3d) == 0 and messages.msg_to_field(plain).displacement is None
+    msg.displacement_3d = msg.displacement_3d[:-1]
+    with pytest.raises(FieldError, match="displacement_3d must hold 3 N values"):
+        messages.msg_to_field(msg)
+
 def test_field_error_model_travels_in_metres(typestore):
     """Fails if the error model (node std, correlation, pose covariance with its mixed rad/length units, pose centre,
     lengths) is not converted mm <-> m on the way through the message, or a field without one does not come back as

@@ -62,7 +62,7 @@ def estimate_payload(estimate, n_bilateral: int) -> dict:
     test behind it (``within_model_test``: p_value, alpha, statistic, dof, noise_scale, noise_source: "residual" when
     the field states no error model and the noise level is estimated from the residual with ``denominator_dof``
     degrees of freedom), method and ``components`` ("normal" or "xyz": the displacement components fitted; for
-    "xyz" the residual RMS and max are over the 3 N fitted values). ``measured_effects`` names the parameters without
+    "xyz" the residual RMS and max are still the normal residual's). ``measured_effects`` names the parameters without
     a boundary (measured effects: their value is an amplitude); ``correction`` is what the estimator node would send
     the robot with the default policy
     (core.method.correction.plan_correction: the move per boundary, mm, never one for a measured effect or a lifted

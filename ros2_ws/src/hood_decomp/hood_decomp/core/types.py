@@ -446,9 +446,10 @@ class ParameterEstimate:
     components: the displacement components fitted: "normal" (the default; scans measure normal distances) or "xyz"
         (all three, stacked, as the paper does for FE fields: :func:`hood_decomp.core.method.bases.estimate_field`).
         For "xyz" ``reconstruction`` and ``residual`` are the normal part (N,) of the 3D ones, ``residual_rms`` and
-        ``residual_max`` are over the 3 N fitted values, and ``check`` is the skin's test on each component of the
-        stacked residual (:meth:`hood_decomp.core.method.residual.ResidualTest.stacked`; its level from the rough
-        part of all 3 N values, which ``covariance`` uses).
+        ``residual_max`` that normal residual's (as a normal fit's: the in-plane residual is not in them), and
+        ``check`` is the skin's test on each component of the stacked residual
+        (:meth:`hood_decomp.core.method.residual.ResidualTest.stacked`; its level from the rough part of all 3 N
+        values, which ``covariance`` uses).
     """
 
     model_id: str

@@ -13,6 +13,10 @@ docs/history_schema.md) through the writer the shift uses (hood_decomp.io.histor
 wait in memory until the database can be written again (retried with the next part and every few seconds).
 A measured effect (a parameter without a boundary, of bases rebuilt by the shift) is flagged in the boundary state
 and the correction (``measured_effect``) and never corrected.
+
+The parameter ``components`` "xyz" fits all three displacement components of fields that carry them
+(``displacement_3d``: simulated or FE fields without an error model, core.method.bases.estimate_field); a scan's
+field is then refused by name, as ``hood-decomp estimate --components xyz`` refuses it.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from std_msgs.msg import Header
 
 from hood_decomp.core.method.coarsening import parse_coarsening
 from hood_decomp.core.method.correction import CorrectionPolicy, limit_steps, plan_correction, verify_move
+from hood_decomp.core.method.estimation import COMPONENTS
 from hood_decomp.core.types import BoundaryCorrection as CoreCorrection
 from hood_decomp.core.types import DisplacementField as CoreField
 from hood_decomp.core.types import FieldErrorModel, ParameterEstimate
@@ -77,6 +82,9 @@ class EstimatorNode(ReferencedNode):
         super().__init__("hood_decomp_estimator")
         declare(self, "method", "contact", "estimator: 'contact' (contact-aware, default) or 'pca' (the paper's "
                 "eqs. 4-5)")
+        declare(self, "components", "normal", "displacement components fitted: 'normal' (default; a scan measures "
+                "normal distances) or 'xyz', all three of a field that carries them (a simulated or FE field "
+                "without an error model; other fields are refused)")
         declare(self, "min_coverage", 0.6, "smallest seen fraction of the skin to act on", 0.0, 1.0)
         declare(self, "coarsen", "auto", "the paper's coarsening of the input field: 'auto' (a quarter of the nodes "
                 "of a skin above 100,000 nodes, every node otherwise) or an integer stride >= 1 (1: every node)")
@@ -108,6 +116,8 @@ class EstimatorNode(ReferencedNode):
     def check_parameter(self, parameter: Parameter) -> str:
         if parameter.name == "method" and parameter.value not in METHODS:
             return f"one of {', '.join(METHODS)}, got {parameter.value!r}"
+        if parameter.name == "components" and parameter.value not in COMPONENTS:
+            return f"one of {', '.join(COMPONENTS)}, got {parameter.value!r}"
         if parameter.name == "coarsen":
             try:
                 parse_coarsening(parameter.value)
@@ -134,6 +144,7 @@ class EstimatorNode(ReferencedNode):
         self.sent.clear()
         for bases in self.variant_bases.values():  # fitted now, so the first field is answered at steady speed
             bases.prepare_estimation(self.param("method"), self.param("min_coverage"),
+                                     components=self.param("components"),
                                      coarsen=parse_coarsening(self.param("coarsen")))
             try:
                 self.warm_up(bases)
@@ -227,19 +238,26 @@ class EstimatorNode(ReferencedNode):
         policy = self.policy()
         bases, field, reference = self.field_of(msg)
         estimate = estimate_field(bases, field, method=self.param("method"), min_coverage=policy.min_coverage,
+                                  components=self.param("components"),
                                   coarsen=parse_coarsening(self.param("coarsen")))
         correction = limit_steps(plan_correction(estimate, policy), self.step_limits(estimate.names))
         return field, estimate, correction, reference
 
     def warm_up(self, bases: Any) -> None:
-        """One synthetic field of ``bases`` (the PCA mean field, scan-like node errors) through :meth:`answer` and
-        the outgoing messages, nothing published, so that the first real field pays no first use (issue 19)."""
+        """One synthetic field of ``bases`` (the PCA mean field, scan-like node errors; with ``components`` "xyz" its
+        3D mean field, no error model, as a simulated field) through :meth:`answer` and the outgoing messages, nothing
+        published, so that the first real field pays no first use (issue 19)."""
         from hood_decomp.core.scan import smoothing_bias_correlation
 
         n = bases.skin.n_nodes
-        errors = FieldErrorModel("scan", np.full(n, 0.005), np.full(n, 20.0), 5.0,
-                                 bias_correlation=smoothing_bias_correlation(bases.skin))
-        field = CoreField(bases.model_id, np.array(bases.pca.mean_field_, dtype=float), 1.0, 0.05, errors)
+        if self.param("components") == "xyz":
+            vectors = np.array(bases.pca.mean_field_3d_, dtype=float)
+            field = CoreField(bases.model_id, np.einsum("na,na->n", vectors, bases.skin.normals), 1.0, float("nan"),
+                              displacement=vectors)
+        else:
+            errors = FieldErrorModel("scan", np.full(n, 0.005), np.full(n, 20.0), 5.0,
+                                     bias_correlation=smoothing_bias_correlation(bases.skin))
+            field = CoreField(bases.model_id, np.array(bases.pca.mean_field_, dtype=float), 1.0, 0.05, errors)
         header = Header()
         _, estimate, correction, _ = self.answer(through_middleware(messages.field_to_msg(field, header, "warm-up")))
         messages.estimate_to_msg(estimate, header, "warm-up")

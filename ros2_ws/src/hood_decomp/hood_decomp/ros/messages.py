@@ -73,7 +73,8 @@ def field_to_msg(field: DisplacementField, header: Any, part_id: str) -> Any:
     """core DisplacementField (mm) -> hood_decomp_msgs/DisplacementField (m) of the part ``part_id``, with its error
     model; a fused field's per-view registration errors (``FieldErrorModel.view_poses``) travel as they are
     (``view_weight``, ``view_poses``), so the estimator node propagates them exactly as the fusing process would (V
-    views of N nodes add 4 V N + 312 V bytes)."""
+    views of N nodes add 4 V N + 312 V bytes); a field's 3D displacement travels in ``displacement_3d`` (12 N bytes,
+    empty without one)."""
     from hood_decomp_msgs.msg import DisplacementField as Msg
 
     errors = field.errors
@@ -99,14 +100,18 @@ def field_to_msg(field: DisplacementField, header: Any, part_id: str) -> Any:
                                    else np.zeros(0)),
         view_poses=[float(c) for v in views for c in np.concatenate([
             (np.asarray(v.covariance, float) * np.outer(unit, unit)).ravel(), np.asarray(v.center, float) * M_PER_MM])],
+        displacement_3d=_float32_array(np.zeros(0) if field.displacement is None
+                                       else np.asarray(field.displacement, float).ravel(), M_PER_MM),
     )
 
 
 def msg_to_field(msg: Any) -> DisplacementField:
     """hood_decomp_msgs/DisplacementField (m) -> core DisplacementField (mm), with its error model (an empty
     ``error_model`` string, from a sender that predates it, is "none"; empty view arrays, from one view or an older
-    sender, leave the one pose of ``pose_covariance``). View arrays of inconsistent lengths are a FieldError here; the
-    rest of the error model is checked where the field is used (a bad one is a FieldError naming the problem)."""
+    sender, leave the one pose of ``pose_covariance``; an empty ``displacement_3d`` is no 3D displacement). View
+    arrays of inconsistent lengths and a ``displacement_3d`` of other than 3 N values are a FieldError here; the rest
+    of the error model and the 3D displacement are checked where the field is used (a bad one is a FieldError naming
+    the problem)."""
     unit = np.array([1.0, 1.0, 1.0, MM_PER_M, MM_PER_M, MM_PER_M])
     kind = msg.error_model or "none"
     errors = FieldErrorModel.none() if kind == "none" else FieldErrorModel(
@@ -120,12 +125,17 @@ def msg_to_field(msg: Any) -> DisplacementField:
         bias_variance_floor=float(msg.bias_variance_floor) * MM_PER_M**2,
         view_poses=_view_poses(msg, len(msg.normal_displacement), unit),
     )
+    n_nodes = len(msg.normal_displacement)
+    vectors = msg.displacement_3d
+    if len(vectors) not in (0, 3 * n_nodes):
+        raise FieldError(f"displacement_3d must hold 3 N values (N = {n_nodes} nodes) or none; got {len(vectors)}")
     return DisplacementField(
         model_id=msg.model_id,
         normal_displacement=_numpy(msg.normal_displacement, MM_PER_M),
         coverage=float(msg.coverage),
         noise_rms=float(msg.noise_rms) * MM_PER_M,
         error_model=errors,
+        displacement=_numpy(vectors, MM_PER_M).reshape(n_nodes, 3) if len(vectors) else None,
     )
 
 

@@ -440,11 +440,14 @@ class CoarsenedBases:
 def normal_part(estimate: ParameterEstimate, field: DisplacementField, normals: np.ndarray) -> ParameterEstimate:
     """A ``components="xyz"`` estimate of the stacked values (reconstruction (3 N,) mm) as every consumer reads an
     estimate: its reconstruction and residual the normal part (N,) of the 3D ones (``field``'s normal values minus
-    the reconstruction's normal part, NaN where unseen), ``components`` "xyz"; normals (N, 3) the skin's."""
+    the reconstruction's normal part, NaN where unseen) and residual_rms / residual_max that residual's (consumers
+    put them beside a normal fit's and a scan's; the fit and its test read the 3 N values), ``components`` "xyz";
+    normals (N, 3) the skin's."""
     reconstruction = np.einsum("na,na->n", estimate.reconstruction.reshape(-1, 3), normals)
     values = np.asarray(field.normal_displacement, dtype=float)
-    residual = np.where(np.isfinite(values), values - reconstruction, np.nan)
-    return dataclasses.replace(estimate, reconstruction=reconstruction, residual=residual, components="xyz")
+    residual, rms, worst = residual_stats(values, reconstruction, np.isfinite(values))
+    return dataclasses.replace(estimate, reconstruction=reconstruction, residual=residual, residual_rms=rms,
+                               residual_max=worst, components="xyz")
 
 
 def node_field(bases: Bases, field: DisplacementField, min_coverage: float = DEFAULT_MIN_COVERAGE
