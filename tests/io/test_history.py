@@ -286,7 +286,8 @@ def test_a_version_1_history_is_migrated(tmp_path):
 
 #: schema version 2 as it was released (80feb13): version 1 with parameters.measured_effect
 _SCHEMA_V2 = _SCHEMA_V1.replace(
-    "correction_mm REAL, PRIMARY KEY", "correction_mm REAL,\n    measured_effect INTEGER NOT NULL DEFAULT 0, PRIMARY KEY"
+    "correction_mm REAL, PRIMARY KEY",
+    "correction_mm REAL,\n    measured_effect INTEGER NOT NULL DEFAULT 0, PRIMARY KEY",
 ).replace("('schema_version', '1')", "('schema_version', '2')")
 
 
