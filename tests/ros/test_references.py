@@ -274,6 +274,45 @@ def test_a_part_reference_overrides_the_cells_for_that_part_only(cell, coarse_ho
     assert set_reference(peer, "estimator_node", "R3", "") == (True, f"part R3 forgot its reference {files['part']}")
 
 
+def _history_rows(path) -> dict[str, tuple[str, str]]:
+    """part_id -> (reference, calibration) of the results history at ``path`` ({} while it does not exist)."""
+    import sqlite3
+
+    if not path.exists():
+        return {}
+    db = sqlite3.connect(path, timeout=5)
+    try:
+        return {part: (reference, calibration) for part, reference, calibration in
+                db.execute("SELECT part_id, reference, calibration FROM parts")}
+    except sqlite3.OperationalError:  # being created
+        return {}
+    finally:
+        db.close()
+
+
+def test_the_live_history_records_the_reference_and_calibration_each_part_used(cell, coarse_hood):
+    """Fails if the estimator's live history row of a part does not name the reference its estimate used, exactly as
+    its BoundaryState does (the part's own for a part given one, the cell's or none for another), or not the bases'
+    calibration as the node's heartbeat reports it ("none" there, "" in the history, for uncalibrated bases)."""
+    peer, files = cell["peer"], cell["files"]
+    path = cell["root"] / "live.sqlite"
+    assert set_parameter(peer, "estimator_node", "history", str(path)) == (True, "")
+    try:
+        accepted, message = set_reference(peer, "estimator_node", "H-own", files["part"])
+        assert accepted, message
+        values, _ = part_field(coarse_hood, cell["part_error"])
+        own, _ = send(cell, coarse_hood, values, 900, "H-own")
+        other, _ = send(cell, coarse_hood, values, 901, "H-other")
+        assert peer.wait(lambda: len(_history_rows(path)) == 2, 10.0), _history_rows(path)
+    finally:
+        set_parameter(peer, "estimator_node", "history", "")
+        set_reference(peer, "estimator_node", "H-own", "")
+    calibration = latest_heartbeat(cell["received"]["/diagnostics"], NODE_NAMES["estimator_node"])["calibration"]
+    calibration = "" if calibration == "none" else calibration
+    assert own.reference == f"part:{files['part']}" and own.reference != other.reference
+    assert _history_rows(path) == {"H-own": (own.reference, calibration), "H-other": (other.reference, calibration)}
+
+
 @pytest.mark.parametrize(("which", "named"), [
     ("missing", "cannot be read"),
     ("foreign", FOREIGN_MODEL),
