@@ -48,8 +48,15 @@ def read_small_file(path: str | os.PathLike, max_bytes: int, error: type[HoodDec
     """The bytes of the regular file ``path`` (at most ``max_bytes``; :func:`open_regular`). ``error`` (one line,
     naming ``what`` and the path) for anything else: a FIFO, a device, a directory, a socket, or a file of more than
     ``max_bytes`` bytes. OSError when it cannot be opened or read (the caller names it)."""
+    chunks, left = [], max_bytes + 1
     with open_regular(path, error, what) as handle:
-        data = handle.read(max_bytes + 1)
+        while left > 0:  # in pieces: one read of max_bytes + 1 would allocate that much for a 400-byte file
+            chunk = handle.read(min(left, 1 << 20))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            left -= len(chunk)
+    data = b"".join(chunks)
     if len(data) > max_bytes:
         raise error(f"{what} {path} is larger than {max_bytes} bytes")
     return data
