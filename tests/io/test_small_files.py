@@ -112,3 +112,27 @@ def test_the_scan_and_field_readers_refuse_a_fifo_and_a_device(tmp_path, suffix,
     assert isinstance(outcome, error) and "is a FIFO, not a regular file" in str(outcome), outcome
     with pytest.raises(error, match="/dev/zero is a character device, not a regular file"):
         reader("/dev/zero")
+
+
+@pytest.mark.parametrize(("kind", "error"), [("bases", "BasisError"), ("ensemble", "EnsembleError"),
+                                             ("deck", "MeshError")])
+def test_the_hdf5_and_deck_readers_refuse_a_fifo(tmp_path, kind, error):
+    """Fails if load_bases, load_ensemble (HDF5, opened by name inside h5py) or read_inp_mesh (a CalculiX deck) given a
+    FIFO blocks or is refused other than by one line naming the kind of file (before: "does not exist" for a FIFO at
+    the path, and a FIFO swapped in after that check was waited on). Run in a child process stopped after 60 s: h5py
+    waits on the FIFO holding the interpreter's lock, so a thread could not be timed out."""
+    import subprocess
+    import sys
+
+    reader = {"bases": "hood_decomp.io.bases import load_bases as read",
+              "ensemble": "hood_decomp.io.ensemble_store import load_ensemble as read",
+              "deck": "hood_decomp.io.mesh import read_inp_mesh as read"}[kind]
+    fifo = tmp_path / f"{kind}.h5"
+    os.mkfifo(fifo)
+    code = f"from {reader}\ntry:\n    read({str(fifo)!r})\nexcept Exception as e:\n    print(type(e).__name__, e)"
+    try:
+        run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"the {kind} reader blocked on the FIFO {fifo}")
+    assert run.stdout.startswith(f"{error} ") and run.stdout.count("\n") == 1, run.stdout + run.stderr[-2000:]
+    assert run.stdout.endswith(f"{fifo} is a FIFO, not a regular file\n"), run.stdout
