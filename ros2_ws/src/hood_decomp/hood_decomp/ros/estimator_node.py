@@ -8,7 +8,8 @@ remembers the last estimate and correction per part id; the next inspection of t
 with the predicted one and names a failed or slipped move. All results are published transient-local.
 
 With the parameter ``history`` (a path), every estimate is also appended to that results history (SQLite,
-docs/history_schema.md) through the writer the shift uses (hood_decomp.io.history): a database that cannot be written
+docs/history_schema.md) through the writer the shift uses (hood_decomp.io.history), naming the reference the field was
+made relative to and the bases' calibration: a database that cannot be written
 (a bad path, a lock held too long by a reader) is an ERROR on /diagnostics, the node keeps serving, and the parts
 wait in memory until the database can be written again (retried with the next part and every few seconds).
 A measured effect (a parameter without a boundary, of bases rebuilt by the shift) is flagged in the boundary state
