@@ -274,18 +274,17 @@ def test_a_part_reference_overrides_the_cells_for_that_part_only(cell, coarse_ho
     assert set_reference(peer, "estimator_node", "R3", "") == (True, f"part R3 forgot its reference {files['part']}")
 
 
-def _history_rows(path) -> dict[str, tuple[str, str]]:
-    """part_id -> (reference, calibration) of the results history at ``path`` ({} while it does not exist)."""
+def _history_rows(path, query: str = "SELECT part_id, reference, calibration FROM parts") -> list[tuple]:
+    """The rows of ``query`` on the results history at ``path`` ([] while it does not exist or is being created)."""
     import sqlite3
 
     if not path.exists():
-        return {}
+        return []
     db = sqlite3.connect(path, timeout=5)
     try:
-        return {part: (reference, calibration) for part, reference, calibration in
-                db.execute("SELECT part_id, reference, calibration FROM parts")}
+        return db.execute(query).fetchall()
     except sqlite3.OperationalError:  # being created
-        return {}
+        return []
     finally:
         db.close()
 
@@ -310,7 +309,8 @@ def test_the_live_history_records_the_reference_and_calibration_each_part_used(c
     calibration = latest_heartbeat(cell["received"]["/diagnostics"], NODE_NAMES["estimator_node"])["calibration"]
     calibration = "" if calibration == "none" else calibration
     assert own.reference == f"part:{files['part']}" and own.reference != other.reference
-    assert _history_rows(path) == {"H-own": (own.reference, calibration), "H-other": (other.reference, calibration)}
+    assert sorted(_history_rows(path)) == [("H-other", other.reference, calibration),
+                                           ("H-own", own.reference, calibration)]
 
 
 @pytest.mark.parametrize(("which", "named"), [
@@ -390,8 +390,9 @@ def test_calibrated_bases_swap_in_through_lifecycle_transitions(cell, coarse_hoo
     (made by `hood-decomp calibrate` from 13 entries of a part whose pads are 25 % stiffer, preloaded 40 % more and
     whose load response is 2 % smaller than the model's), if /diagnostics does not report the calibration (id from
     the file, 13 entries, its leave-one-out RMS and physical factors) where it reported none, if the estimate does not
-    change (uncalibrated off by more than 0.05 mm, calibrated within 0.01 mm), or if a bad cell reference does not
-    fail the configure transition, saying why, while the node stays alive."""
+    change (uncalibrated off by more than 0.05 mm, calibrated within 0.01 mm), if the live history's rows of the part
+    do not name the calibration that served each inspection ("" before, the file's id after), or if a bad cell
+    reference does not fail the configure transition, saying why, while the node stays alive."""
     peer, root, diagnostics = cell["peer"], cell["root"], cell["received"]["/diagnostics"]
     reduced = coarse_hood.reduced
     truth = replace(reduced, k=reduced.k * 1.25, preload=reduced.preload * 1.4, w0=reduced.w0 / 1.02,
@@ -409,6 +410,8 @@ def test_calibrated_bases_swap_in_through_lifecycle_transitions(cell, coarse_hoo
     values, effective = member.normal_displacement[0], member.effective[0]
     for node in NODES:  # the part's fields as measured: no reference
         assert set_parameter(peer, node, "reference", "") == (True, "")
+    history = root / "calibration_live.sqlite"
+    assert set_parameter(peer, "estimator_node", "history", str(history)) == (True, "")
     before, _ = send(cell, coarse_hood, values, 30, "C")
     beat = latest_heartbeat(diagnostics, NODE_NAMES["estimator_node"])
     assert beat["calibration"] == "none" and json.loads(beat["bases_provenance"])["calibration"] is None
@@ -442,6 +445,14 @@ def test_calibrated_bases_swap_in_through_lifecycle_transitions(cell, coarse_hoo
     assert error_mm(after, reduced.names, effective).max() < 0.01, error_mm(after, reduced.names, effective)
     assert after.reference == effects.reference == ""
     assert all(p.poll() is None for p in cell["processes"]), "a node died"
+
+    def calibrations() -> list[tuple[int, str, str]]:
+        rows = _history_rows(history, "SELECT stamp_ns, calibration, reference FROM parts WHERE part_id = 'C'")
+        return sorted(rows)
+
+    assert peer.wait(lambda: len(calibrations()) == 2, 10.0), calibrations()
+    assert set_parameter(peer, "estimator_node", "history", "") == (True, "")
+    assert calibrations() == [(30 * 10**9, "", ""), (31 * 10**9, record["id"], "")]
 
 
 def test_bases_without_a_reduced_model_refuse_a_reference(cell, coarse_hood):
