@@ -271,13 +271,73 @@ def test_a_version_1_history_is_migrated(tmp_path):
         assert history.add(dataclasses.replace(_record(3), measured_effect=np.array([True, False])))
         assert not history.add(_record(3))
         table = history.table()
-    assert version == "2"
+    assert version == "3"  # through version 2
     assert [r.part_id for r in records] == ["p1", "p2"]
+    assert [(r.reference, r.calibration) for r in records] == [("", ""), ("", "")]
     assert records[0].names == ("A", "B", "measured_1", "measured_10")
     assert records[0].values == pytest.approx([0.1, -0.2, 0.15, 0.02]) and records[1].lifted.tolist()[1]
     assert records[0].measured_effect.tolist() == [False, False, True, False]
     assert records[1].measured_effect.tolist() == [False, False, False, False]
     assert table.names == ("A", "B", "measured_1", "measured_10")
     assert table.measured_effect.tolist() == [True, False, True, False]  # p3 flags A
-    with History(path) as history:  # opened again: already version 2, nothing migrated twice
+    with History(path) as history:  # opened again: already version 3, nothing migrated twice
         assert len(history.records()) == 3
+
+
+#: schema version 2 as it was released (80feb13): version 1 with parameters.measured_effect
+_SCHEMA_V2 = _SCHEMA_V1.replace(
+    "correction_mm REAL, PRIMARY KEY",
+    "correction_mm REAL,\n    measured_effect INTEGER NOT NULL DEFAULT 0, PRIMARY KEY",
+).replace("('schema_version', '1')", "('schema_version', '2')")
+
+
+def test_a_version_2_history_is_migrated_with_no_reference_and_no_calibration(tmp_path):
+    """Fails if a history written with schema version 2 (made here from its released DDL by SQL text, not by the code
+    under test) does not open, keeps version 2, loses a row, a value or a measured-effect flag, gives its parts
+    anything but "" as reference and calibration (nothing was recorded then), cannot take a part estimated against a
+    reference with calibrated bases afterwards, or loses those two from the CSV."""
+    assert "measured_effect" in _SCHEMA_V2 and "'2'" in _SCHEMA_V2
+    path = tmp_path / "v2.sqlite"
+    db = sqlite3.connect(path)
+    db.executescript(_SCHEMA_V2)
+    columns = "source, part_id, message, stamp_ns, shift, status, error, model_id, bases_id, method, reason"
+    for part in (1, 2):
+        db.execute(f"INSERT INTO parts ({columns}) VALUES ('bag', 'p{part}', {part}, {part}, 's', 'ok', '', 'm', "
+                   "'b', 'contact', '')")
+        db.executemany("INSERT INTO parameters VALUES (?, ?, ?, ?, ?, ?, ?)", [
+            (part, "A", 0.1 * part, 0.01, 0, -0.1 * part, 0), (part, "measured_1", 0.15, 0.01, 0, 0.0, 1)])
+    db.commit()
+    db.close()
+    new = dataclasses.replace(_record(3), reference="cell:/cell/ref.json", calibration="0123456789abcdef")
+    with History(path) as history:
+        version = history.db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0]
+        old = history.records()
+        assert history.add(new)
+        table = history.table()
+        out = history.export_csv(tmp_path / "h.csv")
+    assert version == "3"
+    assert [(r.part_id, r.reference, r.calibration) for r in old] == [("p1", "", ""), ("p2", "", "")]
+    assert old[1].values == pytest.approx([0.2, 0.15]) and old[1].measured_effect.tolist() == [False, True]
+    assert table.references == ("", "", "cell:/cell/ref.json")
+    assert table.calibrations == ("", "", "0123456789abcdef")
+    raw = sqlite3.connect(path).execute("SELECT part_id, reference, calibration FROM parts ORDER BY id").fetchall()
+    assert raw == [("p1", "", ""), ("p2", "", ""), ("p3", "cell:/cell/ref.json", "0123456789abcdef")]
+    rows = list(csv.DictReader(out.open()))
+    assert [(r["reference"], r["calibration"]) for r in rows] == [("", ""), ("", ""),
+                                                                  ("cell:/cell/ref.json", "0123456789abcdef")]
+    with History(path) as history:  # opened again: nothing migrated twice
+        assert len(history.records()) == 3
+
+
+def test_reference_and_calibration_round_trip_on_a_new_history(tmp_path):
+    """Fails if a part's reference or calibration is not stored as written, comes back changed or swapped, or a part
+    recorded without them does not read as "" (no reference, uncalibrated)."""
+    path = tmp_path / "h.sqlite"
+    parts = [dataclasses.replace(_record(1), reference="part:/a/ref one.json", calibration="c1"), _record(2),
+             dataclasses.replace(_record(3), reference="cell:/b/ref.json")]
+    with History(path) as history:
+        history.extend(parts)
+    with History(path) as history:
+        records = history.records()
+    assert [(r.reference, r.calibration) for r in records] == [("part:/a/ref one.json", "c1"), ("", ""),
+                                                               ("cell:/b/ref.json", "")]

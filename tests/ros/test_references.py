@@ -274,6 +274,45 @@ def test_a_part_reference_overrides_the_cells_for_that_part_only(cell, coarse_ho
     assert set_reference(peer, "estimator_node", "R3", "") == (True, f"part R3 forgot its reference {files['part']}")
 
 
+def _history_rows(path, query: str = "SELECT part_id, reference, calibration FROM parts") -> list[tuple]:
+    """The rows of ``query`` on the results history at ``path`` ([] while it does not exist or is being created)."""
+    import sqlite3
+
+    if not path.exists():
+        return []
+    db = sqlite3.connect(path, timeout=5)
+    try:
+        return db.execute(query).fetchall()
+    except sqlite3.OperationalError:  # being created
+        return []
+    finally:
+        db.close()
+
+
+def test_the_live_history_records_the_reference_and_calibration_each_part_used(cell, coarse_hood):
+    """Fails if the estimator's live history row of a part does not name the reference its estimate used, exactly as
+    its BoundaryState does (the part's own for a part given one, the cell's or none for another), or not the bases'
+    calibration as the node's heartbeat reports it ("none" there, "" in the history, for uncalibrated bases)."""
+    peer, files = cell["peer"], cell["files"]
+    path = cell["root"] / "live.sqlite"
+    assert set_parameter(peer, "estimator_node", "history", str(path)) == (True, "")
+    try:
+        accepted, message = set_reference(peer, "estimator_node", "H-own", files["part"])
+        assert accepted, message
+        values, _ = part_field(coarse_hood, cell["part_error"])
+        own, _ = send(cell, coarse_hood, values, 900, "H-own")
+        other, _ = send(cell, coarse_hood, values, 901, "H-other")
+        assert peer.wait(lambda: len(_history_rows(path)) == 2, 10.0), _history_rows(path)
+    finally:
+        set_parameter(peer, "estimator_node", "history", "")
+        set_reference(peer, "estimator_node", "H-own", "")
+    calibration = latest_heartbeat(cell["received"]["/diagnostics"], NODE_NAMES["estimator_node"])["calibration"]
+    calibration = "" if calibration == "none" else calibration
+    assert own.reference == f"part:{files['part']}" and own.reference != other.reference
+    assert sorted(_history_rows(path)) == [("H-other", other.reference, calibration),
+                                           ("H-own", own.reference, calibration)]
+
+
 @pytest.mark.parametrize(("which", "named"), [
     ("missing", "cannot be read"),
     ("foreign", FOREIGN_MODEL),
@@ -351,8 +390,9 @@ def test_calibrated_bases_swap_in_through_lifecycle_transitions(cell, coarse_hoo
     (made by `hood-decomp calibrate` from 13 entries of a part whose pads are 25 % stiffer, preloaded 40 % more and
     whose load response is 2 % smaller than the model's), if /diagnostics does not report the calibration (id from
     the file, 13 entries, its leave-one-out RMS and physical factors) where it reported none, if the estimate does not
-    change (uncalibrated off by more than 0.05 mm, calibrated within 0.01 mm), or if a bad cell reference does not
-    fail the configure transition, saying why, while the node stays alive."""
+    change (uncalibrated off by more than 0.05 mm, calibrated within 0.01 mm), if the live history's rows of the part
+    do not name the calibration that served each inspection ("" before, the file's id after), or if a bad cell
+    reference does not fail the configure transition, saying why, while the node stays alive."""
     peer, root, diagnostics = cell["peer"], cell["root"], cell["received"]["/diagnostics"]
     reduced = coarse_hood.reduced
     truth = replace(reduced, k=reduced.k * 1.25, preload=reduced.preload * 1.4, w0=reduced.w0 / 1.02,
@@ -370,6 +410,8 @@ def test_calibrated_bases_swap_in_through_lifecycle_transitions(cell, coarse_hoo
     values, effective = member.normal_displacement[0], member.effective[0]
     for node in NODES:  # the part's fields as measured: no reference
         assert set_parameter(peer, node, "reference", "") == (True, "")
+    history = root / "calibration_live.sqlite"
+    assert set_parameter(peer, "estimator_node", "history", str(history)) == (True, "")
     before, _ = send(cell, coarse_hood, values, 30, "C")
     beat = latest_heartbeat(diagnostics, NODE_NAMES["estimator_node"])
     assert beat["calibration"] == "none" and json.loads(beat["bases_provenance"])["calibration"] is None
@@ -403,6 +445,14 @@ def test_calibrated_bases_swap_in_through_lifecycle_transitions(cell, coarse_hoo
     assert error_mm(after, reduced.names, effective).max() < 0.01, error_mm(after, reduced.names, effective)
     assert after.reference == effects.reference == ""
     assert all(p.poll() is None for p in cell["processes"]), "a node died"
+
+    def calibrations() -> list[tuple[int, str, str]]:
+        rows = _history_rows(history, "SELECT stamp_ns, calibration, reference FROM parts WHERE part_id = 'C'")
+        return sorted(rows)
+
+    assert peer.wait(lambda: len(calibrations()) == 2, 10.0), calibrations()
+    assert set_parameter(peer, "estimator_node", "history", "") == (True, "")
+    assert calibrations() == [(30 * 10**9, "", ""), (31 * 10**9, record["id"], "")]
 
 
 def test_bases_without_a_reduced_model_refuse_a_reference(cell, coarse_hood):

@@ -30,9 +30,12 @@ from hood_decomp.cli._common import (
 )
 from hood_decomp.errors import FieldError, ModelIdMismatchError
 from hood_decomp.io.json_values import loads_strict
+from hood_decomp.io.small_files import read_small_file
 
 HELP = "find, add and report an effect the model lacks (residual -> candidate effects -> new parameter -> bases)"
 LOG_FORMAT = "close-loop: %(message)s"
+#: largest --truth file read (label -> value per field: a few kB)
+MAX_TRUTH_BYTES = 1 << 20
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -58,13 +61,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="estimator of the before/after estimates (tracing is always contact-aware)")
 
 
-def _read_truth(path: Path | None, n_fields: int) -> list[dict[str, float]] | None:
+def _read_truth(path: Path | None) -> object:
+    """The --truth JSON document (None without --truth), read as every small input is (a regular file, at most
+    MAX_TRUTH_BYTES): before the fields, so a bad one is refused at once."""
     if path is None:
         return None
     try:
-        document = loads_strict(path.read_text())
-    except (OSError, ValueError) as error:
+        return loads_strict(read_small_file(path, MAX_TRUTH_BYTES, FieldError, "--truth").decode("utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as error:
         raise FieldError(f"--truth {path}: not a readable JSON file: {' '.join(str(error).split())[:120]}") from error
+
+
+def _truth_values(document: object, path: Path | None, n_fields: int) -> list[dict[str, float]] | None:
+    """The --truth ``document`` as label -> value (mm) per field, checked."""
+    if path is None:
+        return None
     entries = document if isinstance(document, list) else [document] * n_fields
     if len(entries) != n_fields or not all(isinstance(e, dict) for e in entries):
         raise FieldError(f"--truth {path}: expected an object label -> value or a list of {n_fields} such objects")
@@ -75,7 +86,6 @@ def _read_truth(path: Path | None, n_fields: int) -> list[dict[str, float]] | No
     if not all(math.isfinite(v) for e in truth for v in e.values()):
         raise FieldError(f"--truth {path}: values must be finite numbers")
     return truth
-
 
 
 def _table(payload: dict) -> str:
@@ -108,6 +118,7 @@ def run(args: argparse.Namespace) -> int:
     inputs = [*model_inputs(args.model), args.bases, *input_paths(args),
               *(p for p in (args.truth, args.ensemble, args.reference) if p is not None)]
     check_output(args.out, inputs, directory=True, writes=["close_loop.json", "bases_closed_loop.h5"])
+    truth_document = _read_truth(args.truth)
     model, user_candidates = load_model_with_candidates(args.model)
     bases = load_bases(args.bases)
     if model.model_id != bases.model_id:
@@ -117,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
     fields = apply_reference(args, bases, read_fields(args.inputs, bases.skin, args.min_coverage,
                                                       args.scanner_poses, marker_std_mm=args.marker_std_mm,
                                                       marker_checks=checks))
-    truth = _read_truth(args.truth, len(fields))
+    truth = _truth_values(truth_document, args.truth, len(fields))
     ensemble = None
     if args.ensemble is not None:
         from hood_decomp.io.ensemble_store import load_ensemble

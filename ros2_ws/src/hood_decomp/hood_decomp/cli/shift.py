@@ -1,5 +1,5 @@
 """`hood-decomp shift BAGS_OR_DIRS... --bases B --out DIR [--scheduler ADDR] [--workers N] [--history DB]
-[--model M]`:
+[--model M] [--reference REF.json]`:
 a shift of parts on Dask into a results history, then its statistical process control, recurring residuals and
 report (OUT/index.html, OUT/shift.json, OUT/history.csv)."""
 
@@ -9,6 +9,8 @@ import argparse
 import sys
 import time
 from pathlib import Path
+
+from hood_decomp.cli._common import add_reference
 
 HELP = "process a shift of parts (bags, scans, fields) on Dask into a results history and a shift report"
 LOG_FORMAT = "hood-decomp shift %(asctime)s: %(message)s"
@@ -35,6 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", type=Path, default=None,
                         help="the part model (model.yaml): recurring residuals are traced to its FE candidate effects "
                         "first; without it every recurring mode is offered as a measured effect")
+    add_reference(parser)  # the cell's reference for every part; the history records it per part
 
 
 def run(args: argparse.Namespace) -> int:
@@ -49,6 +52,11 @@ def run(args: argparse.Namespace) -> int:
     if args.workers < 1:
         raise FieldError(f"--workers must be >= 1, got {args.workers}")
     bases = load_bases(args.bases)  # refused here, before a cluster starts, when it is no bases file
+    reference = ""
+    if args.reference is not None:  # likewise: a reference that does not serve these bases is refused now
+        from hood_decomp.io.calibration_files import read_reference
+
+        reference = read_reference(args.reference.resolve(), bases, args.min_coverage).path
     sources = find_sources(args.inputs)
     total = sum(s.count for s in sources)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -56,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     if history_path.exists() and history_path.is_dir():
         raise HistoryError(f"--history {history_path} is a directory")
     options = Options(method=args.method, min_coverage=args.min_coverage, alpha=args.alpha,
-                      shift=args.label or time.strftime("%Y-%m-%dT%H:%M:%S"))
+                      shift=args.label or time.strftime("%Y-%m-%dT%H:%M:%S"), reference=reference)
     with History(history_path) as history:
         with dask_client(args.scheduler, args.workers) as client:
             summary = run_batch(client, iter_tasks(sources), total, str(args.bases.resolve()), history, options)

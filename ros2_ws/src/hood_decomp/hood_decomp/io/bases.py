@@ -103,6 +103,12 @@ def loaded_bases_id(bases: Bases) -> str:
     return bases_id(bases)
 
 
+def calibration_id(bases: Bases) -> str:
+    """The id of the calibration ``bases`` were rebuilt with (what :func:`bases_provenance` reports as the
+    calibration's ``id`` and a results history row records), "" for uncalibrated bases."""
+    return json.loads(bases.calibration)["id"] if bases.calibration else ""
+
+
 def bases_provenance(bases: Bases) -> dict:
     """Which bases and which calibration an estimate used (what ``estimate --json`` and the nodes' /diagnostics
     report): ``bases_id`` and ``calibration`` (null for uncalibrated bases, else the calibration's id, entries,

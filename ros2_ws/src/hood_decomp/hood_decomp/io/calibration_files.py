@@ -82,6 +82,11 @@ class Reference:
         """The REF.json's path resolved (absolute, through links): one name for one file, however it was given."""
         return self.sources[0][0]
 
+    def label(self, scope: str) -> str:
+        """What a result says of the reference it used: "<scope>:<resolved path>" ("cell:PATH" for a reference of
+        every part, "part:PATH" for one part's own), so two spellings of one file compare equal."""
+        return f"{scope}:{self.resolved}"
+
     def reads(self, source: tuple[str, int, int]) -> bool:
         """Whether reading the REF.json of :func:`file_key` ``source`` now would read what this reference read: the
         same file, unchanged, and the file it names unchanged since (modification time and size)."""

@@ -23,6 +23,7 @@ import numpy as np
 
 from hood_decomp.core.types import DisplacementField, FieldErrorModel, SkinSurface
 from hood_decomp.errors import FieldError, HoodDecompError
+from hood_decomp.io.small_files import descriptor_path, open_regular
 
 if TYPE_CHECKING:  # meshio is imported where a .vtu is read or written: a scan's verb never loads it
     import meshio
@@ -137,7 +138,7 @@ def read_field(path: str | Path, skin: SkinSurface | None = None) -> tuple[Displ
     returned is the file's point data ``displacement`` whatever it is.
     """
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():  # anything else that is not a regular file is named by read_vtu
         raise FieldError(f"field file {path} does not exist")
     mesh = read_vtu(path, FieldError)
     if "normal_displacement" not in mesh.point_data:
@@ -223,8 +224,13 @@ def read_vtu(path: Path, error: type[HoodDecompError]) -> meshio.Mesh:
     cannot read, which would bypass the command line's one-line errors."""
     import meshio
 
-    try:
-        return meshio.vtu.read(str(path))
-    except (Exception, SystemExit) as failure:  # any failure of a foreign reader means a bad file
-        text = " ".join(str(failure).split())[:200] or type(failure).__name__
-        raise error(f"cannot read {path} as a .vtu file: {text}") from failure
+    try:  # meshio takes a name: it gets the descriptor's, so it reads the file checked here (never a FIFO)
+        handle = open_regular(path, error, ".vtu file")
+    except OSError as failure:
+        raise error(f"cannot open {path}: {failure.strerror}") from failure
+    with handle:
+        try:
+            return meshio.vtu.read(descriptor_path(handle, path))
+        except (Exception, SystemExit) as failure:  # any failure of a foreign reader means a bad file
+            text = " ".join(str(failure).split())[:200] or type(failure).__name__
+            raise error(f"cannot read {path} as a .vtu file: {text}") from failure

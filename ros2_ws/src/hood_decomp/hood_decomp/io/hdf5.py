@@ -31,6 +31,7 @@ import h5py
 import numpy as np
 
 from hood_decomp.errors import HoodDecompError
+from hood_decomp.io.small_files import descriptor_path, open_regular
 
 #: gzip (1), shuffle (2) and fletcher32 (3): the filters h5py applies itself; any other id would load a plugin
 ALLOWED_FILTERS = {1: "gzip", 2: "shuffle", 3: "fletcher32"}
@@ -52,19 +53,24 @@ def open_hdf5(path: str | Path, what: str, error: type[HoodDecompError]) -> Iter
     and turn what h5py raises for damaged metadata anywhere in the block into ``error`` too. Schema checks stay with
     each reader (:class:`Reader`)."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():  # anything else that is not a regular file is named by open_regular
         raise error(f"{what} {path} does not exist")
-    try:
-        h5 = h5py.File(path, "r", locking=False)
-    except _DAMAGE as failure:
-        raise error(f"{path} is not an HDF5 {what}: {_first_line(failure)}") from failure
-    try:
-        audit_hdf5(h5, path, error)
-        yield h5
-    except _DAMAGE as failure:
-        raise error(f"{path}: damaged {what}: {type(failure).__name__}: {_first_line(failure)[:200]}") from failure
-    finally:
-        h5.close()
+    try:  # HDF5 takes a name: it gets the descriptor's, so it reads the file checked here (never a FIFO)
+        handle = open_regular(path, error, what)
+    except OSError as failure:
+        raise error(f"cannot open {what} {path}: {failure.strerror}") from failure
+    with handle:
+        try:
+            h5 = h5py.File(descriptor_path(handle, path), "r", locking=False)
+        except _DAMAGE as failure:
+            raise error(f"{path} is not an HDF5 {what}: {_first_line(failure)}") from failure
+        try:
+            audit_hdf5(h5, path, error)
+            yield h5
+        except _DAMAGE as failure:
+            raise error(f"{path}: damaged {what}: {type(failure).__name__}: {_first_line(failure)[:200]}") from failure
+        finally:
+            h5.close()
 
 
 def _first_line(failure: BaseException) -> str:
@@ -210,7 +216,9 @@ class Reader:
         if offset is None or dataset.id.get_create_plist().get_nfilters() or self.h5.userblock_size:
             return None
         if self._file_map is None:
-            with open(self.path, "rb") as file:  # the mapping outlives the descriptor
+            # the mapping outlives the descriptor; a FIFO swapped in since open_hdf5 is refused, not waited on, and
+            # another file's bytes fail the caller's bases_id check
+            with open_regular(self.path, self.error, "file") as file:
                 length = os.fstat(file.fileno()).st_size
                 if not length:
                     return None

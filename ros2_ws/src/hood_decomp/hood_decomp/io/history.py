@@ -7,7 +7,8 @@ is there). A part recorded as failed is replaced when a later run processes it. 
 leaves either the whole part or none of it.
 
 The file states its ``schema_version`` (table ``meta``). Opening a database of another version migrates it when a
-migration is known (:data:`MIGRATIONS`: 1 -> 2 adds ``parameters.measured_effect``) and otherwise refuses it, naming
+migration is known (:data:`MIGRATIONS`: 1 -> 2 adds ``parameters.measured_effect``, 2 -> 3 ``parts.reference`` and
+``parts.calibration``) and otherwise refuses it, naming
 the version found and the ones this reader reads. A file that is no SQLite database or no hood_decomp history is
 refused by name.
 """
@@ -31,7 +32,7 @@ from hood_decomp.core.method.residual import ResidualAnalysis
 from hood_decomp.core.types import BoundaryCorrection, ParameterEstimate
 from hood_decomp.errors import HistoryError
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 #: the note plan_correction puts in a part's ``reason`` for a measured effect (how version 1 recorded it)
 _MEASURED_NOTE = " is a measured effect: no boundary to move"
 STATUSES = ("ok", "failed")
@@ -45,6 +46,7 @@ CREATE TABLE parts (
     model_id TEXT NOT NULL, bases_id TEXT NOT NULL, method TEXT NOT NULL,
     coverage REAL, noise_mm REAL, residual_rms_mm REAL, residual_max_mm REAL, residual_mean_mm REAL,
     chi2 REAL, dof INTEGER, p_value REAL, within_model INTEGER, safe_to_apply INTEGER, reason TEXT NOT NULL,
+    reference TEXT NOT NULL DEFAULT '', calibration TEXT NOT NULL DEFAULT '',
     UNIQUE (source, part_id)
 );
 CREATE INDEX parts_time ON parts (stamp_ns, source, message);
@@ -62,8 +64,8 @@ CREATE TABLE residuals (
 );
 """
 _PART_COLUMNS = ("source", "part_id", "message", "stamp_ns", "shift", "status", "error", "model_id", "bases_id",
-                 "method", "coverage", "noise_mm", "residual_rms_mm", "residual_max_mm", "residual_mean_mm", "chi2",
-                 "dof", "p_value", "within_model", "safe_to_apply", "reason")
+                 "calibration", "reference", "method", "coverage", "noise_mm", "residual_rms_mm", "residual_max_mm",
+                 "residual_mean_mm", "chi2", "dof", "p_value", "within_model", "safe_to_apply", "reason")
 
 
 def _migrate_1_to_2(db: sqlite3.Connection) -> None:
@@ -76,8 +78,16 @@ def _migrate_1_to_2(db: sqlite3.Connection) -> None:
     db.executemany("UPDATE parameters SET measured_effect = 1 WHERE part = ? AND name = ?", flagged)
 
 
+def _migrate_2_to_3(db: sqlite3.Connection) -> None:
+    """Version 3 records per part the reference it was estimated against and the bases' calibration
+    (``parts.reference``, ``parts.calibration``). Version 2 recorded neither; its parts get "" in both: no reference
+    was known to the history then, and its rows cannot say whether one was used."""
+    db.execute("ALTER TABLE parts ADD COLUMN reference TEXT NOT NULL DEFAULT ''")
+    db.execute("ALTER TABLE parts ADD COLUMN calibration TEXT NOT NULL DEFAULT ''")
+
+
 #: version found -> function upgrading an open connection by one version
-MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _migrate_1_to_2}
+MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _migrate_1_to_2, 2: _migrate_2_to_3}
 
 
 @dataclass(frozen=True)
@@ -86,7 +96,10 @@ class PartRecord:
 
     source: the bag or file it came from; part_id; message: index of the message in the bag (0 for a file);
     stamp_ns: the scan's stamp (ns since the epoch); shift: a label of the run that wrote it. status: "ok" or
-    "failed" (then ``error`` says why and the numbers are NaN). names, values, std, lifted, corrections,
+    "failed" (then ``error`` says why and the numbers are NaN). calibration: the id of the calibration the bases were
+    rebuilt with ("" for uncalibrated bases; io.bases.calibration_id); reference: the reference the field was made
+    relative to, as the nodes' messages name it ("cell:PATH" or "part:PATH", the REF.json resolved; "" for none):
+    values of parts against different references are not comparable. names, values, std, lifted, corrections,
     measured_effect: (P,) per parameter (measured_effect: True for a parameter without a boundary, whose value is an
     amplitude; empty when the estimate flags none). safe_to_apply, reason: the correction's decision. coverage,
     noise_mm, residual statistics, chi2, dof, p_value, within_model: the one within-model test. effects: (name,
@@ -103,6 +116,8 @@ class PartRecord:
     error: str = ""
     model_id: str = ""
     bases_id: str = ""
+    calibration: str = ""
+    reference: str = ""
     method: str = ""
     coverage: float = float("nan")
     noise_mm: float = float("nan")
@@ -151,6 +166,17 @@ class HistoryTable:
     lifted: np.ndarray
     measured_effect: np.ndarray
 
+    @property
+    def references(self) -> tuple[str, ...]:
+        """(M,) the reference each part was estimated against ("" none): values across different ones are not
+        comparable."""
+        return tuple(record.reference for record in self.records)
+
+    @property
+    def calibrations(self) -> tuple[str, ...]:
+        """(M,) the calibration id of each part's bases ("" uncalibrated)."""
+        return tuple(record.calibration for record in self.records)
+
 
 def _none_if_nan(value: float) -> float | None:
     return None if value is None or not np.isfinite(value) else float(value)
@@ -169,8 +195,9 @@ def inspection_record(base: PartRecord, estimate: ParameterEstimate, analysis: R
                       correction: BoundaryCorrection, effects: tuple[tuple[str, float], ...] = (),
                       keep_residual: bool = True) -> PartRecord:
     """The history row of one inspected part: ``base`` (source, part id, message, stamp, shift, model and bases id,
-    method) completed by its estimate, within-model analysis, correction and decomposition ``effects`` (name,
-    share). The one place a result becomes a row: the shift's workers and the estimator node both call it."""
+    calibration, reference, method) completed by its estimate, within-model analysis, correction and decomposition
+    ``effects`` (name, share). The one place a result becomes a row: the shift's workers and the estimator node both
+    call it."""
     check = estimate.check
     return dataclasses.replace(
         base, status="ok", error="", coverage=float(estimate.coverage), noise_mm=analysis.noise_mm,

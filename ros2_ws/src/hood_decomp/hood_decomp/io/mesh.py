@@ -13,6 +13,7 @@ import numpy as np
 
 from hood_decomp.errors import MeshError
 from hood_decomp.io.fields import read_vtu
+from hood_decomp.io.small_files import open_regular
 
 #: shell element types of an .inp deck and their node counts; the first 4 nodes are the corners
 INP_SHELLS = {"S4": 4, "S4R": 4, "S4R5": 4, "M3D4": 4, "S8": 8, "S8R": 8, "M3D8": 8, "M3D8R": 8}
@@ -62,10 +63,13 @@ def read_inp_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     Raises MeshError.
     """
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():  # anything else that is not a regular file is named by open_regular
         raise MeshError(f"mesh file {path} does not exist")
     try:
-        text = path.read_bytes().decode("utf-8")
+        with open_regular(path, MeshError, "mesh file") as handle:
+            text = handle.read().decode("utf-8")
+    except OSError as error:
+        raise MeshError(f"cannot read mesh file {path}: {error.strerror}") from error
     except UnicodeDecodeError as error:
         raise MeshError(f"{path}: not a text deck (byte {error.start} is not UTF-8)") from error
     node_ids, coords, elements, midside = [], [], [], set()

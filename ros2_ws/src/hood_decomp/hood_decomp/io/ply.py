@@ -16,6 +16,7 @@ import numpy as np
 
 from hood_decomp.core.types import SkinSurface
 from hood_decomp.errors import ScanError
+from hood_decomp.io.small_files import open_regular
 
 _TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
@@ -210,8 +211,8 @@ def read_ply(path: str | os.PathLike) -> PlyData:
     """Read a PLY file (binary or ASCII). Faces must be triangles (a polygon list of 3 indices each). Raises
     ScanError naming the problem for anything a PLY file should not hold; sizes the header claims are checked
     against the file's size before anything is allocated."""
-    try:
-        handle = open(path, "rb")
+    try:  # judged on the open descriptor: a FIFO swapped in after a caller's is_file() check is refused, not waited on
+        handle = open_regular(path, ScanError, "PLY file")
     except OSError as error:
         raise ScanError(f"cannot open PLY file {path}: {error.strerror}") from error
     with handle:

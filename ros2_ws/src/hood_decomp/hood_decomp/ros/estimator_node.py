@@ -8,7 +8,8 @@ remembers the last estimate and correction per part id; the next inspection of t
 with the predicted one and names a failed or slipped move. All results are published transient-local.
 
 With the parameter ``history`` (a path), every estimate is also appended to that results history (SQLite,
-docs/history_schema.md) through the writer the shift uses (hood_decomp.io.history): a database that cannot be written
+docs/history_schema.md) through the writer the shift uses (hood_decomp.io.history), naming the reference the field was
+made relative to and the bases' calibration: a database that cannot be written
 (a bad path, a lock held too long by a reader) is an ERROR on /diagnostics, the node keeps serving, and the parts
 wait in memory until the database can be written again (retried with the next part and every few seconds).
 A measured effect (a parameter without a boundary, of bases rebuilt by the shift) is flagged in the boundary state
@@ -194,13 +195,15 @@ class EstimatorNode(ReferencedNode):
             self.report_history(problem)
 
     def record(self, msg: DisplacementField, field: CoreField, estimate: ParameterEstimate,
-               correction: CoreCorrection, part_id: str) -> dict[str, object]:
-        """Append the part to the live history (when one is named); its key-values for the OK diagnostic."""
+               correction: CoreCorrection, part_id: str, reference: str) -> dict[str, object]:
+        """Append the part to the live history (when one is named), with the ``reference`` label its field was made
+        relative to and its bases' calibration; its key-values for the OK diagnostic."""
         writer = self.history_writer()
         if writer is None:
             return {}
         from hood_decomp.core.method.bases import analyse_estimate
         from hood_decomp.core.method.residual import noise_level
+        from hood_decomp.io.bases import calibration_id
 
         bases = self.bases_for_model(msg.model_id)
         stamp = msg.header.stamp
@@ -210,7 +213,8 @@ class EstimatorNode(ReferencedNode):
         base = PartRecord(source=f"live:{self.get_fully_qualified_name()}@{stamp_ns}", part_id=part_id,
                           message=self.received, stamp_ns=stamp_ns,
                           shift=f"live {self.get_name()}", model_id=estimate.model_id,
-                          bases_id=self.bases_id(estimate.model_id), method=estimate.method)
+                          bases_id=self.bases_id(estimate.model_id), calibration=calibration_id(bases),
+                          reference=reference, method=estimate.method)
         analysis = analyse_estimate(bases, estimate, noise_level(field.noise_rms)[0])
         with self.history_lock:
             problem = writer.append(inspection_record(base, estimate, analysis, correction))
@@ -287,7 +291,8 @@ class EstimatorNode(ReferencedNode):
             self.sent.popitem(last=False)
         self.state_pub.publish(messages.estimate_to_msg(estimate, msg.header, part_id, reference))
         self.correction_pub.publish(messages.correction_to_msg(correction, msg.header, part_id))
-        values.update(self.record(msg, field, estimate, correction, part_id))  # after publishing: the robot first
+        # after publishing: the robot first
+        values.update(self.record(msg, field, estimate, correction, part_id, reference))
         return {**values, "residual_rms_mm": f"{estimate.residual_rms:.4f}", "within_model": estimate.within_model,
                 "safe_to_apply": correction.safe_to_apply, "reason": correction.reason}
 

@@ -781,9 +781,9 @@ class ReferencedNode(HoodNode):
     # --- use --------------------------------------------------------------------------------------------------------
     @staticmethod
     def reference_label(reference: Any, scope: str) -> str:
-        """What an output says of the reference it used: "cell:PATH" / "part:PATH" (the file's resolved path, so two
-        spellings of one file compare equal), "" for none."""
-        return "" if reference is None else f"{scope}:{reference.resolved}"
+        """What an output says of the reference it used: "cell:PATH" / "part:PATH"
+        (io.calibration_files.Reference.label), "" for none."""
+        return "" if reference is None else reference.label(scope)
 
     def field_of(self, msg: Any) -> tuple[Any, Any, str]:
         """A DisplacementField message -> (its bases, the field made relative to the part's reference, else the

@@ -1,6 +1,7 @@
 """A shift's analysis from its results history, and its report: control charts and run rules per boundary,
 capability, correlation, the share of parts outside the model over time, the recurring residual modes (traced to FE
-candidates when a model is given, else offered as measured effects) and the failed parts by name.
+candidates when a model is given, else offered as measured effects), the failed parts by name, and the references and
+calibrations the parts were estimated against (a shift mixing references is said to: its values are not comparable).
 
 Writes OUT/index.html (figures in OUT/figures/), OUT/shift.json (the numbers behind the report) and OUT/history.csv.
 """
@@ -51,6 +52,45 @@ class ShiftAnalysis:
     recurring: Any
     recurring_note: str
     alpha: float
+
+
+@dataclass(frozen=True)
+class ReferenceGroup:
+    """Processed parts of a shift estimated against one reference with one calibration: ``reference`` ("" none) and
+    ``calibration`` (id, "" uncalibrated) as the history records them, ``parts`` their count, ``first`` and ``last``
+    the part ids in time order."""
+
+    reference: str
+    calibration: str
+    parts: int
+    first: str
+    last: str
+
+
+def reference_groups(table: HistoryTable, ok: np.ndarray) -> tuple[ReferenceGroup, ...]:
+    """The processed (``ok``) parts of ``table`` grouped by (reference, calibration), in order of first appearance."""
+    rows: dict[tuple[str, str], list[str]] = {}
+    for record, processed in zip(table.records, ok, strict=True):
+        if processed:
+            rows.setdefault((record.reference, record.calibration), []).append(record.part_id)
+    return tuple(ReferenceGroup(reference, calibration, len(ids), ids[0], ids[-1])
+                 for (reference, calibration), ids in rows.items())
+
+
+def mixing_note(groups: tuple[ReferenceGroup, ...]) -> str:
+    """What a reader must know when the parts were estimated against more than one reference or calibration ("" when
+    all share one): values against different references (or bases calibrated differently) are not comparable."""
+    references = list(dict.fromkeys(group.reference or "none" for group in groups))
+    calibrations = list(dict.fromkeys(group.calibration or "uncalibrated" for group in groups))
+    notes = []
+    if len(references) > 1:
+        notes.append(f"This shift mixes {len(references)} references ({', '.join(references)}): a part's values are "
+                     "relative to its reference's known state, so values across different references are not "
+                     "comparable, and the control charts, capability and correlation below pool them as one process.")
+    if len(calibrations) > 1:
+        notes.append(f"This shift mixes {len(calibrations)} calibrations of the bases ({', '.join(calibrations)}): "
+                     "values estimated with differently calibrated bases are not comparable either.")
+    return " ".join(notes)
 
 
 def chart_values(table: HistoryTable, ok: np.ndarray) -> np.ndarray:
@@ -112,6 +152,7 @@ def analysis_json(analysis: ShiftAnalysis, summary: Any) -> dict[str, Any]:
     records = analysis.table.records
     rows = np.flatnonzero(analysis.outside)
     measured = dict(zip(analysis.table.names, analysis.table.measured_effect, strict=True))
+    groups = reference_groups(analysis.table, analysis.ok)
     out: dict[str, Any] = {
         "parts": len(records), "processed": int(analysis.ok.sum()),
         "failed": [{"source": r.source, "part_id": r.part_id, "error": r.error} for r in records if r.status != "ok"],
@@ -133,6 +174,9 @@ def analysis_json(analysis: ShiftAnalysis, summary: Any) -> dict[str, Any]:
                                 "share_outside_range": c.share_outside} for c in analysis.capabilities},
         "correlation": {"names": list(analysis.table.names), "matrix": analysis.correlation},
         "measured_effects": [n for n, flag in measured.items() if flag],
+        "references": [{"reference": g.reference, "calibration": g.calibration, "parts": g.parts,
+                        "first_part": g.first, "last_part": g.last} for g in groups],
+        "references_note": mixing_note(groups),
         "recurring": {"note": analysis.recurring_note, "modes": []},
     }
     if analysis.recurring is not None:

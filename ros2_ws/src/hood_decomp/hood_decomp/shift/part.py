@@ -1,9 +1,11 @@
 """One part through the same core path as the nodes: field (from a bag's PointCloud2, a scan file or a field file)
--> estimate -> correction -> decomposition -> the within-model test, as one :class:`~hood_decomp.io.history.PartRecord`.
+-> reference-relative when the shift has a reference -> estimate -> correction -> decomposition -> the within-model
+test, as one :class:`~hood_decomp.io.history.PartRecord` naming the reference and the bases' calibration it used.
 
 :func:`process_task` is what a Dask worker runs. It never raises for a bad part: any error becomes a record with
 status "failed" naming it, so one bad part never stops a batch. Each worker process loads a bases file once
-(:func:`worker_bases`) and keeps it with its fitted estimators.
+(:func:`worker_bases`) and keeps it with its fitted estimators, and the shift's reference once for them
+(:func:`worker_reference`).
 """
 
 from __future__ import annotations
@@ -52,7 +54,9 @@ class PartTask:
 @dataclass(frozen=True)
 class Options:
     """How every part is processed: estimator ``method``, ``min_coverage`` of a field, the correction ``policy``,
-    the within-model test's ``alpha``, ``shift`` label, ``keep_residual`` (store the residual field in the history)."""
+    the within-model test's ``alpha``, ``shift`` label, ``keep_residual`` (store the residual field in the history),
+    ``reference``: a REF.json (absolute path) every part's field is made relative to, as the nodes' cell reference
+    (io.calibration_files.read_reference); "" none."""
 
     method: str = "contact"
     min_coverage: float = 0.2
@@ -60,6 +64,7 @@ class Options:
     alpha: float = DEFAULT_ALPHA
     shift: str = ""
     keep_residual: bool = True
+    reference: str = ""
 
 
 _BASES: dict[tuple[str, int, int], tuple[Bases, str]] = {}
@@ -75,6 +80,25 @@ def worker_bases(path: str) -> tuple[Bases, str]:
         _BASES.clear()
         _BASES[key] = (load_bases(path), bases_file_id(path))
     return _BASES[key]
+
+
+_REFERENCE: dict[tuple[str, str, float], Any] = {}
+
+
+def worker_reference(path: str, bases: Bases, min_coverage: float) -> Any:
+    """The REF.json at ``path`` read for ``bases`` (io.calibration_files.Reference), once per process while neither
+    changes (its files unchanged: Reference.reads); None for ``path`` "". CalibrationError when it does not serve."""
+    from hood_decomp.io.bases import loaded_bases_id
+    from hood_decomp.io.calibration_files import file_key, read_reference
+
+    if not path:
+        return None
+    key = (path, loaded_bases_id(bases), min_coverage)
+    held = _REFERENCE.get(key)
+    if held is None or not held.reads(file_key(path)):
+        _REFERENCE.clear()
+        _REFERENCE[key] = held = read_reference(path, bases, min_coverage)
+    return held
 
 
 def read_task_field(bases: Bases, task: PartTask, min_coverage: float) -> DisplacementField:
@@ -123,15 +147,21 @@ def inspect_field(bases: Bases, field: DisplacementField, options: Options
 def process_task(task: PartTask, bases_path: str, options: Options) -> PartRecord:
     """Process one part; a failure of the part (bad file, bad cloud, too little coverage, ...) becomes a "failed"
     record naming the error. Runs in a Dask worker."""
+    from hood_decomp.io.bases import calibration_id
+
     base = PartRecord(source=task.source, part_id=task.part_id, message=task.message, stamp_ns=task.stamp_ns,
                       shift=options.shift, method=options.method)
     try:
         bases, identity = worker_bases(bases_path)
+        base = dataclasses.replace(base, model_id=bases.model_id, bases_id=identity, calibration=calibration_id(bases))
+        reference = worker_reference(options.reference, bases, options.min_coverage)
         field = read_task_field(bases, task, options.min_coverage)
+        if reference is not None:
+            field = reference.relative(field, bases)
+            base = dataclasses.replace(base, reference=reference.label("cell"))
         estimate, analysis, correction, decomposition = inspect_field(bases, field, options)
     except Exception as error:  # a bad part is recorded, never fatal to the batch
         logger.warning("part %s of %s failed: %s", task.part_id, task.source, error)
         return dataclasses.replace(base, status="failed", error=f"{type(error).__name__}: {error}".splitlines()[0])
-    base = dataclasses.replace(base, model_id=bases.model_id, bases_id=identity)
     return inspection_record(base, estimate, analysis, correction,
                              tuple((e.name, float(e.share)) for e in decomposition.effects), options.keep_residual)

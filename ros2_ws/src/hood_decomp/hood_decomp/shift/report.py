@@ -15,7 +15,14 @@ from hood_decomp.io.history import History
 from hood_decomp.io.json_values import json_ready
 from hood_decomp.plots.method import plot_skin_field
 from hood_decomp.shift import figures
-from hood_decomp.shift.analysis import SHARE_WINDOW, ShiftAnalysis, analyse_shift, analysis_json
+from hood_decomp.shift.analysis import (
+    SHARE_WINDOW,
+    ShiftAnalysis,
+    analyse_shift,
+    analysis_json,
+    mixing_note,
+    reference_groups,
+)
 from hood_decomp.shift.spc import RULES
 
 logger = logging.getLogger(__name__)
@@ -39,6 +46,13 @@ def build_report(analysis: ShiftAnalysis, bases: Any, summary: Any, out: Path) -
         ("outside the model (chi-square test at alpha)", int(analysis.outside.sum())),
         ("Dask workers", summary.workers), ("wall time (s)", _f(summary.seconds, 1)),
         ("parts per second", _f(summary.rate, 2))])
+    groups = reference_groups(analysis.table, analysis.ok)
+    section.table(["reference", "calibration", "processed parts", "first part", "last part"],
+                  [(g.reference or "none", g.calibration or "uncalibrated", g.parts, g.first, g.last) for g in groups],
+                  "What the processed parts were estimated against (history columns reference, calibration)")
+    note = mixing_note(groups)
+    if note:
+        section.text(note, "bad")
     failed = [r for r in records if r.status != "ok"]
     if failed:
         section.text("Failed parts (the batch went on without them):", "bad")
