@@ -463,7 +463,7 @@ for _verb, _option, _values in (
     (ESTIMATE, "--min-coverage", ("nan", "2", "-0.1")),
     (ESTIMATE, "--marker-std-mm", ("nan", "0", "-0.01", "inf", "11")),
     (ESTIMATE, "--method", ("magic",)),
-    (ESTIMATE, "--coarsen", ("0", "two", "1.5", "-2")),
+    (ESTIMATE, "--coarsen", ("0", "two", "1.5", "-2", "400")),
     (DECOMPOSE, "--min-share", ("nan", "1.5")),
     (CLOSE, "--alpha", ("nan", "0", "1")),
     (CLOSE, "--noise-mm", ("nan", "-1", "inf")),

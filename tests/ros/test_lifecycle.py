@@ -150,6 +150,10 @@ def test_parameters_read_at_configure_refuse_a_change_and_the_others_apply(cell,
     assert not ok and "contact" in reason
     ok, reason = set_parameter(peer, "estimator_node", "coarsen", "half")
     assert not ok and "stride" in reason
+    assert set_parameter(peer, "estimator_node", "components", "xyz") == (True, "")
+    ok, reason = set_parameter(peer, "estimator_node", "coarsen", "2")  # every field would be refused
+    assert not ok and "not coarsened" in reason
+    assert set_parameter(peer, "estimator_node", "components", "normal") == (True, "")
     ok, reason = set_parameter(peer, "scan_node", "scanner_pose", [1.0, 0.0, 0.0])
     assert not ok and "16" in reason
     # transient-local: the correction arrives even if this subscription matches the estimator after it was sent

@@ -14,6 +14,7 @@ from hood_decomp.core.method.coarsening import (
     AUTO_MIN_NODES,
     AUTO_STRIDE,
     coarsening_stride,
+    information_kept,
     kept_correlation,
     stratified_nodes,
 )
@@ -148,13 +149,23 @@ def test_the_kept_correlation_sums_follow_a_gaussian_lattice():
     np.testing.assert_allclose(kept_correlation(np.array([1.0, g]), 1.0), [1.0, g], rtol=1e-3)
 
 
-def test_auto_coarsens_only_large_skins_and_bad_strides_are_named(coarse_hood):
-    """"auto" keeps every node of the coarse hood and takes a quarter of a skin above AUTO_MIN_NODES fitted on the
-    normal component; a stride that is no integer >= 1, and a stride > 1 with a three-component fit, are refused by
-    name."""
-    assert coarsening_stride("auto", 4736) == 1
-    assert coarsening_stride("auto", AUTO_MIN_NODES + 1) == AUTO_STRIDE == 2
-    assert coarsening_stride("auto", AUTO_MIN_NODES + 1, "xyz") == 1
+def test_auto_coarsens_only_large_skins_with_correlated_errors_and_bad_strides_are_named(coarse_hood):
+    """"auto" keeps every node of the coarse hood; on a skin above AUTO_MIN_NODES fitted on its normal component it
+    takes a quarter of the nodes of a field whose errors are correlated like a paper scan's (g = 10.4: the lattice
+    keeps all of its information) but not of a white one (a quarter of it: std x 2) nor of one without an error model;
+    a stride that is no integer >= 1, a stride > 1 with a three-component fit, and one that keeps fewer nodes than the
+    fit and its test need (40 on the coarse hood: 4 nodes for 6 parameters) are refused by name."""
+    big = AUTO_MIN_NODES + 1
+    scan_like = FieldErrorModel("scan", np.full(50, 0.02), np.full(50, 10.4), 7.8, bias_correlation=100.0)
+    white = FieldErrorModel.stated(0.02, 50)
+    assert information_kept(scan_like, 2) == pytest.approx(1.0, abs=0.01)
+    assert information_kept(white, 2) == pytest.approx(0.25)
+    assert coarsening_stride("auto", 4736, errors=scan_like) == 1
+    assert coarsening_stride("auto", big, errors=scan_like) == AUTO_STRIDE == 2
+    assert coarsening_stride("auto", big) == 2  # a field not known yet is taken as a scan's
+    for errors in (white, FieldErrorModel.none()):
+        assert coarsening_stride("auto", big, errors=errors) == 1
+    assert coarsening_stride("auto", big, "xyz", scan_like) == 1
     for bad in (0, -2, 1.5, "two", True):
         with pytest.raises(BasisError, match="stride"):
             coarsening_stride(bad, 4736)
@@ -163,3 +174,5 @@ def test_auto_coarsens_only_large_skins_and_bad_strides_are_named(coarse_hood):
     bases = coarse_hood.bases
     with pytest.raises(BasisError, match="stride"):
         estimate_field(bases, _field(bases, bases.pca.mean_field_), coarsen=0)
+    with pytest.raises(BasisError, match="keeps 4 of 4736 nodes"):
+        estimate_field(bases, _field(bases, bases.pca.mean_field_), coarsen=40)

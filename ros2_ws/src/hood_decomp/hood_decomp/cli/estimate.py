@@ -35,9 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "`simulate`, and no error model; the within-model test then judges each component)")
     parser.add_argument("--coarsen", type=coarsening, default="auto", metavar="auto|STRIDE",
                         help="the paper's coarsening of the input field: fit and test it on one node per cell of "
-                        "STRIDE node spacings (1: every node); auto (default): a quarter of the nodes on a skin of "
-                        "more than 100,000 nodes fitted on its normal component (the paper-resolution hood), every "
-                        "node otherwise")
+                        "STRIDE node spacings (1: every node); auto (default): a quarter of the nodes of a scan's "
+                        "field on a skin of more than 100,000 nodes fitted on its normal component (the paper-"
+                        "resolution hood), every node otherwise (a white or simulated field would lose precision)")
 
 
 def coarsening(text: str) -> int | str:
@@ -129,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
     estimate = estimate_field(bases, field, args.method, args.min_coverage, args.temperature_k, args.components,
                               args.coarsen)
     payload = estimate_payload(estimate, bases.pca.n_bilateral_)
-    stride = coarsening_stride(args.coarsen, bases.skin.n_nodes, args.components)
+    stride = coarsening_stride(args.coarsen, bases.skin.n_nodes, args.components, field.errors)
     payload["coarsening"] = {"stride": stride, "fitted_nodes": int(
         bases.coarsened(stride).nodes.size if stride > 1 else bases.skin.n_nodes), "nodes": bases.skin.n_nodes}
     payload.update(bases_provenance(bases), reference=None if args.reference is None else str(args.reference),

@@ -31,7 +31,7 @@ from hood_decomp_msgs.msg import BoundaryCorrection, BoundaryState, Displacement
 from rclpy.parameter import Parameter
 from std_msgs.msg import Header
 
-from hood_decomp.core.method.coarsening import parse_coarsening
+from hood_decomp.core.method.coarsening import coarsening_stride, parse_coarsening
 from hood_decomp.core.method.correction import CorrectionPolicy, limit_steps, plan_correction, verify_move
 from hood_decomp.core.method.estimation import COMPONENTS
 from hood_decomp.core.types import BoundaryCorrection as CoreCorrection
@@ -119,9 +119,12 @@ class EstimatorNode(ReferencedNode):
             return f"one of {', '.join(METHODS)}, got {parameter.value!r}"
         if parameter.name == "components" and parameter.value not in COMPONENTS:
             return f"one of {', '.join(COMPONENTS)}, got {parameter.value!r}"
-        if parameter.name == "coarsen":
+        if parameter.name in ("coarsen", "components"):  # a stride > 1 with xyz would refuse every field
+            values = {name: self.param(name) if self.has_parameter(name) else default  # while declaring
+                      for name, default in (("coarsen", "auto"), ("components", "normal"))}
+            values[parameter.name] = parameter.value
             try:
-                parse_coarsening(parameter.value)
+                coarsening_stride(parse_coarsening(values["coarsen"]), 0, values["components"])
             except BasisError as error:
                 return str(error)
         if parameter.name == "max_step_by_boundary":

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from hood_decomp.core.method.coarsening import (
+    MIN_NODES_PER_COLUMN,
     SpanLift,
     coarsening_stride,
     kept_rings,
@@ -37,6 +38,7 @@ from hood_decomp.core.method.model_spread import PhysicalResponses, factor_sprea
 from hood_decomp.core.method.pca import PCABasis
 from hood_decomp.core.method.residual import (
     DEFAULT_ALPHA,
+    DEFAULT_SMOOTH_DEGREE,
     ResidualAnalysis,
     ResidualTest,
     analyse_residual,
@@ -47,6 +49,7 @@ from hood_decomp.core.types import (
     Decomposition,
     DisplacementField,
     Ensemble,
+    FieldErrorModel,
     ParameterEstimate,
     ReducedModel,
     SkinSurface,
@@ -229,7 +232,8 @@ class Bases:
         node before it serves, a one-off run while it reads its scan."""
         if scan:
             self.reading().slide_terms  # noqa: B018 (made now, kept by the reading)
-        stride = coarsening_stride(coarsen, self.skin.n_nodes, components)
+        # "auto" coarsens a scan's field at paper resolution, not a white or simulated one (coarsening_stride)
+        stride = coarsening_stride(coarsen, self.skin.n_nodes, components, None if scan else FieldErrorModel.none())
         if stride > 1:
             self.coarsened(stride).prepare(self, method, min_coverage, temperature_k)
         elif method == "contact" and self.reduced_model is not None:
@@ -316,15 +320,17 @@ def estimate_field(
 
     coarsen: the paper's coarsening of the input field (:mod:`~.coarsening`): a stride >= 1 (1: every node) or
     "auto" (a quarter of the nodes on a skin of more than :data:`~.coarsening.AUTO_MIN_NODES` nodes fitted on its
-    normal component, the paper-resolution hood; every node otherwise). A coarsened estimate fits and tests the
-    field on the kept nodes (:meth:`CoarsenedBases.estimate`); its reconstruction and residual are of every node.
+    normal component, the paper-resolution hood, for a field whose errors are correlated enough to lose nothing
+    there, a scan's: :func:`~.coarsening.coarsening_stride`; every node otherwise). A coarsened estimate fits and
+    tests the field on the kept nodes (:meth:`CoarsenedBases.estimate`); its reconstruction and residual are of every
+    node.
 
     The field is estimated as its nodes' displacement (:func:`node_field`: a scan's slide taken out), so the estimate,
     its residual and its within-model test are of the node displacements the model makes."""
     if method not in METHODS:
         raise BasisError(f"unknown estimation method {method!r}, expected one of {METHODS}")
     xyz = bases._components(components)
-    stride = coarsening_stride(coarsen, bases.skin.n_nodes, components)
+    stride = coarsening_stride(coarsen, bases.skin.n_nodes, components, field.errors)
     fitted = stacked_field(field, bases.skin.normals, min_coverage) if xyz else node_field(bases, field, min_coverage)
     if method == "pca" and temperature_k != 0.0 and (
             xyz or np.shape(fitted.normal_displacement) == bases.pca.mean_field_.shape):
@@ -375,6 +381,13 @@ class CoarsenedBases:
         """``bases`` coarsened with ``stride`` (:func:`~.coarsening.stratified_nodes` of its skin)."""
         nodes = stratified_nodes(bases.skin.points, stride)
         skin = bases.skin
+        span = max(bases.pca.n_components_, 0 if bases.reduced_model is None else bases.reduced_model.R.shape[1]
+                   + bases.reduced_model.G.shape[1])
+        columns = span + (DEFAULT_SMOOTH_DEGREE + 1) * (DEFAULT_SMOOTH_DEGREE + 2) // 2 + 6
+        if nodes.size < MIN_NODES_PER_COLUMN * columns:
+            raise BasisError(f"coarsening stride {stride} keeps {nodes.size} of {skin.n_nodes} nodes; the fit and its "
+                             f"test need at least {MIN_NODES_PER_COLUMN * columns} ({MIN_NODES_PER_COLUMN} per span "
+                             "field, smooth mode and rigid-body mode): give a smaller stride")
         kept_skin = SkinSurface(np.asarray(skin.points)[nodes], np.asarray(skin.normals)[nodes],
                                 np.zeros((0, 3), np.int64), skin.model_id)
 

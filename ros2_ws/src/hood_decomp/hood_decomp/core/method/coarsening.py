@@ -4,9 +4,12 @@ stratified subset of the skin's nodes.
 
 Why it loses little: the node values of a scan are correlated over the scan step's smoothing radius (at paper
 resolution a node's correlation sum is about 10: some 17,000 independent samples among 180,000 seen nodes), so a
-quarter of the nodes carries nearly all of the information (issue 15 run 20 B: the stated std 2-3 % larger, the same
-coverage; a white-noise field loses sqrt(N / n) instead, and is coarsened only on request). What it saves: every
-pass over the nodes (the weighted Grams, the test, the reading) is divided by N / n.
+quarter of the nodes carries nearly all of the information (issue 15 run 21: the same std and coverage on 60 paper
+scans). A white-noise field loses sqrt(N / n) of its precision instead, and so does a field without an error model
+(its level is its own residual's): "auto" leaves those on every node (:func:`information_kept`); a stride given
+coarsens them all the same. What it saves: every pass over the nodes but the reading of a scan (the weighted Grams,
+the test) is divided by N / n. The within-model test's one-ring part (fields without a bias term: not scans) then
+sees defects wider than the kept spacing only.
 
 The subset: the skin's points projected on their principal plane, cut into square cells of ``stride`` node
 spacings, the node nearest each cell's centre (deterministic, spread evenly, holes and outline kept). A field on it
@@ -29,25 +32,53 @@ from hood_decomp.errors import BasisError
 if TYPE_CHECKING:
     import scipy.sparse as sp
 
-#: a skin with more nodes than this is coarsened when the coarsening is left to the tool ("auto"): the paper-
-#: resolution hood (188,730 nodes), not the built-in default (its correlation sums are smaller: a quarter of its nodes
-#: costs 16-20 % of std, run 20 B)
+#: a skin with more nodes than this is coarsened when the coarsening is left to the tool ("auto") and the field's
+#: errors are correlated enough (:data:`AUTO_MIN_KEPT`): the paper-resolution hood (188,730 nodes), not the built-in
+#: default (its scans' correlation sums are smaller: a quarter of its nodes costs 16-20 % of std, run 20 B)
 AUTO_MIN_NODES = 100_000
 #: the stride "auto" takes: a quarter of the nodes (a ninth costs 6-8 % of std at paper resolution, run 20 B)
 AUTO_STRIDE = 2
+#: "auto" coarsens a field only where its error model keeps at least this share of the information (inverse variance)
+#: on the kept nodes (:func:`information_kept`): a scan's smoothed field at paper resolution keeps all of it (g ~ 10);
+#: a white one keeps a quarter (its std doubles), so it is fitted on every node
+AUTO_MIN_KEPT = 0.9
+#: the least number of kept nodes per column a coarsened fit and its test must estimate (the span's fields, the
+#: test's smooth and rigid-body modes), so that the residual keeps three times the fitted columns' degrees of freedom:
+#: fewer and the kept nodes cannot tell the fields apart (a 40-node stride on the coarse hood kept 4 nodes for 6
+#: parameters and stated 1e-7 mm for errors of 1 mm)
+MIN_NODES_PER_COLUMN = 4
 #: the singular values of a span's rows on the kept nodes below this fraction of the largest are not lifted (their
 #: fields are round-off on every node: a contact-aware span's numerical rank is 66 of 68 at 1e-10 on the paper hood)
 LIFT_RCOND = 1e-10
 
 
-def coarsening_stride(coarsen: int | str, n_nodes: int, components: str = "normal") -> int:
+def information_kept(errors: FieldErrorModel, stride: int) -> float:
+    """The share of a field's information (inverse variance of a smooth field's fit) a ``stride`` keeps, predicted
+    from its error model: the median over its nodes of g / (s^2 g'), g the node's correlation sum and g' the kept
+    nodes' (:func:`kept_correlation` at a fraction 1 / s^2). 1 where the correlation spans many kept nodes, 1 / s^2 for
+    white noise; 0 for a field without an error model (its level comes from its own residual, whose white part a
+    stride thins alike)."""
+    correlation = np.asarray(errors.correlation, dtype=float)
+    correlation = correlation[np.isfinite(correlation)]
+    if errors.kind == "none" or correlation.size == 0:
+        return 0.0
+    ratio = 1.0 / stride**2
+    return float(np.median(correlation / (kept_correlation(correlation, ratio) / ratio)))
+
+
+def coarsening_stride(coarsen: int | str, n_nodes: int, components: str = "normal",
+                      errors: FieldErrorModel | None = None) -> int:
     """The stride to use: ``coarsen`` an int >= 1 (1: every node), or "auto": :data:`AUTO_STRIDE` for a skin of more
-    than :data:`AUTO_MIN_NODES` nodes fitted on its normal component, else 1. Raises BasisError for anything else
-    and for a stride > 1 with ``components`` "xyz" (a three-component fit is not coarsened)."""
+    than :data:`AUTO_MIN_NODES` nodes fitted on its normal component, for a field whose ``errors`` keep at least
+    :data:`AUTO_MIN_KEPT` of its information on the kept nodes (:func:`information_kept`; None: a field not known
+    yet, taken as a scan's), else 1. Raises BasisError for anything else and for a stride > 1 with ``components``
+    "xyz" (a three-component fit is not coarsened)."""
     if isinstance(coarsen, str):
         if coarsen != "auto":
             raise BasisError(f"coarsening must be 'auto' or a stride >= 1, got {coarsen!r}")
-        return AUTO_STRIDE if n_nodes > AUTO_MIN_NODES and components == "normal" else 1
+        wanted = n_nodes > AUTO_MIN_NODES and components == "normal"
+        keeps = errors is None or information_kept(errors, AUTO_STRIDE) >= AUTO_MIN_KEPT
+        return AUTO_STRIDE if wanted and keeps else 1
     if isinstance(coarsen, bool) or not isinstance(coarsen, (int, np.integer)) or coarsen < 1:
         raise BasisError(f"coarsening stride must be an integer >= 1 or 'auto', got {coarsen!r}")
     if coarsen > 1 and components != "normal":
@@ -124,6 +155,8 @@ def kept_correlation(correlation: np.ndarray | float, ratio: float) -> np.ndarra
     on a coarse-hood field smoothed by three one-ring passes (g = 20) a quarter keeps 5.0 and a ninth 2.2, as the
     estimates' spread shows, where 1 + (g - 1) x ratio (5.8, 3.1) over-stated their std by 7 and 20 %."""
     g = np.maximum(np.asarray(correlation, dtype=float), 1.0)
+    if not np.any(g > 1.0):  # white noise (a stated level): nothing to thin, and the interpolation costs 0.3 ms
+        return g
     return np.interp(g, _SUMS[::-1], _kept_sums(float(ratio))[::-1])
 
 
