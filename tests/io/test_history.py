@@ -145,6 +145,7 @@ def test_a_new_history_never_shows_a_file_without_its_tables(tmp_path):
     path = tmp_path / "live.sqlite"
     seen: list[set[str]] = []
     stop = threading.Event()
+    looked = threading.Event()
 
     def watch() -> None:
         while not stop.is_set():
@@ -154,6 +155,7 @@ def test_a_new_history_never_shows_a_file_without_its_tables(tmp_path):
                 db = sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=1)
                 try:
                     seen.append({row[0] for row in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")})
+                    looked.set()
                 finally:
                     db.close()
             except sqlite3.OperationalError:  # the file went between exists() and open: the loop unlinks it
@@ -163,7 +165,9 @@ def test_a_new_history_never_shows_a_file_without_its_tables(tmp_path):
     watcher.start()
     try:
         for _ in range(40):
+            looked.clear()
             History(path).open().close()
+            looked.wait(5.0)  # on a loaded machine the watcher may not run between a creation and its unlink
             path.unlink()
     finally:
         stop.set()
