@@ -53,6 +53,39 @@ def test_a_coarsened_estimate_of_a_model_member_is_its_state_and_its_field_on_ev
     assert bases.coarsened(stride).nodes.size < n_nodes / (stride**2 - 1)
 
 
+def test_a_warm_parts_coarsened_estimate_is_its_state_and_field(coarse_hood):
+    """A part 5 K off the reference temperature: the bases carry the FE model's thermal response (core.fe.solver
+    physical_responses, the solver's own thermal load), the truth is a member of the warm model (the thermal field in
+    the load case, its pad springs moved), and its field is estimated with temperature_k 5 on a quarter of the nodes:
+    the contact-aware estimate returns the state of the bilateral and touching boundaries (measured <= 1e-15 mm),
+    every value as the estimate on every node does (a lifted pad's position is stated 0.0047 mm below the warm
+    member's there, alike), and the member's field on every node (<= 1e-11 mm); the paper's estimator, given a PCA
+    field plus the thermal field, its pre-factors' state. Fails if the kept bases' thermal rows, the lift's warm
+    offset or the PCA's thermal field on every node are wrong."""
+    import dataclasses
+
+    from hood_decomp.core.fe.solver import physical_responses
+
+    w, z, w3 = physical_responses(coarse_hood.solver)["thermal"]
+    bases = dataclasses.replace(coarse_hood.bases, thermal=(w, z, w3))
+    warm = bases.at_temperature(5.0)
+    rng = np.random.default_rng(31)
+    members = solve_members(warm, rng.uniform(bases.pca.lower_, bases.pca.upper_, (2, len(bases.names))))
+    for k in range(2):
+        estimate = estimate_field(bases, _field(bases, members.normal_displacement[k]), temperature_k=5.0, coarsen=2)
+        full = estimate_field(bases, _field(bases, members.normal_displacement[k]), temperature_k=5.0, coarsen=1)
+        touching = ~estimate.lifted  # a lifted pad's part position is stated in the reference frame (every node alike)
+        np.testing.assert_allclose(estimate.values[touching], members.effective[k][touching], atol=1e-9)
+        np.testing.assert_allclose(estimate.values, full.values, atol=1e-9)
+        np.testing.assert_allclose(estimate.reconstruction, members.normal_displacement[k], atol=1e-9)
+    pre_factors = rng.normal(0.0, 0.3, bases.pca.n_components_)
+    values = bases.pca.mean_field_ + pre_factors @ bases.pca.components_ + 5.0 * w
+    estimate = estimate_field(bases, _field(bases, values), "pca", temperature_k=5.0, coarsen=2)
+    np.testing.assert_allclose(estimate.values, bases.pca.mean_state_ + pre_factors @ bases.pca.component_states_,
+                               atol=1e-12)
+    assert bases.coarsened(2).kept.reduced_model.R_3d.shape[0] == 0  # a coarsened fit keeps no 3D responses
+
+
 def test_a_coarsened_estimate_states_its_own_spread_on_correlated_noise(coarse_hood):
     """Members with noise smoothed by three one-ring passes (correlation sum about 20, known exactly), 150 fields:
     the estimates on every node, a quarter and a ninth of the nodes. Measured (200 fields): the coarsened estimates'

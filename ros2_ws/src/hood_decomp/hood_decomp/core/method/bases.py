@@ -366,7 +366,8 @@ class CoarsenedBases:
 
     stride: cells of ``stride`` node spacings; nodes: (n,) the kept node indices of the whole skin; kept: the bases
     on them (their skin has no triangles: the within-model test's one-ring part uses :func:`~.coarsening.kept_rings`;
-    a scan is read on the whole skin first, so they carry no reading of their own).
+    a scan is read on the whole skin first, so they carry no reading of their own; a coarsened fit is of the normal
+    component, so their 3D fields and responses are empty).
     """
 
     stride: int
@@ -394,7 +395,7 @@ class CoarsenedBases:
         def rows(array: np.ndarray | None) -> np.ndarray | None:
             return None if array is None else np.asarray(array)[nodes]
 
-        thermal = None if bases.thermal is None else (rows(bases.thermal[0]), bases.thermal[1], rows(bases.thermal[2]))
+        thermal = None if bases.thermal is None else (rows(bases.thermal[0]), bases.thermal[1], bases.thermal[2][:0])
         kept = dataclasses.replace(
             bases, skin=kept_skin, pca=bases.pca.on_nodes(nodes),
             reduced_model=None if bases.reduced_model is None else bases.reduced_model.on_nodes(nodes),

@@ -61,9 +61,10 @@ class PhysicalResponses:
         return PhysicalResponses(gw, gz, g3, tw, tz, t3, thickness, np.asarray(thermal_moves, float))
 
     def on_nodes(self, nodes: np.ndarray) -> PhysicalResponses:
-        """These responses on the kept skin ``nodes`` (n,) (a coarsened estimate, :mod:`.coarsening`)."""
-        return PhysicalResponses(self.gas_w[nodes], self.gas_z, self.gas_w3[nodes], self.thermal_w[nodes],
-                                 self.thermal_z, self.thermal_w3[nodes],
+        """These responses' normal skin values on the kept skin ``nodes`` (n,) (a coarsened estimate, of the normal
+        component: :mod:`.coarsening`), their 3D values empty (0 nodes)."""
+        return PhysicalResponses(self.gas_w[nodes], self.gas_z, self.gas_w3[:0], self.thermal_w[nodes],
+                                 self.thermal_z, self.thermal_w3[:0],
                                  {group: sens.on_nodes(nodes) for group, sens in self.thickness.items()},
                                  self.thermal_moves)
 

@@ -148,14 +148,15 @@ class PCABasis:
         return stacked
 
     def on_nodes(self, nodes: np.ndarray) -> PCABasis:
-        """This basis on the kept skin ``nodes`` (n,) (a coarsened estimate, :mod:`~.coarsening`): its fields'
-        values there (mean_field_ (n,), components_ (K, n), their 3D fields) and their Gram over them; pre-factors,
-        states, reactions and the training residual (a per-node RMS) as they are. A copy; this basis is unchanged."""
+        """This basis on the kept skin ``nodes`` (n,) (a coarsened estimate, of the normal component:
+        :mod:`~.coarsening`): its normal fields' values there (mean_field_ (n,), components_ (K, n)) and their Gram over
+        them, its 3D fields empty (0 nodes); pre-factors, states, reactions and the training residual (a per-node RMS)
+        as they are. A copy; this basis is unchanged."""
         kept = copy.copy(self)
         kept.mean_field_ = self.mean_field_[nodes]
         kept.components_ = np.ascontiguousarray(self.components_[:, nodes])
-        kept.mean_field_3d_ = self.mean_field_3d_[nodes]
-        kept.components_3d_ = self.components_3d_[:, nodes]
+        kept.mean_field_3d_ = self.mean_field_3d_[:0]
+        kept.components_3d_ = self.components_3d_[:, :0]
         kept.gram_ = kept.components_ @ kept.components_.T
         return kept
 
