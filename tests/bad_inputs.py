@@ -8,7 +8,9 @@ and the reader fuzz tests (tests/io/test_fuzz_readers.py).
 from __future__ import annotations
 
 import dataclasses
+import os
 import shutil
+import threading
 from collections.abc import Callable
 from pathlib import Path
 
@@ -228,3 +230,26 @@ def mutated_copy(source: Path, target: Path, edit: Callable[[h5py.File], None]) 
     with h5py.File(target, "a") as h5:
         edit(h5)
     return target
+
+
+def outcome_without_blocking(read: Callable[[], object], fifo: os.PathLike) -> BaseException | None:
+    """What ``read()`` raised (None: it returned); a reader blocked on ``fifo`` for 10 s is unblocked (a writer opens
+    and closes it) and the test fails, rather than hangs."""
+    outcome: list[BaseException | None] = []
+
+    def run() -> None:
+        try:
+            read()
+            outcome.append(None)
+        except BaseException as error:  # handed to the test's thread
+            outcome.append(error)
+
+    reader = threading.Thread(target=run, daemon=True)
+    reader.start()
+    reader.join(10.0)
+    blocked = reader.is_alive()
+    if blocked:
+        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+        reader.join(10.0)
+    assert not blocked, f"the reader blocked on the FIFO {fifo}"
+    return outcome[0]

@@ -9,7 +9,6 @@ import os
 import resource
 import subprocess
 import sys
-import threading
 from dataclasses import replace
 
 import numpy as np
@@ -20,6 +19,7 @@ from hood_decomp.core.types import DisplacementField, FieldErrorModel
 from hood_decomp.errors import CalibrationError
 from hood_decomp.io.calibration_files import file_key, read_reference
 from hood_decomp.io.fields import write_field
+from tests.bad_inputs import outcome_without_blocking
 
 
 def _reference(directory, skin, values, setting):
@@ -77,25 +77,9 @@ def test_a_fifo_or_a_device_given_as_a_reference_is_refused_by_name(coarse_hood,
     hangs."""
     fifo = tmp_path / "ref.json"
     os.mkfifo(fifo)
-    outcome: list[BaseException | None] = []
-
-    def read() -> None:
-        try:
-            read_reference(fifo, coarse_hood.bases)
-            outcome.append(None)
-        except BaseException as error:  # handed to the test's thread
-            outcome.append(error)
-
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
-    reader.join(10.0)
-    blocked = reader.is_alive()
-    if blocked:
-        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
-        reader.join(10.0)
-    assert not blocked, "read_reference blocked on a FIFO"
-    assert isinstance(outcome[0], CalibrationError) and "is a FIFO, not a regular file" in str(outcome[0]), outcome
-    assert "\n" not in str(outcome[0])
+    error = outcome_without_blocking(lambda: read_reference(fifo, coarse_hood.bases), fifo)
+    assert isinstance(error, CalibrationError) and "is a FIFO, not a regular file" in str(error), error
+    assert "\n" not in str(error)
     run = _read_in_a_bounded_process("/dev/zero")
     assert "CalibrationError: reference file /dev/zero is a character device, not a regular file" in run.stderr, (
         run.stderr[-2000:])

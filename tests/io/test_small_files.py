@@ -9,14 +9,13 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import threading
-from collections.abc import Callable
 
 import pytest
 
 from hood_decomp.errors import CalibrationError, FieldError, ModelError, ScanError
 from hood_decomp.io.model_files import load_model
 from hood_decomp.io.poses import MAX_POSE_FILE_BYTES, read_pose_file
+from tests.bad_inputs import outcome_without_blocking
 
 
 @pytest.mark.parametrize(("reader", "error", "name"), [
@@ -41,29 +40,6 @@ def test_a_pose_file_over_its_bound_is_refused(tmp_path):
         read_pose_file(path)
     path.write_text(numbers)
     assert read_pose_file(path).shape == (4, 4)
-
-
-def _outcome_without_blocking(read: Callable[[], object], fifo: os.PathLike) -> BaseException | None:
-    """What ``read()`` raised (None: it returned); a reader blocked on ``fifo`` for 10 s is unblocked (a writer opens
-    and closes it) and the test fails, rather than hangs."""
-    outcome: list[BaseException | None] = []
-
-    def run() -> None:
-        try:
-            read()
-            outcome.append(None)
-        except BaseException as error:  # handed to the test's thread
-            outcome.append(error)
-
-    reader = threading.Thread(target=run, daemon=True)
-    reader.start()
-    reader.join(10.0)
-    blocked = reader.is_alive()
-    if blocked:
-        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
-        reader.join(10.0)
-    assert not blocked, f"the reader blocked on the FIFO {fifo}"
-    return outcome[0]
 
 
 @pytest.mark.parametrize("kind", ["scans", "field"])
@@ -92,7 +68,7 @@ def test_a_reference_scan_or_field_swapped_for_a_fifo_after_its_check_is_refused
 
     monkeypatch.setattr(calibration_files, "file_key", swapping_file_key)
     bases = load_bases(tiny_workspace.bases)
-    error = _outcome_without_blocking(lambda: calibration_files.read_reference(tmp_path / "ref.json", bases), named)
+    error = outcome_without_blocking(lambda: calibration_files.read_reference(tmp_path / "ref.json", bases), named)
     assert named.is_fifo(), "the swap did not happen: the test proves nothing"
     assert isinstance(error, CalibrationError) and f"{named} is a FIFO, not a regular file" in str(error), error
     assert "\n" not in str(error)
@@ -108,7 +84,7 @@ def test_the_scan_and_field_readers_refuse_a_fifo_and_a_device(tmp_path, suffix,
     reader = read_scan if suffix == ".ply" else read_field
     fifo = tmp_path / f"part{suffix}"
     os.mkfifo(fifo)
-    outcome = _outcome_without_blocking(lambda: reader(fifo), fifo)
+    outcome = outcome_without_blocking(lambda: reader(fifo), fifo)
     assert isinstance(outcome, error) and "is a FIFO, not a regular file" in str(outcome), outcome
     with pytest.raises(error, match="/dev/zero is a character device, not a regular file"):
         reader("/dev/zero")

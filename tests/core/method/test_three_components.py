@@ -118,6 +118,14 @@ def test_fields_xyz_cannot_fit_are_refused_by_name(coarse_hood, members) -> None
     assert estimate_field(bases, field).components == "normal"
 
 
+def tangential_bend(skin, peak_mm: float) -> np.ndarray:
+    """(N, 3) mm, a smooth in-plane field the model does not make, peak ``peak_mm``, its normal part taken out."""
+    x = (skin.points - skin.points.mean(axis=0)) / np.ptp(skin.points, axis=0).max()
+    bend = np.stack([x[:, 1] ** 2, x[:, 0] * x[:, 1], np.zeros(len(x))], axis=1)
+    bend -= np.sum(bend * skin.normals, axis=1, keepdims=True) * skin.normals
+    return bend * (peak_mm / np.abs(bend).max())
+
+
 @pytest.mark.parametrize("method", ["contact", "pca"])
 def test_an_in_plane_effect_the_model_lacks_fails_the_xyz_test_only(coarse_hood, members, method) -> None:
     """A smooth in-plane field the model does not make (0.02 mm, tangential: no normal part) added to a state of the
@@ -125,11 +133,7 @@ def test_an_in_plane_effect_the_model_lacks_fails_the_xyz_test_only(coarse_hood,
     within-model test; the three-component fit's test (the skin's, on each component of the stacked residual)
     rejects it, and passes the same field without it."""
     _, block = members
-    skin = coarse_hood.skin
-    x = (skin.points - skin.points.mean(axis=0)) / np.ptp(skin.points, axis=0).max()
-    bend = np.stack([x[:, 1] ** 2, x[:, 0] * x[:, 1], np.zeros(len(x))], axis=1)
-    bend -= np.sum(bend * skin.normals, axis=1, keepdims=True) * skin.normals
-    bend *= 0.02 / np.abs(bend).max()
+    bend = tangential_bend(coarse_hood.skin, 0.02)
     noise = np.random.default_rng(7).normal(0.0, 0.003, bend.shape)
     clean = field_3d(coarse_hood, block.displacement[1] + noise)
     lacking = field_3d(coarse_hood, block.displacement[1] + noise + bend)
@@ -187,10 +191,7 @@ def test_residual_rms_and_max_are_the_reported_normal_residuals(coarse_hood, mem
     definition before, was 0.0137 mm here against the normal 0.0022)."""
     _, block = members
     skin = coarse_hood.skin
-    x = (skin.points - skin.points.mean(axis=0)) / np.ptp(skin.points, axis=0).max()
-    bend = np.stack([x[:, 1] ** 2, x[:, 0] * x[:, 1], np.zeros(len(x))], axis=1)
-    bend -= np.sum(bend * skin.normals, axis=1, keepdims=True) * skin.normals
-    bend *= 0.05 / np.abs(bend).max()
+    bend = tangential_bend(skin, 0.05)
     vectors = block.displacement[1] + bend
     vectors[:40] = np.nan  # unseen nodes are not counted
     normal = np.einsum("na,na->n", vectors, skin.normals)
