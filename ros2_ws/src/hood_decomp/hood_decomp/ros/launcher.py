@@ -29,6 +29,9 @@ BRING_UP_TIMEOUT_S = 120.0
 #: process: discovery of a running participant can wait for its next announcement (Fast DDS: every 3 s), then the
 #: heartbeat comes within 1 s. Measured (quiet): an existing namesake first heard 0.3, 3.4 and 3.4 s after the start.
 NAMESAKE_LISTEN_S = 5.0
+#: seconds after which bring-up asks a node's state again when no answer came (Participant.call's resend_s: a new
+#: client's first response can be dropped by Fast DDS before it has matched the client)
+GET_STATE_RESEND_S = 5.0
 
 
 def node_executable(name: str) -> str:
@@ -125,7 +128,8 @@ def bring_up(nodes: Sequence[str] = NODE_EXECUTABLES, timeout_s: float = BRING_U
                 return process is not None and process.poll() is not None
 
             started = time.monotonic()
-            state = peer.call(f"/{name}/get_state", GetState, GetState.Request(), deadline - time.monotonic(), ended)
+            state = peer.call(f"/{name}/get_state", GetState, GetState.Request(), deadline - time.monotonic(), ended,
+                              resend_s=GET_STATE_RESEND_S)
             if state is None:
                 failures[executable] = (f"exited with status {process.returncode}" if ended() else
                                         no_answer(f"/{name}/get_state", started))
@@ -141,6 +145,12 @@ def bring_up(nodes: Sequence[str] = NODE_EXECUTABLES, timeout_s: float = BRING_U
                 response = peer.call(f"/{name}/change_state", ChangeState,
                                      ChangeState.Request(transition=Transition(id=transition)),
                                      max(1.0, deadline - time.monotonic()), ended)
+                if response is None and not ended():  # its answer may be what Fast DDS dropped: ask the state
+                    reached = peer.call(f"/{name}/get_state", GetState, GetState.Request(),
+                                        max(1.0, deadline - time.monotonic()), ended, resend_s=GET_STATE_RESEND_S)
+                    target = "inactive" if transition == Transition.TRANSITION_CONFIGURE else "active"
+                    if reached is not None and reached.current_state.label == target:
+                        continue
                 if response is None or not response.success:
                     key = f"hood_decomp/{name}"
                     peer.wait(lambda k=key: k in reasons, 2.0)  # the reason comes on /diagnostics

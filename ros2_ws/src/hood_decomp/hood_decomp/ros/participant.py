@@ -56,17 +56,25 @@ class Participant:
         return received
 
     def call(self, service: str, cls: type, request: Any, seconds: float,
-             give_up: Callable[[], bool] = lambda: False) -> Any:
+             give_up: Callable[[], bool] = lambda: False, resend_s: float | None = None) -> Any:
         """Call a service once its server is there; the response, or None when none came within ``seconds`` (or
-        ``give_up()`` became true first, e.g. the server's process ended)."""
+        ``give_up()`` became true first, e.g. the server's process ended). ``resend_s``: for a request that may be
+        repeated (a query), send it again after so many seconds without an answer: a new client's request can reach
+        the server before the server's response writer has matched the client's reader, and Fast DDS then drops the
+        response ("failed to send response (timeout): client will not receive response"; seen once in 1,285 tests)."""
         deadline = time.monotonic() + seconds
         client = self.node.create_client(cls, service)
         try:
             if not self.wait(lambda: client.service_is_ready() or give_up(), seconds) or give_up():
                 return None
-            future = client.call_async(request)
-            self.wait(lambda: future.done() or give_up(), max(0.0, deadline - time.monotonic()))
-            return future.result() if future.done() else None
+            futures = [client.call_async(request)]
+            while not self.wait(lambda: any(f.done() for f in futures) or give_up(),
+                                max(0.0, min(deadline, time.monotonic() + (resend_s or seconds)) - time.monotonic())):
+                if resend_s is None or give_up() or time.monotonic() >= deadline:
+                    break
+                futures.append(client.call_async(request))
+            done = [f for f in futures if f.done()]
+            return done[0].result() if done else None
         finally:
             self.node.destroy_client(client)
 
