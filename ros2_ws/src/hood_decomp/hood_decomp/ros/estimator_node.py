@@ -88,7 +88,8 @@ class EstimatorNode(ReferencedNode):
                 "without an error model; other fields are refused)")
         declare(self, "min_coverage", 0.6, "smallest seen fraction of the skin to act on", 0.0, 1.0)
         declare(self, "coarsen", "auto", "the paper's coarsening of the input field: 'auto' (a quarter of the nodes "
-                "of a skin above 100,000 nodes, every node otherwise) or an integer stride >= 1 (1: every node)")
+                "of a scan's field on a skin above 100,000 nodes, every node otherwise) or an integer stride >= 1 "
+                "(1: every node)")
         declare(self, "max_std_mm", CorrectionPolicy.max_std_mm, "largest uncertainty (mm, 1 sigma) to act on",
                 0.0, 100.0)
         declare(self, "range_tolerance_mm", 0.02, "tolerance (mm) on the declared parameter ranges", 0.0, 10.0)

@@ -57,13 +57,14 @@ def information_kept(errors: FieldErrorModel, stride: int) -> float:
     from its error model: the median over its nodes of g / (s^2 g'), g the node's correlation sum and g' the kept
     nodes' (:func:`kept_correlation` at a fraction 1 / s^2). 1 where the correlation spans many kept nodes, 1 / s^2 for
     white noise; 0 for a field without an error model (its level comes from its own residual, whose white part a
-    stride thins alike)."""
+    stride thins alike). The share grows with g, so it is taken at the median g (one value, not one per node)."""
     correlation = np.asarray(errors.correlation, dtype=float)
     correlation = correlation[np.isfinite(correlation)]
     if errors.kind == "none" or correlation.size == 0:
         return 0.0
     ratio = 1.0 / stride**2
-    return float(np.median(correlation / (kept_correlation(correlation, ratio) / ratio)))
+    g = float(np.median(correlation))
+    return g * ratio / float(kept_correlation(g, ratio))
 
 
 def coarsening_stride(coarsen: int | str, n_nodes: int, components: str = "normal",
@@ -76,9 +77,9 @@ def coarsening_stride(coarsen: int | str, n_nodes: int, components: str = "norma
     if isinstance(coarsen, str):
         if coarsen != "auto":
             raise BasisError(f"coarsening must be 'auto' or a stride >= 1, got {coarsen!r}")
-        wanted = n_nodes > AUTO_MIN_NODES and components == "normal"
-        keeps = errors is None or information_kept(errors, AUTO_STRIDE) >= AUTO_MIN_KEPT
-        return AUTO_STRIDE if wanted and keeps else 1
+        wanted = n_nodes > AUTO_MIN_NODES and components == "normal"  # asked first: the error model costs a median
+        keeps = wanted and (errors is None or information_kept(errors, AUTO_STRIDE) >= AUTO_MIN_KEPT)
+        return AUTO_STRIDE if keeps else 1
     if isinstance(coarsen, bool) or not isinstance(coarsen, (int, np.integer)) or coarsen < 1:
         raise BasisError(f"coarsening stride must be an integer >= 1 or 'auto', got {coarsen!r}")
     if coarsen > 1 and components != "normal":
@@ -167,15 +168,11 @@ def restricted_errors(errors: FieldErrorModel, nodes: np.ndarray, n_nodes: int) 
     if errors.kind == "none":
         return errors
     ratio = nodes.size / n_nodes
-
-    def kept(correlation):
-        return kept_correlation(correlation, ratio)
-
     views = tuple(dataclasses.replace(view, weight=np.asarray(view.weight)[nodes]) for view in errors.view_poses)
-    return dataclasses.replace(
-        errors, node_std=np.asarray(errors.node_std)[nodes], correlation=kept(np.asarray(errors.correlation)[nodes]),
-        bias_correlation=float(kept(errors.bias_correlation)) if errors.bias_correlation > 0 else 0.0,
-        view_poses=views)
+    bias = float(kept_correlation(errors.bias_correlation, ratio)) if errors.bias_correlation > 0 else 0.0
+    return dataclasses.replace(errors, node_std=np.asarray(errors.node_std)[nodes],
+                               correlation=kept_correlation(np.asarray(errors.correlation)[nodes], ratio),
+                               bias_correlation=bias, view_poses=views)
 
 
 def restricted_field(field: DisplacementField, nodes: np.ndarray) -> DisplacementField:
