@@ -27,6 +27,8 @@ def test_a_coarsened_estimate_of_a_simulated_field_finds_its_setting(tiny_worksp
     for name, value in SETTING.items():
         assert abs(coarse["parameters_mm"][name] - value) < 1e-6
     assert coarse["coarsening"]["stride"] == 2
+    # the test ran on the kept nodes (not only the JSON's own account of the stride)
+    assert coarse["within_model_test"]["effective_samples"] < auto["within_model_test"]["effective_samples"] / 3
     assert coarse["coarsening"]["fitted_nodes"] < coarse["coarsening"]["nodes"] / 3
     assert auto["coarsening"] == {"stride": 1, "fitted_nodes": auto["coarsening"]["nodes"],
                                   "nodes": coarse["coarsening"]["nodes"]}
