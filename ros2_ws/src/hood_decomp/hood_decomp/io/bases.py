@@ -214,9 +214,10 @@ def _write_physics(h5: h5py.File, content_id: str, physics: PhysicalResponses) -
         _write_array(group, name, values)
 
 
-def _read_physics(read: Reader, content_id: str, reduced: ReducedModel | None) -> PhysicalResponses:
+def _read_physics(read: Reader, content_id: str, reduced: ReducedModel | None) -> tuple[PhysicalResponses, bool]:
     """The optional /physics group's normal and pad parts, checked (kinds, named shapes, finite, distinct sheet
-    groups, the content matching ``physics_id``); its 3D parts are read by the returned responses'
+    groups), and whether their content matches ``physics_id`` (checked by the caller after ``bases_id``, so that a
+    rewritten bases_id is named as such); its 3D parts are read by the returned responses'
     :meth:`~PhysicalResponses.with_3d` (:func:`_read_physics_3d`)."""
     if reduced is None:
         raise BasisError(f"{read.path}: /physics needs the reduced model, which the file lacks")
@@ -231,9 +232,7 @@ def _read_physics(read: Reader, content_id: str, reduced: ReducedModel | None) -
         f"thickness_{name}": read.array(f"physics/thickness_{name}", ("G", *_REDUCED_DIMS[name]))
         for name in _THICKNESS_NORMAL}
     stored = read.attr("physics", "physics_id", "str")
-    if physics_id(content_id, groups, arrays) != stored:
-        raise BasisError(f"{read.path}: physics do not match their physics_id {stored!r} (edited after they were "
-                         "written, or taken from other bases); rebuild the file with `hood-decomp bases --model`")
+    matches = physics_id(content_id, groups, arrays) == stored
     empty = {name: getattr(reduced, name)[:0] for name in _THICKNESS_3D}  # not read: as ReducedModel.on_nodes
     thickness = {group: replace(reduced, **{name: arrays[f"thickness_{name}"][i] for name in _THICKNESS_NORMAL},
                                 **empty) for i, group in enumerate(groups)}
@@ -241,7 +240,7 @@ def _read_physics(read: Reader, content_id: str, reduced: ReducedModel | None) -
                                arrays["thermal_z"], np.zeros((0, 3)), thickness, arrays["thermal_moves"])
     sizes, path, mapped = {dim: read.dims[dim][0] for dim in ("N", "B", "S", "G")}, read.path, read.mapped
     return replace(normal, load_3d=functools.cache(
-        lambda: _read_physics_3d(path, content_id, stored, normal, sizes, mapped)))
+        lambda: _read_physics_3d(path, content_id, stored, normal, sizes, mapped))), matches
 
 
 def _read_physics_3d(path: Path, content_id: str, normal_id: str, normal: PhysicalResponses, sizes: dict[str, int],
@@ -502,7 +501,7 @@ def load_bases(path: str | Path, mapped: bool = False) -> Bases:
         # optional (issue 17): acceptance criteria, outside bases_id, bound to it by their own zones_id
         zones = _read_zones(read, stored_id) if "tolerance_zones" in h5 else ()
         # optional (issue 15, session 21): the FE model's responses behind its physical factors
-        physics = _read_physics(read, stored_id, reduced) if "physics" in h5 else None
+        physics, physics_matches = _read_physics(read, stored_id, reduced) if "physics" in h5 else (None, True)
         measured: tuple[str, ...] = ()
         if "parameters/measured_effects" in h5:
             measured = read.strings("parameters/measured_effects", "M")
@@ -520,6 +519,9 @@ def load_bases(path: str | Path, mapped: bool = False) -> Bases:
     if bases_id(bases) != stored_id:
         raise BasisError(f"{path}: content does not match its bases_id {stored_id!r} (the file was altered after "
                          "it was written: a rewritten model_id or array); rebuild it with `hood-decomp bases`")
+    if not physics_matches:
+        raise BasisError(f"{path}: physics do not match their physics_id (edited after they were written, or taken "
+                         "from other bases); rebuild the file with `hood-decomp bases --model`")
     key = id(bases)
     _LOADED_IDS[key] = (weakref.ref(bases, lambda _: _LOADED_IDS.pop(key, None)), stored_id)
     if has_scan_skin:  # read when the first scan of this skin needs it (not for a field or a decomposition)
