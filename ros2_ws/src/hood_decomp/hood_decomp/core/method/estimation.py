@@ -24,7 +24,14 @@ from functools import cached_property
 import numpy as np
 
 from hood_decomp.core.method.pca import PCABasis
-from hood_decomp.core.method.residual import ResidualTest, check_residual, node_variance, split_level, weighted_gram
+from hood_decomp.core.method.residual import (
+    ResidualTest,
+    check_residual,
+    node_variance,
+    split_level,
+    uniform,
+    weighted_gram,
+)
 from hood_decomp.core.types import DisplacementField, FieldErrorModel, ModelCheck, ParameterEstimate
 from hood_decomp.errors import FieldError, ModelIdMismatchError
 
@@ -95,11 +102,6 @@ def valid_normal_matrix(fields: np.ndarray, gram: np.ndarray, valid: np.ndarray)
         return gram - part @ part.T
     part = fields[:, valid]
     return part @ part.T
-
-
-def uniform(values: np.ndarray) -> bool:
-    """Whether positive node values (n,) are one value to round-off (a white uniform error model)."""
-    return bool(np.ptp(values) <= 1e-12 * values.max())
 
 
 @dataclass(frozen=True)
@@ -251,7 +253,8 @@ def weighted_normal(fields: np.ndarray, gram: np.ndarray, valid: np.ndarray, spa
 def weighted_rhs(fields: np.ndarray, x: np.ndarray, valid: np.ndarray, weight: NodeWeight | None) -> np.ndarray:
     """fields (m, N) @ W x over the seen nodes, (m,) for x (N,) or (m, j) for x (N, j): W the field's weight, the
     identity for an ordinary fit (None)."""
-    x = np.where(valid if x.ndim == 1 else valid[:, None], x, 0.0)
+    if not valid.all():
+        x = np.where(valid if x.ndim == 1 else valid[:, None], x, 0.0)
     return fields @ x if weight is None else weight.project(fields, x)
 
 
@@ -275,9 +278,13 @@ def residual_stats(
     values: np.ndarray, reconstruction: np.ndarray, valid: np.ndarray
 ) -> tuple[np.ndarray, float, float]:
     """Residual (N,) mm, NaN where unseen, with its RMS and max-abs over the seen nodes."""
-    residual = np.where(valid, values - reconstruction, np.nan)
-    seen = residual[valid]
-    return residual, float(np.sqrt(np.mean(seen**2))), float(np.max(np.abs(seen)))
+    residual = values - reconstruction
+    if valid.all():  # no copy of the seen values (values are finite where valid)
+        seen = residual
+    else:
+        residual[~valid] = np.nan
+        seen = residual[valid]
+    return residual, float(np.sqrt(np.dot(seen, seen) / seen.size)), float(np.max(np.abs(seen)))
 
 
 def judge(
