@@ -64,9 +64,13 @@ def information_kept(errors: FieldErrorModel, stride: int) -> float:
     stride thins alike). The share grows with g, so it is taken at the median g (one value, not one per node), over
     every :data:`MEDIAN_STEP`-th node (a paper-resolution skin's median over all nodes was 2.7 ms of a scan's
     estimate, for a decision against :data:`AUTO_MIN_KEPT`)."""
+    if errors.kind == "none":
+        return 0.0
     correlation = np.asarray(errors.correlation, dtype=float)[::MEDIAN_STEP]
-    correlation = correlation[np.isfinite(correlation)]
-    if errors.kind == "none" or correlation.size == 0:
+    # over the seen nodes (a finite std): a scan's unseen nodes state a correlation sum of 1, and below about half
+    # coverage their 1 was the median
+    correlation = correlation[np.isfinite(correlation) & np.isfinite(np.asarray(errors.node_std)[::MEDIAN_STEP])]
+    if correlation.size == 0:
         return 0.0
     ratio = 1.0 / stride**2
     g = float(np.median(correlation))

@@ -289,12 +289,13 @@ def residual_stats(
 
 def judge(
     residual: np.ndarray, design: np.ndarray, errors: FieldErrorModel, test: ResidualTest | None, model_mm: float,
-    span: np.ndarray | None = None,
+    span: np.ndarray | None = None, local: bool = True,
 ) -> tuple[ModelCheck, np.ndarray | None, tuple[np.ndarray, np.ndarray] | None]:
     """The within-model test of a fit on ``design`` (N, p) (``test``'s when given, else the level test without
     smooth modes) and the low-rank field errors (N, k) the covariance adds (the field's registration modes and the
     calibrated model's discrepancy modes, :meth:`ResidualTest.error_modes`; None without either). span: (N, q) all the
-    fields the model can make, whose directions the smooth test leaves out (default: the design).
+    fields the model can make, whose directions the smooth test leaves out (default: the design). local: False
+    leaves the test's one-ring part out (:meth:`ResidualTest.check`).
 
     Without a ``test`` the estimator has no skin, so a registration covariance cannot reach the nodes and is left
     out (the covariance is then that of the field given its registration); the verbs and nodes always estimate
@@ -304,7 +305,7 @@ def judge(
     if test is None:
         return check_residual(residual, design, errors, model_mm=model_mm), None, None
     registration = test.registration(errors)
-    return (test.check(residual, design if span is None else span, errors, model_mm, registration),
+    return (test.check(residual, design if span is None else span, errors, model_mm, registration, local),
             test.error_modes(errors, registration), test.discrepancy_pair())
 
 
@@ -327,7 +328,9 @@ def fit_weight(
     weight = (variance * correlation)[valid]
     if not errors.has_pose and uniform(weight):
         return None, None, None  # the weight a multiple of I whatever the level: the ordinary fit
-    check, modes, pair = judge(np.where(valid, centred, np.nan), span, errors, test, model_mm)
+    # no one-ring part: where a field takes it (looks_at_fit), the fit's own residual is judged and this verdict
+    # dropped; only its level is used (at paper resolution the part's projection was 90-180 ms of a posed field)
+    check, modes, pair = judge(np.where(valid, centred, np.nan), span, errors, test, model_mm, local=False)
     # the registration is weighed (the first of the error modes), a calibrated model's discrepancy and its
     # calibration's own error only stated: they are estimated from a handful of calibration entries, and a fit that
     # leans away from their span leans on what the estimate missed (on 40 CalculiX parts of the coarse hood 68 % of

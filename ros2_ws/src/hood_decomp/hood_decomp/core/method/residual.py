@@ -465,24 +465,40 @@ def check_residual(
         if registration is None:
             local = residual
         else:  # the fit leaves the registration's part outside the fitted directions: both are fitted out
-            local = without_modes(residual, registration if design is None else np.hstack([design, registration]),
-                                  seen)
+            columns = [registration] if design is None else [np.asarray(design, float), registration]
+            gram = None
+            if seen_gram is not None and modes is not None:  # [design, modes, registration, ...]: two blocks
+                p, m = (0 if design is None else np.shape(design)[1]), modes.shape[1]
+                keep = np.r_[0:p, p + m:p + m + n_registration]
+                gram = seen_gram[np.ix_(keep, keep)]
+            local = without_modes(residual, columns, seen, gram)
         p_value = min(1.0, 2.0 * min(p_value, local_p_value(rings, local, node_variance_mm2, nu, smooth_mm2,
                                                             discrepancy_dof)))
     return ModelCheck(statistic, m, nu, p_value, float(alpha), p_value >= alpha, scale, source, n_effective, bias)
 
 
-def without_modes(residual: np.ndarray, modes: np.ndarray, seen: np.ndarray) -> np.ndarray:
-    """(N,) mm: ``residual`` (N,) mm (NaN where unseen) less its least-squares fit by ``modes`` (N, k) on the
-    ``seen`` nodes (N,) bool. The one-ring part of the test takes a field's registration error out so (with the
+def without_modes(residual: np.ndarray, columns: list[np.ndarray], seen: np.ndarray,
+                  gram: np.ndarray | None = None) -> np.ndarray:
+    """(N,) mm: ``residual`` (N,) mm (NaN where unseen) less its least-squares fit on the ``seen`` nodes (N,) bool by
+    the columns of the blocks ``columns`` (each (N, k_i)), whose Gram over the seen nodes is ``gram`` when the caller
+    has it (None: formed here). The one-ring part of the test takes a field's registration error out so (with the
     fitted directions: a fit's residual holds the pose error's part outside them, U z less its fit, which only the
     two together take out): a pose error moves the whole skin rigidly, never locally, yet its ring means stand out
     against a one-ring mean's noise (white 0.01 mm noise with a stated pose error of up to 0.05 mm over the skin
-    alarmed on 137 of 200 draws); k fitted columns of N nodes leave the noise as it was."""
-    on_seen = np.where(seen[:, None], modes, 0.0)
-    gram = on_seen.T @ on_seen
-    coefficients = np.linalg.pinv(gram, rcond=1e-12, hermitian=True) @ (on_seen.T @ np.where(seen, residual, 0.0))
-    return residual - modes @ coefficients
+    alarmed on 137 of 200 draws); k fitted columns of N nodes leave the noise as it was. The Gram is scaled to unit
+    diagonal before its pseudo-inverse, so columns of very different size are judged by their angles."""
+    r = np.where(seen, residual, 0.0)
+    if gram is None:
+        gram = weighted_gram(seen.astype(float), *columns)
+    rhs = np.concatenate([block.T @ r for block in columns])  # unseen rows of the blocks meet r's zeros
+    scale = np.sqrt(np.clip(np.diag(gram), 0.0, None))
+    scale[scale == 0.0] = 1.0
+    coefficients = np.linalg.pinv(gram / np.outer(scale, scale), rcond=1e-12, hermitian=True) @ (rhs / scale) / scale
+    fitted, start = np.zeros_like(r), 0
+    for block in columns:
+        fitted += block @ coefficients[start:start + block.shape[1]]
+        start += block.shape[1]
+    return residual - fitted
 
 
 def net_discrepancy(discrepancy: np.ndarray, noise: np.ndarray) -> np.ndarray:
@@ -510,7 +526,7 @@ def local_p_value(rings: sp.csr_matrix, residual: np.ndarray, variance_mm2: np.n
                   smooth_mm2: np.ndarray | None = None, smooth_dof: float = np.inf) -> float:
     """p-value of the largest one-ring mean residual under the model.
 
-    rings: (N, N) :func:`ring_incidence` (every stored entry 1). residual: (N,) mm, NaN where unseen.
+    rings: (N, N) :func:`ring_incidence`, CSR with every stored entry 1. residual: (N,) mm, NaN where unseen.
     variance_mm2: (N,) each seen node's variance under the model (noise level x node variance x correlation + model
     floor). The one-ring mean a_i over
     the seen nodes of ring i has variance sum_j v_j / n_i^2 (the correlation sum stands for the nodes' mutual
@@ -521,6 +537,8 @@ def local_p_value(rings: sp.csr_matrix, residual: np.ndarray, variance_mm2: np.n
     its estimate (a calibration's entries), with which each ring's t takes the Welch-Satterthwaite degrees of
     freedom of its two estimated variances."""
     seen = np.isfinite(residual)
+    if not seen.any():
+        return 1.0
     everywhere = bool(seen.all())
     # each sparse product is a pass over the rings' 7 N entries (1.7 ms at paper resolution): a field seen everywhere
     # has the rings' sizes as counts, and a uniform node variance (white noise) the counts times it as levels
@@ -738,12 +756,14 @@ class ResidualTest:
         return self._tested
 
     def check(self, residual: np.ndarray, design: np.ndarray | None, errors: FieldErrorModel,
-              model_mm: float = 0.0, registration: np.ndarray | None = None) -> ModelCheck:
+              model_mm: float = 0.0, registration: np.ndarray | None = None, local: bool = True) -> ModelCheck:
         """:func:`check_residual` with this skin's modes, registration and discrepancy modes and this test's
         alpha. registration: :meth:`registration` of ``errors`` when the caller made it already (at paper resolution
         the modes cost 6 ms of a 70 ms estimate of a scan); no other modes (the kept Gram, :meth:`_seen_gram`, is
-        carried by the error model's own pose mixing)."""
-        rings = self.rings() if self.looks_at_fit(errors) else None  # check_residual's local test needs it then
+        carried by the error model's own pose mixing). local: False leaves the one-ring part out (a check whose
+        verdict is not used, only its level: :func:`~.estimation.fit_weight`'s before the fit)."""
+        # check_residual's local test needs the rings then
+        rings = self.rings() if local and self.looks_at_fit(errors) else None
         if registration is None:
             registration = self.registration(errors)
         seen_gram = self._seen_gram(design, np.isfinite(residual), errors)
