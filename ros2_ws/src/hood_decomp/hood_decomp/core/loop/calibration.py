@@ -455,19 +455,20 @@ def correction_bootstrap(residual: np.ndarray, design: np.ndarray, sigma: float,
     draw of the noise, and that choice is most of the error (a fixed-subspace formula gave a quarter to a third of it
     along the bilateral gains; benchmarks/RESULTS.md, session 11). A bootstrap drawn around the fitted, truncated
     correction (sessions 11-20) has no such direction: what it dropped is not there for the noise to push over the
-    threshold, and what it kept lies far above it. On the coarse CalculiX stand-in (5 families) it stated 0.44-0.82 x
-    the variance a bootstrap centred on the noise-free entries states (the locks' 0.44-0.66), and 0.45-0.61 x the
-    variance measured (benchmarks/RESULTS.md, session 21).
+    threshold, and what it kept lies far above it. On the coarse CalculiX stand-in (10 families, along the bilateral
+    gains) it stated 0.40-0.65 x the variance measured (calibrated from the noisy entries against from the same
+    entries without their noise) and 0.41-0.83 x what a bootstrap centred on the noise-free entries states
+    (benchmarks/RESULTS.md, session 21).
     The centre here is the closest the entries give to T: the untruncated whitened fit Z = U S V^T with each squared
     singular value less what pure noise puts in that place of the order, s_i^2 - sigma^2 E[s_i^2 | noise]
-    (:func:`noise_singular_values`), clipped at 0: the noise's energy taken out where it sits. Measured against
-    the noise-free-centred bootstrap on the stand-in: 0.76-0.98 x; on known signals (numpy Monte Carlo of the
-    whole calibration): 1.00-1.22 x the actual, pure noise included. Each draw is the centre plus fresh noise,
-    truncated again, minus the centre truncated (the noise's deviation, not the centre's distance to the
-    calibration's own correction). Rejected, measured: the entries as measured (their noise counted twice: 1.1-1.4 x
-    the noise-free-centred on the stand-in, 63 x on pure noise, whose sqrt(2) sigma crosses the threshold); one
-    debiasing K sigma^2 for every singular value (0.56-0.82 x on the stand-in; 7 x on pure noise); deviations from
-    the draws' mean (less than the fitted centre's)."""
+    (:func:`noise_singular_values`), clipped at 0: the noise's energy taken out where it sits. On the stand-in:
+    0.83-0.93 x the variance measured, 0.84-1.18 x the noise-free-centred bootstrap; on known signals (numpy Monte
+    Carlo of the whole calibration): 1.00-1.22 x the actual, pure noise included. Each draw is the centre plus
+    fresh noise, truncated again, minus the centre truncated (the noise's deviation, not the centre's distance to
+    the calibration's own correction). Rejected, measured: the entries as measured (their noise counted twice:
+    1.07-1.57 x the noise-free-centred on the stand-in, 1.35-1.73 x on known hood-like signals, 63 x on pure noise,
+    whose sqrt(2) sigma crosses the threshold); one debiasing K sigma^2 for every singular value (0.58-0.76 x the
+    measured on the stand-in; 7 x on pure noise); deviations from the draws' mean (less than the fitted centre's)."""
     whitened, inverse_root = _whitened(residual, design)
     u, s, vt = np.linalg.svd(whitened, full_matrices=False)
     signal = np.sqrt(np.clip(s**2 - sigma**2 * noise_singular_values(*whitened.shape), 0.0, None))
