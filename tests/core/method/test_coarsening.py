@@ -185,14 +185,20 @@ def test_the_kept_correlation_sums_follow_a_gaussian_lattice():
 def test_auto_coarsens_only_large_skins_with_correlated_errors_and_bad_strides_are_named(coarse_hood):
     """"auto" keeps every node of the coarse hood; on a skin above AUTO_MIN_NODES fitted on its normal component it
     takes a quarter of the nodes of a field whose errors are correlated like a paper scan's (g = 10.4: the lattice
-    keeps all of its information) but not of a white one (a quarter of it: std x 2) nor of one without an error model;
-    a stride that is no integer >= 1, a stride > 1 with a three-component fit, and one that keeps fewer nodes than the
-    fit and its test need (40 on the coarse hood: 4 nodes for 6 parameters) are refused by name."""
+    keeps all of its information; also where the scan sees 40 % of the skin: red when its unseen nodes count) but
+    not of a white one (a quarter of it: std x 2) nor of one without an error model; a stride that is no integer >=
+    1, a stride > 1 with a three-component fit, and one that keeps fewer nodes than the fit and its test need (40 on
+    the coarse hood: 4 nodes for 6 parameters) are refused by name."""
     big = AUTO_MIN_NODES + 1
     scan_like = FieldErrorModel("scan", np.full(50, 0.02), np.full(50, 10.4), 7.8, bias_correlation=100.0)
     white = FieldErrorModel.stated(0.02, 50)
     assert information_kept(scan_like, 2) == pytest.approx(1.0, abs=0.01)
     assert information_kept(white, 2) == pytest.approx(0.25)
+    # a scan seeing 40 % of the skin: its unseen nodes (NaN std, correlation sum 1) are no nodes of the field
+    seen = np.arange(50) % 5 < 2
+    partial = FieldErrorModel("scan", np.where(seen, 0.02, np.nan), np.where(seen, 10.4, 1.0), 7.8,
+                              bias_correlation=100.0)
+    assert information_kept(partial, 2) == pytest.approx(1.0, abs=0.01)
     assert coarsening_stride("auto", 4736, errors=scan_like) == 1
     assert coarsening_stride("auto", big, errors=scan_like) == AUTO_STRIDE == 2
     assert coarsening_stride("auto", big) == 2  # a field not known yet is taken as a scan's

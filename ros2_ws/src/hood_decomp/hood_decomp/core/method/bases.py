@@ -231,7 +231,7 @@ class Bases:
         a coarsened estimate those of the coarsened bases and their lift), so that estimating then only reads it: a
         node before it serves, a one-off run while it reads its scan."""
         if scan:
-            self.reading().slide_terms  # noqa: B018 (made now, kept by the reading)
+            self.reading().prepare()
         # "auto" coarsens a scan's field at paper resolution, not a white or simulated one (coarsening_stride)
         stride = coarsening_stride(coarsen, self.skin.n_nodes, components, None if scan else FieldErrorModel.none())
         if stride > 1:

@@ -24,7 +24,14 @@ from functools import cached_property
 import numpy as np
 
 from hood_decomp.core.method.pca import PCABasis
-from hood_decomp.core.method.residual import ResidualTest, check_residual, node_variance, split_level, weighted_gram
+from hood_decomp.core.method.residual import (
+    ResidualTest,
+    check_residual,
+    node_variance,
+    split_level,
+    uniform,
+    weighted_gram,
+)
 from hood_decomp.core.types import DisplacementField, FieldErrorModel, ModelCheck, ParameterEstimate
 from hood_decomp.errors import FieldError, ModelIdMismatchError
 
@@ -95,11 +102,6 @@ def valid_normal_matrix(fields: np.ndarray, gram: np.ndarray, valid: np.ndarray)
         return gram - part @ part.T
     part = fields[:, valid]
     return part @ part.T
-
-
-def uniform(values: np.ndarray) -> bool:
-    """Whether positive node values (n,) are one value to round-off (a white uniform error model)."""
-    return bool(np.ptp(values) <= 1e-12 * values.max())
 
 
 @dataclass(frozen=True)
@@ -251,7 +253,8 @@ def weighted_normal(fields: np.ndarray, gram: np.ndarray, valid: np.ndarray, spa
 def weighted_rhs(fields: np.ndarray, x: np.ndarray, valid: np.ndarray, weight: NodeWeight | None) -> np.ndarray:
     """fields (m, N) @ W x over the seen nodes, (m,) for x (N,) or (m, j) for x (N, j): W the field's weight, the
     identity for an ordinary fit (None)."""
-    x = np.where(valid if x.ndim == 1 else valid[:, None], x, 0.0)
+    if not valid.all():
+        x = np.where(valid if x.ndim == 1 else valid[:, None], x, 0.0)
     return fields @ x if weight is None else weight.project(fields, x)
 
 
@@ -275,19 +278,24 @@ def residual_stats(
     values: np.ndarray, reconstruction: np.ndarray, valid: np.ndarray
 ) -> tuple[np.ndarray, float, float]:
     """Residual (N,) mm, NaN where unseen, with its RMS and max-abs over the seen nodes."""
-    residual = np.where(valid, values - reconstruction, np.nan)
-    seen = residual[valid]
-    return residual, float(np.sqrt(np.mean(seen**2))), float(np.max(np.abs(seen)))
+    residual = values - reconstruction
+    if valid.all():  # no copy of the seen values (values are finite where valid)
+        seen = residual
+    else:
+        residual[~valid] = np.nan
+        seen = residual[valid]
+    return residual, float(np.sqrt(np.dot(seen, seen) / seen.size)), float(np.max(np.abs(seen)))
 
 
 def judge(
     residual: np.ndarray, design: np.ndarray, errors: FieldErrorModel, test: ResidualTest | None, model_mm: float,
-    span: np.ndarray | None = None,
+    span: np.ndarray | None = None, local: bool = True,
 ) -> tuple[ModelCheck, np.ndarray | None, tuple[np.ndarray, np.ndarray] | None]:
     """The within-model test of a fit on ``design`` (N, p) (``test``'s when given, else the level test without
     smooth modes) and the low-rank field errors (N, k) the covariance adds (the field's registration modes and the
     calibrated model's discrepancy modes, :meth:`ResidualTest.error_modes`; None without either). span: (N, q) all the
-    fields the model can make, whose directions the smooth test leaves out (default: the design).
+    fields the model can make, whose directions the smooth test leaves out (default: the design). local: False
+    leaves the test's one-ring part out (:meth:`ResidualTest.check`).
 
     Without a ``test`` the estimator has no skin, so a registration covariance cannot reach the nodes and is left
     out (the covariance is then that of the field given its registration); the verbs and nodes always estimate
@@ -297,7 +305,7 @@ def judge(
     if test is None:
         return check_residual(residual, design, errors, model_mm=model_mm), None, None
     registration = test.registration(errors)
-    return (test.check(residual, design if span is None else span, errors, model_mm, registration),
+    return (test.check(residual, design if span is None else span, errors, model_mm, registration, local),
             test.error_modes(errors, registration), test.discrepancy_pair())
 
 
@@ -320,7 +328,9 @@ def fit_weight(
     weight = (variance * correlation)[valid]
     if not errors.has_pose and uniform(weight):
         return None, None, None  # the weight a multiple of I whatever the level: the ordinary fit
-    check, modes, pair = judge(np.where(valid, centred, np.nan), span, errors, test, model_mm)
+    # no one-ring part: where a field takes it (looks_at_fit), the fit's own residual is judged and this verdict
+    # dropped; only its level is used (at paper resolution the part's projection was 90-180 ms of a posed field)
+    check, modes, pair = judge(np.where(valid, centred, np.nan), span, errors, test, model_mm, local=False)
     # the registration is weighed (the first of the error modes), a calibrated model's discrepancy and its
     # calibration's own error only stated: they are estimated from a handful of calibration entries, and a fit that
     # leans away from their span leans on what the estimate missed (on 40 CalculiX parts of the coarse hood 68 % of

@@ -176,30 +176,50 @@ class ReadingOfBasis:
         changes the slide by about 1e-4 mm), and it costs a K x K solve where the estimator's own generalised fit,
         run twice, would double the estimate's time (117 -> 243 ms on a default-hood scan)."""
         seen, normal_matrix, coeff = self._fit(values)
+        return self._combined(coeff, self._inside(seen, normal_matrix, coeff, radius_mm))
+
+    def prepare(self) -> None:
+        """Make now what the first scan's reading makes (:attr:`terms`, the bias' projection on the basis)."""
+        self.terms  # noqa: B018 (made now, kept)
+        if self.bias is not None:
+            self._bias_projection  # noqa: B018
+
+    def slide_of(self, coeff: np.ndarray) -> np.ndarray:
+        """(N,) mm, the slide u_t . grad u_n (:func:`slide`) of the basis field with pre-factors ``coeff`` (K,),
+        mean_field + coeff @ components with its 3D field, from the kept :attr:`terms`."""
+        return self._combined(np.asarray(coeff, float), np.zeros(self.components.shape[0]))
+
+    def _combined(self, coeff: np.ndarray, inside: np.ndarray) -> np.ndarray:
+        """(N,) mm: the slide of the basis field with pre-factors ``coeff`` (K,) less the basis field with
+        pre-factors ``inside`` (K,), one pass over :attr:`terms`."""
         weights = np.r_[1.0, coeff]
         first, second = np.triu_indices(weights.size)
-        added = (weights[first] * weights[second]) @ self.slide_terms  # the fitted field's slide, u_t . grad u_n
-        return added - self._inside(seen, normal_matrix, coeff, radius_mm)
+        combination = np.r_[weights[first] * weights[second], -inside].astype(np.float32)
+        return (combination @ self.terms).astype(float)
 
     @cached_property
-    def slide_terms(self) -> np.ndarray:
-        """(P, N), P = (K + 1)(K + 2) / 2: per pair i <= j of the basis' fields (the mean field, then the components),
-        field i's 3D displacement times field j's tangential gradient plus the same with i and j swapped (once for
-        i = j). The slide u_t . grad u_n (:func:`slide`) of the field w~ @ [mean, components], w~ = (1, c), is
-        quadratic in w~: sum over the pairs of w~_i w~_j times their term, so a scan's reading takes no gradient of
-        its own (at paper resolution the gradient's sums over the triangles were about 20 of a scan's 29 ms reading)
-        and one pass over P x N values instead of two (K + 1) x N x 3 combinations and their product (11.5 -> 6 ms at
-        paper resolution, 100 MB kept for the 50 MB of gradients). The gradients being tangential, the 3D field's
-        normal part does not count. Made at the first scan (11 gradients, about 0.3 s at paper resolution: a node's
-        warm-up and `estimate --scan` while it reads the scan make them, :meth:`~.bases.Bases.prepare_estimation`)."""
+    def terms(self) -> np.ndarray:
+        """(P + K, N) float32: per pair i <= j of the basis' fields (P = (K + 1)(K + 2) / 2 pairs of the mean field,
+        then the components), field i's 3D displacement times field j's tangential gradient plus the same with i and
+        j swapped (once for i = j); then the K components themselves. The slide u_t . grad u_n (:func:`slide`) of
+        the field w~ @ [mean, components], w~ = (1, c), is quadratic in w~: sum over the pairs of w~_i w~_j times
+        their term, so a scan's reading takes no gradient of its own and, with the bias inside the basis
+        (:meth:`bias_inside`, a combination of the components), is one pass over these rows. In float32: the
+        reading is a small term beside the field (a slide of 0.01 mm at a millimetre of in-plane motion) and its
+        round-off (1e-7 of it) is nothing, while the pass is most of a paper-resolution scan's reading (half the
+        bytes: 50 + 8 MB at K = 10). The gradients being tangential, the 3D field's normal part does not count.
+        Made at the first scan (11 gradients, about 0.3 s at paper resolution: a node's warm-up and `estimate
+        --scan` while it reads the scan make them, :meth:`~.bases.Bases.prepare_estimation`)."""
         moved = (self.mean_field_3d, *self.components_3d)
         slopes = [self.gradient(field) for field in (self.mean_field, *self.components)]
         first, second = np.triu_indices(len(moved))
-        terms = np.empty((first.size, self.mean_field.shape[0]))
+        terms = np.empty((first.size + len(self.components), self.mean_field.shape[0]), dtype=np.float32)
         for row, (i, j) in enumerate(zip(first, second, strict=True)):
-            terms[row] = np.einsum("nd,nd->n", moved[i], slopes[j])
+            term = np.einsum("nd,nd->n", moved[i], slopes[j])
             if i != j:
-                terms[row] += np.einsum("nd,nd->n", moved[j], slopes[i])
+                term += np.einsum("nd,nd->n", moved[j], slopes[i])
+            terms[row] = term
+        terms[first.size:] = self.components
         return terms
 
     def bias_inside(self, values: np.ndarray, radius_mm: float) -> np.ndarray:
@@ -212,7 +232,7 @@ class ReadingOfBasis:
         issue 15 run 17), and the within-model test cannot see it. The part outside the basis stays the test's bias
         allowance (``FieldErrorModel.bias_correlation`` is measured outside the basis); taking it out as well, from
         a bias that is linear in the field only to about 75 %, raised the default false alarms from 2.0 to 3.2 %."""
-        return self._inside(*self._fit(values), radius_mm)
+        return self._inside(*self._fit(values), radius_mm) @ self.components
 
     def _fit(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The OLS fit of the basis to ``values`` (N,) mm: seen (N,), the normal matrix (K, K), pre-factors (K,)."""
@@ -224,9 +244,24 @@ class ReadingOfBasis:
         coeff = np.linalg.solve(normal_matrix, self.components @ np.where(seen, values - self.mean_field, 0.0))
         return seen, normal_matrix, coeff
 
+    @cached_property
+    def _bias_projection(self) -> tuple[np.ndarray, np.ndarray]:
+        """(components @ bias mean (K,), components @ bias components^T (K, K)) over every node: the projection of
+        the bias of a basis field on the basis, linear in its pre-factors."""
+        assert self.bias is not None
+        return self.components @ self.bias.mean, self.components @ self.bias.components.T
+
     def _inside(self, seen: np.ndarray, normal_matrix: np.ndarray, coeff: np.ndarray, radius_mm: float
                 ) -> np.ndarray:
+        """(K,) the pre-factors of :meth:`bias_inside` of the basis field with pre-factors ``coeff`` fitted on the
+        ``seen`` nodes (its normal matrix there): the bias' projection over every node less the unseen nodes' share
+        (no pass over the seen nodes)."""
         if self.bias is None or not self.bias.holds_for(radius_mm):
-            return np.zeros_like(self.mean_field)
-        bias = self.bias.mean + coeff @ self.bias.components
-        return np.linalg.solve(normal_matrix, self.components @ np.where(seen, bias, 0.0)) @ self.components
+            return np.zeros(self.components.shape[0])
+        mean, gain = self._bias_projection
+        projected = mean + gain @ coeff
+        unseen = np.flatnonzero(~seen)
+        if unseen.size:
+            bias = self.bias.mean[unseen] + coeff @ self.bias.components[:, unseen]
+            projected = projected - self.components[:, unseen] @ bias
+        return np.linalg.solve(normal_matrix, projected)
