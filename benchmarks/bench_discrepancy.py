@@ -28,7 +28,9 @@ model's physical factors (``model_std``, core/method/model_spread.py), as it was
 with the node noise stated 3 times too large.
 
 The bases carry the FE model's responses to gas springs and thickness, so the gate's model std counts all five
-factors (``--without-physics``: compliance, pads and preload only, as bases files do). ``--own-parts``: harness (i)
+factors (``--without-physics``: compliance, pads and preload only, as bases files without ``/physics`` do;
+``--through-file``: the bases written by ``save_bases`` as ``bases --model`` writes them and read back by
+``load_bases``, the path a bases file's user takes). ``--own-parts``: harness (i)
 parts (truth from the bases' own reduced model) through the same path. ``--calibrate ccx|embedded``: the bases are
 first calibrated (core.loop.calibration, 13 one-at-a-time entries with 0.02 mm noise) to a family drawn from the seed,
 made by CalculiX (coarse cache) or by the embedded solver re-solved with the family's physics; ``calibrated_family``
@@ -43,7 +45,7 @@ Prints a table per kind and writes benchmarks/out/discrepancy.json (rewritten as
     scripts/with-env nice python benchmarks/bench_discrepancy.py [--parts N] [--mesh-parts N] [--ccx-parts N]
         [--own-parts N] [--calibrate ccx|embedded [--scanned-entries] [--entry-moves MM ...] [--entry-repeats K]]
         [--harness-markers]
-        [--without-physics] [--kinds ...]
+        [--without-physics] [--through-file] [--kinds ...]
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ import argparse
 import dataclasses
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -69,18 +72,22 @@ from hood_decomp.core.fe.hood_preset import build_preset  # noqa: E402
 from hood_decomp.core.fe.model import skin_surface  # noqa: E402
 from hood_decomp.core.fe.solver import (  # noqa: E402
     build_solver,
-    physical_responses,
     reduce_model,
-    thermal_moves,
-    thickness_sensitivities,
 )
-from hood_decomp.core.loop.calibration import CalibrationEntry, calibrate, one_at_a_time, rebuild_bases  # noqa: E402
+from hood_decomp.core.loop.calibration import (  # noqa: E402
+    CalibrationEntry,
+    calibrate,
+    model_physics,
+    one_at_a_time,
+    rebuild_bases,
+)
 from hood_decomp.core.loop.scan_skin import with_reading_bias  # noqa: E402
 from hood_decomp.core.method.bases import estimate_field  # noqa: E402
 from hood_decomp.core.method.correction import plan_correction  # noqa: E402
 from hood_decomp.core.method.model_spread import PhysicalResponses  # noqa: E402
 from hood_decomp.core.scan.scan_field import field_from_scan, prepared_estimator  # noqa: E402
 from hood_decomp.core.types import DisplacementField, FieldErrorModel  # noqa: E402
+from hood_decomp.io.bases import load_bases, save_bases  # noqa: E402
 from hood_decomp.synthetic.scanner import ScannerConfig, synthesize_scan  # noqa: E402
 from hood_decomp.synthetic.standin import (  # noqa: E402
     FAMILY_SPREAD,
@@ -211,6 +218,9 @@ def main() -> int:
     parser.add_argument("--kinds", nargs="+", default=None, help="only these kinds")
     parser.add_argument("--without-physics", action="store_true",
                         help="bases without the responses to thickness and gas springs (model_std without them)")
+    parser.add_argument("--through-file", action="store_true",
+                        help="the bases written to a file (with /physics unless --without-physics) and read back "
+                             "(load_bases, mapped as the command line reads it)")
     parser.add_argument("--own-parts", type=int, default=0,
                         help="parts of own_model: harness (i), truth from the bases' own reduced model (0: skip)")
     parser.add_argument("--calibrate", choices=("ccx", "embedded"), default=None,
@@ -234,10 +244,13 @@ def main() -> int:
     case, rng, results, save = start_run(args, log, kinds={})
     skin, model = case.skin, case.model
     log("the FE model's responses to gas springs and sheet thickness (the model's factors, model_spread)")
-    physics = PhysicalResponses.from_solver(physical_responses(case.solver),
-                                            thickness_sensitivities(model, case.reduced), thermal_moves(model))
+    physics = model_physics(model, case.reduced, case.solver)
     # --without-physics: the gate as before thickness and gas springs were considered (for the comparison)
     bases = dataclasses.replace(case.bases, physics=None if args.without_physics else physics)
+    held = tempfile.TemporaryDirectory()  # the file stays while the run reads it (mapped)
+    if args.through_file:
+        save_bases(Path(held.name) / "bases.h5", bases)
+        bases = load_bases(Path(held.name) / "bases.h5", mapped=True)
     names = bases.names
     lo, hi = bases.pca.lower_, bases.pca.upper_
     est = prepared_estimator(skin)

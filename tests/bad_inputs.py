@@ -52,6 +52,7 @@ def build_workspace(root: Path) -> Workspace:
     from hood_decomp.core.fe.hood_preset import build_hood
     from hood_decomp.core.fe.model import skin_surface
     from hood_decomp.core.fe.solver import build_solver, reduce_model
+    from hood_decomp.core.loop.calibration import model_physics
     from hood_decomp.core.method.bases import build_bases
     from hood_decomp.core.types import DisplacementField
     from hood_decomp.io.bases import save_bases
@@ -66,7 +67,9 @@ def build_workspace(root: Path) -> Workspace:
     reduced = reduce_model(solver)
     skin = skin_surface(model)
     write_ensemble(root / "ensemble.h5", reduced, skin, model.lower, model.upper, n_validation=8)
-    save_bases(root / "bases.h5", build_bases(load_ensemble(root / "ensemble.h5"), skin, reduced))
+    # as `bases --model` writes it: with the model's physical responses (/physics)
+    save_bases(root / "bases.h5", dataclasses.replace(build_bases(load_ensemble(root / "ensemble.h5"), skin, reduced),
+                                                      physics=model_physics(model, reduced, solver)))
     result = simulate_setting(solver, {"LOCK_L": 0.4})
     write_field(root / "field.vtu", skin, DisplacementField(skin.model_id, result.normal_displacement, 1.0, 0.0,
                                                             displacement=result.displacement))

@@ -198,6 +198,66 @@ for _name, _key in (("/", "model_id"), ("/", "bases_id"), ("pca", "training_resi
                     ("hierarchical", "model_id")):
     add("hdf5 attributes", f"bases {_name} {_key} missing", _h5_attr("bases (estimate)", _del_attr(_name, _key)),
         "missing")
+
+
+# --- the bases file's physical responses (/physics, written by `bases --model`; the workspace's bases hold them) --
+def _physics(edit: Callable[[h5py.File], None], xyz: bool = False) -> Build:
+    """`estimate` from the workspace's bases with /physics edited; ``xyz``: a three-component fit, the first reader
+    of the 3D parts."""
+    def build(ws: Workspace, tmp: Path) -> list[str]:
+        argv = _h5_attr("bases (estimate)", edit)(ws, tmp)
+        return [*argv, "--components", "xyz"] if xyz else argv
+
+    return build
+
+
+def _nudge(name: str) -> Callable[[h5py.File], None]:
+    def edit(h5: h5py.File) -> None:
+        values = h5[name][()]
+        values.flat[values.size // 2] += 1e-6
+        h5[name][...] = values
+
+    return edit
+
+
+def _mutate(mutation: str, name: str) -> Callable[[h5py.File], None]:
+    return lambda h5: H5_MUTATIONS[mutation][0](h5, name, None)
+
+
+def _groups(pick: Callable[[list[str]], list[str]]) -> Callable[[h5py.File], None]:
+    def edit(h5: h5py.File) -> None:
+        groups = [g.decode() if isinstance(g, bytes) else g for g in h5["physics/groups"][()]]
+        del h5["physics/groups"]
+        h5["physics"].create_dataset("groups", data=np.array(pick(groups), dtype=object),
+                                     dtype=h5py.string_dtype())
+
+    return edit
+
+
+def _unpaired(h5: h5py.File) -> None:
+    del h5["reduced_model"]
+
+
+for _name, _edit, _xyz, _fragment in (
+    ("an edited thickness response", _nudge("physics/thickness_R"), False, "physics_id"),
+    ("an edited gas-spring response", _nudge("physics/gas_z"), False, "physics_id"),
+    ("an edited 3D thickness response (xyz)", _nudge("physics/thickness_G_3d"), True, "physics_3d_id"),
+    ("NaN in gas_w", _mutate("NaN value", "physics/gas_w"), False, "non-finite"),
+    ("inf in thickness_H", _mutate("inf value", "physics/thickness_H"), False, "non-finite"),
+    ("NaN in thickness_R_3d (xyz)", _mutate("NaN value", "physics/thickness_R_3d"), True, "non-finite"),
+    ("wrong width of thickness_G", _mutate("wrong width", "physics/thickness_G"), False, "S ="),
+    ("a missing sensitivity (thickness_Sa)", _mutate("missing dataset", "physics/thickness_Sa"), False, "missing"),
+    ("a missing 3D sensitivity (thickness_w0_3d)", _mutate("missing dataset", "physics/thickness_w0_3d"), False,
+     "missing"),
+    ("two group names for three stacked sensitivities", _groups(lambda g: g[:-1]), False, "G ="),
+    ("a group named twice", _groups(lambda g: [g[0], *g[:-1]]), False, "distinct"),
+    ("physics_id rewritten", _set_attr("physics", "physics_id", "0000000000000000"), False, "physics_id"),
+    ("physics_id missing", _del_attr("physics", "physics_id"), False, "missing"),
+    ("physics_3d_id rewritten (xyz)", _set_attr("physics", "physics_3d_id", "0000000000000000"), True,
+     "physics_3d_id"),
+    ("the group without the reduced model", _unpaired, False, "needs the reduced model"),
+):
+    add("hdf5 crafted physics", _name, _physics(_edit, _xyz), _fragment)
 for _edit, _name, _fragment in (
     (_set_attr("/", "model_id", "0123456789abcdef"), "model_id rewritten", "content_id"),
     (_set_attr("training", "complete", False), "incomplete training group", "incomplete"),

@@ -13,6 +13,7 @@ from hood_decomp.core.method.hierarchical import SPANS
 from hood_decomp.errors import EnsembleError
 
 if TYPE_CHECKING:
+    from hood_decomp.core.method.model_spread import PhysicalResponses
     from hood_decomp.core.types import ReducedModel, ToleranceZone
 
 HELP = "build the PCA and hierarchical bases from an ensemble"
@@ -37,25 +38,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "decomposition step 3 leaves for such a field)")
     parser.add_argument("--model", type=Path, default=None,
                         help="model directory of the ensemble: its reduced FE model goes into the bases file for the "
-                        "contact-aware estimator (without it only the paper's 'pca' estimator is available), and its "
-                        "tolerance_zones (acceptance criteria on the skin, docs/bases_schema.md)")
+                        "contact-aware estimator (without it only the paper's 'pca' estimator is available), with its "
+                        "responses to the physical factors (gas springs, 1 K, sheet thickness: one more factorisation "
+                        "per sheet group), and its tolerance_zones (acceptance criteria on the skin, "
+                        "docs/bases_schema.md)")
     parser.add_argument("--plots", type=Path, default=None, help="directory for the explained-variance plot (Fig. 8)")
 
 
-def _reduced_model(model_dir: Path | None,
-                   model_id: str) -> tuple[ReducedModel | None, tuple[ToleranceZone, ...]]:
-    """The ReducedModel and the tolerance zones of the model in ``model_dir`` (None and none without one);
-    EnsembleError when it is not the ensemble's model (``model_id``)."""
+def _reduced_model(model_dir: Path | None, model_id: str
+                   ) -> tuple[ReducedModel | None, PhysicalResponses | None, tuple[ToleranceZone, ...]]:
+    """The ReducedModel, its FE responses to the physical factors (core.loop.calibration.model_physics: an estimate
+    from the file considers all five factors) and the tolerance zones of the model in ``model_dir`` (None, None and
+    none without one); EnsembleError when it is not the ensemble's model (``model_id``)."""
     if model_dir is None:
         logger.warning("bases: no --model: only the paper's 'pca' estimator will be available")
-        return None, ()
+        return None, None, ()
     from hood_decomp.core.fe.solver import build_solver, reduce_model
+    from hood_decomp.core.loop.calibration import model_physics
     from hood_decomp.io.model_files import load_model_with_zones
 
     model, zones = load_model_with_zones(model_dir)
     if model.model_id != model_id:
         raise EnsembleError(f"model {model_dir} (model_id {model.model_id}) is not the ensemble's ({model_id})")
-    return reduce_model(build_solver(model)), zones
+    solver = build_solver(model)
+    reduced = reduce_model(solver)
+    logger.info("bases: the model's responses to gas springs, 1 K and sheet thickness (one factorisation per group)")
+    return reduced, model_physics(model, reduced, solver), zones
 
 
 def run(args: argparse.Namespace) -> int:
@@ -68,11 +76,11 @@ def run(args: argparse.Namespace) -> int:
     if args.plots is not None:
         check_output(args.plots, inputs, "--plots", directory=True, writes=["explained_variance.png"])
     ensemble, skin = load_ensemble(args.ensemble, "training"), load_skin(args.ensemble)
-    reduced, zones = _reduced_model(args.model, ensemble.model_id)
+    reduced, physics, zones = _reduced_model(args.model, ensemble.model_id)
     components = 10 if args.components is None and args.explained_variance is None else args.components
     bases = dataclasses.replace(build_bases(ensemble, skin, reduced, components, args.explained_variance, args.epsilon,
                                             args.span),
-                                tolerance_zones=zones)
+                                tolerance_zones=zones, physics=physics)
     with written_whole(out) as temporary:
         save_bases(temporary, bases)
     if args.plots is not None:
@@ -81,5 +89,6 @@ def run(args: argparse.Namespace) -> int:
         plot_explained_variance(bases.pca.explained_variance_ratio_, args.plots / "explained_variance.png")
     print(f"wrote {args.out}: {bases.pca.n_components_} PCA components, "
           f"{len(bases.hierarchical.effect_names_)} hierarchical effects at epsilon {args.epsilon} mm, "
-          f"reduced model {'included' if reduced is not None else 'absent'}, {len(zones)} tolerance zone(s)")
+          f"reduced model {'included with its physical responses' if reduced is not None else 'absent'}, "
+          f"{len(zones)} tolerance zone(s)")
     return 0

@@ -17,7 +17,8 @@ logger = logging.getLogger(__name__)
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bases", required=True, type=Path, help="bases file to calibrate (with its reduced model)")
     parser.add_argument("--model", required=True, type=Path,
-                        help="model directory of the bases (the gas-spring and thermal responses come from it)")
+                        help="model directory of the bases (the gas-spring, thermal and thickness responses come from "
+                        "it when the bases file does not hold them)")
     parser.add_argument("--cal", required=True, type=Path, metavar="CAL.json",
                         help='calibration entries: a JSON list of {"field": F.vtu, "setting": {LABEL: mm}} or '
                         '{"scans": [S.ply], "setting": {...}}; files relative to CAL.json (docs/calibration.md)')
@@ -27,8 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hood_decomp.core.fe.solver import build_solver, physical_responses, thermal_moves, thickness_sensitivities
-    from hood_decomp.core.loop.calibration import CalibrationEntry, PhysicalResponses, calibrate, rebuild_bases
+    from hood_decomp.core.loop.calibration import CalibrationEntry, calibrate, model_physics, rebuild_bases
     from hood_decomp.core.loop.scan_skin import with_reading_bias
     from hood_decomp.errors import CalibrationError
     from hood_decomp.io.bases import bases_id, load_bases, save_bases
@@ -44,10 +44,13 @@ def run(args: argparse.Namespace) -> int:
         raise CalibrationError(f"model {args.model} (model_id {model.model_id}) is not the bases' ({bases.model_id})")
     read = read_entries(args.cal, bases.skin, args.min_coverage)
     entries = [CalibrationEntry(e.name, e.field, e.setting_vector(bases.names)) for e in read]
-    logger.info("calibrate: %d entries; the model's gas-spring, thermal and thickness responses (one factorisation "
-                "and one per sheet group)", len(entries))
-    physics = PhysicalResponses.from_solver(physical_responses(build_solver(model)),
-                                            thickness_sensitivities(model, bases.reduced_model), thermal_moves(model))
+    if bases.physics is not None:  # written by `bases --model`: as the model gives them, checked on reading
+        logger.info("calibrate: %d entries; the model's physical responses from the bases file", len(entries))
+        physics = bases.physics.with_3d()
+    else:
+        logger.info("calibrate: %d entries; the model's gas-spring, thermal and thickness responses (one "
+                    "factorisation and one per sheet group)", len(entries))
+        physics = model_physics(model, bases.reduced_model)
     # scanned entries lose the scan step's bias inside the basis as the calibrated bases' scans will (a file written
     # before it was stored measures it now: else the calibration would learn it and the estimator take it out again)
     scanned = any(entry.field.errors.kind == "scan" for entry in entries)

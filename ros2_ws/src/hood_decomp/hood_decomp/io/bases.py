@@ -6,11 +6,12 @@ need; every field is checked against ``Bases.model_id``.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import time
 import weakref
-from dataclasses import fields
+from dataclasses import fields, replace
 from pathlib import Path
 
 import h5py
@@ -18,9 +19,10 @@ import numpy as np
 
 from hood_decomp.core.method.bases import Bases
 from hood_decomp.core.method.hierarchical import HIERARCHICAL_FITTED_ARRAYS, HierarchicalBasis
+from hood_decomp.core.method.model_spread import PhysicalResponses
 from hood_decomp.core.method.pca import PCA_FITTED_ARRAYS, PCABasis
 from hood_decomp.core.method.surface_reading import ScanReadingBias
-from hood_decomp.core.types import ReducedModel, SkinSurface, ToleranceZone, fingerprint
+from hood_decomp.core.types import SENSITIVE_ARRAYS, ReducedModel, SkinSurface, ToleranceZone, fingerprint
 from hood_decomp.errors import BasisError
 from hood_decomp.io.hdf5 import Reader, open_hdf5
 
@@ -53,6 +55,15 @@ _REDUCED_DIMS = {
     "preload": ("S",), "pad_of": ("S",), "w0_3d": ("N", "3"), "R_3d": ("N", "3", "B"), "G_3d": ("N", "3", "S"),
 }  # fmt: skip
 _THERMAL_DIMS = {"w": ("N",), "z": ("S",), "w3": ("N", "3")}
+#: /physics (issue 15, session 21): the FE model's responses behind its physical factors (model_spread
+#: PhysicalResponses). What a normal estimate reads (skin normal and pad parts) is read and checked on load; the 3D
+#: parts (3/4 of the bytes) only when a fit of all three components or a calibration first needs them
+_PHYSICS_DIMS = {"gas_w": ("N",), "gas_z": ("S",), "thermal_w": ("N",), "thermal_z": ("S",),
+                 "thermal_moves": ("B",)}
+_PHYSICS_3D_DIMS = {"gas_w3": ("N", "3"), "thermal_w3": ("N", "3")}
+#: the thickness sensitivities' arrays, stacked over the sheet groups (G, ...) as physics/thickness_<name>
+_THICKNESS_NORMAL = tuple(name for name in SENSITIVE_ARRAYS if not name.endswith("_3d"))
+_THICKNESS_3D = tuple(name for name in SENSITIVE_ARRAYS if name.endswith("_3d"))
 #: calibrated bases' optional discrepancy terms since session 11 (core.method.bases.Bases): name -> column dimension
 _DISCREPANCY_TERMS = {"discrepancy_noise": "DW", "calibration_noise": "DE"}
 
@@ -164,6 +175,100 @@ def zones_id(content_id: str, zones: tuple[ToleranceZone, ...]) -> str:
     return fingerprint(*items)
 
 
+def physics_id(content_id: str, groups: tuple[str, ...], arrays: dict[str, np.ndarray]) -> str:
+    """The fingerprint of the /physics group's normal and pad parts (``arrays``: name -> the dataset's values) of the
+    bases whose ``bases_id`` is ``content_id``, with the sheet ``groups``: an edited response, or one taken from other
+    bases, is refused on load. The 3D parts have their own id over this one (:func:`physics_3d_id`)."""
+    return fingerprint(content_id, "\x00".join(groups), *(item for name in sorted(arrays)
+                                                          for item in (name, np.asarray(arrays[name]))))
+
+
+def physics_3d_id(normal_id: str, arrays: dict[str, np.ndarray]) -> str:
+    """The fingerprint of the /physics group's 3D parts, bound to its :func:`physics_id` ``normal_id``."""
+    return fingerprint(normal_id, *(item for name in sorted(arrays) for item in (name, np.asarray(arrays[name]))))
+
+
+def _physics_arrays(physics: PhysicalResponses) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """The /physics datasets of ``physics`` (whole, :meth:`~PhysicalResponses.with_3d`): (normal and pad parts, 3D
+    parts), name -> values."""
+    physics = physics.with_3d()
+    sensitivities = tuple(physics.thickness.values())
+
+    def stacked(name: str) -> np.ndarray:
+        return np.stack([getattr(sens, name) for sens in sensitivities])
+
+    normal = {name: getattr(physics, name) for name in _PHYSICS_DIMS} | {
+        f"thickness_{name}": stacked(name) for name in _THICKNESS_NORMAL}
+    return normal, {name: getattr(physics, name) for name in _PHYSICS_3D_DIMS} | {
+        f"thickness_{name}": stacked(name) for name in _THICKNESS_3D}
+
+
+def _write_physics(h5: h5py.File, content_id: str, physics: PhysicalResponses) -> None:
+    """The /physics group: the normal and pad parts float64, the 3D parts float32 (half the bytes of 3/4 of the
+    group; a three-component estimate's model effects move by 2e-8 of their size on the coarse hood)."""
+    normal, three_d = _physics_arrays(physics)
+    three_d = {name: np.asarray(values, np.float32) for name, values in three_d.items()}
+    groups = tuple(physics.thickness)
+    group = h5.create_group("physics")
+    normal_id = physics_id(content_id, groups, normal)
+    group.attrs.update(physics_id=normal_id, physics_3d_id=physics_3d_id(normal_id, three_d))
+    group.create_dataset("groups", data=np.array(groups, dtype=object), dtype=_STR)
+    for name, values in (normal | three_d).items():
+        _write_array(group, name, values)
+
+
+def _read_physics(read: Reader, content_id: str, reduced: ReducedModel | None) -> tuple[PhysicalResponses, bool]:
+    """The optional /physics group's normal and pad parts, checked (kinds, named shapes, finite, distinct sheet
+    groups), and whether their content matches ``physics_id`` (checked by the caller after ``bases_id``, so that a
+    rewritten bases_id is named as such); its 3D parts are read by the returned responses'
+    :meth:`~PhysicalResponses.with_3d` (:func:`_read_physics_3d`)."""
+    if reduced is None:
+        raise BasisError(f"{read.path}: /physics needs the reduced model, which the file lacks")
+    groups = read.strings("physics/groups", "G")
+    if not groups or len(set(groups)) != len(groups):
+        raise BasisError(f"{read.path}: physics/groups {list(groups)} must name distinct sheet groups (at least one)")
+    missing = [name for name in (*_PHYSICS_3D_DIMS, *(f"thickness_{n}" for n in _THICKNESS_3D))
+               if f"physics/{name}" not in read.h5]
+    if missing:
+        raise BasisError(f"{read.path}: physics/{missing[0]} is missing")
+    arrays = {name: read.array(f"physics/{name}", dims) for name, dims in _PHYSICS_DIMS.items()} | {
+        f"thickness_{name}": read.array(f"physics/thickness_{name}", ("G", *_REDUCED_DIMS[name]))
+        for name in _THICKNESS_NORMAL}
+    stored = read.attr("physics", "physics_id", "str")
+    matches = physics_id(content_id, groups, arrays) == stored
+    empty = {name: getattr(reduced, name)[:0] for name in _THICKNESS_3D}  # not read: as ReducedModel.on_nodes
+    thickness = {group: replace(reduced, **{name: arrays[f"thickness_{name}"][i] for name in _THICKNESS_NORMAL},
+                                **empty) for i, group in enumerate(groups)}
+    normal = PhysicalResponses(arrays["gas_w"], arrays["gas_z"], np.zeros((0, 3)), arrays["thermal_w"],
+                               arrays["thermal_z"], np.zeros((0, 3)), thickness, arrays["thermal_moves"])
+    sizes, path, mapped = {dim: read.dims[dim][0] for dim in ("N", "B", "S", "G")}, read.path, read.mapped
+    return replace(normal, load_3d=functools.cache(
+        lambda: _read_physics_3d(path, content_id, stored, normal, sizes, mapped))), matches
+
+
+def _read_physics_3d(path: Path, content_id: str, normal_id: str, normal: PhysicalResponses, sizes: dict[str, int],
+                     mapped: bool) -> PhysicalResponses:
+    """``normal`` (the /physics group's normal parts read from the bases file ``path`` whose ``bases_id`` is
+    ``content_id``) with its 3D parts read now: the file unchanged since (its bases_id and ``normal_id``), kinds,
+    named shapes (``sizes``: N, B, S, G as bound on load), finite, and the content matching ``physics_3d_id``."""
+    with open_hdf5(path, "bases file", BasisError) as h5:
+        read = Reader(h5, path, BasisError, mapped)
+        if (read.attr("/", "bases_id", "str"), read.attr("physics", "physics_id", "str")) != (content_id, normal_id):
+            raise BasisError(f"{path} changed since it was loaded (another bases_id or physics_id); load it again")
+        for dim, size in sizes.items():
+            read.bind(dim, size, "the file as loaded")
+        arrays = {name: read.array(f"physics/{name}", dims) for name, dims in _PHYSICS_3D_DIMS.items()} | {
+            f"thickness_{name}": read.array(f"physics/thickness_{name}", ("G", *_REDUCED_DIMS[name]))
+            for name in _THICKNESS_3D}
+        stored = read.attr("physics", "physics_3d_id", "str")
+    if physics_3d_id(normal_id, arrays) != stored:
+        raise BasisError(f"{path}: the 3D physics do not match their physics_3d_id {stored!r} (edited after they "
+                         "were written); rebuild the file with `hood-decomp bases --model`")
+    thickness = {group: replace(sens, **{name: arrays[f"thickness_{name}"][i] for name in _THICKNESS_3D})
+                 for i, (group, sens) in enumerate(normal.thickness.items())}
+    return replace(normal, gas_w3=arrays["gas_w3"], thermal_w3=arrays["thermal_w3"], thickness=thickness)
+
+
 def _write_zones(h5: h5py.File, content_id: str, zones: tuple[ToleranceZone, ...]) -> None:
     group = h5.create_group("tolerance_zones")
     group.attrs["zones_id"] = zones_id(content_id, zones)
@@ -236,6 +341,8 @@ def save_bases(path: str | Path, bases: Bases, *, scan_skin: bool = True) -> Bas
             h5.attrs["calibration"] = bases.calibration
         if bases.tolerance_zones:
             _write_zones(h5, content_id, bases.tolerance_zones)
+        if bases.physics is not None and bases.reduced_model is not None:
+            _write_physics(h5, content_id, bases.physics)
         if bases.thermal is not None:
             thermal = h5.create_group("thermal")
             for name, value in zip(_THERMAL_DIMS, bases.thermal, strict=True):
@@ -396,6 +503,8 @@ def load_bases(path: str | Path, mapped: bool = False) -> Bases:
         reading = _read_reading_bias(read, stored_id, pca) if "scan_reading_bias" in h5 else None
         # optional (issue 17): acceptance criteria, outside bases_id, bound to it by their own zones_id
         zones = _read_zones(read, stored_id) if "tolerance_zones" in h5 else ()
+        # optional (issue 15, session 21): the FE model's responses behind its physical factors
+        physics, physics_matches = _read_physics(read, stored_id, reduced) if "physics" in h5 else (None, True)
         measured: tuple[str, ...] = ()
         if "parameters/measured_effects" in h5:
             measured = read.strings("parameters/measured_effects", "M")
@@ -409,10 +518,13 @@ def load_bases(path: str | Path, mapped: bool = False) -> Bases:
         if other is not None and other != model_id:
             raise BasisError(f"{path}: {what} model_id {other!r} differs from the file's {model_id!r}")
     bases = Bases(model_id, skin, pca, hier, reduced, calibration, thermal, zones, discrepancy, measured, local,
-                  **terms, scan_reading_bias=reading)
+                  **terms, physics=physics, scan_reading_bias=reading)
     if bases_id(bases) != stored_id:
         raise BasisError(f"{path}: content does not match its bases_id {stored_id!r} (the file was altered after "
                          "it was written: a rewritten model_id or array); rebuild it with `hood-decomp bases`")
+    if not physics_matches:
+        raise BasisError(f"{path}: physics do not match their physics_id (edited after they were written, or taken "
+                         "from other bases); rebuild the file with `hood-decomp bases --model`")
     key = id(bases)
     _LOADED_IDS[key] = (weakref.ref(bases, lambda _: _LOADED_IDS.pop(key, None)), stored_id)
     if has_scan_skin:  # read when the first scan of this skin needs it (not for a field or a decomposition)

@@ -63,6 +63,14 @@ import numpy as np
 
 from hood_decomp.core.fe.contact import contact_state
 from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, solve_members, validation_plan
+from hood_decomp.core.fe.model import PartModel
+from hood_decomp.core.fe.solver import (
+    ShellSolver,
+    build_solver,
+    physical_responses,
+    thermal_moves,
+    thickness_sensitivities,
+)
 from hood_decomp.core.method.bases import Bases, build_bases
 from hood_decomp.core.method.model_spread import PhysicalResponses, apply_factors, factor_names
 from hood_decomp.core.method.residual import DEFAULT_NOISE_MM, node_variance, ring_incidence, skin_adjacency
@@ -682,6 +690,14 @@ def _check_support(problem: _Problem, entries: list[CalibrationEntry]) -> None:
                                    "values in the calibration entries; its pad needs at least 3 (leave-one-out)")
 
 
+def model_physics(model: PartModel, reduced: ReducedModel, solver: ShellSolver | None = None) -> PhysicalResponses:
+    """The FE responses behind ``model``'s physical factors (:class:`PhysicalResponses`): gas springs and 1 K from
+    one factorisation (``solver``'s, else one built now), d(``reduced``)/d(log thickness) from one more per sheet
+    group (core.fe.solver.thickness_sensitivities). ``reduced``: the reduced model of ``model`` itself."""
+    return PhysicalResponses.from_solver(physical_responses(solver or build_solver(model)),
+                                         thickness_sensitivities(model, reduced), thermal_moves(model))
+
+
 def calibrate(reduced: ReducedModel, physics: PhysicalResponses, entries: list[CalibrationEntry],
               skin: SkinSurface, state_range: tuple[np.ndarray, np.ndarray] | None = None,
               reading: ReadingOfBasis | None = None) -> tuple[ReducedModel, Calibration]:
@@ -934,6 +950,7 @@ __all__ = [
     "factor_std",
     "local_discrepancy",
     "loo_smoother",
+    "model_physics",
     "noise_singular_values",
     "one_at_a_time",
     "rebuild_bases",

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -53,12 +53,20 @@ class PhysicalResponses:
     #: thickness group -> d(reduced model arrays)/d(log thickness) (core.fe.solver.thickness_sensitivities)
     thickness: dict[str, ReducedModel]
     thermal_moves: np.ndarray
+    #: where the 3D parts were left unread (a bases file's /physics, io.bases): reads them, checked, and returns these
+    #: responses whole. None: the 3D arrays are held (or empty, :meth:`on_nodes`)
+    load_3d: Callable[[], PhysicalResponses] | None = field(default=None, compare=False, repr=False)
 
     @staticmethod
     def from_solver(responses: dict[str, tuple], thickness: dict[str, ReducedModel],
                     thermal_moves: np.ndarray) -> PhysicalResponses:
         (gw, gz, g3), (tw, tz, t3) = responses["gas_spring"], responses["thermal"]
         return PhysicalResponses(gw, gz, g3, tw, tz, t3, thickness, np.asarray(thermal_moves, float))
+
+    def with_3d(self) -> PhysicalResponses:
+        """These responses with their 3D arrays: themselves when they hold them, else read now (:attr:`load_3d`; only
+        a fit of all three components and a calibration need them)."""
+        return self if self.load_3d is None else self.load_3d()
 
     def on_nodes(self, nodes: np.ndarray) -> PhysicalResponses:
         """These responses' normal skin values on the kept skin ``nodes`` (n,) (a coarsened estimate, of the normal
@@ -74,9 +82,9 @@ class PhysicalResponses:
         share (:attr:`thermal_moves`) moved by what the calibration changed in them. Without it a calibrated part's
         thermal response keeps the FE model's unit response error: 1.7 % RMS on the coarse hood against CalculiX,
         0.011-0.031 mm in the estimates at 5 K."""
-        m = self.thermal_moves
+        m, whole = self.thermal_moves, self.with_3d()
         return (self.thermal_w + (calibrated.R - model.R) @ m, self.thermal_z + (calibrated.Sa - model.Sa) @ m,
-                self.thermal_w3 + (calibrated.R_3d - model.R_3d) @ m)
+                whole.thermal_w3 + (calibrated.R_3d - model.R_3d) @ m)
 
 
 def factor_names(reduced: ReducedModel, physics: PhysicalResponses) -> list[str]:
@@ -92,7 +100,9 @@ def apply_factors(reduced: ReducedModel, physics: PhysicalResponses, theta: np.n
     """The reduced model with physical factors theta (:func:`factor_names` order): compliance exp(theta_0) on the load
     and pad-force responses, gas-spring force x (1 + theta_1), each sheet group's thickness x exp(theta) (first order
     through its sensitivity), pad stiffness x exp, preload + theta (mm). ``full``: False leaves the 3D arrays as they
-    are (the fit reads only the normal ones)."""
+    are (the fit reads only the normal ones; True reads the responses' 3D parts, :meth:`PhysicalResponses.with_3d`)."""
+    if full:
+        physics = physics.with_3d()
     n_pads = len(reduced.names) - reduced.n_bilateral
     n_groups = len(physics.thickness)
     c, g = float(np.exp(theta[0])), float(theta[1])
