@@ -559,8 +559,9 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
     for sweep in range(passes + 1 if training == "derivatives" else 0):
         f, q = rom.solve_all(states)
         reduced = u0[:, None] + W @ states[:, :B].T + G @ f.T + Psi @ q.T
-        step = solver.solve(solver.K @ reduced + nonlinear_force_vector(facets, reduced) - solver.load[:, None]
-                            - P @ f.T).reshape(n, 6, -1)
+        # K^-1 (K u + f_nl(u) - F - P f) with the linear member's part exact (K_ff of u0, W a, G f is F, 0, P f
+        # on the free DOFs): Psi q + K^-1 f_nl(u), without the full-order K u
+        step = (Psi @ q.T + solver.solve(nonlinear_force_vector(facets, reduced))).reshape(n, 6, -1)
         lap("indicator")
         size = np.where(solved, -1.0, np.abs(step[:, :3]).max(axis=(0, 1)))
         if sweep == passes or (enough is not None and size.max() < enough):
