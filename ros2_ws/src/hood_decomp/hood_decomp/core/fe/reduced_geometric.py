@@ -36,7 +36,8 @@ parameters) in one of two ways (:func:`build_reduced_geometric`, ``training``):
   default). Not as accurate: 0.012 mm on the same members, 0.019 mm at default resolution (a low-order expansion
   leaves about half of the correction at the lock-twist and lock-buffer corners, where the nonlinearity is strong;
   the greedy full solves carry the accuracy there). The build: ~32 CPU s on the coarse hood (71-74 before session
-  18), default resolution in benchmarks/RESULTS.md ("The nonlinear build's hot paths"). Each greedy pass sums only
+  18; session 21: 1.22x fewer, 1.16x at default), default resolution in benchmarks/RESULTS.md ("The nonlinear
+  build's hot paths" and "... round 2"). Each greedy pass sums only
   the tensor terms with a new coordinate (:func:`energy_sums` with the previous sums; the same sums, 75 % of a
   fresh sum's CPU at d = 49 on coarse).
 
