@@ -33,7 +33,7 @@ def coarse_paper():
 def test_energy_tensors_give_the_full_order_nonlinear_force(coarse_paper) -> None:
     """Fails if the cubic/quartic tensors of the membrane energy (eq. 2) differ from the projection of the full-order
     force of geometric.nonlinear_forces on the basis, u = basis @ y, for a random basis and y (a wrong strain term,
-    pair weight or symmetrisation)."""
+    pair weight or symmetrisation) by more than the quartic sums' single precision (relative ~1e-7)."""
     model, _ = coarse_paper
     facets = facet_triangles(model)
     rng = np.random.default_rng(3)
@@ -42,21 +42,21 @@ def test_energy_tensors_give_the_full_order_nonlinear_force(coarse_paper) -> Non
     for y in (rng.normal(size=5), 10 * rng.normal(size=5)):  # the cubic and the quartic term dominate in turn
         reduced = 3 * np.einsum("abc,b,c->a", T3, y, y) + 4 * np.einsum("abcd,b,c,d->a", T4, y, y, y)
         full = np.einsum("nak,na->k", basis, nonlinear_forces(facets, (basis @ y)[:, :, None])[..., 0])
-        assert np.abs(reduced - full).max() < 1e-10 * np.abs(full).max()
+        assert np.abs(reduced - full).max() < 1e-6 * np.abs(full).max()
 
 
 def test_energy_sums_of_a_grown_basis_are_a_fresh_sum(coarse_paper) -> None:
     """Fails if the energy sums of a basis grown by two columns, updated from its first columns' sums (only the terms
     with a new coordinate summed), differ from the same basis summed afresh (a term left out, counted twice, or an
     old pair put at the wrong place of the new pair order); or if sums of another basis are taken as its first
-    columns'."""
+    columns'. T4 is summed in single precision (chunks of other sizes: relative ~1e-7 apart), T3 in double."""
     model, _ = coarse_paper
     facets = facet_triangles(model)
     basis = np.random.default_rng(4).normal(size=(len(model.nodes), 3, 6)) * 0.01
     fresh = energy_sums(facets, basis)
     grown = energy_sums(facets, basis, energy_sums(facets, basis[:, :, :4]))
     assert np.abs(grown.T3 - fresh.T3).max() < 1e-12 * np.abs(fresh.T3).max()
-    assert np.abs(grown.T4 - fresh.T4).max() < 1e-12 * np.abs(fresh.T4).max()
+    assert np.abs(grown.T4 - fresh.T4).max() < 1e-6 * np.abs(fresh.T4).max()
     with pytest.raises(SolverError, match="expected"):
         energy_sums(facets, basis, energy_sums(facets, basis[:, :, 1:5]))
 

@@ -32,15 +32,17 @@ parameters) in one of two ways (:func:`build_reduced_geometric`, ``training``):
   third-order terms along each training state's linear member; their POD gives modes - passes x added modes. Then
   greedy passes: the reduced training members' residuals through K^-1 rank them, the worst few are solved by the
   full model from the reduced members, a pass's members together (:meth:`.geometric.NonlinearSolver.
-  solve_displacements`, to TRAINING_TOLERANCE), and their corrections add modes (24 full solves instead of 137 by
+  solve_displacements`, to GREEDY_TOLERANCE), and their corrections add modes (24 full solves instead of 137 by
   default). Not as accurate: 0.012 mm on the same members, 0.019 mm at default resolution (a low-order expansion
   leaves about half of the correction at the lock-twist and lock-buffer corners, where the nonlinearity is strong;
   the greedy full solves carry the accuracy there). The build: ~32 CPU s on the coarse hood (71-74 before session
-  18), default resolution in benchmarks/RESULTS.md ("The nonlinear build's hot paths"). Each greedy pass sums only
-  the tensor terms with a new coordinate (:func:`energy_sums` with the previous sums; exact, 40 % of a
-  fresh sum at d = 53).
+  18; session 21: 1.22x fewer, 1.16x at default), default resolution in benchmarks/RESULTS.md ("The nonlinear
+  build's hot paths" and "... round 2"). Each greedy pass sums only
+  the tensor terms with a new coordinate (:func:`energy_sums` with the previous sums; the same sums, 75 % of a
+  fresh sum's CPU at d = 49 on coarse).
 
-The tensors are sums over all facets (O(facets x d^4 / 4): one sum at d = 49 is ~35 s at default resolution).
+The tensors are sums over all facets (O(facets x d^4 / 4); the quartic part in single precision, relative ~1e-7:
+one sum at d = 49 is ~4 CPU s on the coarse hood, 6.7 before session 21, ~35 s at default resolution before).
 ``hyper`` (opt-in) sums them over a weighted subset instead (ECSW, :func:`hyper_facets`: non-negative facet
 weights fitted so that the subset reproduces the reduced forces at HYPER_ROWS // r training states; 384 of 189,744
 facets at default). It is not accurate enough to be the default: on the coarse hood's 39 bench members the reduced
@@ -65,7 +67,7 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.linalg.blas import dsyrk
+from scipy.linalg.blas import ssyrk
 
 from hood_decomp.core.fe.contact import solve_lcp
 from hood_decomp.core.fe.ensemble import MemberBlock, contact_summary, factorial_plan, validation_plan
@@ -98,6 +100,10 @@ HYPER_ROWS = 400
 #: are 0.1-0.8 mm and the model is 0.01-0.02 mm from the full solve, so 1e-4 is ample (coarse hood-paper: the same
 #: members to 2e-5 mm as with NonlinearSolver's 1e-6, and 32 % fewer iterations)
 TRAINING_TOLERANCE = 1e-4
+#: mm, the same for the derivative training's greedy full solves: their corrections add 4 modes each pass to a model
+#: 0.012-0.019 mm from the full solve, so 1e-3 is still a twelfth of that (coarse hood-paper, session 21: 308
+#: iterations instead of 392, the bench's members 0.0118 mm from the full solve instead of 0.0119)
+GREEDY_TOLERANCE = 1e-3
 #: how the correction modes are trained (:func:`build_reduced_geometric`)
 TRAININGS = ("derivatives", "states")
 
@@ -267,7 +273,8 @@ def energy_sums(facets: FacetTriangles, basis: np.ndarray, previous: EnergySums 
     """The Green-Lagrange membrane energy beyond the linear one of u = basis @ y summed over the facets
     (:class:`EnergySums`); basis: nodal translations (n, 3, d) mm. With ``previous``, the sums of a basis that is
     ``basis``'s first d0 columns, only the terms with a coordinate >= d0 are summed (the rest are taken from it: the
-    same sums; a greedy pass adding 4 coordinates to 49 costs 40 % of a fresh sum).
+    same sums; a greedy pass adding 4 coordinates to 45 costs 75 % of a fresh sum's CPU on coarse). T4 is summed in
+    single precision (each chunk's sum added in double: relative ~1e-7 of a double sum), T3 in double.
 
     Per facet, eps_L = L y and eps_Q = (y^T S_k y)_k (k = xx, yy, 2xy); E = sum A [eps_L^T tD eps_Q + 1/2 eps_Q^T
     tD eps_Q] (the energy whose gradient is :func:`.geometric.nonlinear_forces`), summed in the products y_a y_b."""
@@ -277,39 +284,49 @@ def energy_sums(facets: FacetTriangles, basis: np.ndarray, previous: EnergySums 
         raise SolverError(f"previous energy sums: expected those of the first columns of the basis {basis.shape}, "
                           f"got a basis {previous.basis.shape} that is not")
     first, second = np.triu_indices(d)
-    weight = np.where(first == second, 1.0, 2.0)  # y^T S y = sum over a <= b of weight S_ab y_a y_b
     pairs = len(first)
+    flat, mirror, diagonal = first * d + second, second * d + first, np.flatnonzero(first == second)
     new, old = np.flatnonzero(second >= d0), np.flatnonzero(second < d0)
     T3 = np.zeros((d, pairs))
-    T4new = np.zeros((len(new), len(new)), order="F")  # its upper triangle, summed by dsyrk
-    T4old = np.zeros((len(old), len(new)))
+    T4new = np.zeros((pairs, len(new)))  # the columns of the new pairs (fresh: the upper triangle, by ssyrk)
     root = np.linalg.cholesky(facets.D)  # D = root root^T: S^T (A t D) S = X^T X, X = sqrt(A t) root^T S
     size = len(facets.nodes)
     chunk = max(1, int(CHUNK_BYTES / (8 * 9 * max(d * d, pairs))))
     for start in range(0, size, chunk):
         part = facets.rows(start, start + chunk)
+        t = len(part.nodes)
         J = gradients(part, basis)  # (t, 3, 2, d)
         L = linear_strain(part, J)  # (t, 3, d)
-        Jx, Jy = J[:, :, 0], J[:, :, 1]
-        xt, yt = Jx.transpose(0, 2, 1), Jy.transpose(0, 2, 1)
-        xy = xt @ Jy  # batched matmul: several times faster than einsum here
-        S = np.stack([0.5 * (xt @ Jx)[:, first, second], 0.5 * (yt @ Jy)[:, first, second],
-                      0.5 * (xy[:, first, second] + xy[:, second, first])], axis=1) * weight  # (t, 3, pairs): eps_Q
-        scale = part.area * part.thickness
-        ell = (np.einsum("tka,kl->tla", L, facets.D) * scale[:, None, None]).reshape(-1, d)
+        root_scale = np.sqrt(part.area * part.thickness)  # (A t)^1/2: in S (through J) and in ell, A t in T3
+        J *= np.sqrt(root_scale)[:, None, None, None]
+        xt, yt = J[:, :, 0].transpose(0, 2, 1), J[:, :, 1].transpose(0, 2, 1)
+        S = np.empty((t, 3, pairs))  # eps_Q's pair coefficients: y^T S_k y = sum over a <= b of S_k,ab y_a y_b
+        for k, product in enumerate((xt @ J[:, :, 0], yt @ J[:, :, 1], xt @ J[:, :, 1])):  # batched matmul
+            np.take(product.reshape(t, -1), flat, axis=1, out=S[:, k])  # (flat, no stack: 1.4x a 2-D index)
+        S[:, 2] += np.take(product.reshape(t, -1), mirror, axis=1)  # 2xy: Jx_a . Jy_b + Jx_b . Jy_a
+        S[:, :, diagonal] *= 0.5
+        ell = (np.einsum("tka,kl->tla", L, facets.D) * root_scale[:, None, None]).reshape(-1, d)
         S = S.reshape(-1, pairs)
-        T3[:, new] += ell.T @ S[:, new]
-        X = (np.einsum("lk,tlp->tkp", root, S.reshape(-1, 3, pairs)) * np.sqrt(scale)[:, None, None]
-             ).reshape(-1, pairs)
-        Xnew = X[:, new] if d0 else X  # (no copy for a fresh sum)
-        T4new = dsyrk(0.5, Xnew.T, beta=1.0, c=T4new, trans=0, lower=0, overwrite_c=1)  # half a GEMM
+        T3[d0:] += ell[:, d0:].T @ S  # (rows of new coordinates, then the new pairs of the old: no copy of S)
         if d0:
-            T3[d0:, old] += ell[:, d0:].T @ S[:, old]
-            T4old += 0.5 * X[:, old].T @ Xnew
-    T4 = np.zeros((pairs, pairs))
-    T4[np.ix_(new, new)] = np.triu(T4new) + np.triu(T4new, 1).T
-    T4[np.ix_(old, new)] = T4old
-    T4[np.ix_(new, old)] = T4old.T
+            T3[:d0, new] += ell[:, :d0].T @ S[:, new]
+        # X = root^T S in single precision (the quartic sums' BLAS 2.2x faster, the bulk of a sum at default
+        # resolution; each chunk's sum added in double: relative error ~1e-7); root is lower triangular
+        S3, X = S.reshape(t, 3, pairs), np.empty((t, 3, pairs), dtype=np.float32)
+        for k in range(3):
+            X[:, k] = sum(root[row, k] * S3[:, row] for row in range(k, 3) if root[row, k])
+        X = X.reshape(-1, pairs)
+        if d0:  # all pairs x the new ones in one GEMM (no copy of X's old columns)
+            T4new += 0.5 * (X.T @ X[:, new])
+        else:
+            T4new += ssyrk(0.5, X.T, trans=0, lower=0)  # half a GEMM
+    if d0:
+        T4 = np.zeros((pairs, pairs))
+        T4[:, new] = T4new
+        T4[new] = T4new.T
+        T4[np.ix_(new, new)] = 0.5 * (T4new[new] + T4new[new].T)
+    else:
+        T4 = np.triu(T4new) + np.triu(T4new, 1).T
     if previous is not None:
         # the old pairs' positions in the previous (d0) triu order: a d0 - a (a - 1) / 2 + b - a
         index = first[old] * (2 * d0 - first[old] + 1) // 2 + second[old] - first[old]
@@ -432,13 +449,13 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
       (:func:`derivative_snapshots`: the second-order terms of the linear fields u0, W a, G Bf phi scaled to their
       reach in the ranges, and the second- and third-order terms along the training states' linear members), then
       ``passes`` greedy passes: the reduced training members' residuals r = K u + f_nl(u) - F - P f through K^-1 rank
-      them, the ``solves`` largest (not solved before) are solved by the full nonlinear model, and the K-weighted POD
-      of their corrections K-orthogonal to the modes so far adds ``added`` modes. ``residual`` is the largest
-      |K^-1 r| of the final model's training members on the skin (an error indicator, not a difference from the
-      full solve). ``passes x solves`` full solves instead of 137; with ``enough`` (mm), fewer: the passes end once
-      the largest indicator of the training members not yet solved is below it, and the model has fewer modes (an
-      estimate, not a bound: on coarse hood-paper the members' largest distance from the full solve was 0.3-0.8x
-      the final indicator; benchmarks/RESULTS.md, session 18).
+      them, the ``solves`` largest (not solved before) are solved by the full nonlinear model (to GREEDY_TOLERANCE),
+      and the K-weighted POD of their corrections K-orthogonal to the modes so far adds ``added`` modes.
+      ``residual`` is the largest |K^-1 r| of the final model's training members on the skin (an error indicator,
+      not a difference from the full solve). ``passes x solves`` full solves instead of 137; with ``enough`` (mm),
+      fewer: the passes end once the largest indicator of the training members not yet solved is below it, and the
+      model has fewer modes (an estimate, not a bound: on coarse hood-paper the members' largest distance from the
+      full solve was 0.3-0.8x the final indicator; benchmarks/RESULTS.md, session 18).
 
     pad_samples: random states whose linear pad forces (with the factorial's) give the pad force shapes.
     hyper: None (the energy tensors summed over all facets) or the relative tolerance of a hyper-reduction: the
@@ -483,7 +500,8 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
         """Full nonlinear members (6n, m) and their corrections u - u_lin (6n, m), zero on the constrained DOFs;
         guesses: (6n, m) displacements near them to start from (the reduced members), or None."""
         nonlocal full
-        full = NonlinearSolver(solver, tolerance=TRAINING_TOLERANCE, facets=facets) if full is None else full
+        tolerance = TRAINING_TOLERANCE if training == "states" else GREEDY_TOLERANCE
+        full = NonlinearSolver(solver, tolerance=tolerance, facets=facets) if full is None else full
         exact, f = np.zeros((6 * n, len(commanded))), np.zeros((len(commanded), len(pads.k)))
         solved = ([full.solve_displacement(state) for state in commanded] if guesses is None
                   else full.solve_displacements(commanded, guesses))
@@ -542,8 +560,9 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
     for sweep in range(passes + 1 if training == "derivatives" else 0):
         f, q = rom.solve_all(states)
         reduced = u0[:, None] + W @ states[:, :B].T + G @ f.T + Psi @ q.T
-        step = solver.solve(solver.K @ reduced + nonlinear_force_vector(facets, reduced) - solver.load[:, None]
-                            - P @ f.T).reshape(n, 6, -1)
+        # K^-1 (K u + f_nl(u) - F - P f) with the linear member's part exact (K_ff of u0, W a, G f is F, 0, P f
+        # on the free DOFs): Psi q + K^-1 f_nl(u), without the full-order K u
+        step = (Psi @ q.T + solver.solve(nonlinear_force_vector(facets, reduced))).reshape(n, 6, -1)
         lap("indicator")
         size = np.where(solved, -1.0, np.abs(step[:, :3]).max(axis=(0, 1)))
         if sweep == passes or (enough is not None and size.max() < enough):
