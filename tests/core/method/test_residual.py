@@ -119,6 +119,76 @@ def test_the_smallest_ring_tail_is_the_smallest_of_all_rings():
         assert smallest_t_sf(z, dof) == pytest.approx(expected, rel=1e-12, abs=1e-300), case
 
 
+@pytest.mark.parametrize("holes", [False, True])
+def test_the_one_ring_p_value_is_the_largest_ring_mean_written_out(holes):
+    """Fails if local_p_value differs from the one-ring test written out ring by ring (the seen nodes of each node's
+    ring from the skin's edges, the ring sum over its seen nodes against the sum of their variances, scipy's t tail
+    with nu dof, Bonferroni over the usable rings): for a node variance given per node and as one float (a white
+    uniform model: the counts times it), seen everywhere and with holes, with a smooth field error (each ring's
+    Welch-Satterthwaite dof) and without (one dof: the largest z alone), a planted one-ring bump among the noise."""
+    from scipy.stats import t
+
+    from hood_decomp.core.method.residual import local_p_value, ring_incidence
+
+    rng = np.random.default_rng(21)
+    n, nu = SKIN.n_nodes, 40.0
+    residual = rng.normal(0.0, 0.01, n) + bump((300.0, 400.0), 0.08, 25.0)
+    if holes:
+        residual[rng.random(n) < 0.2] = np.nan
+    seen = np.isfinite(residual)
+    neighbours = [{i} for i in range(n)]
+    for a, b in zip(*skin_adjacency(SKIN).nonzero(), strict=True):
+        neighbours[a].add(b)
+    variance = rng.uniform(0.5e-4, 2e-4, n)
+    smooth_mm2, smooth_dof = rng.uniform(0.0, 1e-5, n), 12.0
+    rings = ring_incidence(SKIN)
+    for flat in (False, True):
+        v = np.full(n, 1.3e-4) if flat else variance
+        for smooth in (None, smooth_mm2):
+            tails, usable = [], 0
+            for i in range(n):
+                ring = [j for j in neighbours[i] if seen[j]]
+                if not seen[i] or not ring:
+                    continue
+                usable += 1
+                level = v[ring].sum()
+                spread = level if smooth is None else level + len(ring) * smooth[ring].sum()
+                dof = nu if smooth is None else spread**2 / (level**2 / nu + (spread - level) ** 2 / smooth_dof)
+                tails.append(t.sf(abs(residual[ring].sum()) / np.sqrt(spread), dof))
+            expected = min(1.0, 2.0 * usable * min(tails))
+            given = 1.3e-4 if flat else variance
+            got = local_p_value(rings, residual, given, nu, smooth, smooth_dof)
+            assert got == pytest.approx(expected, rel=1e-9), (flat, smooth is None)
+            assert expected < 0.01  # the bump stands out: the largest ring, not any ring, decides
+
+
+def test_a_white_uniform_models_shortcut_gives_the_general_paths_numbers():
+    """A white uniform error model (one node weight, variance x correlation, on every node) is judged and its
+    covariance stated from counts times that weight, with no pass over the nodes. Fails if those numbers differ from
+    the general path's, taken by the same model with its correlation moved by 1e-9 relative (no longer uniform):
+    the test's statistic, level and p-value (smooth and one-ring parts, with holes) and an estimate's covariance."""
+    from hood_decomp.core.method.estimation import parameter_covariance
+    from hood_decomp.core.method.residual import check_residual, ring_incidence, smooth_modes
+    from hood_decomp.core.types import FieldErrorModel
+
+    rng = np.random.default_rng(4)
+    n = SKIN.n_nodes
+    residual = rng.normal(0.0, 0.01, n) + bump((900.0, 300.0), 0.02, 120.0)
+    residual[rng.random(n) < 0.1] = np.nan
+    design = rng.normal(size=(n, 3))
+    flat = FieldErrorModel("scan", np.full(n, 0.01), np.full(n, 3.0))
+    general = FieldErrorModel("scan", np.full(n, 0.01), 3.0 * (1.0 + 1e-9 * rng.random(n)))
+    assert flat.uniform_weight(n) == pytest.approx(3e-4, rel=1e-12) and general.uniform_weight(n) is None
+    checks = [check_residual(residual, design, errors, smooth_modes(SKIN.points, 2), rings=ring_incidence(SKIN))
+              for errors in (flat, general)]
+    for name in ("statistic", "noise_scale", "p_value", "dof"):
+        assert getattr(checks[0], name) == pytest.approx(getattr(checks[1], name), rel=1e-6), name
+    valid = np.isfinite(residual)
+    inverse = np.linalg.inv(design[valid].T @ design[valid])
+    covariances = [parameter_covariance(design, inverse, valid, errors, 1.7, 0.002, None) for errors in (flat, general)]
+    np.testing.assert_allclose(covariances[0], covariances[1], rtol=1e-6)
+
+
 @pytest.mark.parametrize(("noise_factor", "floor_mm2"), [(0.5, 4e-5), (2.0, 1e-5), (2.0, 1e-3)])
 def test_the_bias_level_is_at_least_the_stated_floor(noise_factor, floor_mm2):
     """The bias variance of a field with a bias term is max(the rough residual's excess over the stated node noise,

@@ -88,6 +88,11 @@ ERROR_MODEL_KINDS = ("scan", "stated", "none")
 VARIANCE_FLOOR_MM2 = 1e-16
 
 
+def uniform(values: np.ndarray) -> bool:
+    """Whether positive node values (n,) are one value to round-off (a white uniform error model)."""
+    return bool(np.ptp(values) <= 1e-12 * values.max())
+
+
 @dataclass(frozen=True)
 class FieldErrorModel:
     """How wrong each node value of a field may be (DESIGN.md: "a field carries its error model").
@@ -217,6 +222,19 @@ class FieldErrorModel:
             made = (variance, correlation)
             object.__setattr__(self, "_node_variance", made)
         return made
+
+    def uniform_weight(self, n_nodes: int) -> float | None:
+        """The node weight variance x correlation (mm^2, :meth:`node_variance`) when it is one value on every node to
+        round-off (:func:`uniform`: a white uniform model, as :meth:`stated` makes), else None; found once per model.
+        Any nodes' sums of the weights are then their count times it, so the estimate and its test make no pass for
+        them. Not for a model of kind "none"."""
+        made = self.__dict__.get("_uniform_weight")
+        if made is None:
+            variance, correlation = self.node_variance(n_nodes)
+            weight = variance * correlation
+            made = (float(weight[0]) if weight.size and uniform(weight) else None,)
+            object.__setattr__(self, "_uniform_weight", made)
+        return made[0]
 
     def registration_modes(self, points: np.ndarray, normals: np.ndarray, rigid: np.ndarray | None = None
                            ) -> np.ndarray:

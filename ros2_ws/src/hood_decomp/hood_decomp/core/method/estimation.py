@@ -30,6 +30,7 @@ from hood_decomp.core.method.residual import (
     node_variance,
     split_level,
     uniform,
+    uniform_weight,
     weighted_gram,
 )
 from hood_decomp.core.types import DisplacementField, FieldErrorModel, ModelCheck, ParameterEstimate
@@ -324,9 +325,7 @@ def fit_weight(
     the level test without smooth modes needs the ordinary fit's residual."""
     if test is None or errors.kind == "none":
         return None, None, None
-    variance, correlation = node_variance(errors, valid.size)
-    weight = (variance * correlation)[valid]
-    if not errors.has_pose and uniform(weight):
+    if not errors.has_pose and uniform_weight(errors, valid.size) is not None:
         return None, None, None  # the weight a multiple of I whatever the level: the ordinary fit
     # no one-ring part: where a field takes it (looks_at_fit), the fit's own residual is judged and this verdict
     # dropped; only its level is used (at paper resolution the part's projection was 90-180 ms of a posed field)
@@ -365,12 +364,13 @@ def parameter_covariance(
     actual variance that way, 1.4 x so (the floor's share), and 1.8 x with the rows as measured.
     """
     variance, correlation = node_variance(errors, valid.size)
-    weight = (variance * correlation)[valid]
-    scale, bias = split_level(scale, errors, float(variance[valid].mean()))
+    scale, bias = split_level(scale, errors, float(variance.mean() if valid.all() else variance[valid].mean()))
     model2 = float(model_mm) ** 2 + bias
-    if uniform(weight):
-        covariance = inverse * (scale * float(weight[0]) + model2)
+    flat = uniform_weight(errors, valid.size)
+    if flat is not None:
+        covariance = inverse * (scale * flat + model2)
     else:
+        weight = (variance * correlation)[valid]
         gain = inverse @ design[valid].T
         covariance = scale * (gain * weight) @ gain.T + model2 * inverse
     if registration is not None:

@@ -36,6 +36,7 @@ from hood_decomp.core.types import (
     SkinSurface,
     rigid_modes,
     side_by_side,
+    uniform,
 )
 from hood_decomp.errors import FieldError
 
@@ -253,11 +254,6 @@ def smooth_modes(points: np.ndarray, degree: int = DEFAULT_SMOOTH_DEGREE) -> np.
     return side_by_side(np.linalg.qr(np.column_stack(columns))[0])
 
 
-def uniform(values: np.ndarray) -> bool:
-    """Whether positive node values (n,) are one value to round-off (a white uniform error model)."""
-    return bool(np.ptp(values) <= 1e-12 * values.max())
-
-
 def _whiten(gram: np.ndarray) -> np.ndarray:
     """W (k, r) with W^T gram W = I_r over the directions of a Gram matrix (k, k) above RANK_RTOL of its largest."""
     if gram.shape[0] == 0:
@@ -293,7 +289,8 @@ def _smooth_split(r: np.ndarray, design: np.ndarray, modes: np.ndarray, weight: 
     """The residual r (N,) or (N, j), 0 where unseen, on the ``seen`` nodes (N,) bool split by the fitted directions Z
     (orthonormal span of ``design`` (N, p) over the seen nodes) and the smooth ones S (orthonormal span of ``modes``
     (N, M) outside Z), from two Gram matrices only (one pass each over the nodes, never an n x k factorisation).
-    weight (N,): node variance x correlation on the seen nodes; moved: low-rank field errors (N, k_i) side by side, k
+    weight (N,): node variance x correlation on the seen nodes, or one float for every seen node (a white uniform
+    model: :func:`uniform_weight`); moved: low-rank field errors (N, k_i) side by side, k
     columns in all (the registration's modes, then a calibrated model's). Every array finite everywhere (the unseen rows
     of design, modes and moved do not count). seen_gram: the Gram of [design, modes, moved] over the seen nodes when the
     caller has it (:meth:`ResidualTest.check`), None: formed here; then only r's products are a pass over the nodes.
@@ -315,9 +312,11 @@ def _smooth_split(r: np.ndarray, design: np.ndarray, modes: np.ndarray, weight: 
     zr = to_z.T @ gram[d, e]
     to_s = _whiten(gram[q, q] - zq.T @ zq)  # S = (modes - Z zq) @ to_s
     c = to_s.T @ (gram[q, e] - zq.T @ zr)
-    seen_weight = weight if seen.all() else weight[seen]
-    if uniform(seen_weight):  # Z, S orthonormal: their weighted Grams are weight x I
-        level = float(seen_weight[0])
+    level = float(weight) if np.ndim(weight) == 0 else None
+    if level is None:
+        seen_weight = weight if seen.all() else weight[seen]
+        level = float(seen_weight[0]) if uniform(seen_weight) else None
+    if level is not None:  # Z, S orthonormal: their weighted Grams are weight x I
         fitted_weight, smooth_cov = level * to_z.shape[1], level * np.eye(to_s.shape[1])
     else:
         # tr Z^T diag(w) Z from Z's rows and S^T diag(w) S from the modes' part outside Z, M columns: not the
@@ -343,6 +342,14 @@ def node_variance(errors: FieldErrorModel, n_nodes: int) -> tuple[np.ndarray, np
     if errors.kind == "none":
         return np.ones(n_nodes), np.ones(n_nodes)
     return errors.node_variance(n_nodes)
+
+
+def uniform_weight(errors: FieldErrorModel, n_nodes: int) -> float | None:
+    """The one node weight (variance x correlation, mm^2) of a white uniform error model over its ``n_nodes`` nodes
+    (:meth:`FieldErrorModel.uniform_weight`, found once per model), 1 for a field that states none, else None. The
+    estimate and its test then take their weighted sums as counts times it, with no pass over the nodes; a model
+    that is uniform only on the seen nodes takes the general path, which gives the same numbers."""
+    return 1.0 if errors.kind == "none" else errors.uniform_weight(n_nodes)
 
 
 def check_residual(
@@ -403,15 +410,16 @@ def check_residual(
     every = n_seen == residual.size  # no copies of the seen nodes' values then (at paper resolution ~1 ms each)
     variance, correlation = node_variance(errors, residual.size)
     v, g, r = (variance, correlation, residual) if every else (variance[seen], correlation[seen], residual[seen])
-    weight = v * g
+    flat = uniform_weight(errors, residual.size)  # a white uniform model's weight: no pass for it
+    weight = v * g if flat is None else flat
     model2 = float(model_mm) ** 2
     moved = [part for part in (registration, discrepancy) if part is not None]
     n_registration = 0 if registration is None else registration.shape[1]
     if modes is not None:
+        node_weight = weight if every or flat is not None else np.where(seen, variance * correlation, 0.0)
         parts = _smooth_split(residual if every else np.where(seen, residual, 0.0),
                               np.asarray(design, float) if design is not None else np.zeros((residual.size, 0)),
-                              modes, weight if every else np.where(seen, variance * correlation, 0.0), moved, seen,
-                              seen_gram)
+                              modes, node_weight, moved, seen, seen_gram)
         n_fitted, c, smooth_cov, rough_energy, fitted_weight, rough_moved, projected = parts
         # only the registration's rough energy is expected in the residual: a calibrated discrepancy is a smooth
         # model error, and its modes' rough part is the calibration entries' noise (0.02 mm white on 13 entries),
@@ -423,7 +431,7 @@ def check_residual(
         # directions' expected energy is taken at the mean node weight (exact for a uniform error model)
         n_fitted = 0 if design is None else int(np.shape(design)[1])
         c, smooth_cov, projected = np.zeros(0), np.zeros((0, 0)), np.zeros((0, sum(m.shape[1] for m in moved)))
-        rough_energy, fitted_weight, rough_registration = float(r @ r), n_fitted * float(weight.mean()), 0.0
+        rough_energy, fitted_weight, rough_registration = float(r @ r), n_fitted * float(np.mean(weight)), 0.0
     n_removed = n_fitted + c.size
     expected = float(v.sum()) - fitted_weight - float(np.trace(smooth_cov))
     scale = max((rough_energy - model2 * max(n_seen - n_removed, 0) - rough_registration)
@@ -454,7 +462,9 @@ def check_residual(
         effective = max(effective, float(m))  # at least one denominator dof
         p_value = float(f_sf(statistic * (effective - m + 1) / (effective * m), m, effective - m + 1))
     if rings is not None and errors.bias_correlation <= 0:
-        if every:
+        if flat is not None:
+            node_variance_mm2 = max(noise * flat + model2, LOCAL_FLOOR_MM2)
+        elif every:
             node_variance_mm2 = np.maximum(noise * weight + model2, LOCAL_FLOOR_MM2)
         else:
             node_variance_mm2 = np.zeros(residual.size)
@@ -522,13 +532,13 @@ def ring_incidence(skin: SkinSurface) -> sp.csr_matrix:
     return (skin_adjacency(skin) + sp.identity(skin.n_nodes, format="csr")).tocsr()
 
 
-def local_p_value(rings: sp.csr_matrix, residual: np.ndarray, variance_mm2: np.ndarray, nu: float,
+def local_p_value(rings: sp.csr_matrix, residual: np.ndarray, variance_mm2: np.ndarray | float, nu: float,
                   smooth_mm2: np.ndarray | None = None, smooth_dof: float = np.inf) -> float:
     """p-value of the largest one-ring mean residual under the model.
 
     rings: (N, N) :func:`ring_incidence`, CSR with every stored entry 1. residual: (N,) mm, NaN where unseen.
     variance_mm2: (N,) each seen node's variance under the model (noise level x node variance x correlation + model
-    floor). The one-ring mean a_i over
+    floor), or one float for every seen node (a white uniform model). The one-ring mean a_i over
     the seen nodes of ring i has variance sum_j v_j / n_i^2 (the correlation sum stands for the nodes' mutual
     correlation, as in :func:`check_residual`); z_i = a_i / sd_i follows Student's t with nu degrees of freedom (the
     level is estimated), and the largest |z| over the n seen rings is Bonferroni-adjusted (conservative: the rings
@@ -541,11 +551,11 @@ def local_p_value(rings: sp.csr_matrix, residual: np.ndarray, variance_mm2: np.n
         return 1.0
     everywhere = bool(seen.all())
     # each sparse product is a pass over the rings' 7 N entries (1.7 ms at paper resolution): a field seen everywhere
-    # has the rings' sizes as counts, and a uniform node variance (white noise) the counts times it as levels
+    # has the rings' sizes as counts, and one node variance (white noise) the counts times it as levels
     count = np.diff(rings.indptr).astype(float) if everywhere else rings @ seen.astype(float)
     total = rings @ (residual if everywhere else np.where(seen, residual, 0.0))
-    if uniform(variance_mm2 if everywhere else variance_mm2[seen]):
-        level = count * float(variance_mm2[np.argmax(seen)])
+    if np.ndim(variance_mm2) == 0:
+        level = count * float(variance_mm2)
     else:
         level = rings @ np.where(seen, variance_mm2, 0.0)
     smooth = None if smooth_mm2 is None else count * (rings @ np.where(seen, smooth_mm2, 0.0))
@@ -557,11 +567,12 @@ def local_p_value(rings: sp.csr_matrix, residual: np.ndarray, variance_mm2: np.n
         spread, level, total = spread[usable], level[usable], total[usable]
         smooth = None if smooth is None else smooth[usable]
     z = np.abs(total) / np.sqrt(spread)
-    if smooth is None:  # the level's own degrees of freedom, the same for every ring
-        dof = np.broadcast_to(min(nu, 1e12), z.shape)
+    if smooth is None:  # the level's own degrees of freedom, the same for every ring: the largest z has the least tail
+        smallest = float(t_sf(z.max(), min(nu, 1e12)))
     else:
         dof = np.minimum(spread**2 / np.maximum(level**2 / nu + smooth**2 / smooth_dof, 1e-300 * spread**2), 1e12)
-    return float(min(1.0, 2.0 * usable.sum() * smallest_t_sf(z, dof)))
+        smallest = smallest_t_sf(z, dof)
+    return float(min(1.0, 2.0 * usable.sum() * smallest))
 
 
 def smallest_t_sf(z: np.ndarray, dof: np.ndarray, first: int = 32) -> float:
