@@ -364,7 +364,9 @@ def parameter_covariance(
     actual variance that way, 1.4 x so (the floor's share), and 1.8 x with the rows as measured.
     """
     variance, correlation = node_variance(errors, valid.size)
-    scale, bias = split_level(scale, errors, float(variance.mean() if valid.all() else variance[valid].mean()))
+    # the seen nodes' mean variance only splits a level with a bias term (a pass over the nodes otherwise spent)
+    mean_variance = float(variance[valid].mean()) if errors.bias_correlation > 0 else 0.0
+    scale, bias = split_level(scale, errors, mean_variance)
     model2 = float(model_mm) ** 2 + bias
     flat = uniform_weight(errors, valid.size)
     if flat is not None:

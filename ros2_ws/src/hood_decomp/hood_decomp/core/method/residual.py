@@ -554,6 +554,18 @@ def local_p_value(rings: sp.csr_matrix, residual: np.ndarray, variance_mm2: np.n
     # has the rings' sizes as counts, and one node variance (white noise) the counts times it as levels
     count = np.diff(rings.indptr).astype(float) if everywhere else rings @ seen.astype(float)
     total = rings @ (residual if everywhere else np.where(seen, residual, 0.0))
+    if np.ndim(variance_mm2) == 0 and smooth_mm2 is None:
+        # one node variance v and one dof for every ring: z_i^2 = total_i^2 / (count_i v), and the largest z has the
+        # least tail; no spread per ring (three passes fewer: ~1 ms of a 12 ms estimate at paper resolution)
+        usable = count > 0 if everywhere else seen & (count > 0)
+        n_usable = int(usable.sum())
+        if n_usable == 0:
+            return 1.0
+        np.square(total, out=total)
+        np.divide(total, count, out=total, where=usable)
+        if n_usable < total.size:
+            total[~usable] = 0.0
+        return float(min(1.0, 2.0 * n_usable * t_sf(np.sqrt(total.max() / float(variance_mm2)), min(nu, 1e12))))
     if np.ndim(variance_mm2) == 0:
         level = count * float(variance_mm2)
     else:
