@@ -32,6 +32,7 @@ from hood_decomp.core.method.estimation import (
     NodeWeight,
     WeightedSpan,
     check_field,
+    covariance_reads_design,
     fit_weight,
     judge,
     parameter_covariance,
@@ -339,11 +340,18 @@ class ContactEstimator:
         # watches smooth fields outside everything the model can make (any pad force pattern, [R G]): the scan
         # step's bias is largest at the pads' kinks
         discrepancy = None if self.test_ is None else self.test_.discrepancy_pair()
-        design = self.fields_.T @ best.lift if span is None else None  # the weighted fit needs only its lift
+        # the ordinary fit's design F^T lift (N, n_theta), made where it is read (the weighted fit needs only its lift;
+        # a test on the skin judges the span, not the design; a white field's covariance does not read it)
+        def design() -> np.ndarray:
+            return self.fields_.T @ best.lift
+
         if check is None:
-            check, registration, discrepancy = judge(residual, design, errors, self.test_, 0.0, span=self.fields_.T)
+            check, registration, discrepancy = judge(residual, design() if self.test_ is None else None, errors,
+                                                     self.test_, 0.0, span=self.fields_.T)
         if span is None:
-            theta_cov = parameter_covariance(design, best.normal_inverse, valid, errors, check.noise_scale, 0.0,
+            reads = covariance_reads_design(errors, valid.size, registration, discrepancy)
+            theta_cov = parameter_covariance(design() if reads else None, best.normal_inverse, valid, errors,
+                                             check.noise_scale, 0.0,
                                              registration, discrepancy)
         else:
             theta_cov = span.covariance(best.lift, best.normal_inverse)

@@ -342,11 +342,12 @@ def fit_weight(
 
 
 def parameter_covariance(
-    design: np.ndarray, inverse: np.ndarray, valid: np.ndarray, errors: FieldErrorModel, scale: float,
+    design: np.ndarray | None, inverse: np.ndarray, valid: np.ndarray, errors: FieldErrorModel, scale: float,
     model_mm: float, registration: np.ndarray | None,
     discrepancy: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
-    """Covariance (q, q) of least-squares coefficients theta = inverse @ design[valid].T @ y (design (N, q)).
+    """Covariance (q, q) of least-squares coefficients theta = inverse @ design[valid].T @ y (design (N, q); None where
+    :func:`covariance_reads_design` says it is not read).
 
     The sandwich G Sigma G^T with G = inverse X^T over the valid nodes and the node covariance Sigma = noise *
     diag(v g) + (model^2 + bias) I + U U^T (error model variances v, correlation sums g, the level ``scale`` split
@@ -382,6 +383,15 @@ def parameter_covariance(
         gains = (inverse @ (design[valid].T @ m[valid]) for m in discrepancy)
         covariance = covariance + discrepancy_along_gains(*gains)
     return 0.5 * (covariance + covariance.T)
+
+
+def covariance_reads_design(errors: FieldErrorModel, n_nodes: int, registration: np.ndarray | None,
+                            discrepancy: tuple[np.ndarray, np.ndarray] | None) -> bool:
+    """Whether :func:`parameter_covariance` reads its design for a field with ``errors`` over ``n_nodes`` nodes: not
+    for a white uniform model (or none) without a registration or a discrepancy, whose covariance is the normal
+    matrix' inverse times one level. A caller that forms its design for the covariance alone (the contact-aware
+    estimator's F^T lift, (N, n_theta): ~30 MB and a product over all nodes at paper resolution) can skip it then."""
+    return uniform_weight(errors, n_nodes) is None or registration is not None or discrepancy is not None
 
 
 def discrepancy_along_gains(seen: np.ndarray, noise: np.ndarray) -> np.ndarray:
