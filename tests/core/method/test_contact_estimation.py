@@ -1,6 +1,8 @@
 """Contact-aware estimator on a hand-made ReducedModel whose truth comes from an exact (enumerated) LCP."""
 
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -96,3 +98,31 @@ def test_a_lifted_pads_model_std_counts_the_preload_it_is_read_from(setup):
         error = estimator.estimate(field_of(skin, truth.normal_displacement[0])).values - truth.effective[0]
         assert abs(error[N_BILATERAL]) > 0.02  # the preload really moves the lifted pad's error
         np.testing.assert_allclose(estimate.model_effects[0], error, atol=1e-6)
+
+
+def test_the_fits_own_projection_judges_as_the_tests_own_pass(setup):
+    """The PCA and contact-aware fits hand the within-model test their residual's projection on the fitted fields,
+    taken from their right-hand sides (an ordinary fit: rhs less its normal matrix times its coefficients; the
+    contact fit's refinement step carried). Fails if the test an estimate reports differs from the skin's test made
+    afresh on that estimate's residual with its own pass over the nodes: fields with a stated white noise, holes,
+    and a smooth effect the model lacks (so that the statistic is not near zero)."""
+    from hood_decomp.core.method.residual import ResidualTest
+    from hood_decomp.core.types import FieldErrorModel
+
+    skin, model, validation, _ = setup
+    test = ResidualTest().fit(skin)
+    contact = ContactEstimator().fit(model, np.full(6, -1.0), np.full(6, 1.0), test=test)
+    states, rank = full_factorial(6)
+    basis = PCABasis(n_components=10).fit(make_ensemble(model, states, rank))
+    rng = np.random.default_rng(9)
+    lacking = 0.01 * np.sin(skin.points[:, 0] / 300.0) * np.cos(skin.points[:, 1] / 200.0)
+    for i in range(4):
+        values = validation.normal_displacement[i] + rng.normal(0.0, 0.02, skin.n_nodes) + (i % 2) * lacking
+        values[rng.random(skin.n_nodes) < 0.15] = np.nan
+        field = dataclasses.replace(field_of(skin, values), error_model=FieldErrorModel.stated(0.02, skin.n_nodes))
+        for estimate, span in ((estimate_pca(basis, field, test=test), basis.components_.T),
+                               (contact.estimate(field), contact.fields_.T)):
+            afresh = test.check(estimate.residual, span, field.errors)
+            for name in ("statistic", "noise_scale", "p_value"):
+                assert getattr(estimate.check, name) == pytest.approx(getattr(afresh, name), rel=1e-9), name
+

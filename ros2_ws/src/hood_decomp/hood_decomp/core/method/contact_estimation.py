@@ -329,10 +329,10 @@ class ContactEstimator:
         model = self.model_
         weight = None if span is None else span.weight
         # One step of iterative refinement on the real residual: the normal equations square the condition number.
-        u = best.lift @ best.theta + best.offset
-        reconstruction = model.w0 + u @ self.fields_
-        correction_rhs = best.lift.T @ weighted_rhs(self.fields_, values - reconstruction, valid, weight)
-        theta = best.theta + best.normal_inverse @ correction_rhs
+        first = best.lift @ best.theta + best.offset
+        reconstruction = model.w0 + first @ self.fields_
+        projected = weighted_rhs(self.fields_, values - reconstruction, valid, weight)  # F W r over the seen nodes
+        theta = best.theta + best.normal_inverse @ (best.lift.T @ projected)
         u = best.lift @ theta + best.offset
         reconstruction = model.w0 + u @ self.fields_
         residual, rms, worst = residual_stats(values, reconstruction, valid)
@@ -345,9 +345,10 @@ class ContactEstimator:
         def design() -> np.ndarray:
             return self.fields_.T @ best.lift
 
-        if check is None:
+        if check is None:  # the ordinary fit's residual on the span, F r - normal (u - first): no pass for the test
             check, registration, discrepancy = judge(residual, design() if self.test_ is None else None, errors,
-                                                     self.test_, 0.0, span=self.fields_.T)
+                                                     self.test_, 0.0, span=self.fields_.T,
+                                                     span_r=projected - normal @ (u - first) if span is None else None)
         if span is None:
             reads = covariance_reads_design(errors, valid.size, registration, discrepancy)
             theta_cov = parameter_covariance(design() if reads else None, best.normal_inverse, valid, errors,

@@ -289,14 +289,16 @@ def residual_stats(
 
 
 def judge(
-    residual: np.ndarray, design: np.ndarray, errors: FieldErrorModel, test: ResidualTest | None, model_mm: float,
-    span: np.ndarray | None = None, local: bool = True,
+    residual: np.ndarray, design: np.ndarray | None, errors: FieldErrorModel, test: ResidualTest | None,
+    model_mm: float, span: np.ndarray | None = None, local: bool = True, span_r: np.ndarray | None = None,
 ) -> tuple[ModelCheck, np.ndarray | None, tuple[np.ndarray, np.ndarray] | None]:
     """The within-model test of a fit on ``design`` (N, p) (``test``'s when given, else the level test without
     smooth modes) and the low-rank field errors (N, k) the covariance adds (the field's registration modes and the
     calibrated model's discrepancy modes, :meth:`ResidualTest.error_modes`; None without either). span: (N, q) all the
     fields the model can make, whose directions the smooth test leaves out (default: the design). local: False
-    leaves the test's one-ring part out (:meth:`ResidualTest.check`).
+    leaves the test's one-ring part out (:meth:`ResidualTest.check`). span_r: (q,) span^T residual over the seen nodes
+    when the fit has it (an ordinary fit: its right-hand side less its normal matrix times its coefficients), which
+    spares the test a pass over the nodes; None: formed by the test.
 
     Without a ``test`` the estimator has no skin, so a registration covariance cannot reach the nodes and is left
     out (the covariance is then that of the field given its registration); the verbs and nodes always estimate
@@ -306,7 +308,7 @@ def judge(
     if test is None:
         return check_residual(residual, design, errors, model_mm=model_mm), None, None
     registration = test.registration(errors)
-    return (test.check(residual, design if span is None else span, errors, model_mm, registration, local),
+    return (test.check(residual, design if span is None else span, errors, model_mm, registration, local, span_r),
             test.error_modes(errors, registration), test.discrepancy_pair())
 
 
@@ -436,7 +438,9 @@ def estimate_pca(
 
     n_valid = int(valid.sum())
     if check is None:
-        check, registration, discrepancy = judge(residual, design, errors, test, model_mm)
+        # an ordinary fit's residual projects on its design as rhs - normal c over the seen nodes: no pass
+        check, registration, discrepancy = judge(residual, design, errors, test, model_mm,
+                                                 span_r=rhs - normal @ coeff if span is None else None)
     states = basis.component_states_
     if span is None:
         coeff_cov = parameter_covariance(design, inverse, valid, errors, check.noise_scale, model_mm, registration,

@@ -283,8 +283,9 @@ def weighted_gram(root: np.ndarray | None, *parts: np.ndarray, rows: np.ndarray 
     return stacked @ stacked.T
 
 
-def _smooth_split(r: np.ndarray, design: np.ndarray, modes: np.ndarray, weight: np.ndarray, moved: list[np.ndarray],
-                  seen: np.ndarray, seen_gram: np.ndarray | None = None
+def _smooth_split(r: np.ndarray, design: np.ndarray, modes: np.ndarray, weight: np.ndarray | float,
+                  moved: list[np.ndarray], seen: np.ndarray, seen_gram: np.ndarray | None = None,
+                  design_r: np.ndarray | None = None
                   ) -> tuple[int, np.ndarray, np.ndarray, float, float, np.ndarray, np.ndarray]:
     """The residual r (N,) or (N, j), 0 where unseen, on the ``seen`` nodes (N,) bool split by the fitted directions Z
     (orthonormal span of ``design`` (N, p) over the seen nodes) and the smooth ones S (orthonormal span of ``modes``
@@ -294,6 +295,8 @@ def _smooth_split(r: np.ndarray, design: np.ndarray, modes: np.ndarray, weight: 
     columns in all (the registration's modes, then a calibrated model's). Every array finite everywhere (the unseen rows
     of design, modes and moved do not count). seen_gram: the Gram of [design, modes, moved] over the seen nodes when the
     caller has it (:meth:`ResidualTest.check`), None: formed here; then only r's products are a pass over the nodes.
+    design_r: design^T r over the seen nodes (p,) for a 1-D r, when the caller has it (a fit's own right-hand side
+    less its normal matrix times the coefficients: no pass), None: formed here; used with ``seen_gram``.
 
     Returns (rank of Z, c = S^T r, S^T diag(weight) S, rough energy |r|^2 - |Z^T r|^2 - |c|^2 (per column of a 2-D r),
     tr Z^T diag(weight) Z, each moved column's rough energy (k,), S^T moved).
@@ -304,7 +307,8 @@ def _smooth_split(r: np.ndarray, design: np.ndarray, modes: np.ndarray, weight: 
     if seen_gram is None:
         gram = weighted_gram(seen.astype(float), design, modes, *moved, r)  # [design, modes, moved, r] over the seen
     else:  # r is 0 where unseen
-        cross = np.vstack([design.T @ r, modes.T @ r, *(part.T @ r for part in moved)])
+        cross = np.vstack([design.T @ r if design_r is None else np.reshape(design_r, (p, 1)), modes.T @ r,
+                           *(part.T @ r for part in moved)])
         gram = np.block([[seen_gram, cross], [cross.T, r.T @ r]])
     d, q, u, e = slice(0, p), slice(p, p + m), slice(p + m, p + m + k), slice(p + m + k, None)
     to_z = _whiten(gram[d, d])  # Z = design @ to_z
@@ -365,6 +369,7 @@ def check_residual(
     discrepancy_dof: float = np.inf,
     discrepancy_local: np.ndarray | None = None,
     seen_gram: np.ndarray | None = None,
+    design_r: np.ndarray | None = None,
 ) -> ModelCheck:
     """The one within-model test: is the residual what the field's error model explains?
 
@@ -380,6 +385,7 @@ def check_residual(
     the one-ring part of the test can see: added to each ring mean's variance as an error smooth on the ring scale.
     seen_gram: the Gram of [design, modes, registration, discrepancy] over the residual's seen nodes when the caller
     has it (:meth:`ResidualTest.check`, from the whole skin's), None: formed here (one pass over the nodes).
+    design_r: (p,) design^T residual over the seen nodes when the caller has it from its fit (no pass), None: formed.
 
     A missing effect is smooth, noise is not (module docstring). The residual is split into its smooth part c (its
     coordinates in the modes after the fitted directions are taken out, M' of them) and the rough rest. The rough rest
@@ -419,7 +425,7 @@ def check_residual(
         node_weight = weight if every or flat is not None else np.where(seen, variance * correlation, 0.0)
         parts = _smooth_split(residual if every else np.where(seen, residual, 0.0),
                               np.asarray(design, float) if design is not None else np.zeros((residual.size, 0)),
-                              modes, node_weight, moved, seen, seen_gram)
+                              modes, node_weight, moved, seen, seen_gram, design_r)
         n_fitted, c, smooth_cov, rough_energy, fitted_weight, rough_moved, projected = parts
         # only the registration's rough energy is expected in the residual: a calibrated discrepancy is a smooth
         # model error, and its modes' rough part is the calibration entries' noise (0.02 mm white on 13 entries),
@@ -779,12 +785,14 @@ class ResidualTest:
         return self._tested
 
     def check(self, residual: np.ndarray, design: np.ndarray | None, errors: FieldErrorModel,
-              model_mm: float = 0.0, registration: np.ndarray | None = None, local: bool = True) -> ModelCheck:
+              model_mm: float = 0.0, registration: np.ndarray | None = None, local: bool = True,
+              design_r: np.ndarray | None = None) -> ModelCheck:
         """:func:`check_residual` with this skin's modes, registration and discrepancy modes and this test's
         alpha. registration: :meth:`registration` of ``errors`` when the caller made it already (at paper resolution
         the modes cost 6 ms of a 70 ms estimate of a scan); no other modes (the kept Gram, :meth:`_seen_gram`, is
         carried by the error model's own pose mixing). local: False leaves the one-ring part out (a check whose
-        verdict is not used, only its level: :func:`~.estimation.fit_weight`'s before the fit)."""
+        verdict is not used, only its level: :func:`~.estimation.fit_weight`'s before the fit). design_r: (p,)
+        design^T residual over the seen nodes when the caller has it from its fit (:func:`check_residual`)."""
         # check_residual's local test needs the rings then
         rings = self.rings() if local and self.looks_at_fit(errors) else None
         if registration is None:
@@ -792,7 +800,7 @@ class ResidualTest:
         seen_gram = self._seen_gram(design, np.isfinite(residual), errors)
         return check_residual(residual, design, errors, self.modes_, registration, model_mm, self.alpha,
                               rings, self.tested_discrepancy(), self.discrepancy_dof_, self.discrepancy_local_,
-                              seen_gram)
+                              seen_gram, design_r)
 
     #: whole-skin Grams kept (one per estimator's fields; the PCA and contact-aware estimators of a bases: two), each
     #: with its block Grams: at paper scale (1,475 blocks) 5.7 MB for 22 columns, 13.6 MB for 34, 29.5 MB for 50
