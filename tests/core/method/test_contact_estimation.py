@@ -105,7 +105,10 @@ def test_the_fits_own_projection_judges_as_the_tests_own_pass(setup):
     taken from their right-hand sides (an ordinary fit: rhs less its normal matrix times its coefficients; the
     contact fit's refinement step carried). Fails if the test an estimate reports differs from the skin's test made
     afresh on that estimate's residual with its own pass over the nodes: fields with a stated white noise, holes,
-    and a smooth effect the model lacks (so that the statistic is not near zero)."""
+    and a smooth effect the model lacks (so that the statistic is not near zero). It cannot see the refinement's
+    own term (normal times the refinement's step: ~1e-10 of the statistic) nor a PCA projection handed over as 0
+    (an ordinary fit's is 0 to round-off); it sees the right-hand side handed over as it is, or the contact
+    fit's projection on the fields outside its contact state dropped."""
     from hood_decomp.core.method.residual import ResidualTest
     from hood_decomp.core.types import FieldErrorModel
 

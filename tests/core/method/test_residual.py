@@ -166,24 +166,27 @@ def test_a_white_uniform_models_shortcut_gives_the_general_paths_numbers():
     """A white uniform error model (one node weight, variance x correlation, on every node) is judged and its
     covariance stated from counts times that weight, with no pass over the nodes. Fails if those numbers differ from
     the general path's, taken by the same model with its correlation moved by 1e-9 relative (no longer uniform):
-    the test's statistic, level and p-value (smooth and one-ring parts, with holes) and an estimate's covariance."""
+    the test's statistic, level and p-value (smooth and one-ring parts, with holes, a model floor) and an estimate's
+    covariance; or if a stated level whose unseen nodes are NaN is not found uniform on its seen nodes."""
     from hood_decomp.core.method.estimation import parameter_covariance
-    from hood_decomp.core.method.residual import check_residual, ring_incidence, smooth_modes
+    from hood_decomp.core.method.residual import check_residual, ring_incidence, seen_weights, smooth_modes
     from hood_decomp.core.types import FieldErrorModel
 
     rng = np.random.default_rng(4)
     n = SKIN.n_nodes
-    residual = rng.normal(0.0, 0.01, n) + bump((900.0, 300.0), 0.02, 120.0)
+    residual = rng.normal(0.0, 0.01, n) + bump((900.0, 300.0), 0.05, 30.0)  # a dent the one-ring part decides
     residual[rng.random(n) < 0.1] = np.nan
     design = rng.normal(size=(n, 3))
     flat = FieldErrorModel("scan", np.full(n, 0.01), np.full(n, 3.0))
     general = FieldErrorModel("scan", np.full(n, 0.01), 3.0 * (1.0 + 1e-9 * rng.random(n)))
     assert flat.uniform_weight(n) == pytest.approx(3e-4, rel=1e-12) and general.uniform_weight(n) is None
-    checks = [check_residual(residual, design, errors, smooth_modes(SKIN.points, 2), rings=ring_incidence(SKIN))
-              for errors in (flat, general)]
+    checks = [check_residual(residual, design, errors, smooth_modes(SKIN.points, 2), model_mm=0.004,
+                             rings=ring_incidence(SKIN)) for errors in (flat, general)]
     for name in ("statistic", "noise_scale", "p_value", "dof"):
         assert getattr(checks[0], name) == pytest.approx(getattr(checks[1], name), rel=1e-6), name
     valid = np.isfinite(residual)
+    holes = FieldErrorModel("stated", np.where(valid, 0.01, np.nan), np.full(n, 3.0))
+    assert holes.uniform_weight(n) is None and seen_weights(holes, valid)[0] == pytest.approx(3e-4, rel=1e-12)
     inverse = np.linalg.inv(design[valid].T @ design[valid])
     covariances = [parameter_covariance(design, inverse, valid, errors, 1.7, 0.002, None) for errors in (flat, general)]
     np.testing.assert_allclose(covariances[0], covariances[1], rtol=1e-6)

@@ -350,7 +350,7 @@ class ContactEstimator:
                                                      self.test_, 0.0, span=self.fields_.T,
                                                      span_r=projected - normal @ (u - first) if span is None else None)
         if span is None:
-            reads = covariance_reads_design(errors, valid.size, registration, discrepancy)
+            reads = covariance_reads_design(errors, valid, registration, discrepancy)
             theta_cov = parameter_covariance(design() if reads else None, best.normal_inverse, valid, errors,
                                              check.noise_scale, 0.0,
                                              registration, discrepancy)

@@ -28,9 +28,9 @@ from hood_decomp.core.method.residual import (
     ResidualTest,
     check_residual,
     node_variance,
+    seen_weights,
     split_level,
     uniform,
-    uniform_weight,
     weighted_gram,
 )
 from hood_decomp.core.types import DisplacementField, FieldErrorModel, ModelCheck, ParameterEstimate
@@ -327,7 +327,7 @@ def fit_weight(
     the level test without smooth modes needs the ordinary fit's residual."""
     if test is None or errors.kind == "none":
         return None, None, None
-    if not errors.has_pose and uniform_weight(errors, valid.size) is not None:
+    if not errors.has_pose and seen_weights(errors, valid)[0] is not None:
         return None, None, None  # the weight a multiple of I whatever the level: the ordinary fit
     # no one-ring part: where a field takes it (looks_at_fit), the fit's own residual is judged and this verdict
     # dropped; only its level is used (at paper resolution the part's projection was 90-180 ms of a posed field)
@@ -366,16 +366,15 @@ def parameter_covariance(
     (in the skin's modes, or in the q coefficients) keeps much of the noise: a known-law test stated 1.7 x the
     actual variance that way, 1.4 x so (the floor's share), and 1.8 x with the rows as measured.
     """
-    variance, correlation = node_variance(errors, valid.size)
+    variance = node_variance(errors, valid.size)[0]
     # the seen nodes' mean variance only splits a level with a bias term (a pass over the nodes otherwise spent)
     mean_variance = float(variance[valid].mean()) if errors.bias_correlation > 0 else 0.0
     scale, bias = split_level(scale, errors, mean_variance)
     model2 = float(model_mm) ** 2 + bias
-    flat = uniform_weight(errors, valid.size)
+    flat, weight = seen_weights(errors, valid)
     if flat is not None:
         covariance = inverse * (scale * flat + model2)
     else:
-        weight = (variance * correlation)[valid]
         gain = inverse @ design[valid].T
         covariance = scale * (gain * weight) @ gain.T + model2 * inverse
     if registration is not None:
@@ -387,13 +386,14 @@ def parameter_covariance(
     return 0.5 * (covariance + covariance.T)
 
 
-def covariance_reads_design(errors: FieldErrorModel, n_nodes: int, registration: np.ndarray | None,
+def covariance_reads_design(errors: FieldErrorModel, valid: np.ndarray, registration: np.ndarray | None,
                             discrepancy: tuple[np.ndarray, np.ndarray] | None) -> bool:
-    """Whether :func:`parameter_covariance` reads its design for a field with ``errors`` over ``n_nodes`` nodes: not
-    for a white uniform model (or none) without a registration or a discrepancy, whose covariance is the normal
-    matrix' inverse times one level. A caller that forms its design for the covariance alone (the contact-aware
-    estimator's F^T lift, (N, n_theta): ~30 MB and a product over all nodes at paper resolution) can skip it then."""
-    return uniform_weight(errors, n_nodes) is None or registration is not None or discrepancy is not None
+    """Whether :func:`parameter_covariance` reads its design for a field with ``errors`` seen on ``valid`` (N,) bool:
+    not for a weight uniform there (:func:`seen_weights`; a field that states none too) without a registration or a
+    discrepancy, whose covariance is the normal matrix' inverse times one level. A caller that forms its design for
+    the covariance alone (the contact-aware estimator's F^T lift, (N, n_theta): ~30 MB and a product over all nodes at
+    paper resolution) can skip it then."""
+    return registration is not None or discrepancy is not None or seen_weights(errors, valid)[0] is None
 
 
 def discrepancy_along_gains(seen: np.ndarray, noise: np.ndarray) -> np.ndarray:

@@ -291,7 +291,7 @@ def _smooth_split(r: np.ndarray, design: np.ndarray, modes: np.ndarray, weight: 
     (orthonormal span of ``design`` (N, p) over the seen nodes) and the smooth ones S (orthonormal span of ``modes``
     (N, M) outside Z), from two Gram matrices only (one pass each over the nodes, never an n x k factorisation).
     weight (N,): node variance x correlation on the seen nodes, or one float for every seen node (a white uniform
-    model: :func:`uniform_weight`); moved: low-rank field errors (N, k_i) side by side, k
+    model: :func:`seen_weights`); moved: low-rank field errors (N, k_i) side by side, k
     columns in all (the registration's modes, then a calibrated model's). Every array finite everywhere (the unseen rows
     of design, modes and moved do not count). seen_gram: the Gram of [design, modes, moved] over the seen nodes when the
     caller has it (:meth:`ResidualTest.check`), None: formed here; then only r's products are a pass over the nodes.
@@ -348,12 +348,20 @@ def node_variance(errors: FieldErrorModel, n_nodes: int) -> tuple[np.ndarray, np
     return errors.node_variance(n_nodes)
 
 
-def uniform_weight(errors: FieldErrorModel, n_nodes: int) -> float | None:
-    """The one node weight (variance x correlation, mm^2) of a white uniform error model over its ``n_nodes`` nodes
-    (:meth:`FieldErrorModel.uniform_weight`, found once per model), 1 for a field that states none, else None. The
-    estimate and its test then take their weighted sums as counts times it, with no pass over the nodes; a model
-    that is uniform only on the seen nodes takes the general path, which gives the same numbers."""
-    return 1.0 if errors.kind == "none" else errors.uniform_weight(n_nodes)
+def seen_weights(errors: FieldErrorModel, seen: np.ndarray) -> tuple[float | None, np.ndarray | None]:
+    """The node weight (variance x correlation, mm^2; 1 for a field that states no error model) on the ``seen`` nodes
+    (N,) bool: (one value, None) where it is one value there to round-off, else (None, the seen nodes' weights (n,)).
+    A white uniform model says so once for every node (:meth:`FieldErrorModel.uniform_weight`: no pass over the
+    nodes); any other is looked at on its seen nodes (a stated level whose unseen nodes are NaN is uniform there).
+    The estimate and its test take a uniform weight's sums as counts times it."""
+    if errors.kind == "none":
+        return 1.0, None
+    whole = errors.uniform_weight(seen.size)
+    if whole is not None:
+        return whole, None
+    variance, correlation = errors.node_variance(seen.size)
+    weight = variance * correlation if seen.all() else (variance * correlation)[seen]
+    return (float(weight[0]), None) if uniform(weight) else (None, weight)
 
 
 def check_residual(
@@ -416,8 +424,8 @@ def check_residual(
     every = n_seen == residual.size  # no copies of the seen nodes' values then (at paper resolution ~1 ms each)
     variance, correlation = node_variance(errors, residual.size)
     v, g, r = (variance, correlation, residual) if every else (variance[seen], correlation[seen], residual[seen])
-    flat = uniform_weight(errors, residual.size)  # a white uniform model's weight: no pass for it
-    weight = v * g if flat is None else flat
+    flat, weight = seen_weights(errors, seen)  # a white uniform model's weight: no pass for it
+    weight = flat if weight is None else weight
     model2 = float(model_mm) ** 2
     moved = [part for part in (registration, discrepancy) if part is not None]
     n_registration = 0 if registration is None else registration.shape[1]
