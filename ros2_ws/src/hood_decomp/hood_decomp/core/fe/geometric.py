@@ -452,39 +452,70 @@ class NonlinearSolver:
             active = np.array(going, dtype=np.int64)
         return out
 
-    def _nearest(self, state: np.ndarray) -> int:
-        """The index of the solved state nearest to ``state`` (1-norm)."""
-        return int(np.argmin([np.abs(solved[0] - state).sum() for solved in self._solved]))
+    def _nearest(self, state: np.ndarray, since: int = 0) -> int:
+        """The index of the solved state nearest to ``state`` (1-norm), of those from index ``since`` on."""
+        return since + int(np.argmin([np.abs(solved[0] - state).sum() for solved in self._solved[since:]]))
 
     def solve_displacement(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-        """One member: displacement (6n,) mm, pad forces (S,) N, iterations."""
-        start, u, tangent = self._solved[self._nearest(state)]
-        done, step, fresh, iterations, f = 0.0, 1.0, True, 0, None
-        while done < 1.0:
-            trial = min(1.0, done + step)
-            result = self._iterate(tangent, (start + trial * (state - start))[None], u[:, None])[0]
-            if result is not None:
-                u, f, count = result
-                iterations += count
-                done, fresh = trial, False
-                continue
-            if not fresh:  # a Newton step: the tangent at the last solved increment
-                tangent, fresh = self._new_tangent(start + done * (state - start), u), True
-                continue
-            step /= 2
-            if step < self.min_step:
-                raise SolverError(f"geometrically nonlinear member {state.tolist()} stalls at {done:.3f} of the way "
-                                  "from the nearest solved state: the loads are near a buckling load")
-        if f is None:  # the member is a solved state itself
-            f = solve_lcp(tangent.M, self._pad_loads.T @ u - state[len(self.solver.model.bilateral):][
-                self.solver.pads.pad_of] - self.solver.pads.preload)
-        return u, f, iterations
+        """One member: displacement (6n,) mm, pad forces (S,) N, iterations (:meth:`walk`)."""
+        return self.walk(np.asarray(state, dtype=float)[None])[0]
+
+    def walk(self, states: np.ndarray, first: float = 1.0) -> list[tuple[np.ndarray, np.ndarray, int]]:
+        """Members (m, P) mm, each walked from its nearest solved state to its own in increments, the members at the
+        same tangent iterated together (one back-substitution of their columns per iteration, :meth:`_iterate`; a
+        column leaves the block when it arrives). Each member keeps its own increment: it grows to the rest of the way
+        after a converged one and halves when one fails with a tangent factorised at its last solved increment. After
+        a failure with another tangent it takes the nearest of the tangents the other members of this walk factorised
+        (to its last solved increment) unless it has failed with that one since, else a new tangent there (kept for
+        the others). One member alone walks as it did before the block (issue 21); in a block a member cannot start
+        from the states the others reach (as it could when they walked one after the other), only use their
+        tangents. ``first``: the first increment (fraction of the way). For each, displacement (6n,) mm, pad forces
+        (S,) N, iterations."""
+        states = np.atleast_2d(np.asarray(states, dtype=float))
+        m, since = len(states), len(self._solved)
+        at = np.array([self._nearest(state) for state in states], dtype=np.int64)  # each member's tangent
+        starts = np.stack([self._solved[k][0] for k in at])
+        u = np.stack([self._solved[k][1] for k in at], axis=1)
+        f = np.zeros((m, len(self.solver.pads.k)))
+        done, step, iterations = np.zeros(m), np.full(m, first), np.zeros(m, dtype=np.int64)
+        own = np.ones(m, dtype=bool)  # the member's tangent is at its last solved increment
+        tried = [{k} for k in at]  # tangents the member failed with (or is at) since its last converged increment
+        while (active := np.flatnonzero(done < 1.0)).size:
+            trial = np.minimum(1.0, done + step)
+            failed = []
+            for k in np.unique(at[active]):
+                block = active[at[active] == k]
+                for i, result in zip(block, self._iterate(self._solved[k][2], starts[block] + trial[block, None]
+                                                          * (states[block] - starts[block]), u[:, block]),
+                                     strict=True):
+                    if result is None:
+                        failed.append(i)
+                        continue
+                    u[:, i], f[i], count = result
+                    iterations[i] += count
+                    done[i], own[i], tried[i] = trial[i], False, {int(k)}
+            for i in failed:
+                here = starts[i] + done[i] * (states[i] - starts[i])
+                if own[i]:
+                    step[i] /= 2
+                    if step[i] < self.min_step:
+                        raise SolverError(f"geometrically nonlinear member {states[i].tolist()} stalls at "
+                                          f"{done[i]:.3f} of the way from the nearest solved state: the loads are "
+                                          "near a buckling load")
+                elif len(self._solved) > since and (k := self._nearest(here, since)) not in tried[i]:
+                    at[i] = k
+                    tried[i].add(k)
+                else:  # a Newton step: the tangent at the last solved increment
+                    self._new_tangent(here, u[:, i])
+                    at[i], own[i] = len(self._solved) - 1, True
+                    tried[i].add(int(at[i]))
+        return [(u[:, i].copy(), f[i].copy(), int(iterations[i])) for i in range(m)]
 
     def solve_displacements(self, states: np.ndarray, guesses: np.ndarray
                             ) -> list[tuple[np.ndarray, np.ndarray, int]]:
         """Members (m, P) mm from displacements near them, guesses (6n, m) mm (e.g. a reduced model's members): each
         iterated from its guess the whole way at once with its nearest solved state's tangent, those sharing a
-        tangent together (:meth:`_iterate`); those that do not converge walk (:meth:`solve_displacement`). For each,
+        tangent together (:meth:`_iterate`); those that do not converge walk together (:meth:`walk`). For each,
         displacement (6n,) mm, pad forces (S,) N, iterations."""
         states = np.atleast_2d(np.asarray(states, dtype=float))
         nearest = np.array([self._nearest(state) for state in states], dtype=np.int64)
@@ -494,8 +525,10 @@ class NonlinearSolver:
             for j, result in zip(members, self._iterate(self._solved[k][2], states[members], guesses[:, members]),
                                  strict=True):
                 out[j] = result
-        return [self.solve_displacement(state) if result is None else result
-                for state, result in zip(states, out, strict=True)]
+        failed = [j for j, result in enumerate(out) if result is None]
+        # half-way first: from the guess, nearer its state than the walk's start, the same tangent failed already
+        walked = dict(zip(failed, self.walk(states[failed], 0.5) if failed else [], strict=True))
+        return [walked[j] if result is None else result for j, result in enumerate(out)]
 
     def solve(self, commanded: np.ndarray) -> NonlinearMembers:
         """Members with commanded states (m, P) mm (model.names order), one after the other."""
