@@ -460,7 +460,7 @@ class NonlinearSolver:
         """One member: displacement (6n,) mm, pad forces (S,) N, iterations (:meth:`walk`)."""
         return self.walk(np.asarray(state, dtype=float)[None])[0]
 
-    def walk(self, states: np.ndarray, first: float = 1.0) -> list[tuple[np.ndarray, np.ndarray, int]]:
+    def walk(self, states: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, int]]:
         """Members (m, P) mm, each walked from its nearest solved state to its own in increments, the members at the
         same tangent iterated together (one back-substitution of their columns per iteration, :meth:`_iterate`; a
         column leaves the block when it arrives). Each member keeps its own increment: it grows to the rest of the way
@@ -469,15 +469,14 @@ class NonlinearSolver:
         (to its last solved increment) unless it has failed with that one since, else a new tangent there (kept for
         the others). One member alone walks as it did before the block (issue 21); in a block a member cannot start
         from the states the others reach (as it could when they walked one after the other), only use their
-        tangents. ``first``: the first increment (fraction of the way). For each, displacement (6n,) mm, pad forces
-        (S,) N, iterations."""
+        tangents. For each, displacement (6n,) mm, pad forces (S,) N, iterations."""
         states = np.atleast_2d(np.asarray(states, dtype=float))
         m, since = len(states), len(self._solved)
         at = np.array([self._nearest(state) for state in states], dtype=np.int64)  # each member's tangent
         starts = np.stack([self._solved[k][0] for k in at])
         u = np.stack([self._solved[k][1] for k in at], axis=1)
         f = np.zeros((m, len(self.solver.pads.k)))
-        done, step, iterations = np.zeros(m), np.full(m, first), np.zeros(m, dtype=np.int64)
+        done, step, iterations = np.zeros(m), np.ones(m), np.zeros(m, dtype=np.int64)
         own = np.ones(m, dtype=bool)  # the member's tangent is at its last solved increment
         tried = [{k} for k in at]  # tangents the member failed with (or is at) since its last converged increment
         while (active := np.flatnonzero(done < 1.0)).size:
@@ -526,8 +525,7 @@ class NonlinearSolver:
                                  strict=True):
                 out[j] = result
         failed = [j for j, result in enumerate(out) if result is None]
-        # half-way first: from the guess, nearer its state than the walk's start, the same tangent failed already
-        walked = dict(zip(failed, self.walk(states[failed], 0.5) if failed else [], strict=True))
+        walked = dict(zip(failed, self.walk(states[failed]) if failed else [], strict=True))
         return [walked[j] if result is None else result for j, result in enumerate(out)]
 
     def solve(self, commanded: np.ndarray) -> NonlinearMembers:
