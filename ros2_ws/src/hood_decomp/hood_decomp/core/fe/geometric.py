@@ -349,13 +349,16 @@ class NonlinearSolver:
     tolerance: mm, largest change of any translation between iterations at convergence; min_step: the smallest
     increment (fraction of the way) before SolverError (near or beyond a buckling load); newton_steps: the reference
     state's iterations at most; facets: the model's :func:`facet_triangles` when the caller has them (their sparse
-    operator is ~200 MB at default resolution), else built here.
+    operator is ~200 MB at default resolution), else built here; near: mm, a walk's failed increment whose iteration
+    came closer (its smallest change) is tried again by Newton from its closest iterate (:meth:`walk`).
     """
 
     def __init__(self, solver: ShellSolver, tolerance: float = 1e-6, contraction: float = 0.5,
-                 min_step: float = 1.0 / 64, newton_steps: int = 30, facets: FacetTriangles | None = None) -> None:
+                 min_step: float = 1.0 / 64, newton_steps: int = 30, facets: FacetTriangles | None = None,
+                 near: float = 0.05) -> None:
         self.solver = solver
         self.tolerance = tolerance
+        self.near = near
         self.contraction = contraction
         self.min_step = min_step
         model = solver.model
@@ -363,7 +366,8 @@ class NonlinearSolver:
         self.facets = facet_triangles(model) if facets is None else facets
         self._translation = (np.arange(6 * n) % 6) < 3
         self._pad_loads = solver.pads.loads.tocsr()
-        self._solved: list[tuple[np.ndarray, np.ndarray, _Tangent]] = []  # (state, displacement, its tangent)
+        # (state, displacement, its tangent): the displacement solved, or a walk's iterate within ``near`` of it
+        self._solved: list[tuple[np.ndarray, np.ndarray, _Tangent]] = []
         self.factorisations = 0
         u, tangent = solver.load_response(), None
         for iteration in range(1, newton_steps + 1):
@@ -412,11 +416,12 @@ class NonlinearSolver:
         return out
 
     def _iterate(self, tangent: _Tangent, states: np.ndarray, u: np.ndarray, max_iter: int = 30, history: int = 6
-                 ) -> list[tuple[np.ndarray, np.ndarray, int] | None]:
+                 ) -> tuple[list[tuple[np.ndarray, np.ndarray, int] | None], np.ndarray, np.ndarray]:
         """Members (m of them) of ``states`` (m, P) from displacements u (6n, m), iterated together (one
         back-substitution of all the columns still iterating per iteration: several times cheaper a column than
         one at a time): for each, converged (displacement (6n,), pad forces (S,), iterations), or None when its
-        iteration does not converge in ``max_iter`` or its change grows past 1/contraction x the smallest so far.
+        iteration does not converge in ``max_iter`` or its change grows past 1/contraction x the smallest so far;
+        and each member's iterate (6n, m) mm of the smallest change and that change (m,) mm (inf: none).
 
         Each member's fixed point x = T(x) of the correction x = -K_T^-1 g(u(x)) is accelerated by Anderson mixing
         over its last ``history`` iterates (:class:`_Mixing`)."""
@@ -430,7 +435,7 @@ class NonlinearSolver:
 
         x = correction(u)
         mixing = [_Mixing(history) for _ in states]
-        best = np.full(len(states), np.inf)
+        best, closest = np.full(len(states), np.inf), u.copy()
         out: list[tuple[np.ndarray, np.ndarray, int] | None] = [None] * len(states)
         active = np.arange(len(states))
         for iteration in range(1, max_iter + 1):
@@ -446,11 +451,12 @@ class NonlinearSolver:
                 if change[i] < self.tolerance:
                     out[j] = (u[:, i], f[:, i], iteration)
                 elif np.isfinite(change[i]) and change[i] <= best[j] / self.contraction:
-                    best[j] = min(best[j], change[i])
+                    if change[i] < best[j]:
+                        best[j], closest[:, j] = change[i], u[:, i]
                     x[:, j] = mixing[j].next(x[:, j].copy(), r[:, i].copy())  # (copies: x changes in place)
                     going.append(j)
             active = np.array(going, dtype=np.int64)
-        return out
+        return out, closest, best
 
     def _nearest(self, state: np.ndarray, since: int = 0) -> int:
         """The index of the solved state nearest to ``state`` (1-norm), of those from index ``since`` on."""
@@ -464,36 +470,63 @@ class NonlinearSolver:
         """Members (m, P) mm, each walked from its nearest solved state to its own in increments, the members at the
         same tangent iterated together (one back-substitution of their columns per iteration, :meth:`_iterate`; a
         column leaves the block when it arrives). Each member keeps its own increment: it grows to the rest of the way
-        after a converged one and halves when one fails with a tangent factorised at its last solved increment. After
-        a failure with another tangent it takes the nearest of the tangents the other members of this walk factorised
-        (to its last solved increment) unless it has failed with that one since, else a new tangent there (kept for
-        the others). One member alone walks as it did before the block (issue 21); in a block a member cannot start
-        from the states the others reach (as it could when they walked one after the other), only use their
-        tangents. For each, displacement (6n,) mm, pad forces (S,) N, iterations."""
+        after a converged one. When one fails:
+
+        - if its iteration came within ``near`` (its smallest change) and it has not yet had a tangent there: Newton
+          from that closest iterate, the same increment again from it with the nearest of the tangents the other
+          members of this walk factorised (unless it failed with that one since its last converged increment), else
+          a new tangent at the closest iterate (kept for the others). On pass 1 of the reduced build every member's
+          whole way with the reference tangent stops ~0.005 mm short, and from there one tangent serves 4 of 8
+          members, each converging in one iteration (issue 21);
+        - else from its last solved increment: halved if the failed tangent was factorised there, else the nearest
+          of this walk's other tangents (to the last solved increment) unless it failed with that one since, else a
+          new tangent there.
+
+        In a block a member cannot start from the states the others reach (as it could when they walked one after
+        the other), only use their tangents. For each, displacement (6n,) mm, pad forces (S,) N, iterations."""
         states = np.atleast_2d(np.asarray(states, dtype=float))
         m, since = len(states), len(self._solved)
         at = np.array([self._nearest(state) for state in states], dtype=np.int64)  # each member's tangent
         starts = np.stack([self._solved[k][0] for k in at])
-        u = np.stack([self._solved[k][1] for k in at], axis=1)
+        u = np.stack([self._solved[k][1] for k in at], axis=1)  # the last solved increments
+        begin, closest = u.copy(), u.copy()  # where each member's next attempt starts; its last failure's closest
+        gap = np.full(m, np.inf)  # the last failure's smallest change, mm
         f = np.zeros((m, len(self.solver.pads.k)))
         done, step, iterations = np.zeros(m), np.ones(m), np.zeros(m, dtype=np.int64)
         own = np.ones(m, dtype=bool)  # the member's tangent is at its last solved increment
+        newton = np.zeros(m, dtype=bool)  # the member's tangent is at its failed attempt's closest iterate
         tried = [{k} for k in at]  # tangents the member failed with (or is at) since its last converged increment
         while (active := np.flatnonzero(done < 1.0)).size:
             trial = np.minimum(1.0, done + step)
             failed = []
             for k in np.unique(at[active]):
                 block = active[at[active] == k]
-                for i, result in zip(block, self._iterate(self._solved[k][2], starts[block] + trial[block, None]
-                                                          * (states[block] - starts[block]), u[:, block]),
-                                     strict=True):
+                results, near, smallest = self._iterate(self._solved[k][2], starts[block] + trial[block, None]
+                                                        * (states[block] - starts[block]), begin[:, block])
+                for column, (i, result) in enumerate(zip(block, results, strict=True)):
                     if result is None:
                         failed.append(i)
+                        closest[:, i], gap[i] = near[:, column], smallest[column]
                         continue
                     u[:, i], f[i], count = result
+                    if newton[i] and at[i] >= since:  # its tangent's state is solved now: keep the solution there
+                        state, _, tangent = self._solved[at[i]]
+                        self._solved[at[i]] = (state, u[:, i].copy(), tangent)
+                    begin[:, i] = u[:, i]
                     iterations[i] += count
-                    done[i], own[i], tried[i] = trial[i], False, {int(k)}
+                    done[i], own[i], newton[i], tried[i] = trial[i], False, False, {int(k)}
             for i in failed:
+                if gap[i] < self.near and not newton[i]:  # Newton from the failed attempt's closest iterate
+                    there = starts[i] + trial[i] * (states[i] - starts[i])
+                    begin[:, i], own[i] = closest[:, i], False
+                    if len(self._solved) > since and (k := self._nearest(there, since)) not in tried[i]:
+                        at[i] = k
+                    else:
+                        self._new_tangent(there, closest[:, i])
+                        at[i], newton[i] = len(self._solved) - 1, True
+                    tried[i].add(int(at[i]))
+                    continue
+                begin[:, i], newton[i] = u[:, i], False
                 here = starts[i] + done[i] * (states[i] - starts[i])
                 if own[i]:
                     step[i] /= 2
@@ -521,7 +554,7 @@ class NonlinearSolver:
         out: list[tuple[np.ndarray, np.ndarray, int] | None] = [None] * len(states)
         for k in np.unique(nearest):
             members = np.flatnonzero(nearest == k)
-            for j, result in zip(members, self._iterate(self._solved[k][2], states[members], guesses[:, members]),
+            for j, result in zip(members, self._iterate(self._solved[k][2], states[members], guesses[:, members])[0],
                                  strict=True):
                 out[j] = result
         failed = [j for j, result in enumerate(out) if result is None]
