@@ -148,11 +148,13 @@ def test_full_members_from_guesses_are_the_walked_members(coarse_paper) -> None:
 
 def test_members_walked_together_are_in_equilibrium_and_the_members_walked_alone(coarse_paper) -> None:
     """Fails if NonlinearSolver.walk, which walks members together (a block per tangent, each member with its own
-    increments, tangents shared), mixes their states, increments or columns, or stops a member short of its state:
-    each returned member must have its own boundary motions, be in equilibrium, K u + f_nl(u) = F + P f on the free
-    DOFs (through geometric.nonlinear_forces and the linear solver, not the walk's iteration: K^-1 of the residual
-    below 1e-5 mm; measured 5e-7-7e-7), with pads in contact, and be the member another solver walks alone. Three corners of the
-    ranges (HINGE_Y +-0.5 mm) that need new tangents on the way."""
+    increments, tangents shared, Newton from a failed increment's closest iterate), mixes their states, increments or
+    columns, or stops a member short of its state: each returned member must have its own boundary motions, be in
+    equilibrium, K u + f_nl(u) = F + P f on the free DOFs (through geometric.nonlinear_forces and the linear solver,
+    not the walk's iteration: K^-1 of the residual below 1e-5 mm; measured 5e-7-7e-7), with pads in contact, and be
+    the member another solver walks alone, with and without the Newton steps from closest iterates (near=0: halving
+    and tangents at solved increments only). Three corners of the ranges (HINGE_Y +-0.5 mm) that need new tangents
+    on the way."""
     model, solver = coarse_paper
     states = np.array([[1.0, 0.5, 1.0, -1.0, 1.0, 1.0], [-1.0, -0.5, 1.0, 1.0, 1.0, 1.0],
                        [1.0, 0.5, -1.0, 1.0, 0.0, 1.0]])
@@ -170,9 +172,10 @@ def test_members_walked_together_are_in_equilibrium_and_the_members_walked_alone
         residual = solver.K @ u + force.ravel() - solver.load - solver.pads.loads @ f
         assert np.abs(solver.solve(residual)).max() < 1e-5
         assert (f > 0).any()
-        alone, forces, _ = NonlinearSolver(solver).solve_displacement(state)
-        assert np.abs(u - alone).max() < 1e-5
-        assert np.allclose(f, forces, atol=1e-5 * forces.max())
+        for alone, forces, _ in (NonlinearSolver(solver).solve_displacement(state),
+                                 NonlinearSolver(solver, near=0.0).solve_displacement(state)):
+            assert np.abs(u - alone).max() < 1e-5
+            assert np.allclose(f, forces, atol=1e-5 * forces.max())
 
 
 @pytest.mark.parametrize("hyper", [None, 1e-4])
