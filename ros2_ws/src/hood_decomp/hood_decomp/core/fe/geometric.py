@@ -342,9 +342,10 @@ class NonlinearSolver:
     K_T's compliance) in every iteration; at convergence K u + f_nl(u) = F(a) + P f with the contact conditions,
     whichever tangent was used. A member starts from the solved state nearest to it (the reference state, all
     parameters 0, is solved first: modified Newton steps with Anderson mixing, a new tangent only when a step grows
-    past 1/``contraction`` x the smallest so far) and walks to its own state in increments: when an increment does not
-    contract by ``contraction`` per iteration, a new tangent is factorised at the last solved increment (kept for the
-    members after it), and then the increment is halved.
+    past 1/``contraction`` x the smallest so far) and walks to its own state in increments: when an increment's change
+    grows past 1/``contraction`` x its smallest, the increment is tried again by Newton from its closest iterate if that
+    came within ``near``, else a new tangent is factorised at the last solved increment (kept for the members after
+    it), and then the increment is halved; members that walk at once walk together (:meth:`walk`).
 
     tolerance: mm, largest change of any translation between iterations at convergence; min_step: the smallest
     increment (fraction of the way) before SolverError (near or beyond a buckling load); newton_steps: the reference
