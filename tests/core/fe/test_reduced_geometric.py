@@ -146,38 +146,6 @@ def test_full_members_from_guesses_are_the_walked_members(coarse_paper) -> None:
             assert np.allclose(forces, f, atol=1e-5 * f.max())
 
 
-def test_members_walked_together_are_in_equilibrium_and_the_members_walked_alone(coarse_paper) -> None:
-    """Fails if NonlinearSolver.walk, which walks members together (a block per tangent, each member with its own
-    increments, tangents shared, Newton from a failed increment's closest iterate), mixes their states, increments or
-    columns, or stops a member short of its state: each returned member must have its own boundary motions, be in
-    equilibrium, K u + f_nl(u) = F + P f on the free DOFs (through geometric.nonlinear_forces and the linear solver,
-    not the walk's iteration: K^-1 of the residual below 1e-5 mm; measured 5e-7-7e-7), with pads in contact, and be
-    the member another solver walks alone, with and without the Newton steps from closest iterates (near=0: halving
-    and tangents at solved increments only). Three corners of the ranges (HINGE_Y +-0.5 mm) that need new tangents
-    on the way."""
-    model, solver = coarse_paper
-    states = np.array([[1.0, 0.5, 1.0, -1.0, 1.0, 1.0], [-1.0, -0.5, 1.0, 1.0, 1.0, 1.0],
-                       [1.0, 0.5, -1.0, 1.0, 0.0, 1.0]])
-    full = NonlinearSolver(solver)
-    together = full.walk(states)
-    assert full.factorisations > 2  # the reference's, and new ones on the way
-    facets = facet_triangles(model)
-    n, B = len(model.nodes), len(model.bilateral)
-    W = np.stack([solver.boundary_response(p.boundary, p.direction) for p in model.bilateral], axis=1)
-    constrained = np.setdiff1d(np.arange(6 * n), solver.free)
-    for state, (u, f, _) in zip(states, together, strict=True):
-        assert np.allclose(u[constrained], (W @ state[:B])[constrained], rtol=0, atol=1e-12)
-        force = np.zeros((n, 6))
-        force[:, :3] = nonlinear_forces(facets, u.reshape(n, 6)[:, :3, None])[..., 0]
-        residual = solver.K @ u + force.ravel() - solver.load - solver.pads.loads @ f
-        assert np.abs(solver.solve(residual)).max() < 1e-5
-        assert (f > 0).any()
-        for alone, forces, _ in (NonlinearSolver(solver).solve_displacement(state),
-                                 NonlinearSolver(solver, near=0.0).solve_displacement(state)):
-            assert np.abs(u - alone).max() < 1e-5
-            assert np.allclose(f, forces, atol=1e-5 * forces.max())
-
-
 @pytest.mark.parametrize("hyper", [None, 1e-4])
 def test_derivative_trained_members_match_the_full_solve(coarse_paper, hyper) -> None:
     """Fails if the reduced model trained by static derivatives and two greedy passes of 4 full solves

@@ -342,24 +342,20 @@ class NonlinearSolver:
     K_T's compliance) in every iteration; at convergence K u + f_nl(u) = F(a) + P f with the contact conditions,
     whichever tangent was used. A member starts from the solved state nearest to it (the reference state, all
     parameters 0, is solved first: modified Newton steps with Anderson mixing, a new tangent only when a step grows
-    past 1/``contraction`` x the smallest so far) and walks to its own state in increments: when an increment's change
-    grows past 1/``contraction`` x its smallest, the increment is tried again by Newton from its closest iterate if that
-    came within ``near``, else a new tangent is factorised at the last solved increment (kept for the members after
-    it), and then the increment is halved; members that walk at once walk together (:meth:`walk`).
+    past 1/``contraction`` x the smallest so far) and walks to its own state in increments: when an increment does not
+    contract by ``contraction`` per iteration, a new tangent is factorised at the last solved increment (kept for the
+    members after it), and then the increment is halved.
 
     tolerance: mm, largest change of any translation between iterations at convergence; min_step: the smallest
     increment (fraction of the way) before SolverError (near or beyond a buckling load); newton_steps: the reference
     state's iterations at most; facets: the model's :func:`facet_triangles` when the caller has them (their sparse
-    operator is ~200 MB at default resolution), else built here; near: mm, a walk's failed increment whose iteration
-    came closer (its smallest change) is tried again by Newton from its closest iterate (:meth:`walk`).
+    operator is ~200 MB at default resolution), else built here.
     """
 
     def __init__(self, solver: ShellSolver, tolerance: float = 1e-6, contraction: float = 0.5,
-                 min_step: float = 1.0 / 64, newton_steps: int = 30, facets: FacetTriangles | None = None,
-                 near: float = 0.05) -> None:
+                 min_step: float = 1.0 / 64, newton_steps: int = 30, facets: FacetTriangles | None = None) -> None:
         self.solver = solver
         self.tolerance = tolerance
-        self.near = near
         self.contraction = contraction
         self.min_step = min_step
         model = solver.model
@@ -367,8 +363,7 @@ class NonlinearSolver:
         self.facets = facet_triangles(model) if facets is None else facets
         self._translation = (np.arange(6 * n) % 6) < 3
         self._pad_loads = solver.pads.loads.tocsr()
-        # (state, displacement, its tangent): the displacement solved, or a walk's iterate within ``near`` of it
-        self._solved: list[tuple[np.ndarray, np.ndarray, _Tangent]] = []
+        self._solved: list[tuple[np.ndarray, np.ndarray, _Tangent]] = []  # (state, displacement, its tangent)
         self.factorisations = 0
         u, tangent = solver.load_response(), None
         for iteration in range(1, newton_steps + 1):
@@ -417,12 +412,11 @@ class NonlinearSolver:
         return out
 
     def _iterate(self, tangent: _Tangent, states: np.ndarray, u: np.ndarray, max_iter: int = 30, history: int = 6
-                 ) -> tuple[list[tuple[np.ndarray, np.ndarray, int] | None], np.ndarray, np.ndarray]:
+                 ) -> list[tuple[np.ndarray, np.ndarray, int] | None]:
         """Members (m of them) of ``states`` (m, P) from displacements u (6n, m), iterated together (one
         back-substitution of all the columns still iterating per iteration: several times cheaper a column than
         one at a time): for each, converged (displacement (6n,), pad forces (S,), iterations), or None when its
-        iteration does not converge in ``max_iter`` or its change grows past 1/contraction x the smallest so far;
-        and each member's iterate (6n, m) mm of the smallest change and that change (m,) mm (inf: none).
+        iteration does not converge in ``max_iter`` or its change grows past 1/contraction x the smallest so far.
 
         Each member's fixed point x = T(x) of the correction x = -K_T^-1 g(u(x)) is accelerated by Anderson mixing
         over its last ``history`` iterates (:class:`_Mixing`)."""
@@ -436,7 +430,7 @@ class NonlinearSolver:
 
         x = correction(u)
         mixing = [_Mixing(history) for _ in states]
-        best, closest = np.full(len(states), np.inf), u.copy()
+        best = np.full(len(states), np.inf)
         out: list[tuple[np.ndarray, np.ndarray, int] | None] = [None] * len(states)
         active = np.arange(len(states))
         for iteration in range(1, max_iter + 1):
@@ -452,115 +446,56 @@ class NonlinearSolver:
                 if change[i] < self.tolerance:
                     out[j] = (u[:, i], f[:, i], iteration)
                 elif np.isfinite(change[i]) and change[i] <= best[j] / self.contraction:
-                    if change[i] < best[j]:
-                        best[j], closest[:, j] = change[i], u[:, i]
+                    best[j] = min(best[j], change[i])
                     x[:, j] = mixing[j].next(x[:, j].copy(), r[:, i].copy())  # (copies: x changes in place)
                     going.append(j)
             active = np.array(going, dtype=np.int64)
-        return out, closest, best
+        return out
 
-    def _nearest(self, state: np.ndarray, since: int = 0) -> int:
-        """The index of the solved state nearest to ``state`` (1-norm), of those from index ``since`` on."""
-        return since + int(np.argmin([np.abs(solved[0] - state).sum() for solved in self._solved[since:]]))
+    def _nearest(self, state: np.ndarray) -> int:
+        """The index of the solved state nearest to ``state`` (1-norm)."""
+        return int(np.argmin([np.abs(solved[0] - state).sum() for solved in self._solved]))
 
     def solve_displacement(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-        """One member: displacement (6n,) mm, pad forces (S,) N, iterations (:meth:`walk`)."""
-        return self.walk(np.asarray(state, dtype=float)[None])[0]
-
-    def walk(self, states: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, int]]:
-        """Members (m, P) mm, each walked from its nearest solved state to its own in increments, the members at the
-        same tangent iterated together (one back-substitution of their columns per iteration, :meth:`_iterate`; a
-        column leaves the block when it arrives). Each member keeps its own increment: it grows to the rest of the way
-        after a converged one. When one fails:
-
-        - if its iteration came within ``near`` (its smallest change) and it has not yet had a tangent there: Newton
-          from that closest iterate, the same increment again from it with the nearest of the tangents the other
-          members of this walk factorised (unless it failed with that one since its last converged increment), else
-          a new tangent at the closest iterate (kept for the others). On pass 1 of the reduced build every member's
-          whole way with the reference tangent stops ~0.005 mm short, and from there one tangent serves 4 of 8
-          members, each converging in one iteration (issue 21);
-        - else from its last solved increment: halved if the failed tangent was factorised there, else the nearest
-          of this walk's other tangents (to the last solved increment) unless it failed with that one since, else a
-          new tangent there.
-
-        In a block a member cannot start from the states the others reach (as it could when they walked one after
-        the other), only use their tangents. For each, displacement (6n,) mm, pad forces (S,) N, iterations."""
-        states = np.atleast_2d(np.asarray(states, dtype=float))
-        m, since = len(states), len(self._solved)
-        at = np.array([self._nearest(state) for state in states], dtype=np.int64)  # each member's tangent
-        starts = np.stack([self._solved[k][0] for k in at])
-        u = np.stack([self._solved[k][1] for k in at], axis=1)  # the last solved increments
-        begin, closest = u.copy(), u.copy()  # where each member's next attempt starts; its last failure's closest
-        gap = np.full(m, np.inf)  # the last failure's smallest change, mm
-        f = np.zeros((m, len(self.solver.pads.k)))
-        done, step, iterations = np.zeros(m), np.ones(m), np.zeros(m, dtype=np.int64)
-        own = np.ones(m, dtype=bool)  # the member's tangent is at its last solved increment
-        newton = np.zeros(m, dtype=bool)  # the member's tangent is at its failed attempt's closest iterate
-        tried = [{k} for k in at]  # tangents the member failed with (or is at) since its last converged increment
-        while (active := np.flatnonzero(done < 1.0)).size:
-            trial = np.minimum(1.0, done + step)
-            failed = []
-            for k in np.unique(at[active]):
-                block = active[at[active] == k]
-                results, near, smallest = self._iterate(self._solved[k][2], starts[block] + trial[block, None]
-                                                        * (states[block] - starts[block]), begin[:, block])
-                for column, (i, result) in enumerate(zip(block, results, strict=True)):
-                    if result is None:
-                        failed.append(i)
-                        closest[:, i], gap[i] = near[:, column], smallest[column]
-                        continue
-                    u[:, i], f[i], count = result
-                    if newton[i] and at[i] >= since:  # its tangent's state is solved now: keep the solution there
-                        state, _, tangent = self._solved[at[i]]
-                        self._solved[at[i]] = (state, u[:, i].copy(), tangent)
-                    begin[:, i] = u[:, i]
-                    iterations[i] += count
-                    done[i], own[i], newton[i], tried[i] = trial[i], False, False, {int(k)}
-            for i in failed:
-                if gap[i] < self.near and not newton[i]:  # Newton from the failed attempt's closest iterate
-                    there = starts[i] + trial[i] * (states[i] - starts[i])
-                    begin[:, i], own[i] = closest[:, i], False
-                    if len(self._solved) > since and (k := self._nearest(there, since)) not in tried[i]:
-                        at[i] = k
-                    else:
-                        self._new_tangent(there, closest[:, i])
-                        at[i], newton[i] = len(self._solved) - 1, True
-                    tried[i].add(int(at[i]))
-                    continue
-                begin[:, i], newton[i] = u[:, i], False
-                here = starts[i] + done[i] * (states[i] - starts[i])
-                if own[i]:
-                    step[i] /= 2
-                    if step[i] < self.min_step:
-                        raise SolverError(f"geometrically nonlinear member {states[i].tolist()} stalls at "
-                                          f"{done[i]:.3f} of the way from the nearest solved state: the loads are "
-                                          "near a buckling load")
-                elif len(self._solved) > since and (k := self._nearest(here, since)) not in tried[i]:
-                    at[i] = k
-                    tried[i].add(k)
-                else:  # a Newton step: the tangent at the last solved increment
-                    self._new_tangent(here, u[:, i])
-                    at[i], own[i] = len(self._solved) - 1, True
-                    tried[i].add(int(at[i]))
-        return [(u[:, i].copy(), f[i].copy(), int(iterations[i])) for i in range(m)]
+        """One member: displacement (6n,) mm, pad forces (S,) N, iterations."""
+        start, u, tangent = self._solved[self._nearest(state)]
+        done, step, fresh, iterations, f = 0.0, 1.0, True, 0, None
+        while done < 1.0:
+            trial = min(1.0, done + step)
+            result = self._iterate(tangent, (start + trial * (state - start))[None], u[:, None])[0]
+            if result is not None:
+                u, f, count = result
+                iterations += count
+                done, fresh = trial, False
+                continue
+            if not fresh:  # a Newton step: the tangent at the last solved increment
+                tangent, fresh = self._new_tangent(start + done * (state - start), u), True
+                continue
+            step /= 2
+            if step < self.min_step:
+                raise SolverError(f"geometrically nonlinear member {state.tolist()} stalls at {done:.3f} of the way "
+                                  "from the nearest solved state: the loads are near a buckling load")
+        if f is None:  # the member is a solved state itself
+            f = solve_lcp(tangent.M, self._pad_loads.T @ u - state[len(self.solver.model.bilateral):][
+                self.solver.pads.pad_of] - self.solver.pads.preload)
+        return u, f, iterations
 
     def solve_displacements(self, states: np.ndarray, guesses: np.ndarray
                             ) -> list[tuple[np.ndarray, np.ndarray, int]]:
         """Members (m, P) mm from displacements near them, guesses (6n, m) mm (e.g. a reduced model's members): each
         iterated from its guess the whole way at once with its nearest solved state's tangent, those sharing a
-        tangent together (:meth:`_iterate`); those that do not converge walk together (:meth:`walk`). For each,
+        tangent together (:meth:`_iterate`); those that do not converge walk (:meth:`solve_displacement`). For each,
         displacement (6n,) mm, pad forces (S,) N, iterations."""
         states = np.atleast_2d(np.asarray(states, dtype=float))
         nearest = np.array([self._nearest(state) for state in states], dtype=np.int64)
         out: list[tuple[np.ndarray, np.ndarray, int] | None] = [None] * len(states)
         for k in np.unique(nearest):
             members = np.flatnonzero(nearest == k)
-            for j, result in zip(members, self._iterate(self._solved[k][2], states[members], guesses[:, members])[0],
+            for j, result in zip(members, self._iterate(self._solved[k][2], states[members], guesses[:, members]),
                                  strict=True):
                 out[j] = result
-        failed = [j for j, result in enumerate(out) if result is None]
-        walked = dict(zip(failed, self.walk(states[failed]) if failed else [], strict=True))
-        return [walked[j] if result is None else result for j, result in enumerate(out)]
+        return [self.solve_displacement(state) if result is None else result
+                for state, result in zip(states, out, strict=True)]
 
     def solve(self, commanded: np.ndarray) -> NonlinearMembers:
         """Members with commanded states (m, P) mm (model.names order), one after the other."""
