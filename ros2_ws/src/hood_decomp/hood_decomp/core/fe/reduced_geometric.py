@@ -503,14 +503,15 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
         tolerance = TRAINING_TOLERANCE if training == "states" else GREEDY_TOLERANCE
         full = NonlinearSolver(solver, tolerance=tolerance, facets=facets) if full is None else full
         exact, f = np.zeros((6 * n, len(commanded))), np.zeros((len(commanded), len(pads.k)))
+        began = time.process_time()
         solved = ([full.solve_displacement(state) for state in commanded] if guesses is None
                   else full.solve_displacements(commanded, guesses))
         iterations = 0
         for i, (u, forces, count) in enumerate(solved):
             exact[:, i], f[i] = u, forces
             iterations += count
-        logger.info("%d full solves: %d iterations, %d factorisations so far", len(commanded), iterations,
-                    full.factorisations)
+        logger.info("%d full solves: %d iterations, %d factorisations so far (%.1f CPU s)", len(commanded),
+                    iterations, full.factorisations, time.process_time() - began)
         return exact, exact - u0[:, None] - W @ commanded[:, :B].T - G @ f.T
 
     # pad force shapes: H-weighted POD of the linear members' forces
