@@ -568,37 +568,35 @@ def local_p_value(rings: sp.csr_matrix, residual: np.ndarray, variance_mm2: np.n
     # has the rings' sizes as counts, and one node variance (white noise) the counts times it as levels
     count = np.diff(rings.indptr).astype(float) if everywhere else rings @ seen.astype(float)
     total = rings @ (residual if everywhere else np.where(seen, residual, 0.0))
-    if np.ndim(variance_mm2) == 0 and smooth_mm2 is None:
-        # one node variance v and one dof for every ring: z_i^2 = total_i^2 / (count_i v), and the largest z has the
-        # least tail; no spread per ring (three passes fewer: ~1 ms of a 12 ms estimate at paper resolution)
-        usable = count > 0 if everywhere else seen & (count > 0)
+    one = np.ndim(variance_mm2) == 0
+    if one and not float(variance_mm2) > 0:
+        return 1.0  # no ring has a spread (as an array of zeros)
+    level = count if one else rings @ np.where(seen, variance_mm2, 0.0)  # one variance: levels in its units
+    if smooth_mm2 is None:
+        # the level's own degrees of freedom, the same for every ring: the largest z^2 = total^2 / level has the least
+        # tail, and no spread or z per ring is formed (~1 ms of a 12 ms estimate at paper resolution)
+        usable = level > 0 if everywhere else seen & (level > 0)
         n_usable = int(usable.sum())
         if n_usable == 0:
             return 1.0
         np.square(total, out=total)
-        np.divide(total, count, out=total, where=usable)
+        np.divide(total, level, out=total, where=usable)
         if n_usable < total.size:
             total[~usable] = 0.0
-        return float(min(1.0, 2.0 * n_usable * t_sf(np.sqrt(total.max() / float(variance_mm2)), min(nu, 1e12))))
-    if np.ndim(variance_mm2) == 0:
-        level = count * float(variance_mm2)
-    else:
-        level = rings @ np.where(seen, variance_mm2, 0.0)
-    smooth = None if smooth_mm2 is None else count * (rings @ np.where(seen, smooth_mm2, 0.0))
-    spread = level if smooth is None else level + smooth
+        largest = float(total.max()) / (float(variance_mm2) if one else 1.0)
+        return float(min(1.0, 2.0 * n_usable * t_sf(np.sqrt(largest), min(nu, 1e12))))
+    if one:
+        level = level * float(variance_mm2)
+    smooth = count * (rings @ np.where(seen, smooth_mm2, 0.0))
+    spread = level + smooth
     usable = seen & (count > 0) & (spread > 0)
     if not usable.any():
         return 1.0
     if not usable.all():
-        spread, level, total = spread[usable], level[usable], total[usable]
-        smooth = None if smooth is None else smooth[usable]
+        spread, level, smooth, total = spread[usable], level[usable], smooth[usable], total[usable]
     z = np.abs(total) / np.sqrt(spread)
-    if smooth is None:  # the level's own degrees of freedom, the same for every ring: the largest z has the least tail
-        smallest = float(t_sf(z.max(), min(nu, 1e12)))
-    else:
-        dof = np.minimum(spread**2 / np.maximum(level**2 / nu + smooth**2 / smooth_dof, 1e-300 * spread**2), 1e12)
-        smallest = smallest_t_sf(z, dof)
-    return float(min(1.0, 2.0 * usable.sum() * smallest))
+    dof = np.minimum(spread**2 / np.maximum(level**2 / nu + smooth**2 / smooth_dof, 1e-300 * spread**2), 1e12)
+    return float(min(1.0, 2.0 * usable.sum() * smallest_t_sf(z, dof)))
 
 
 def smallest_t_sf(z: np.ndarray, dof: np.ndarray, first: int = 32) -> float:
