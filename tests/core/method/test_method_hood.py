@@ -1,13 +1,13 @@
 """The method on the real hood (issue 3's FE model): coarse in the default run, default resolution when slow.
 
-Truth is the embedded FE solver with its exact pad contact (an independent code path from the estimators). The slow
-test is the validation of section 4.1 at default resolution over 1400 random members: it writes Fig. 8/9/10-style
-PNGs and a JSON summary to benchmarks/out/method_validation/ and checks the targets of issue 4.
+Truth is the embedded FE solver with its exact pad contact (an independent code path from the estimators;
+tests/hood_validation.py). The slow tests are section 4.1's validation at default resolution on the first
+DEFAULT_MEMBERS of the 1400 random members that benchmarks/bench_method_hood.py runs in full (with the Fig. 8/9/10-style
+figures and RESULTS.md's table): every bound below is a maximum or a rate that a quarter of the members tests as well,
+and the strict xfails stay failing on it (buffers 0.08 mm and HINGE_X 0.012 mm against 0.004 mm over 1400).
 """
 
 import json
-import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,68 +15,22 @@ import pytest
 hood_preset = pytest.importorskip("hood_decomp.core.fe.hood_preset", reason="needs the FE hood model (issue 3)")
 
 from hood_decomp.cli import main  # noqa: E402
-from hood_decomp.core.fe.ensemble import factorial_plan, simulate_ensemble, validation_plan  # noqa: E402
+from hood_decomp.core.fe.ensemble import simulate_ensemble, validation_plan  # noqa: E402
 from hood_decomp.core.fe.model import skin_surface  # noqa: E402
 from hood_decomp.core.fe.solver import build_solver, reduce_model  # noqa: E402
 from hood_decomp.core.method.contact_estimation import ContactEstimator  # noqa: E402
 from hood_decomp.core.method.decomposition import decompose, reconstruct_members  # noqa: E402
 from hood_decomp.core.method.estimation import estimate_pca  # noqa: E402
 from hood_decomp.core.method.hierarchical import HierarchicalBasis  # noqa: E402
-from hood_decomp.core.method.pca import PCABasis  # noqa: E402
-from hood_decomp.core.types import DisplacementField  # noqa: E402
+from tests.hood_validation import build, field, run_validation, validation_members  # noqa: E402
 
-OUT = Path(__file__).resolve().parents[3] / "benchmarks" / "out" / "method_validation"
-NOISE_MM = 0.02
-
-
-def build(resolution: str, n_validation: int):
-    model = hood_preset.build_hood(resolution)
-    skin = skin_surface(model)
-    reduced = reduce_model(build_solver(model))
-    commanded, rank = factorial_plan(model.lower, model.upper)
-    training = simulate_ensemble(reduced, commanded, rank, model.lower, model.upper)
-    validation = simulate_ensemble(reduced, validation_plan(model.lower, model.upper, n_validation, seed=1),
-                                   np.full(n_validation, -1), model.lower, model.upper)
-    return model, skin, reduced, training, validation
-
-
-def field(skin, values, noise=float("nan")):
-    return DisplacementField(skin.model_id, values, float(np.isfinite(values).mean()), noise)
-
-
-def run_validation(skin, reduced, training, validation, model, noise_seed=0):
-    """Errors (M, P) mm of the PCA and contact estimators, noise-free and noisy, and lifted-buffer checks."""
-    pca = PCABasis(n_components=10).fit(training)
-    contact = ContactEstimator().fit(reduced, model.lower, model.upper)
-    rng = np.random.default_rng(noise_seed)
-    n_b = reduced.n_bilateral
-    out = {"pca": [], "contact": [], "contact_noisy": [], "noisy_std": [], "noisy_flag_ok": [], "observable": [],
-           "lifted_wrong": 0, "commanded_above": 0.0, "seconds": []}
-    for values, effective, commanded, fraction in zip(validation.normal_displacement, validation.effective,
-                                                      validation.commanded, validation.contact_fraction, strict=True):
-        out["pca"].append(estimate_pca(pca, field(skin, values)).values - effective)
-        start = time.perf_counter()
-        estimate = contact.estimate(field(skin, values))
-        out["seconds"].append(time.perf_counter() - start)
-        out["contact"].append(estimate.values - effective)
-        lifted = fraction == 0
-        out["observable"].append(np.concatenate([np.ones(n_b, bool), ~lifted]))  # hinges, locks, pads in contact
-        out["lifted_wrong"] += int(np.any(estimate.lifted[n_b:] != lifted))
-        above = commanded[n_b:][lifted] - estimate.values[n_b:][lifted]
-        out["commanded_above"] = max(out["commanded_above"], float(above.max(initial=-np.inf)))
-        noisy = values + rng.normal(0.0, NOISE_MM, values.size)
-        estimate = contact.estimate(field(skin, noisy, NOISE_MM))
-        out["contact_noisy"].append(estimate.values - effective)
-        out["noisy_std"].append(estimate.std)
-        out["noisy_flag_ok"].append(np.concatenate([np.ones(n_b, bool), estimate.lifted[n_b:] == lifted]))
-    for key in ("pca", "contact", "contact_noisy", "noisy_std", "noisy_flag_ok", "observable"):
-        out[key] = np.array(out[key])
-    return pca, out
+DEFAULT_MEMBERS = 350
 
 
 @pytest.fixture(scope="module")
 def coarse():
-    return build("coarse", 150)
+    model, skin, reduced, training = build("coarse")
+    return model, skin, reduced, training, validation_members(model, reduced, 150)
 
 
 @pytest.fixture(scope="module")
@@ -174,42 +128,12 @@ def test_cli_bases_estimate_on_the_coarse_hood(tmp_path, capsys):
 
 
 @pytest.fixture(scope="module")
-def default_validation():
-    """Section 4.1 at default resolution, 1400 validation members; writes figures and a JSON summary."""
-    from hood_decomp.plots.method import plot_error_boxplot, plot_error_histogram, plot_explained_variance
-
-    model, skin, reduced, training, validation = build("default", 1400)
-    pca, result = run_validation(skin, reduced, training, validation, model)
-    OUT.mkdir(parents=True, exist_ok=True)
-    names = list(model.names)
-    plot_explained_variance(pca.explained_variance_ratio_, OUT / "fig8_explained_variance.png")
-    for key in ("pca", "contact", "contact_noisy"):
-        plot_error_boxplot(names, result[key], OUT / f"fig9_{key}.png", f"estimation error ({key}), 1400 members")
-    z = np.abs(result["contact_noisy"] / result["noisy_std"])
-    summary = {"skin_nodes": skin.n_nodes, "noisy_max_z_flag_right": float(z[result["noisy_flag_ok"]].max()),
-               "noisy_fraction_z_above_3_flag_right": float(np.mean(z[result["noisy_flag_ok"]] > 3.0)),
-               "noisy_flag_wrong_pads": int((~result["noisy_flag_ok"]).sum()),
-               "noisy_median_std_mm": dict(zip(names, np.median(result["noisy_std"], axis=0).tolist(), strict=True)),
-               "members": validation.n_members, "n_pad_springs": int(reduced.k.size),
-               "contact_seconds_mean": float(np.mean(result["seconds"])),
-               "lifted_wrong": result["lifted_wrong"], "commanded_above_reported_mm": result["commanded_above"],
-               "pca_notes": list(pca.notes_)}
-    for key in ("pca", "contact", "contact_noisy"):
-        summary[f"{key}_max_abs_mm"] = dict(zip(names, np.abs(result[key]).max(axis=0).tolist(), strict=True))
-        observable = np.where(result["observable"], np.abs(result[key]), 0.0).max(axis=0)
-        summary[f"{key}_max_abs_observable_mm"] = dict(zip(names, observable.tolist(), strict=True))
-    for epsilon in (0.1, 0.01):
-        start = time.perf_counter()
-        basis = HierarchicalBasis(epsilon=epsilon).fit(training)
-        seconds = time.perf_counter() - start
-        worst = np.abs(reconstruct_members(basis, validation.normal_displacement)
-                       - validation.normal_displacement).max(axis=1)
-        plot_error_histogram(worst, OUT / f"fig10_eps{epsilon}.png",
-                             f"max reconstruction error, epsilon {epsilon} mm, {len(basis.effect_names_)} effects")
-        summary[f"hierarchical_eps{epsilon}"] = {"effects": list(basis.effect_names_), "seconds": seconds,
-                                                 "validation_max_error_mm": float(worst.max()),
-                                                 "validation_median_max_error_mm": float(np.median(worst))}
-    (OUT / "summary.json").write_text(json.dumps(summary, indent=2))
+def default_validation(default_hood):
+    """Section 4.1 at default resolution on the session's default hood and the first DEFAULT_MEMBERS of the
+    benchmark's 1400 validation members (benchmarks/bench_method_hood.py runs all 1400 and draws the figures)."""
+    model, reduced = default_hood.model, default_hood.reduced
+    validation = validation_members(model, reduced, DEFAULT_MEMBERS)
+    _, result = run_validation(default_hood.skin, reduced, default_hood.ensemble, validation, model)
     return reduced.n_bilateral, result
 
 
