@@ -146,6 +146,43 @@ def test_full_members_from_guesses_are_the_walked_members(coarse_paper) -> None:
             assert np.allclose(forces, f, atol=1e-5 * f.max())
 
 
+def test_a_member_whose_guess_fails_starts_from_a_nearer_converged_member(coarse_paper) -> None:
+    """Fails if NonlinearSolver.solve_displacements walks a member whose guess fails from the nearest solved state
+    (here the reference, all parameters 0) when a member converged before it is nearer (0.02 mm of HINGE_Y away):
+    from that member it takes fewer iterations than its own walk (measured 9 against 12, the same tangent), and
+    both reach the members walked alone (an independent path) to the solver's tolerance. The guesses (3x the
+    members) are abandoned at their second iteration; nothing else fails."""
+    _, solver = coarse_paper
+    states = np.array([[0.3, -0.2, -0.3, 0.3, 0.5, 0.0], [0.3, -0.18, -0.3, 0.3, 0.5, 0.0]])
+    walked = [NonlinearSolver(solver).solve_displacement(state) for state in states]
+    full = NonlinearSolver(solver)
+    solved = full.solve_displacements(states, 3 * np.stack([u for u, *_ in walked], axis=1))
+    assert solved[1][2] < walked[1][2]
+    assert full.failed_iterations == 4
+    for (u, f, _), (again, forces, _) in zip(walked, solved, strict=True):
+        assert np.abs(again - u).max() < 1e-5
+        assert np.allclose(forces, f, atol=1e-5 * f.max())
+
+
+def test_a_walk_does_not_retry_an_increment_with_the_tangent_that_failed_it(coarse_paper) -> None:
+    """Fails if NonlinearSolver.solve_displacement, after the whole way fails with the reference tangent and the
+    half-way increment succeeds, tries the rest with that tangent again (on this corner member it fails: 14 more
+    failed iterations) instead of taking a new tangent at the half-way state: the walk's only failed iterations are
+    the whole way's (that increment iterated alone from another solver), it takes one tangent, and its member is an
+    equilibrium (iterated from itself with its nearest tangent it converges in 3 iterations, where the walk took 25,
+    and stays within the tolerance)."""
+    _, solver = coarse_paper
+    state = np.array([-1.0, 0.5, -1.0, 1.0, 1.0, 1.0])
+    alone = NonlinearSolver(solver, tolerance=1e-3)
+    assert alone._iterate(alone._solved[0][2], state[None], alone.reference[:, None])[0] is None
+    full = NonlinearSolver(solver, tolerance=1e-3)
+    u, f, _ = full.solve_displacement(state)
+    assert full.failed_iterations == alone.failed_iterations > 2
+    assert full.factorisations == alone.factorisations + 1
+    (again, forces, iterations), = full.solve_displacements(state[None], u[:, None])
+    assert iterations <= 3 and np.abs(again - u).max() < 1e-3
+
+
 @pytest.mark.parametrize("hyper", [None, 1e-4])
 def test_derivative_trained_members_match_the_full_solve(coarse_paper, hyper) -> None:
     """Fails if the reduced model trained by static derivatives and two greedy passes of 4 full solves
