@@ -164,25 +164,6 @@ def test_a_member_whose_guess_fails_starts_from_a_nearer_converged_member(coarse
         assert np.allclose(forces, f, atol=1e-5 * f.max())
 
 
-def test_a_walk_does_not_retry_an_increment_with_the_tangent_that_failed_it(coarse_paper) -> None:
-    """Fails if NonlinearSolver.solve_displacement, after the whole way fails with the reference tangent and the
-    half-way increment succeeds, tries the rest with that tangent again (on this corner member it fails: 14 more
-    failed iterations) instead of taking a new tangent at the half-way state: the walk's only failed iterations are
-    the whole way's (that increment iterated alone from another solver), it takes one tangent, and its member is an
-    equilibrium (iterated from itself with its nearest tangent it converges in 3 iterations, where the walk took 25,
-    and stays within the tolerance)."""
-    _, solver = coarse_paper
-    state = np.array([-1.0, 0.5, -1.0, 1.0, 1.0, 1.0])
-    alone = NonlinearSolver(solver, tolerance=1e-3)
-    assert alone._iterate(alone._solved[0][2], state[None], alone.reference[:, None])[0] is None
-    full = NonlinearSolver(solver, tolerance=1e-3)
-    u, f, _ = full.solve_displacement(state)
-    assert full.failed_iterations == alone.failed_iterations > 2
-    assert full.factorisations == alone.factorisations + 1
-    (again, forces, iterations), = full.solve_displacements(state[None], u[:, None])
-    assert iterations <= 3 and np.abs(again - u).max() < 1e-3
-
-
 @pytest.mark.parametrize("hyper", [None, 1e-4])
 def test_derivative_trained_members_match_the_full_solve(coarse_paper, hyper) -> None:
     """Fails if the reduced model trained by static derivatives and two greedy passes of 4 full solves

@@ -346,7 +346,7 @@ class NonlinearSolver:
     grows past 1/``contraction`` x its smallest so far (the second iteration, Anderson's first, past
     1/contraction^2: a tangent too soft for the member makes the plain step grow, and the mixing's first secant
     cures it), a new tangent is factorised at the last solved increment (kept for the members after it), and then
-    the increment is halved; an increment as far as one the current tangent failed at is not tried with it.
+    the increment is halved.
 
     tolerance: mm, largest change of any translation between iterations at convergence; min_step: the smallest
     increment (fraction of the way) before SolverError (near or beyond a buckling load); newton_steps: the reference
@@ -471,19 +471,16 @@ class NonlinearSolver:
         """One member: displacement (6n,) mm, pad forces (S,) N, iterations."""
         start, u, tangent = self._solved[self._nearest(state)]
         done, step, fresh, iterations, f = 0.0, 1.0, True, 0, None
-        failed = np.inf  # the nearest increment the current tangent failed at: one as far is not tried with it
         while done < 1.0:
             trial = min(1.0, done + step)
-            if trial < failed:
-                result = self._iterate(tangent, (start + trial * (state - start))[None], u[:, None])[0]
-                if result is not None:
-                    u, f, count = result
-                    iterations += count
-                    done, fresh = trial, False
-                    continue
-                failed = trial
+            result = self._iterate(tangent, (start + trial * (state - start))[None], u[:, None])[0]
+            if result is not None:
+                u, f, count = result
+                iterations += count
+                done, fresh = trial, False
+                continue
             if not fresh:  # a Newton step: the tangent at the last solved increment
-                tangent, fresh, failed = self._new_tangent(start + done * (state - start), u), True, np.inf
+                tangent, fresh = self._new_tangent(start + done * (state - start), u), True
                 continue
             step /= 2
             if step < self.min_step:
