@@ -29,8 +29,9 @@ EI = E * WIDTH * T**3 / 12.0
 P_EULER = np.pi**2 * EI / L**2  # 1080 N
 
 
-def _strip(axial: float, nx: int = 40) -> PartModel:
-    """The strip on nx x 2 quads: x = 0 pinned, x = L held in y and z, ``axial`` N pushing the end at x = L."""
+def _strip(axial: float, nx: int = 40, density: float = Material().density) -> PartModel:
+    """The strip on nx x 2 quads: x = 0 pinned, x = L held in y and z, ``axial`` N pushing the end at x = L, its
+    weight of ``density`` t/mm^3 (steel's, unless told) the lateral load."""
     x, y = np.linspace(0.0, L, nx + 1), np.linspace(0.0, WIDTH, 3)
     nodes = np.array([[a, b, 0.0] for a in x for b in y])
     index = np.arange(len(nodes)).reshape(nx + 1, 3)
@@ -40,7 +41,7 @@ def _strip(axial: float, nx: int = 40) -> PartModel:
                   Boundary("roller", "fixed", Patch(nodes=end), dofs=("y", "z")),
                   Boundary("push", "force", Patch(nodes=end), axis=(-1.0, 0.0, 0.0), force=axial))
     return PartModel(name="strip", nodes=nodes, cells=cells, cell_part=np.zeros(len(cells), dtype=np.int64),
-                     parts=(Part("strip", T),), material=Material(E=E, nu=0.0), boundaries=boundaries,
+                     parts=(Part("strip", T),), material=Material(E=E, nu=0.0, density=density), boundaries=boundaries,
                      parameters=(), skin_part="strip")
 
 
@@ -122,3 +123,31 @@ def test_force_parts_and_bilinear_form_are_those_of_f_nl() -> None:
     polarised = 0.5 * (even(u + v) - even(u) - even(v))
     for a, b in ((u, v), (v, u)):
         np.testing.assert_allclose(bilinear_force(facets, a, b), polarised, atol=1e-12 * scale)
+
+
+@pytest.mark.parametrize(("fraction", "converges"), [(0.7, True), (0.9, False)])
+def test_mixing_gets_one_iteration_of_growth_and_no_more(fraction: float, converges: bool) -> None:
+    """A member iterated with a tangent too soft for it (NonlinearSolver._iterate): the strip's weight (1000x lighter
+    than steel, so its membrane stretching is negligible and the member is the linear one, 2.3e-3 mm) with the
+    tangent of a push of ``fraction`` x Euler's load. The modified Newton step then multiplies the error of the first
+    bending mode by mu = 1 - 1 / (1 - fraction) per iteration (Euler: that mode's stiffness times 1 - fraction), so the
+    second iteration's change is |mu| x the first (-7/3 at 0.7, measured 2.33; -9 at 0.9). Fails if the member at
+    0.7 is not converged by Anderson's mixing to the linear solver's member (the second iteration is Anderson's first:
+    it may grow up to 4x; measured 7 iterations), or if the member at 0.9 is not abandoned after its second
+    iteration."""
+    light = 7.85e-12
+    linear = build_solver(_strip(axial=1e-12, density=light))
+    push = build_solver(_strip(axial=1.0, density=light)).load_response() - linear.load_response()  # per N
+    full = NonlinearSolver(linear, tolerance=1e-12)
+    tangent = full._new_tangent(np.zeros(0), fraction * P_EULER * push)
+    result = full._iterate(tangent, np.zeros((1, 0)), np.zeros((len(push), 1)))[0]
+    if converges:
+        assert result is not None and result[2] <= 8
+        # the deflection is the linear solver's; all of it (the axial shortening 1/2 w'^2 too, 1.3e-8 mm) the
+        # member the reference iteration of the true tangent converges to
+        expected = linear.load_response().reshape(-1, 6)[:, 2]
+        assert np.abs(result[0].reshape(-1, 6)[:, 2] - expected).max() < 1e-6 * np.abs(expected).max()
+        assert np.abs(result[0] - full.reference).max() < 1e-11
+        assert full.failed_iterations == 0
+    else:
+        assert result is None and full.failed_iterations == 2

@@ -342,14 +342,17 @@ class NonlinearSolver:
     K_T's compliance) in every iteration; at convergence K u + f_nl(u) = F(a) + P f with the contact conditions,
     whichever tangent was used. A member starts from the solved state nearest to it (the reference state, all
     parameters 0, is solved first: modified Newton steps with Anderson mixing, a new tangent only when a step grows
-    past 1/``contraction`` x the smallest so far) and walks to its own state in increments: when an increment does not
-    contract by ``contraction`` per iteration, a new tangent is factorised at the last solved increment (kept for the
-    members after it), and then the increment is halved.
+    past 1/``contraction`` x the smallest so far) and walks to its own state in increments: when an increment's change
+    grows past 1/``contraction`` x its smallest so far (the second iteration, Anderson's first, past
+    1/contraction^2: a tangent too soft for the member makes the plain step grow, and the mixing's first secant
+    cures it), a new tangent is factorised at the last solved increment (kept for the members after it), and then
+    the increment is halved.
 
     tolerance: mm, largest change of any translation between iterations at convergence; min_step: the smallest
     increment (fraction of the way) before SolverError (near or beyond a buckling load); newton_steps: the reference
     state's iterations at most; facets: the model's :func:`facet_triangles` when the caller has them (their sparse
-    operator is ~200 MB at default resolution), else built here.
+    operator is ~200 MB at default resolution), else built here. ``factorisations`` and ``failed_iterations`` (the
+    iterations of increments and guesses that did not converge) count the solver's work so far.
     """
 
     def __init__(self, solver: ShellSolver, tolerance: float = 1e-6, contraction: float = 0.5,
@@ -365,6 +368,7 @@ class NonlinearSolver:
         self._pad_loads = solver.pads.loads.tocsr()
         self._solved: list[tuple[np.ndarray, np.ndarray, _Tangent]] = []  # (state, displacement, its tangent)
         self.factorisations = 0
+        self.failed_iterations = 0
         u, tangent = solver.load_response(), None
         for iteration in range(1, newton_steps + 1):
             if tangent is None:
@@ -416,10 +420,12 @@ class NonlinearSolver:
         """Members (m of them) of ``states`` (m, P) from displacements u (6n, m), iterated together (one
         back-substitution of all the columns still iterating per iteration: several times cheaper a column than
         one at a time): for each, converged (displacement (6n,), pad forces (S,), iterations), or None when its
-        iteration does not converge in ``max_iter`` or its change grows past 1/contraction x the smallest so far.
+        iteration does not converge in ``max_iter`` or its change grows past 1/contraction x the smallest so far
+        (1/contraction^2 at the second iteration).
 
         Each member's fixed point x = T(x) of the correction x = -K_T^-1 g(u(x)) is accelerated by Anderson mixing
-        over its last ``history`` iterates (:class:`_Mixing`)."""
+        over its last ``history`` iterates (:class:`_Mixing`). Iterations of members that fail add to
+        ``failed_iterations``."""
         B = len(self.solver.model.bilateral)
         pads = self.solver.pads
         target = states[:, B:][:, pads.pad_of] + pads.preload  # (m, S)
@@ -445,11 +451,16 @@ class NonlinearSolver:
             for i, j in enumerate(active):
                 if change[i] < self.tolerance:
                     out[j] = (u[:, i], f[:, i], iteration)
-                elif np.isfinite(change[i]) and change[i] <= best[j] / self.contraction:
+                    continue
+                # the second iteration is the first of Anderson's mixing: it may grow up to 1/contraction^2 x
+                if np.isfinite(change[i]) and change[i] <= best[j] / self.contraction ** (2 if iteration == 2 else 1):
                     best[j] = min(best[j], change[i])
                     x[:, j] = mixing[j].next(x[:, j].copy(), r[:, i].copy())  # (copies: x changes in place)
                     going.append(j)
+                else:
+                    self.failed_iterations += iteration
             active = np.array(going, dtype=np.int64)
+        self.failed_iterations += max_iter * len(active)
         return out
 
     def _nearest(self, state: np.ndarray) -> int:
@@ -484,8 +495,10 @@ class NonlinearSolver:
                             ) -> list[tuple[np.ndarray, np.ndarray, int]]:
         """Members (m, P) mm from displacements near them, guesses (6n, m) mm (e.g. a reduced model's members): each
         iterated from its guess the whole way at once with its nearest solved state's tangent, those sharing a
-        tangent together (:meth:`_iterate`); those that do not converge walk (:meth:`solve_displacement`). For each,
-        displacement (6n,) mm, pad forces (S,) N, iterations."""
+        tangent together (:meth:`_iterate`). Those that do not converge, one after the other: from the nearest
+        member converged so far when it is nearer than the nearest solved state (the same tangent), else (or when
+        that fails) walking (:meth:`solve_displacement`). For each, displacement (6n,) mm, pad forces (S,) N,
+        iterations."""
         states = np.atleast_2d(np.asarray(states, dtype=float))
         nearest = np.array([self._nearest(state) for state in states], dtype=np.int64)
         out: list[tuple[np.ndarray, np.ndarray, int] | None] = [None] * len(states)
@@ -494,8 +507,18 @@ class NonlinearSolver:
             for j, result in zip(members, self._iterate(self._solved[k][2], states[members], guesses[:, members]),
                                  strict=True):
                 out[j] = result
-        return [self.solve_displacement(state) if result is None else result
-                for state, result in zip(states, out, strict=True)]
+        for j, state in enumerate(states):
+            if out[j] is not None:
+                continue
+            done = [i for i, result in enumerate(out) if result is not None]
+            distance = [np.abs(states[i] - state).sum() for i in done]
+            k = self._nearest(state)
+            if done and min(distance) < np.abs(self._solved[k][0] - state).sum():
+                neighbour = out[done[int(np.argmin(distance))]][0]  # (a converged member is a better start)
+                out[j] = self._iterate(self._solved[k][2], state[None], neighbour[:, None])[0]
+            if out[j] is None:
+                out[j] = self.solve_displacement(state)
+        return out
 
     def solve(self, commanded: np.ndarray) -> NonlinearMembers:
         """Members with commanded states (m, P) mm (model.names order), one after the other."""

@@ -503,15 +503,16 @@ def build_reduced_geometric(solver: ShellSolver, lower: np.ndarray, upper: np.nd
         tolerance = TRAINING_TOLERANCE if training == "states" else GREEDY_TOLERANCE
         full = NonlinearSolver(solver, tolerance=tolerance, facets=facets) if full is None else full
         exact, f = np.zeros((6 * n, len(commanded))), np.zeros((len(commanded), len(pads.k)))
-        began = time.process_time()
+        began, failed = time.process_time(), full.failed_iterations
         solved = ([full.solve_displacement(state) for state in commanded] if guesses is None
                   else full.solve_displacements(commanded, guesses))
         iterations = 0
         for i, (u, forces, count) in enumerate(solved):
             exact[:, i], f[i] = u, forces
             iterations += count
-        logger.info("%d full solves: %d iterations, %d factorisations so far (%.1f CPU s)", len(commanded),
-                    iterations, full.factorisations, time.process_time() - began)
+        logger.info("%d full solves: %d iterations (+%d in failed increments), %d factorisations so far (%.1f CPU s)",
+                    len(commanded), iterations, full.failed_iterations - failed, full.factorisations,
+                    time.process_time() - began)
         return exact, exact - u0[:, None] - W @ commanded[:, :B].T - G @ f.T
 
     # pad force shapes: H-weighted POD of the linear members' forces
