@@ -323,13 +323,14 @@ def _smooth_split(r: np.ndarray, design: np.ndarray, modes: np.ndarray, weight: 
     if level is not None:  # Z, S orthonormal: their weighted Grams are weight x I
         fitted_weight, smooth_cov = level * to_z.shape[1], level * np.eye(to_s.shape[1])
     else:
-        # tr Z^T diag(w) Z from Z's rows and S^T diag(w) S from the modes' part outside Z, M columns: not the
-        # weighted Gram of [design, modes], p + M columns (at paper scale the contact-aware design has 68, and that
-        # Gram was 50 of a scan estimate's 250 ms)
-        masked = np.where(seen, weight, 0.0)
-        fitted = design @ to_z  # Z (N, rank), orthonormal over the seen nodes
-        fitted_weight = float(masked @ np.einsum("ij,ij->i", fitted, fitted))
-        outside = weighted_gram(np.sqrt(masked), modes - fitted @ zq)  # S = (modes - Z zq) @ to_s
+        # tr Z^T diag(w) Z and S^T diag(w) S from the weighted Gram of [design, modes] (Z = design to_z, S = (modes -
+        # design B) to_s with B = to_z zq): one syrk of p + M columns, where forming Z (N, rank) and the modes' part
+        # outside it took N p (p + M) products and three (N, .) temporaries (a paper scan's coarsened PCA fit: p = 10)
+        weighted = weighted_gram(np.sqrt(np.where(seen, weight, 0.0)), design, modes)
+        fitted_weight = float(np.sum((to_z.T @ weighted[d, d]) * to_z.T))
+        b = to_z @ zq
+        across = b.T @ weighted[d, q]
+        outside = weighted[q, q] - across - across.T + b.T @ weighted[d, d] @ b
         smooth_cov = to_s.T @ outside @ to_s
     zm = to_z.T @ gram[d, u]
     projected = to_s.T @ (gram[q, u] - zq.T @ zm)
