@@ -349,6 +349,20 @@ def node_variance(errors: FieldErrorModel, n_nodes: int) -> tuple[np.ndarray, np
     return errors.node_variance(n_nodes)
 
 
+def seen_sums(errors: FieldErrorModel, seen: np.ndarray, n_seen: int) -> tuple[float, float, float]:
+    """(sum of the node variances mm^2, the largest of them, sum of 1 / correlation: the effective number of
+    independent samples) over the ``seen`` nodes (N,) bool, ``n_seen`` of them (:func:`node_variance`): a field that
+    states no error model has unit ones, and one seen everywhere its model's sums, found once
+    (:meth:`FieldErrorModel.node_sums`): no pass over the nodes for either."""
+    if errors.kind == "none":
+        return float(n_seen), 1.0, float(n_seen)
+    if n_seen == seen.size:
+        return errors.node_sums(seen.size)
+    variance, correlation = errors.node_variance(seen.size)
+    v = variance[seen]
+    return float(v.sum()), float(v.max()), float(np.sum(1.0 / correlation[seen]))
+
+
 def seen_weights(errors: FieldErrorModel, seen: np.ndarray) -> tuple[float | None, np.ndarray | None]:
     """The node weight (variance x correlation, mm^2; 1 for a field that states no error model) on the ``seen`` nodes
     (N,) bool: (one value, None) where it is one value there to round-off, else (None, the seen nodes' weights (n,)).
@@ -423,15 +437,15 @@ def check_residual(
     residual = np.asarray(residual, dtype=float)
     seen, n_seen = _seen(residual, alpha)
     every = n_seen == residual.size  # no copies of the seen nodes' values then (at paper resolution ~1 ms each)
-    variance, correlation = node_variance(errors, residual.size)
-    v, g, r = (variance, correlation, residual) if every else (variance[seen], correlation[seen], residual[seen])
+    variance_sum, variance_max, n_effective = seen_sums(errors, seen, n_seen)
     flat, weight = seen_weights(errors, seen)  # a white uniform model's weight: no pass for it
     weight = flat if weight is None else weight
     model2 = float(model_mm) ** 2
     moved = [part for part in (registration, discrepancy) if part is not None]
     n_registration = 0 if registration is None else registration.shape[1]
     if modes is not None:
-        node_weight = weight if every or flat is not None else np.where(seen, variance * correlation, 0.0)
+        node_weight = weight if every or flat is not None else np.where(
+            seen, np.multiply(*node_variance(errors, residual.size)), 0.0)
         parts = _smooth_split(residual if every else np.where(seen, residual, 0.0),
                               np.asarray(design, float) if design is not None else np.zeros((residual.size, 0)),
                               modes, node_weight, moved, seen, seen_gram, design_r)
@@ -446,15 +460,15 @@ def check_residual(
         # directions' expected energy is taken at the mean node weight (exact for a uniform error model)
         n_fitted = 0 if design is None else int(np.shape(design)[1])
         c, smooth_cov, projected = np.zeros(0), np.zeros((0, 0)), np.zeros((0, sum(m.shape[1] for m in moved)))
+        r = residual if every else residual[seen]
         rough_energy, fitted_weight, rough_registration = float(r @ r), n_fitted * float(np.mean(weight)), 0.0
     n_removed = n_fitted + c.size
-    expected = float(v.sum()) - fitted_weight - float(np.trace(smooth_cov))
+    expected = variance_sum - fitted_weight - float(np.trace(smooth_cov))
     scale = max((rough_energy - model2 * max(n_seen - n_removed, 0) - rough_registration)
-                / max(expected, 1e-300), VARIANCE_FLOOR_MM2 / float(v.max()))
-    n_effective = float(np.sum(1.0 / g))
+                / max(expected, 1e-300), VARIANCE_FLOOR_MM2 / variance_max)
     nu = max(n_effective * (n_seen - n_removed) / n_seen, 1.0)
     source = "residual" if errors.kind == "none" else "error model"
-    noise, bias = split_level(scale, errors, float(v.mean()))
+    noise, bias = split_level(scale, errors, variance_sum / n_seen)
     if c.size == 0:
         if errors.kind == "none":
             return ModelCheck(0.0, 0, nu, 1.0, float(alpha), True, scale, source, n_effective, bias)
