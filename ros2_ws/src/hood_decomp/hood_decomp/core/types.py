@@ -236,6 +236,18 @@ class FieldErrorModel:
             object.__setattr__(self, "_uniform_weight", made)
         return made[0]
 
+    def node_sums(self, n_nodes: int) -> tuple[float, float, float]:
+        """(sum of the node variances mm^2, the largest of them, sum of 1 / correlation: the effective number of
+        independent samples) over every node (:meth:`node_variance`), found once per model: the within-model test of
+        a field seen everywhere reads them (four passes over the nodes at each estimate otherwise). Not for a model
+        of kind "none"."""
+        made = self.__dict__.get("_node_sums")
+        if made is None:
+            variance, correlation = self.node_variance(n_nodes)
+            made = (float(variance.sum()), float(variance.max()), float(np.sum(1.0 / correlation)))
+            object.__setattr__(self, "_node_sums", made)
+        return made
+
     def registration_modes(self, points: np.ndarray, normals: np.ndarray, rigid: np.ndarray | None = None
                            ) -> np.ndarray:
         """U (N, 6) mm: the normal field error of the pose error, e_reg = U z with z ~ N(0, I_6).

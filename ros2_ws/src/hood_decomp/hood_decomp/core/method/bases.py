@@ -425,7 +425,8 @@ class CoarsenedBases:
             offset, kept_offset = bases.at_temperature(temperature_k).w0, self.kept.at_temperature(temperature_k).w0
         coefficients = lift(kept.reconstruction - kept_offset)
         if method == "pca":
-            reconstruction = offset + coefficients @ bases.pca.components_
+            reconstruction = coefficients @ bases.pca.components_
+            reconstruction += offset  # in place: no second (N,) array
         else:
             model = bases.reduced_model
             reconstruction = offset + model.R @ coefficients[:model.n_bilateral] + model.G @ coefficients[

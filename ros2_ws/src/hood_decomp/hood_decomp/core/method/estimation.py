@@ -55,11 +55,12 @@ def check_field(
     values = np.asarray(field.normal_displacement, dtype=float)
     if values.ndim != 1 or values.shape[0] != n_nodes:
         raise FieldError(f"field has shape {values.shape}, expected ({n_nodes},) (one value per visible skin node)")
-    if np.any(np.isinf(values)):
+    valid = np.isfinite(values)
+    n_valid = int(np.count_nonzero(valid))
+    # an inf is not finite: a field seen everywhere has none (no pass for it)
+    if n_valid < n_nodes and np.any(np.isinf(values)):
         raise FieldError(f"field holds {int(np.isinf(values).sum())} inf values; unseen nodes must be NaN")
     field.errors.validate(n_nodes)
-    valid = np.isfinite(values)
-    n_valid = int(valid.sum())
     if n_valid == 0:
         raise FieldError("field has no finite value (all NaN)")
     coverage = n_valid / n_nodes
@@ -94,12 +95,12 @@ def stacked_field(field: DisplacementField, normals: np.ndarray, min_coverage: f
 
 def valid_normal_matrix(fields: np.ndarray, gram: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """Normal matrix over the valid nodes: fields (K, N), gram (K, K) = fields @ fields.T, valid (N,) -> (K, K)."""
-    unseen = ~valid
-    n_unseen = int(unseen.sum())
+    n_unseen = valid.size - int(np.count_nonzero(valid))
     if n_unseen == 0:
         return gram
     if n_unseen < valid.size // 2:
-        part = fields[:, unseen]
+        # by index: a take of the columns is half the CPU of a boolean mask's (a paper scan's 5 % unseen: 0.95 ms)
+        part = np.take(fields, np.flatnonzero(~valid), axis=1)
         return gram - part @ part.T
     part = fields[:, valid]
     return part @ part.T
@@ -285,7 +286,8 @@ def residual_stats(
     else:
         residual[~valid] = np.nan
         seen = residual[valid]
-    return residual, float(np.sqrt(np.dot(seen, seen) / seen.size)), float(np.max(np.abs(seen)))
+    # max |r| as the larger of max r and -min r: two reductions, no |r| array
+    return residual, float(np.sqrt(np.dot(seen, seen) / seen.size)), float(max(seen.max(), -seen.min()))
 
 
 def judge(
@@ -423,7 +425,10 @@ def estimate_pca(
     """
     n_nodes = basis.components_.shape[1]
     values, valid = check_field(field, basis.model_id_, n_nodes, min_coverage)
-    centred = np.where(valid, values - basis.mean_field_, 0.0)
+    n_valid = int(np.count_nonzero(valid))
+    centred = values - basis.mean_field_
+    if n_valid < n_nodes:  # unseen nodes count as 0 (a field seen everywhere: no pass for it)
+        centred[~valid] = 0.0
     errors = field.errors
     design = basis.components_.T
     model_mm = basis.training_residual_rms_
@@ -433,10 +438,10 @@ def estimate_pca(
     normal = weighted_normal(basis.components_, basis.gram_, valid, span)
     rhs = weighted_rhs(basis.components_, centred, valid, None) if span is None else span.rhs()
     coeff, inverse = solve_normal(normal, rhs, "PCA pre-factors")
-    reconstruction = basis.mean_field_ + coeff @ basis.components_
+    reconstruction = coeff @ basis.components_
+    reconstruction += basis.mean_field_  # in place: no second (N,) array
     residual, rms, worst = residual_stats(values, reconstruction, valid)
 
-    n_valid = int(valid.sum())
     if check is None:
         # an ordinary fit's residual projects on its design as rhs - normal c over the seen nodes: no pass
         check, registration, discrepancy = judge(residual, design, errors, test, model_mm,
