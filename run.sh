@@ -16,7 +16,9 @@ case "$command" in
     scripts/with-env ruff check .
     # The session claims a ROS domain no other test run on this machine holds, unless ROS_DOMAIN_ID is set;
     # discovery stays on loopback (tests/conftest.py, tests/ros_domain.py).
-    exec scripts/with-env python -m pytest "$@"
+    # One worker process per core (pytest-xdist; "-n 0" in the arguments runs in this process): a test file stays on
+    # one worker, so its module fixtures are built once; each worker claims its own ROS domain.
+    exec scripts/with-env python -m pytest -n "${HOOD_DECOMP_TEST_WORKERS:-2}" --dist loadfile "$@"
     ;;
   *)
     echo "usage: ./run.sh demo [--out DIR] | ./run.sh test [pytest arguments]" >&2

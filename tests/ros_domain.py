@@ -7,6 +7,9 @@ same domain once in 100 pairs. A session therefore claims a domain with an exclu
 domain in ``/tmp`` (fixed, not the session's temp directory: two sessions with other TMPDIRs took the same domain),
 held until the process ends (the kernel releases it even on SIGKILL). Only test sessions take these locks: a demo or
 ``hood-decomp launch`` on the same explicit domain is not kept out (its bring-up names a namesake node instead).
+A claim is marked in the environment (:data:`CLAIMED`), so that processes started from a claiming session (the
+pytest-xdist workers of ``./run.sh test``) claim domains of their own instead of taking the inherited one as a user's
+explicit choice: two workers on one domain answer each other's lifecycle calls.
 """
 
 from __future__ import annotations
@@ -20,6 +23,8 @@ from collections.abc import MutableMapping
 #: ports out of the kernel's ephemeral port range.
 DOMAINS = range(1, 102)
 VARIABLE = "ROS_DOMAIN_ID"
+#: Set beside VARIABLE by a claim: a ROS_DOMAIN_ID equal to it was inherited from a claiming session, not chosen
+CLAIMED = "HOOD_DECOMP_CLAIMED_ROS_DOMAIN_ID"
 #: Where the locks live: one directory for every process on the machine, whatever its TMPDIR.
 LOCK_DIRECTORY = pathlib.Path("/tmp")
 
@@ -53,12 +58,13 @@ def claim_domain(environment: MutableMapping[str, str] = os.environ, directory: 
     """Claim a ROS domain for this process and set ``environment[ROS_DOMAIN_ID]`` to it (child processes inherit it).
 
     An explicit ``ROS_DOMAIN_ID`` in ``environment`` is kept (its lock is taken too when free, so other sessions
-    avoid it). Otherwise the ids of :data:`DOMAINS` are tried in order from ``start`` (default: derived from the pid,
+    avoid it); one a claiming session set (equal to ``environment[CLAIMED]``: this process was started from it) is
+    not explicit. Otherwise the ids of :data:`DOMAINS` are tried in order from ``start`` (default: derived from the pid,
     so concurrent sessions rarely try the same ids first) and the first whose lock is free is taken. Returns the
     domain and the descriptor holding its lock (None: an explicit domain another process holds); the lock lasts while
     the descriptor stays open. Raises RuntimeError when every domain is held."""
     explicit = environment.get(VARIABLE, "").strip()
-    if explicit:
+    if explicit and explicit != environment.get(CLAIMED):
         if not explicit.isdigit():
             raise RuntimeError(f"{VARIABLE}={explicit!r}: expected a domain id (an integer, e.g. 1-101)")
         return int(explicit), try_lock(int(explicit), directory)
@@ -67,7 +73,7 @@ def claim_domain(environment: MutableMapping[str, str] = os.environ, directory: 
         domain = DOMAINS[(first + offset) % len(DOMAINS)]
         descriptor = try_lock(domain, directory)
         if descriptor is not None:
-            environment[VARIABLE] = str(domain)
+            environment[VARIABLE] = environment[CLAIMED] = str(domain)
             return domain, descriptor
     raise RuntimeError(f"every ROS domain {DOMAINS.start}-{DOMAINS.stop - 1} is held by another hood_decomp test "
                        f"session (lock files {lock_path(DOMAINS.start, directory)} ...): set {VARIABLE} to choose one")

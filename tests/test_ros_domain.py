@@ -85,6 +85,24 @@ def test_an_explicit_domain_is_kept_and_marked_held(tmp_path):
         claim_domain({VARIABLE: "zero"}, tmp_path)
 
 
+def test_a_process_started_from_a_claiming_session_claims_its_own(tmp_path):
+    """The pytest-xdist workers of ``./run.sh test`` inherit the controller's environment: fails if a worker takes
+    the domain its parent claimed as an explicit choice (both workers then shared it and answered each other's
+    lifecycle calls), or if a user's explicit domain beside an inherited claim is not kept."""
+    parent: dict[str, str] = {}
+    claimed, descriptor = claim_domain(parent, tmp_path, start=40)
+    worker = dict(parent)
+    try:
+        own, own_descriptor = claim_domain(worker, tmp_path, start=40)
+        os.close(own_descriptor)
+        assert own != claimed and worker[VARIABLE] == str(own), (claimed, own)
+        chosen, chosen_descriptor = claim_domain({**parent, VARIABLE: "7"}, tmp_path)
+        os.close(chosen_descriptor)
+        assert chosen == 7  # the user's choice after a claim
+    finally:
+        os.close(descriptor)
+
+
 def test_this_session_holds_its_domain(ros_domain):
     """Fails if the running session (tests/conftest.py) did not claim the domain its node processes inherit: another
     session starting at the same id must get a different one."""
