@@ -16,9 +16,12 @@ from hood_decomp.ros.node_common import RosLogHandler, forward_package_logging
 
 @pytest.fixture
 def package_logger():
-    """The ``hood_decomp`` logger, with its handlers and level restored afterwards."""
+    """The ``hood_decomp`` logger as a fresh process has it (no forwarding handler: a node an earlier test made in
+    this worker process installed one, and the records would go to that node's logger), with its handlers and level
+    restored afterwards."""
     package = logging.getLogger("hood_decomp")
     handlers, level = list(package.handlers), package.level
+    package.handlers[:] = [h for h in handlers if not isinstance(h, RosLogHandler)]
     yield package
     package.handlers[:] = handlers
     package.setLevel(level)
