@@ -241,7 +241,9 @@ class ReadingOfBasis:
             raise BasisError(f"field must have {self.mean_field.shape[0]} node values, got shape {values.shape}")
         seen = np.isfinite(values)
         normal_matrix = valid_normal_matrix(self.components, self.gram, seen)
-        coeff = np.linalg.solve(normal_matrix, self.components @ np.where(seen, values - self.mean_field, 0.0))
+        centred = values - self.mean_field
+        centred[~seen] = 0.0  # in place: np.where made a second (N,) array (0.3 of 1.3 ms at paper resolution)
+        coeff = np.linalg.solve(normal_matrix, self.components @ centred)
         return seen, normal_matrix, coeff
 
     @cached_property
