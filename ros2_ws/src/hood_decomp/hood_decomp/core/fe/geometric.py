@@ -350,27 +350,30 @@ class NonlinearSolver:
     cap on it goes on while the rate fitted to its last ``window`` changes is at most ``steady`` and the iterations
     that rate predicts to the tolerance fit in ``extension`` more, whatever one iteration's growth (the whole-way
     increments of the hood at default resolution contract at ~0.85 to the cap and converge in 42 iterations with
-    single growths of 3x past it; abandoning them costs a walk with a new tangent).
+    single growths of 3x past it; abandoning them costs a walk with a new tangent). A walk's increment that
+    converges only past the cap gets a new tangent at its state (kept for the members after it, whom the far tangent
+    serves badly, as the walk's half-way tangent would have been).
 
     tolerance: mm, largest change of any translation between iterations at convergence; min_step: the smallest
     increment (fraction of the way) before SolverError (near or beyond a buckling load); newton_steps: the reference
     state's iterations at most; facets: the model's :func:`facet_triangles` when the caller has them (their sparse
-    operator is ~200 MB at default resolution), else built here; steady, window, extension: the largest rate (per
-    iteration), the changes it is fitted to and the iterations past the cap a steadily contracting iteration gets.
+    operator is ~200 MB at default resolution), else built here; max_iter: an iteration's cap; steady, window,
+    extension: the largest rate (per iteration), the changes it is fitted to and the iterations past the cap a
+    steadily contracting iteration gets.
     ``factorisations`` and ``failed_iterations`` (the iterations of increments and guesses that did not converge)
     count the solver's work so far.
     """
 
     def __init__(self, solver: ShellSolver, tolerance: float = 1e-6, contraction: float = 0.5,
                  min_step: float = 1.0 / 64, newton_steps: int = 30, facets: FacetTriangles | None = None,
-                 steady: float = 0.9, window: int = 10, extension: int = 30) -> None:
+                 max_iter: int = 30, steady: float = 0.9, window: int = 10, extension: int = 30) -> None:
         self.solver = solver
         self.tolerance = tolerance
         self.contraction = contraction
         if not (0 < steady < 1 and window >= 2 and extension >= 0):
             raise SolverError(f"expected 0 < steady < 1, window >= 2 and extension >= 0, got {steady}, {window} and "
                               f"{extension}")
-        self.steady, self.window, self.extension = steady, window, extension
+        self.max_iter, self.steady, self.window, self.extension = max_iter, steady, window, extension
         self.min_step = min_step
         model = solver.model
         n = len(model.nodes)
@@ -426,7 +429,7 @@ class NonlinearSolver:
         self._solved.append((state.copy(), u.copy(), out))
         return out
 
-    def _iterate(self, tangent: _Tangent, states: np.ndarray, u: np.ndarray, max_iter: int = 30, history: int = 6
+    def _iterate(self, tangent: _Tangent, states: np.ndarray, u: np.ndarray, history: int = 6
                  ) -> list[tuple[np.ndarray, np.ndarray, int] | None]:
         """Members (m of them) of ``states`` (m, P) from displacements u (6n, m), iterated together (one
         back-substitution of all the columns still iterating per iteration: several times cheaper a column than
@@ -452,7 +455,7 @@ class NonlinearSolver:
         changes: list[list[float]] = [[] for _ in states]
         out: list[tuple[np.ndarray, np.ndarray, int] | None] = [None] * len(states)
         active = np.arange(len(states))
-        cap = max_iter + self.extension
+        max_iter, cap = self.max_iter, self.max_iter + self.extension
         for iteration in range(1, cap + 1):
             if not len(active):
                 break
@@ -505,6 +508,8 @@ class NonlinearSolver:
                 u, f, count = result
                 iterations += count
                 done, fresh = trial, False
+                if count > self.max_iter:  # the tangent is poor here: the members after it get one at this state
+                    tangent, fresh = self._new_tangent(start + done * (state - start), u), True
                 continue
             if not fresh:  # a Newton step: the tangent at the last solved increment
                 tangent, fresh = self._new_tangent(start + done * (state - start), u), True
