@@ -351,8 +351,9 @@ class NonlinearSolver:
     that rate predicts to the tolerance fit in ``extension`` more, whatever one iteration's growth (the whole-way
     increments of the hood at default resolution contract at ~0.85 to the cap and converge in 42 iterations with
     single growths of 3x past it; abandoning them costs a walk with a new tangent). A walk's increment that
-    converges only past the cap gets a new tangent at its state (kept for the members after it, whom the far tangent
-    serves badly, as the walk's half-way tangent would have been).
+    converges only past the cap leaves a new tangent where the walk would have: half-way, solved with the same
+    tangent (kept for the members after it, whom the far tangent serves badly; at the member itself it serves the
+    next greedy pass's guesses worse: RESULTS.md, issue 21).
 
     tolerance: mm, largest change of any translation between iterations at convergence; min_step: the smallest
     increment (fraction of the way) before SolverError (near or beyond a buckling load); newton_steps: the reference
@@ -505,11 +506,14 @@ class NonlinearSolver:
             trial = min(1.0, done + step)
             result = self._iterate(tangent, (start + trial * (state - start))[None], u[:, None])[0]
             if result is not None:
+                if result[2] > self.max_iter:  # a poor tangent here: one half-way for the members after it
+                    middle = start + (done + trial) / 2 * (state - start)
+                    solved = self._iterate(tangent, middle[None], u[:, None])[0]
+                    if solved is not None:
+                        self._new_tangent(middle, solved[0])
                 u, f, count = result
                 iterations += count
                 done, fresh = trial, False
-                if count > self.max_iter:  # the tangent is poor here: the members after it get one at this state
-                    tangent, fresh = self._new_tangent(start + done * (state - start), u), True
                 continue
             if not fresh:  # a Newton step: the tangent at the last solved increment
                 tangent, fresh = self._new_tangent(start + done * (state - start), u), True
