@@ -186,5 +186,5 @@ def test_a_steadily_contracting_iteration_goes_past_the_cap(rate: float, converg
 
 def test_the_extension_past_the_cap_is_checked() -> None:
     """A rate bound outside (0, 1) is refused, naming what was expected."""
-    with pytest.raises(SolverError, match="expected 0 < steady < 1"):
+    with pytest.raises(SolverError, match="expected max_iter >= 1, 0 < steady < 1"):
         NonlinearSolver(build_solver(_strip(axial=1.0, nx=6)), steady=1.2)

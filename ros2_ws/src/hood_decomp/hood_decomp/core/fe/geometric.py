@@ -371,9 +371,9 @@ class NonlinearSolver:
         self.solver = solver
         self.tolerance = tolerance
         self.contraction = contraction
-        if not (0 < steady < 1 and window >= 2 and extension >= 0):
-            raise SolverError(f"expected 0 < steady < 1, window >= 2 and extension >= 0, got {steady}, {window} and "
-                              f"{extension}")
+        if not (max_iter >= 1 and 0 < steady < 1 and window >= 2 and extension >= 0):
+            raise SolverError(f"expected max_iter >= 1, 0 < steady < 1, window >= 2 and extension >= 0, got "
+                              f"{max_iter}, {steady}, {window} and {extension}")
         self.max_iter, self.steady, self.window, self.extension = max_iter, steady, window, extension
         self.min_step = min_step
         model = solver.model
@@ -473,9 +473,10 @@ class NonlinearSolver:
                 changes[j].append(float(change[i]))
                 # before the cap one iteration's growth ends it (the second, Anderson's first, may grow up to
                 # 1/contraction^2 x); from the cap on the trend does (single growths are common there: the zigzag)
-                going_on = (change[i] <= best[j] / self.contraction ** (2 if iteration == 2 else 1)
-                            if iteration < max_iter else self._steady(changes[j], cap - iteration))
-                if np.isfinite(change[i]) and going_on:
+                going_on = np.isfinite(change[i]) and (
+                    change[i] <= best[j] / self.contraction ** (2 if iteration == 2 else 1) if iteration < max_iter
+                    else self._steady(changes[j], cap - iteration))
+                if going_on:
                     best[j] = min(best[j], change[i])
                     x[:, j] = mixing[j].next(x[:, j].copy(), r[:, i].copy())  # (copies: x changes in place)
                     going.append(j)
@@ -506,7 +507,8 @@ class NonlinearSolver:
             trial = min(1.0, done + step)
             result = self._iterate(tangent, (start + trial * (state - start))[None], u[:, None])[0]
             if result is not None:
-                if result[2] > self.max_iter:  # a poor tangent here: one half-way for the members after it
+                if result[2] > self.max_iter:  # a poor tangent here: one half-way for the members after it (its
+                    # iterations are the solver's, not the member's: not in ``iterations``)
                     middle = start + (done + trial) / 2 * (state - start)
                     solved = self._iterate(tangent, middle[None], u[:, None])[0]
                     if solved is not None:
