@@ -350,10 +350,11 @@ class NonlinearSolver:
     cap on it goes on while the rate fitted to its last ``window`` changes is at most ``steady`` and the iterations
     that rate predicts to the tolerance fit in ``extension`` more, whatever one iteration's growth (the whole-way
     increments of the hood at default resolution contract at ~0.85 to the cap and converge in 42 iterations with
-    single growths of 3x past it; abandoning them costs a walk with a new tangent). A walk's increment that
-    converges only past the cap leaves a new tangent where the walk would have: half-way, solved with the same
-    tangent (kept for the members after it, whom the far tangent serves badly; at the member itself it serves the
-    next greedy pass's guesses worse: RESULTS.md, issue 21).
+    single growths of 3x past it; abandoning them costs a walk with a new tangent). A walk's first increment (from
+    the nearest solved state) that converges only past the cap leaves a new tangent where the walk would have:
+    half-way, solved with the start's tangent (kept for the members after it, whom the far tangent serves badly; at
+    the member itself it serves the next greedy pass's guesses worse, and after later increments it is not where
+    the walk would have put one: RESULTS.md, issue 21).
 
     tolerance: mm, largest change of any translation between iterations at convergence; min_step: the smallest
     increment (fraction of the way) before SolverError (near or beyond a buckling load); newton_steps: the reference
@@ -507,8 +508,8 @@ class NonlinearSolver:
             trial = min(1.0, done + step)
             result = self._iterate(tangent, (start + trial * (state - start))[None], u[:, None])[0]
             if result is not None:
-                if result[2] > self.max_iter:  # a poor tangent here: one half-way for the members after it (its
-                    # iterations are the solver's, not the member's: not in ``iterations``)
+                if result[2] > self.max_iter and done == 0:  # the start's tangent is poor here: one half-way for
+                    # the members after it (its iterations are the solver's, not the member's: not in ``iterations``)
                     middle = start + (done + trial) / 2 * (state - start)
                     solved = self._iterate(tangent, middle[None], u[:, None])[0]
                     if solved is not None:
