@@ -23,6 +23,7 @@ from hood_decomp.core.fe.geometric import (
 )
 from hood_decomp.core.fe.model import Boundary, Material, Part, PartModel, Patch
 from hood_decomp.core.fe.solver import build_solver
+from hood_decomp.errors import SolverError
 
 L, WIDTH, T, E = 1000.0, 50.0, 5.0, 210000.0
 EI = E * WIDTH * T**3 / 12.0
@@ -151,3 +152,39 @@ def test_mixing_gets_one_iteration_of_growth_and_no_more(fraction: float, conver
         assert full.failed_iterations == 0
     else:
         assert result is None and full.failed_iterations == 2
+
+
+@pytest.mark.parametrize(("rate", "converges"), [(0.85, True), (0.95, False)])
+def test_a_steadily_contracting_iteration_goes_past_the_cap(rate: float, converges: bool) -> None:
+    """A member iterated past the cap (NonlinearSolver._iterate, 30 iterations, the default 30 more when steady): the
+    light strip's weight (the linear member, 2.3e-3 mm, as above) with the tangent of a pull of f = rate / (1 - rate)
+    x Euler's load and plain modified Newton steps (history 0: no mixing). Each step multiplies the first bending
+    mode's error by mu = 1 - 1 / (1 + f) = ``rate`` (Euler: that mode's stiffness times 1 + f; the higher modes' by
+    f / (n^2 + f), faster). The first step is K_T^-1 F, (1 - mu) of the deflection w, so the first change is
+    c1 = mu (1 - mu) max |w| and the change falls below the tolerance 3e-7 mm at iteration
+    1 + ceil(log(3e-7 / c1) / log(mu)): 44 at 0.85 (measured: ratios 0.850, c1 2.91e-4 mm). Fails if the member at
+    0.85 is abandoned at the cap or is not the linear solver's member (and the reference iteration's with its own
+    tangent) within the error mu / (1 - mu) x the last change leaves, or if the member at 0.95 (above the bound 0.9)
+    is not abandoned at the cap as without the extension."""
+    light, tolerance = 7.85e-12, 3e-7
+    linear = build_solver(_strip(axial=1e-12, density=light))
+    push = build_solver(_strip(axial=1.0, density=light)).load_response() - linear.load_response()  # per N
+    full = NonlinearSolver(linear, tolerance=tolerance)
+    tangent = full._new_tangent(np.zeros(0), -rate / (1 - rate) * P_EULER * push)
+    result = full._iterate(tangent, np.zeros((1, 0)), np.zeros((len(push), 1)), history=0)[0]
+    if converges:
+        expected = linear.load_response()
+        first = rate * (1 - rate) * np.abs(expected.reshape(-1, 6)[:, 2]).max()
+        assert result is not None and 30 < result[2] == 1 + int(np.ceil(np.log(tolerance / first) / np.log(rate)))
+        bound = 2 * tolerance * rate / (1 - rate)  # 3.4e-6 mm, 0.15 % of the deflection
+        assert np.abs(result[0] - expected).max() < bound
+        assert np.abs(result[0] - NonlinearSolver(linear, tolerance=1e-12).reference).max() < bound
+        assert full.failed_iterations == 0
+    else:
+        assert result is None and full.failed_iterations == 30
+
+
+def test_the_extension_past_the_cap_is_checked() -> None:
+    """A rate bound outside (0, 1) is refused, naming what was expected."""
+    with pytest.raises(SolverError, match="expected max_iter >= 1, 0 < steady < 1"):
+        NonlinearSolver(build_solver(_strip(axial=1.0, nx=6)), steady=1.2)

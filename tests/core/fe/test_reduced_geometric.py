@@ -164,6 +164,24 @@ def test_a_member_whose_guess_fails_starts_from_a_nearer_converged_member(coarse
         assert np.allclose(forces, f, atol=1e-5 * f.max())
 
 
+def test_a_walk_that_converges_past_the_cap_leaves_a_tangent_half_way(coarse_paper) -> None:
+    """Fails if NonlinearSolver's walk abandons an increment that is still contracting steadily at its cap (here 6
+    iterations, the rate fitted to the last 4 changes: the member converges in 11 from the reference state, as with
+    the default cap, to the same member), or if it leaves no tangent at the solved half-way state: the half-way
+    member then converges there in 1 iteration instead of its own walk's 7 (measured), both the members walked
+    alone (default cap) to the solver's tolerance."""
+    _, solver = coarse_paper
+    states = np.array([[0.3, -0.2, -0.3, 0.3, 0.5, 0.0], [0.15, -0.1, -0.15, 0.15, 0.25, 0.0]])
+    alone = [NonlinearSolver(solver).solve_displacement(state) for state in states]
+    full = NonlinearSolver(solver, max_iter=6, window=4)
+    solved = [full.solve_displacement(state) for state in states]
+    assert solved[0][2] == alone[0][2] > 6 and full.failed_iterations == 0
+    assert np.array_equal(full._solved[-1][0], states[1]) and solved[1][2] == 1 < alone[1][2]
+    for (u, f, _), (again, forces, _) in zip(alone, solved, strict=True):
+        assert np.abs(again - u).max() < 1e-5
+        assert np.allclose(forces, f, atol=1e-5 * f.max())
+
+
 @pytest.mark.parametrize("hyper", [None, 1e-4])
 def test_derivative_trained_members_match_the_full_solve(coarse_paper, hyper) -> None:
     """Fails if the reduced model trained by static derivatives and two greedy passes of 4 full solves

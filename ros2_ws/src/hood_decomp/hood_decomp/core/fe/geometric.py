@@ -346,20 +346,36 @@ class NonlinearSolver:
     grows past 1/``contraction`` x its smallest so far (the second iteration, Anderson's first, past
     1/contraction^2: a tangent too soft for the member makes the plain step grow, and the mixing's first secant
     cures it), a new tangent is factorised at the last solved increment (kept for the members after it), and then
-    the increment is halved.
+    the increment is halved. An iteration that reaches its cap still contracting steadily is not abandoned: from the
+    cap on it goes on while the rate fitted to its last ``window`` changes is at most ``steady`` and the iterations
+    that rate predicts to the tolerance fit in ``extension`` more, whatever one iteration's growth (the whole-way
+    increments of the hood at default resolution contract at ~0.85 to the cap and converge in 42 iterations with
+    single growths of 3x past it; abandoning them costs a walk with a new tangent). A walk's first increment (from
+    the nearest solved state) that converges only past the cap leaves a new tangent where the walk would have:
+    half-way, solved with the start's tangent (kept for the members after it, whom the far tangent serves badly; at
+    the member itself it serves the next greedy pass's guesses worse, and after later increments it is not where
+    the walk would have put one: RESULTS.md, issue 21).
 
     tolerance: mm, largest change of any translation between iterations at convergence; min_step: the smallest
     increment (fraction of the way) before SolverError (near or beyond a buckling load); newton_steps: the reference
     state's iterations at most; facets: the model's :func:`facet_triangles` when the caller has them (their sparse
-    operator is ~200 MB at default resolution), else built here. ``factorisations`` and ``failed_iterations`` (the
-    iterations of increments and guesses that did not converge) count the solver's work so far.
+    operator is ~200 MB at default resolution), else built here; max_iter: an iteration's cap; steady, window,
+    extension: the largest rate (per iteration), the changes it is fitted to and the iterations past the cap a
+    steadily contracting iteration gets.
+    ``factorisations`` and ``failed_iterations`` (the iterations of increments and guesses that did not converge)
+    count the solver's work so far.
     """
 
     def __init__(self, solver: ShellSolver, tolerance: float = 1e-6, contraction: float = 0.5,
-                 min_step: float = 1.0 / 64, newton_steps: int = 30, facets: FacetTriangles | None = None) -> None:
+                 min_step: float = 1.0 / 64, newton_steps: int = 30, facets: FacetTriangles | None = None,
+                 max_iter: int = 30, steady: float = 0.9, window: int = 10, extension: int = 30) -> None:
         self.solver = solver
         self.tolerance = tolerance
         self.contraction = contraction
+        if not (max_iter >= 1 and 0 < steady < 1 and window >= 2 and extension >= 0):
+            raise SolverError(f"expected max_iter >= 1, 0 < steady < 1, window >= 2 and extension >= 0, got "
+                              f"{max_iter}, {steady}, {window} and {extension}")
+        self.max_iter, self.steady, self.window, self.extension = max_iter, steady, window, extension
         self.min_step = min_step
         model = solver.model
         n = len(model.nodes)
@@ -415,13 +431,14 @@ class NonlinearSolver:
         self._solved.append((state.copy(), u.copy(), out))
         return out
 
-    def _iterate(self, tangent: _Tangent, states: np.ndarray, u: np.ndarray, max_iter: int = 30, history: int = 6
+    def _iterate(self, tangent: _Tangent, states: np.ndarray, u: np.ndarray, history: int = 6
                  ) -> list[tuple[np.ndarray, np.ndarray, int] | None]:
         """Members (m of them) of ``states`` (m, P) from displacements u (6n, m), iterated together (one
         back-substitution of all the columns still iterating per iteration: several times cheaper a column than
         one at a time): for each, converged (displacement (6n,), pad forces (S,), iterations), or None when its
-        iteration does not converge in ``max_iter`` or its change grows past 1/contraction x the smallest so far
-        (1/contraction^2 at the second iteration).
+        change grows past 1/contraction x the smallest so far (1/contraction^2 at the second iteration) before
+        ``max_iter``, or from ``max_iter`` on when it is not contracting steadily (:meth:`_steady`: the trend of its
+        last changes, not one iteration's growth; at most ``extension`` iterations more).
 
         Each member's fixed point x = T(x) of the correction x = -K_T^-1 g(u(x)) is accelerated by Anderson mixing
         over its last ``history`` iterates (:class:`_Mixing`). Iterations of members that fail add to
@@ -437,9 +454,11 @@ class NonlinearSolver:
         x = correction(u)
         mixing = [_Mixing(history) for _ in states]
         best = np.full(len(states), np.inf)
+        changes: list[list[float]] = [[] for _ in states]
         out: list[tuple[np.ndarray, np.ndarray, int] | None] = [None] * len(states)
         active = np.arange(len(states))
-        for iteration in range(1, max_iter + 1):
+        max_iter, cap = self.max_iter, self.max_iter + self.extension
+        for iteration in range(1, cap + 1):
             if not len(active):
                 break
             z = np.asarray(self._pad_loads.T @ (base[:, active] + x[:, active]))
@@ -452,16 +471,30 @@ class NonlinearSolver:
                 if change[i] < self.tolerance:
                     out[j] = (u[:, i], f[:, i], iteration)
                     continue
-                # the second iteration is the first of Anderson's mixing: it may grow up to 1/contraction^2 x
-                if np.isfinite(change[i]) and change[i] <= best[j] / self.contraction ** (2 if iteration == 2 else 1):
+                changes[j].append(float(change[i]))
+                # before the cap one iteration's growth ends it (the second, Anderson's first, may grow up to
+                # 1/contraction^2 x); from the cap on the trend does (single growths are common there: the zigzag)
+                going_on = np.isfinite(change[i]) and (
+                    change[i] <= best[j] / self.contraction ** (2 if iteration == 2 else 1) if iteration < max_iter
+                    else self._steady(changes[j], cap - iteration))
+                if going_on:
                     best[j] = min(best[j], change[i])
                     x[:, j] = mixing[j].next(x[:, j].copy(), r[:, i].copy())  # (copies: x changes in place)
                     going.append(j)
                 else:
                     self.failed_iterations += iteration
-            active = np.array(going, dtype=np.int64)
-        self.failed_iterations += max_iter * len(active)
+            active = np.array(going, dtype=np.int64)  # (none left after the cap: _steady has no iterations left)
         return out
+
+    def _steady(self, changes: list[float], left: int) -> bool:
+        """Whether an iteration whose changes (mm, one per iteration so far) are ``changes`` contracts steadily enough
+        to reach the tolerance in ``left`` more iterations: the rate rho fitted to the last ``window`` changes (least
+        squares on their logarithms: Anderson's changes zigzag) is at most ``steady`` and log(tolerance / change) /
+        log(rho) <= left."""
+        if len(changes) < self.window or left <= 0:
+            return False
+        rho = np.exp(np.polyfit(np.arange(self.window), np.log(changes[-self.window:]), 1)[0])
+        return bool(rho <= self.steady and np.log(self.tolerance / changes[-1]) / np.log(rho) <= left)
 
     def _nearest(self, state: np.ndarray) -> int:
         """The index of the solved state nearest to ``state`` (1-norm)."""
@@ -475,6 +508,12 @@ class NonlinearSolver:
             trial = min(1.0, done + step)
             result = self._iterate(tangent, (start + trial * (state - start))[None], u[:, None])[0]
             if result is not None:
+                if result[2] > self.max_iter and done == 0:  # the start's tangent is poor here: one half-way for
+                    # the members after it (its iterations are the solver's, not the member's: not in ``iterations``)
+                    middle = start + (done + trial) / 2 * (state - start)
+                    solved = self._iterate(tangent, middle[None], u[:, None])[0]
+                    if solved is not None:
+                        self._new_tangent(middle, solved[0])
                 u, f, count = result
                 iterations += count
                 done, fresh = trial, False
