@@ -510,7 +510,7 @@ class NonlinearSolver:
             if result is not None:
                 if result[2] > self.max_iter and done == 0:  # the start's tangent is poor here: one half-way for
                     # the members after it (its iterations are the solver's, not the member's: not in ``iterations``)
-                    middle = start + (done + trial) / 2 * (state - start)
+                    middle = start + trial / 2 * (state - start)
                     solved = self._iterate(tangent, middle[None], u[:, None])[0]
                     if solved is not None:
                         self._new_tangent(middle, solved[0])
